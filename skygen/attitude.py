@@ -1,0 +1,103 @@
+"""Boresight attitudes: sampling, rotation matrices and quaternions.
+
+See :mod:`skygen.conventions` for the definition of roll and of the quaternion. The
+attitude matrix ``R`` has the camera axes (x, y, z) expressed in ICRS as its columns,
+so ``v_icrs = R @ v_cam`` and ``v_cam = R.T @ v_icrs``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .catalog import radec_to_vec
+
+
+def attitude_matrix(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
+    """Camera-to-ICRS rotation matrix (3, 3) for a boresight and a roll.
+
+    With b the boresight, n and e the local north and east unit vectors and
+    up = cos(roll) n + sin(roll) e: z_cam = b, y_cam = -up (rows grow downwards),
+    x_cam = y_cam x z_cam = -cos(roll) e + sin(roll) n.
+    """
+    a, d, r = np.radians([ra_deg, dec_deg, roll_deg])
+    b = radec_to_vec(a, d)
+    east = np.array([-np.sin(a), np.cos(a), 0.0])
+    north = np.array([-np.sin(d) * np.cos(a), -np.sin(d) * np.sin(a), np.cos(d)])
+    up = np.cos(r) * north + np.sin(r) * east
+    y = -up
+    x = np.cross(y, b)
+    return np.column_stack([x, y, b])
+
+
+def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
+    """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix (Shepperd's method)."""
+    m = np.asarray(m, dtype=np.float64)
+    tr = np.trace(m)
+    cands = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
+    k = int(np.argmax(cands))
+    if k == 0:
+        w = np.sqrt(1.0 + tr) / 2
+        q = [w, (m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w)]
+    elif k == 1:
+        x = np.sqrt(1.0 + 2 * m[0, 0] - tr) / 2
+        q = [(m[2, 1] - m[1, 2]) / (4 * x), x, (m[0, 1] + m[1, 0]) / (4 * x), (m[0, 2] + m[2, 0]) / (4 * x)]
+    elif k == 2:
+        y = np.sqrt(1.0 + 2 * m[1, 1] - tr) / 2
+        q = [(m[0, 2] - m[2, 0]) / (4 * y), (m[0, 1] + m[1, 0]) / (4 * y), y, (m[1, 2] + m[2, 1]) / (4 * y)]
+    else:
+        z = np.sqrt(1.0 + 2 * m[2, 2] - tr) / 2
+        q = [(m[1, 0] - m[0, 1]) / (4 * z), (m[0, 2] + m[2, 0]) / (4 * z), (m[1, 2] + m[2, 1]) / (4 * z), z]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion [w, x, y, z]."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotation matrix for a right-handed rotation by ``angle_rad`` about ``axis`` (Rodrigues)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    n = np.linalg.norm(axis)
+    if n == 0 or angle_rad == 0:
+        return np.eye(3)
+    k = axis / n
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * kx + (1 - np.cos(angle_rad)) * kx @ kx
+
+
+def sample_boresight(cfg, frame_index: int, rng: np.random.Generator) -> tuple[float, float, float]:
+    """(ra_deg, dec_deg, roll_deg) for one frame from an :class:`AttitudeConfig`.
+
+    ``uniform``: isotropic on the sphere. ``region``: isotropic within a cap of
+    ``region_radius_deg`` around the region centre. ``list``: the frame_index-th entry
+    of the lists (cycled). Roll is uniform in ``roll_range_deg`` unless listed.
+    """
+    lo, hi = cfg.roll_range_deg
+    if cfg.mode == "list":
+        k = frame_index % len(cfg.ra_deg)
+        roll = cfg.roll_deg[k] if cfg.roll_deg else rng.uniform(lo, hi)
+        return float(cfg.ra_deg[k]) % 360.0, float(cfg.dec_deg[k]), float(roll) % 360.0
+    u1, u2, u3 = rng.random(3)
+    if cfg.mode == "uniform":
+        ra = 360.0 * u1
+        dec = np.degrees(np.arcsin(2.0 * u2 - 1.0))
+    else:  # region: uniform in a spherical cap, then rotated onto the centre
+        cos_r = np.cos(np.radians(cfg.region_radius_deg))
+        cos_t = 1.0 - u2 * (1.0 - cos_r)
+        sin_t = np.sqrt(max(0.0, 1.0 - cos_t * cos_t))
+        phi = 2 * np.pi * u1
+        local = np.array([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+        m = attitude_matrix(cfg.region_ra_deg, cfg.region_dec_deg, 0.0)
+        v = m @ local
+        ra = np.degrees(np.arctan2(v[1], v[0])) % 360.0
+        dec = np.degrees(np.arcsin(np.clip(v[2], -1, 1)))
+    roll = lo + (hi - lo) * u3
+    return float(ra % 360.0), float(dec), float(roll % 360.0)

@@ -1,0 +1,109 @@
+"""Pinhole star-tracker camera with optional Brown-Conrady distortion.
+
+Units: focal length in mm and pixel pitch in micrometres in the config; internally the
+focal length in pixels ``f_px = focal_length_mm * 1000 / pixel_pitch_um``. Pixel
+coordinates follow :mod:`skygen.conventions` (centre of the top-left pixel at (0, 0)).
+
+Distortion (Brown-Conrady) acts on normalised image coordinates (X/Z, Y/Z) with
+r^2 = x^2 + y^2::
+
+    x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
+    y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    width_px: int
+    height_px: int
+    f_px: float
+    cx_px: float
+    cy_px: float
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    @classmethod
+    def from_config(cls, cfg) -> "Camera":
+        if cfg.fov_deg is not None:
+            f_px = (cfg.width_px / 2.0) / np.tan(np.radians(cfg.fov_deg) / 2.0)
+        else:
+            f_px = cfg.focal_length_mm * 1000.0 / cfg.pixel_pitch_um
+        cx = (cfg.width_px - 1) / 2.0 if cfg.principal_x_px is None else cfg.principal_x_px
+        cy = (cfg.height_px - 1) / 2.0 if cfg.principal_y_px is None else cfg.principal_y_px
+        return cls(cfg.width_px, cfg.height_px, float(f_px), float(cx), float(cy),
+                   cfg.k1, cfg.k2, cfg.k3, cfg.p1, cfg.p2)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any((self.k1, self.k2, self.k3, self.p1, self.p2))
+
+    @property
+    def pixel_scale_arcsec(self) -> float:
+        """Angular size of one pixel at the centre, arcseconds."""
+        return float(np.degrees(1.0 / self.f_px) * 3600.0)
+
+    @property
+    def fov_deg(self) -> tuple[float, float]:
+        """Full field of view (horizontal, vertical) of the pinhole, degrees."""
+        return (float(np.degrees(2 * np.arctan(self.width_px / 2 / self.f_px))),
+                float(np.degrees(2 * np.arctan(self.height_px / 2 / self.f_px))))
+
+    def corner_radius_rad(self) -> float:
+        """Largest angle between the boresight and a sensor corner (distortion included)."""
+        xs = np.array([-0.5, self.width_px - 0.5, -0.5, self.width_px - 0.5])
+        ys = np.array([-0.5, -0.5, self.height_px - 0.5, self.height_px - 0.5])
+        v = self.unproject(xs, ys)
+        return float(np.max(np.arccos(np.clip(v[:, 2], -1, 1))))
+
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not self.has_distortion:
+            return x, y
+        r2 = x * x + y * y
+        radial = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        xd = x * radial + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
+        yd = y * radial + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
+        return xd, yd
+
+    def undistort(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+        """Invert :meth:`distort` by fixed-point iteration (converges for mild distortion)."""
+        if not self.has_distortion:
+            return xd, yd
+        x, y = np.array(xd, dtype=np.float64), np.array(yd, dtype=np.float64)
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+            dx = 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
+            dy = self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
+            x = (xd - dx) / radial
+            y = (yd - dy) / radial
+        return x, y
+
+    def project(self, v_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel (x, y) of camera-frame directions (N, 3); third value: in front (Z > 0)."""
+        v_cam = np.atleast_2d(v_cam)
+        z = v_cam[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        xd, yd = self.distort(v_cam[:, 0] / zs, v_cam[:, 1] / zs)
+        return self.cx_px + self.f_px * xd, self.cy_px + self.f_px * yd, front
+
+    def unproject(self, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+        """Camera-frame unit vectors (N, 3) seen at pixel positions."""
+        xd = (np.asarray(x_px, dtype=np.float64) - self.cx_px) / self.f_px
+        yd = (np.asarray(y_px, dtype=np.float64) - self.cy_px) / self.f_px
+        x, y = self.undistort(xd, yd)
+        v = np.stack([x, y, np.ones_like(x)], axis=-1)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        return ((x >= -0.5 - margin_px) & (x < self.width_px - 0.5 + margin_px) &
+                (y >= -0.5 - margin_px) & (y < self.height_px - 0.5 + margin_px))

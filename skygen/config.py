@@ -1,0 +1,193 @@
+"""The resolved render configuration: one frozen dataclass per pipeline stage.
+
+Every key has units in its name and a documented range; ``skygen config`` prints them.
+Defaults describe a realistic 1024 x 1024 CMOS star tracker (20 deg FOV, f/2.3, 0.1 s
+exposure); ``README.md`` shows the stars-per-frame histogram they give.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from .configlib import describe, from_dict, merge_overrides, param, read_yaml, section, to_dict
+from .errors import ConfigError
+
+INF = float("inf")
+
+
+@dataclass(frozen=True)
+class CatalogConfig:
+    path: Optional[str] = param(None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)")
+    mag_limit: Optional[float] = param(None, lo=-2, hi=20, doc="faintest magnitude rendered; None: detection limit + mag_margin")
+    mag_margin: float = param(1.0, lo=0, hi=10, doc="mag fainter than the computed detection limit still rendered")
+
+
+@dataclass(frozen=True)
+class AttitudeConfig:
+    mode: str = param("uniform", choices=("uniform", "region", "list"), doc="how boresights are drawn")
+    ra_deg: tuple[float, ...] = param((), lo=0, hi=360, hi_open=True, doc="mode=list: boresight RA values")
+    dec_deg: tuple[float, ...] = param((), lo=-90, hi=90, doc="mode=list: boresight Dec values")
+    roll_deg: tuple[float, ...] = param((), lo=0, hi=360, hi_open=True, doc="mode=list: roll values (empty: drawn from roll_range_deg)")
+    region_ra_deg: float = param(0.0, lo=0, hi=360, hi_open=True, doc="mode=region: centre RA")
+    region_dec_deg: float = param(0.0, lo=-90, hi=90, doc="mode=region: centre Dec")
+    region_radius_deg: float = param(10.0, lo=0, hi=180, lo_open=True, doc="mode=region: cap radius")
+    roll_range_deg: tuple[float, float] = param((0.0, 360.0), lo=0, hi=360, doc="roll drawn uniformly in [lo, hi)")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    width_px: int = param(1024, lo=16, hi=16384, doc="sensor columns")
+    height_px: int = param(1024, lo=16, hi=16384, doc="sensor rows")
+    pixel_pitch_um: float = param(5.5, lo=0, lo_open=True, hi=100, doc="pixel pitch, micrometres")
+    focal_length_mm: float = param(15.97, lo=0, lo_open=True, hi=10000, doc="focal length, mm (ignored if fov_deg is set)")
+    fov_deg: Optional[float] = param(None, lo=0, lo_open=True, hi=120, hi_open=True, doc="horizontal FOV; overrides focal_length_mm")
+    principal_x_px: Optional[float] = param(None, doc="principal point x (None: sensor centre)")
+    principal_y_px: Optional[float] = param(None, doc="principal point y (None: sensor centre)")
+    k1: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^2 coefficient")
+    k2: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^4 coefficient")
+    k3: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^6 coefficient")
+    p1: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p1")
+    p2: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p2")
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    aperture_mm: float = param(7.0, lo=0, lo_open=True, hi=2000, doc="entrance pupil diameter, mm")
+    transmission: float = param(0.8, lo=0, lo_open=True, hi=1, doc="optical throughput (lenses, filters), 0..1")
+    psf: str = param("gaussian", choices=("gaussian", "moffat", "airy"), doc="PSF profile")
+    psf_sigma_px: float = param(1.2, lo=0.2, hi=20, doc="Gaussian sigma (defocus); for moffat/airy the same-FWHM width")
+    moffat_beta: float = param(3.0, lo=1.1, hi=20, doc="Moffat beta")
+    vignetting: float = param(0.0, lo=0, hi=0.9, doc="relative illumination loss at the sensor corner (cos^4-like), 0: off")
+
+
+@dataclass(frozen=True)
+class PhotometryConfig:
+    zero_point_ph_s_cm2_a: float = param(1004.5, lo=0, lo_open=True, doc="V=0 photon flux density at 550 nm, photons/s/cm^2/Angstrom (Bessell et al. 1998)")
+    hp_minus_v: float = param(0.1, lo=-2, hi=2, doc="Hp - V assumed to convert catalog Hp to V")
+    colour: bool = param(True, doc="blackbody spectrum from B-V through the QE curve (False: flat spectrum)")
+    default_bv: float = param(0.65, lo=-0.5, hi=3, doc="B-V used when a star has none (solar)")
+    sky_mag_arcsec2: float = param(22.5, lo=10, hi=30, doc="diffuse sky (zodiacal light) surface brightness, V mag/arcsec^2")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    exposure_s: float = param(0.1, lo=0, lo_open=True, hi=3600, doc="integration time, s")
+    qe_peak: float = param(0.6, lo=0, lo_open=True, hi=1, doc="peak quantum efficiency (scales the built-in CMOS QE curve)")
+    gain_e_per_adu: float = param(3.3, lo=0, lo_open=True, hi=1000, doc="conversion gain, e-/ADU")
+    read_noise_e: float = param(5.0, lo=0, hi=1000, doc="read noise, e- rms (Gaussian, zero mean)")
+    bias_adu: int = param(100, lo=0, hi=60000, doc="bias (offset) level, ADU")
+    fpn_adu: float = param(1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel")
+    prnu_frac: float = param(0.01, lo=0, hi=0.5, doc="photo-response non-uniformity, fractional rms, static per pixel")
+    dark_current_e_s: float = param(125.0, lo=0, hi=1e6, doc="mean dark current at dark_reference_c, e-/s/pixel")
+    dark_reference_c: float = param(25.0, lo=-273.15, hi=200, doc="temperature at which dark_current_e_s holds, Celsius")
+    dark_doubling_c: float = param(6.5, lo=0, lo_open=True, hi=100, doc="temperature rise that doubles dark current, Celsius")
+    temperature_c: float = param(20.0, lo=-273.15, hi=200, doc="sensor temperature, Celsius")
+    full_well_e: float = param(13500.0, lo=1, hi=1e7, doc="full-well capacity, e-")
+    bit_depth: int = param(12, lo=8, hi=16, doc="ADC bits")
+    blooming: bool = param(True, doc="charge above full well spills along the column")
+    hot_pixel_dark_e_s: float = param(20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 1 dex spread)")
+    dead_pixel_fraction: float = param(1e-5, lo=0, hi=0.1, doc="fraction of pixels with no response (static map)")
+    sensor_seed: int = param(1234, lo=0, doc="seed of the static sensor maps (PRNU, FPN, hot and dead pixels)")
+    sampler: str = param("fast", choices=("fast", "exact"), doc="noise sampler: fast (exact LUT for the uniform background) or exact (per-pixel numpy draws)")
+
+
+@dataclass(frozen=True)
+class CorruptionsConfig:
+    """Severity of each registered corruption (see :mod:`skygen.corruptions`); 0 = off."""
+    hotpixels: float = param(5e-5, lo=0, hi=0.05, doc="fraction of pixels that are hot (static map from sensor_seed)")
+    cosmic_rays: float = param(5.0, lo=0, hi=1e5, doc="particle flux, hits/cm^2/s (tracks)")
+    motion_blur: float = param(0.0, lo=0, hi=90, doc="angular rate magnitude, deg/s (random axis)")
+    stray_light: float = param(0.0, lo=0, hi=1e7, doc="stray-light gradient, e-/px/s at the bright edge")
+    read_noise: float = param(0.0, lo=0, hi=1000, doc="extra read noise added in quadrature, e- rms")
+    false_stars: float = param(0.0, lo=0, hi=100, doc="mean number of spurious point sources per frame (Poisson)")
+    dropout: float = param(0.0, lo=0, hi=1, doc="probability that a detection is lost")
+    centroid_noise: float = param(0.0, lo=0, hi=50, doc="Gaussian centroid perturbation, px rms per axis")
+    magnitude_noise: float = param(0.0, lo=0, hi=5, doc="Gaussian magnitude perturbation of detected flux, mag rms")
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    threshold_sigma: float = param(5.0, lo=1, hi=1000, doc="detection threshold above background, in background sigma")
+    min_area_px: int = param(3, lo=1, hi=10000, doc="smallest connected component kept, pixels")
+    max_detections: int = param(64, lo=1, hi=100000, doc="keep at most this many detections (brightest first)")
+    match_radius_px: float = param(2.0, lo=0, lo_open=True, hi=100, doc="detection-to-true-star match radius, px")
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    image_size_px: int = param(256, lo=8, hi=16384, doc="stored image size (square; area-averaged from the sensor)")
+    full_res: bool = param(False, doc="also store the full-resolution frame")
+    compression: str = param("gzip", choices=("gzip", "lzf", "none", "blosc-zstd", "blosc-lz4"), doc="HDF5 image compression (blosc needs hdf5plugin)")
+    compression_level: int = param(4, lo=0, hi=9, doc="gzip/blosc level")
+    shard_size: int = param(1000, lo=1, hi=1000000, doc="frames per shard file")
+    split_fractions: tuple[float, float, float] = param((0.8, 0.1, 0.1), lo=0, hi=1, doc="train/val/test fractions (contiguous frame ranges)")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    seed: int = param(0, lo=0, doc="dataset seed; frame i uses a generator derived from (seed, i)")
+    n_frames: int = param(1000, lo=1, hi=100_000_000, doc="number of frames (--n)")
+    epoch_yr: float = param(2024.0, lo=1000, hi=3000, doc="observation epoch, Julian year (proper motion applied)")
+    catalog: CatalogConfig = section(CatalogConfig)
+    attitude: AttitudeConfig = section(AttitudeConfig)
+    camera: CameraConfig = section(CameraConfig)
+    optics: OpticsConfig = section(OpticsConfig)
+    photometry: PhotometryConfig = section(PhotometryConfig)
+    sensor: SensorConfig = section(SensorConfig)
+    corruptions: CorruptionsConfig = section(CorruptionsConfig)
+    detection: DetectionConfig = section(DetectionConfig)
+    output: OutputConfig = section(OutputConfig)
+
+
+def check_consistency(cfg: RenderConfig) -> None:
+    """Checks that involve several keys (single keys are checked on construction)."""
+    a = cfg.attitude
+    if a.mode == "list":
+        if not a.ra_deg or len(a.ra_deg) != len(a.dec_deg):
+            raise ConfigError("attitude.ra_deg and attitude.dec_deg must be non-empty lists of equal length "
+                              "when attitude.mode=list")
+        if a.roll_deg and len(a.roll_deg) != len(a.ra_deg):
+            raise ConfigError("attitude.roll_deg must be empty or as long as attitude.ra_deg")
+    if a.roll_range_deg[1] < a.roll_range_deg[0]:
+        raise ConfigError(f"attitude.roll_range_deg: {list(a.roll_range_deg)} must be [lo, hi] with lo <= hi")
+    cam, out = cfg.camera, cfg.output
+    if cam.width_px != cam.height_px:
+        raise ConfigError(f"camera.width_px ({cam.width_px}) and camera.height_px ({cam.height_px}) must be "
+                          "equal: stored images are square")
+    if cam.width_px % out.image_size_px:
+        raise ConfigError(f"output.image_size_px ({out.image_size_px}) must divide camera.width_px "
+                          f"({cam.width_px}) so that frames are area-averaged by an integer factor")
+    if abs(sum(out.split_fractions) - 1.0) > 1e-6:
+        raise ConfigError(f"output.split_fractions {list(out.split_fractions)} must sum to 1")
+    if cfg.sensor.bias_adu >= 2 ** cfg.sensor.bit_depth:
+        raise ConfigError(f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
+                          f"2**sensor.bit_depth = {2 ** cfg.sensor.bit_depth}")
+    for key in ("principal_x_px", "principal_y_px"):
+        v = getattr(cam, key)
+        size = cam.width_px if key == "principal_x_px" else cam.height_px
+        if v is not None and not (0 <= v <= size - 1):
+            raise ConfigError(f"camera.{key}: {v} must lie on the sensor, 0..{size - 1}")
+
+
+def build_config(data: dict | None = None) -> RenderConfig:
+    cfg = from_dict(RenderConfig, data or {})
+    check_consistency(cfg)
+    return cfg
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> RenderConfig:
+    """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
+    data = read_yaml(path) if path else {}
+    return build_config(merge_overrides(data, overrides))
+
+
+def config_dict(cfg: RenderConfig) -> dict:
+    return to_dict(cfg)
+
+
+def config_help() -> str:
+    rows = describe(RenderConfig)
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"{k:<{width}}  {d!r:<12} {allowed:<28} {doc}" for k, d, allowed, doc in rows)

@@ -1,0 +1,215 @@
+"""Typed, frozen configuration objects built from YAML plus dotted overrides.
+
+A configuration is a tree of frozen dataclasses. Each field may carry metadata made by
+:func:`param` (allowed range, allowed choices, a one-line help text with units). The
+loader checks every key and value against the dataclass: unknown keys, wrong types and
+out-of-range values raise :class:`~skygen.errors.ConfigError` naming the dotted key and
+what is allowed. The same machinery is used by ``fusion`` for training configs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import ConfigError
+
+
+def param(default: Any, *, lo: float | None = None, hi: float | None = None,
+          lo_open: bool = False, hi_open: bool = False, choices: tuple | None = None,
+          doc: str = "") -> Any:
+    """A dataclass field with validation metadata (range, choices) and a help text."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open,
+            "choices": choices, "doc": doc}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for sequence defaults (configs are immutable)")
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def section(cls: type) -> Any:
+    """A nested configuration section with its default instance."""
+    return dataclasses.field(default_factory=cls, metadata={"section": True})
+
+
+def _describe_range(meta: dict) -> str:
+    parts = []
+    if meta.get("choices"):
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    if meta.get("lo") is not None:
+        parts.append(f"{'>' if meta['lo_open'] else '>='} {meta['lo']}")
+    if meta.get("hi") is not None:
+        parts.append(f"{'<' if meta['hi_open'] else '<='} {meta['hi']}")
+    return " and ".join(parts) if parts else "any value of the right type"
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against annotation ``tp``; return it converted (lists to tuples)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(f"{key}: expected {_type_name(tp)}, got {value!r}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{key}: expected a list of {len(args)} values, got {value!r}")
+        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if tp is Any:
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        value = float(value)
+        if value != value:
+            raise ConfigError(f"{key}: NaN is not allowed")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config annotation {tp!r} for {key}")
+
+
+def _check_range(value: Any, meta: dict, key: str) -> None:
+    if value is None:
+        return
+    values = value if isinstance(value, tuple) else (value,)
+    for v in values:
+        if meta.get("choices") is not None and v not in meta["choices"]:
+            raise ConfigError(f"{key}: {v!r} is not allowed; expected {_describe_range(meta)}")
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            lo, hi = meta.get("lo"), meta.get("hi")
+            bad = (lo is not None and (v <= lo if meta["lo_open"] else v < lo)) or \
+                  (hi is not None and (v >= hi if meta["hi_open"] else v > hi))
+            if bad:
+                raise ConfigError(f"{key}: {v!r} is out of range; expected {_describe_range(meta)}")
+
+
+def from_dict(cls: type, data: dict | None, prefix: str = "") -> Any:
+    """Build dataclass ``cls`` from a (possibly partial) nested dict, validating it."""
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix or 'config'}: expected a mapping of keys, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        k = unknown[0]
+        close = difflib.get_close_matches(str(k), fields, n=1)
+        hint = f"; did you mean '{prefix}{close[0]}'?" if close else ""
+        raise ConfigError(f"unknown config key '{prefix}{k}'{hint} "
+                          f"(valid keys here: {', '.join(fields)})")
+    kwargs = {}
+    for name, f in fields.items():
+        key = prefix + name
+        if f.metadata.get("section"):
+            kwargs[name] = from_dict(hints[name], data.get(name), key + ".")
+        elif name in data:
+            value = _coerce(data[name], hints[name], key)
+            _check_range(value, f.metadata, key)
+            kwargs[name] = value
+    return cls(**kwargs)
+
+
+def to_dict(obj: Any) -> dict:
+    """A plain nested dict (tuples become lists) of a config dataclass."""
+    def conv(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        return v
+    return conv(obj)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``a.b.c=value`` into (["a","b","c"], parsed YAML value)."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r} must look like key=value, e.g. sensor.exposure_s=0.05")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key:
+        raise ConfigError(f"override {text!r} has an empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({exc})") from None
+    return key.split("."), value
+
+
+def merge_overrides(data: dict, overrides: list[str] | tuple[str, ...]) -> dict:
+    """Apply dotted ``key=value`` overrides to a nested dict (returns a new dict)."""
+    import copy
+    data = copy.deepcopy(data)
+    for text in overrides or ():
+        path, value = parse_override(text)
+        node = data
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {text!r}: '{part}' is not a section")
+        node[path[-1]] = value
+    return data
+
+
+def read_yaml(path: str | Path) -> dict:
+    """Read a YAML mapping, with a clear error for a missing or malformed file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of keys at the top level")
+    return data
+
+
+def describe(cls: type, prefix: str = "") -> list[tuple[str, Any, str, str]]:
+    """(dotted key, default, allowed, help) rows for documentation and ``--help``."""
+    rows = []
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("section"):
+            rows += describe(typing.get_type_hints(cls)[f.name], prefix + f.name + ".")
+        else:
+            rows.append((prefix + f.name, f.default, _describe_range(f.metadata),
+                         f.metadata.get("doc", "")))
+    return rows

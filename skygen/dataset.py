@@ -1,0 +1,236 @@
+"""Render a whole dataset: shards, manifest, parallel workers, resume and slices.
+
+Frame i always comes from ``Renderer(cfg).render(i)``, so a dataset is identical
+whatever the number of workers, the slicing, or how often it was interrupted.
+
+Progress is recorded in the manifest after every finished shard. A re-run with the same
+config skips shards whose file matches the recorded sha256 and renders the rest. A
+render sliced for a job array (``slice_index`` of ``num_slices``) writes its own
+``manifest.slice-I-of-K.json``; when the last slice finishes, ``manifest.json`` for
+the whole dataset is written.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import corruptions as corr
+from .config import RenderConfig, config_dict
+from .errors import DatasetError
+from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
+                 sha256_file, shard_name, write_json_atomic, write_shard)
+
+
+def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
+    return [(s, min(s + shard_size, n_frames)) for s in range(0, n_frames, shard_size)]
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, prefix + k + "."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def config_differences(a: dict, b: dict) -> list[str]:
+    """Dotted keys whose values differ between two config dicts."""
+    fa, fb = _flatten(a), _flatten(b)
+    return sorted(k for k in set(fa) | set(fb) if fa.get(k, "<missing>") != fb.get(k, "<missing>"))
+
+
+def _manifests(out: Path) -> list[tuple[Path, dict]]:
+    found = []
+    for p in sorted(out.glob("manifest*.json")):
+        try:
+            found.append((p, json.loads(p.read_text())))
+        except (OSError, ValueError):
+            raise DatasetError(f"{p} is unreadable; delete it (its shards will be checked and re-used) "
+                               "and run the same command again") from None
+    return found
+
+
+def _check_compatible(out: Path, cfg_dict: dict, force: bool) -> list[dict]:
+    """Shard entries recorded by earlier runs of the same config in ``out``."""
+    entries = []
+    for path, man in _manifests(out):
+        if man.get("format") != MANIFEST_FORMAT:
+            raise DatasetError(f"{path} is not a skygen manifest; choose another --out folder")
+        if man.get("dataset_id") != config_id(cfg_dict):
+            if force:
+                continue
+            diff = config_differences(man.get("config", {}), cfg_dict)
+            raise DatasetError(f"{out} already holds a different dataset (config keys differ: "
+                               f"{', '.join(diff[:12]) or 'schema'}). Use another --out folder, or --force "
+                               "to replace it.")
+        entries += man.get("shards", [])
+    return entries
+
+
+def _clean_temporaries(out: Path) -> None:
+    for p in out.glob(".shard-*.h5.tmp*"):
+        p.unlink(missing_ok=True)
+    for p in out.glob(".manifest*.json.tmp*"):
+        p.unlink(missing_ok=True)
+
+
+def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool, extra: dict) -> dict:
+    entries = sorted(entries, key=lambda e: e["index"])
+    splits = {s: sum(e["splits"][s] for e in entries) for s in SPLIT_NAMES}
+    return {"format": MANIFEST_FORMAT, "schema_version": SCHEMA_VERSION, "dataset_id": config_id(cfg_dict),
+            "complete": complete, "n_frames": sum(e["n_frames"] for e in entries), "n_shards": n_shards,
+            "splits": splits, "shards": entries, "config": cfg_dict, "versions": library_versions(),
+            "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
+
+
+# ----------------------------------------------------------------------- workers
+_WORKER: dict = {}
+
+
+def _init_worker(cfg: RenderConfig, counter) -> None:
+    import cv2
+    cv2.setNumThreads(1)
+    from .render import Renderer
+    _WORKER["renderer"] = Renderer(cfg)
+    _WORKER["counter"] = counter
+
+
+def _render_shard(args: tuple[int, int, int, str]) -> dict:
+    k, start, stop, out = args
+    r = _WORKER["renderer"]
+    counter = _WORKER.get("counter")
+    frames = []
+    for i in range(start, stop):
+        frames.append(r.render(i))
+        if counter is not None:
+            with counter.get_lock():
+                counter.value += 1
+    o = r.cfg.output
+    try:
+        return write_shard(Path(out) / shard_name(k), frames, config=config_dict(r.cfg), shard_index=k,
+                           frame_start=start, compression=o.compression, compression_level=o.compression_level,
+                           corruption_names=tuple(corr.REGISTRY))
+    except OSError as exc:
+        raise DatasetError(f"cannot write {Path(out) / shard_name(k)}: {exc.strerror or exc}") from None
+
+
+def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_index: int = 0,
+                   num_slices: int = 1, force: bool = False, progress: bool = True) -> dict:
+    """Render (or resume) the dataset of ``cfg`` into folder ``out``; returns the manifest.
+
+    Raises DatasetError when ``out`` holds a different dataset (unless ``force``) or a
+    shard cannot be written. Interrupting leaves only whole shards and a valid manifest.
+    """
+    from .render import Renderer
+    if not 0 <= slice_index < num_slices:
+        raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{id(out)}"
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise DatasetError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
+    cfg_dict = config_dict(cfg)
+    recorded = _check_compatible(out, cfg_dict, force)
+    if force:   # remove what belongs to another dataset
+        for path, man in _manifests(out):
+            if man.get("dataset_id") != config_id(cfg_dict):
+                path.unlink()
+        keep = {e["file"] for e in recorded}
+        for p in out.glob("shard-*.h5"):
+            if p.name not in keep:
+                p.unlink()
+    _clean_temporaries(out)
+    ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
+    mine = [k for k in range(len(ranges)) if k % num_slices == slice_index]
+    done = {}
+    for e in recorded:
+        p = out / e["file"]
+        if e["index"] in mine and e["index"] not in done and p.exists() and p.stat().st_size == e["bytes"] \
+                and sha256_file(p) == e["sha256"]:
+            done[e["index"]] = e
+    todo = [k for k in mine if k not in done]
+    probe_renderer = Renderer(cfg)
+    extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
+             "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
+             "shard_size": cfg.output.shard_size}
+    del probe_renderer
+    name = MANIFEST_NAME if num_slices == 1 else f"manifest.slice-{slice_index}-of-{num_slices}.json"
+
+    def save(complete: bool) -> dict:
+        man = _manifest(cfg_dict, list(done.values()), len(ranges), complete, extra)
+        write_json_atomic(out / name, man)
+        return man
+
+    save(not todo)
+    n_todo = sum(ranges[k][1] - ranges[k][0] for k in todo)
+    bar = None
+    if progress and n_todo:
+        from tqdm import tqdm
+        bar = tqdm(total=n_todo, unit="frame", desc=f"render {out}", smoothing=0.1)
+    tasks = [(k, ranges[k][0], ranges[k][1], str(out)) for k in todo]
+    try:
+        if workers <= 1 or len(tasks) <= 1:
+            _init_worker(cfg, None)
+            for t in tasks:
+                done[t[0]] = _render_shard(t)
+                save(False)
+                if bar:
+                    bar.update(t[2] - t[1])
+        else:
+            _run_pool(cfg, tasks, workers, done, save, bar)
+    except BaseException:
+        _clean_temporaries(out)
+        raise
+    finally:
+        if bar:
+            bar.close()
+    man = save(True)
+    if num_slices > 1:
+        man = _maybe_combine_slices(out, cfg_dict, len(ranges), extra) or man
+    return man
+
+
+def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
+    ctx = mp.get_context("spawn")
+    counter = ctx.Value("q", 0)
+    seen = 0
+    with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(cfg, counter)) as pool:
+        pending = [pool.apply_async(_render_shard, (t,)) for t in tasks]
+        try:
+            while pending:
+                time.sleep(0.2)
+                for res in [p for p in pending if p.ready()]:
+                    pending.remove(res)
+                    entry = res.get()          # re-raises a worker's exception
+                    done[entry["index"]] = entry
+                    save(False)
+                if bar:
+                    now = counter.value
+                    bar.update(now - seen)
+                    seen = now
+        except BaseException:
+            pool.terminate()
+            raise
+
+
+def _maybe_combine_slices(out: Path, cfg_dict: dict, n_shards: int, extra: dict) -> dict | None:
+    entries = {}
+    for path, man in _manifests(out):
+        if path.name != MANIFEST_NAME and man.get("dataset_id") == config_id(cfg_dict):
+            for e in man["shards"]:
+                entries[e["index"]] = e
+    if len(entries) < n_shards:
+        return None
+    man = _manifest(cfg_dict, list(entries.values()), n_shards, True, extra)
+    write_json_atomic(out / MANIFEST_NAME, man)
+    return man

@@ -1,0 +1,433 @@
+"""The skygen dataset format: one writer, one reader.
+
+A *dataset* is a folder holding ``manifest.json`` and shards ``shard-00000.h5`` ... .
+Each shard is a self-describing HDF5 file (see ``docs/FORMAT.md``) that plain h5py can
+read. Variable-length per-frame tables (true stars, detections) are stored flat with an
+``offsets`` array of length N+1: rows of frame i are ``offsets[i]:offsets[i+1]``.
+
+Shards are written to a hidden temporary name (``.shard-00000.h5.tmp``) and renamed
+only once complete and closed, so a file named ``shard-*.h5`` is always whole; the
+manifest records the sha256 of every shard and is itself replaced atomically.
+
+:func:`open_dataset` is the only reader; ``fusion`` reads through it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import h5py
+import numpy as np
+
+from .conventions import CONVENTIONS
+from .errors import DatasetError
+
+FORMAT_NAME = "skygen-shard"
+MANIFEST_FORMAT = "skygen-dataset"
+SCHEMA_VERSION = "1.0.0"
+SUPPORTED_MAJOR = (1,)
+MANIFEST_NAME = "manifest.json"
+SPLIT_NAMES = ("train", "val", "test")
+LIBVER = ("v110", "v114")
+
+STAR_FIELDS = {  # name: (dtype, units, description)
+    "hip_id": ("i8", "", "catalog id (HIP number); -1 for a false star injected in the scene"),
+    "x_px": ("f8", "px", "projected position, full-resolution pixels, (0,0) = centre of top-left pixel"),
+    "y_px": ("f8", "px", "projected position, full-resolution pixels"),
+    "mag": ("f4", "mag", "catalog magnitude (Hp)"),
+    "bv": ("f4", "mag", "catalog B-V colour (NaN if unknown)"),
+    "electrons": ("f4", "e-", "expected photo-electrons collected over the exposure (before noise)"),
+}
+DETECTION_FIELDS = {
+    "x_px": ("f8", "px", "intensity-weighted centroid, full-resolution pixels"),
+    "y_px": ("f8", "px", "intensity-weighted centroid, full-resolution pixels"),
+    "flux_adu": ("f4", "ADU", "background-subtracted summed signal"),
+    "peak_adu": ("f4", "ADU", "background-subtracted peak pixel"),
+    "area_px": ("i4", "px", "pixels above threshold"),
+    "hip_id": ("i8", "", "HIP id of the matched true star; -1 if false"),
+    "star_index": ("i4", "", "row of the matched true star within the frame; -1 if false"),
+}
+FRAME_FIELDS = {
+    "index": ("i8", "", "global frame index within the dataset"),
+    "split": ("u1", "", "0 train, 1 val, 2 test (see attribute labels)"),
+    "n_stars": ("i4", "", "true stars projected inside the sensor"),
+    "n_detections": ("i4", "", "detections after detection-level corruptions"),
+    "background_adu": ("f4", "ADU", "detector's background estimate"),
+    "noise_adu": ("f4", "ADU", "detector's background noise estimate (robust sigma)"),
+}
+BORESIGHT_FIELDS = {
+    "ra_deg": ("f8", (), "deg", "boresight right ascension, ICRS, [0, 360)"),
+    "dec_deg": ("f8", (), "deg", "boresight declination, ICRS"),
+    "roll_deg": ("f8", (), "deg", "position angle of image up from north through east"),
+    "unit_vector": ("f8", (3,), "", "boresight [cos d cos a, cos d sin a, sin d], ICRS"),
+    "quaternion": ("f8", (4,), "", "[w, x, y, z], camera frame to ICRS"),
+}
+
+
+def library_versions() -> dict:
+    import astropy
+    import cv2
+    import scipy
+    from . import __version__
+    return {"skygen": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "astropy": astropy.__version__, "h5py": h5py.__version__,
+            "hdf5": h5py.version.hdf5_version, "opencv": cv2.__version__}
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def config_id(config: dict) -> str:
+    """Stable identity of a dataset's frames: sha256 of its canonical config JSON."""
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def shard_name(index: int) -> str:
+    return f"shard-{index:05d}.h5"
+
+
+def _compression(name: str, level: int) -> dict:
+    if name == "gzip":
+        return {"compression": "gzip", "compression_opts": level, "shuffle": True}
+    if name == "lzf":
+        return {"compression": "lzf", "shuffle": True}
+    if name == "none":
+        return {}
+    if name in ("blosc-zstd", "blosc-lz4"):
+        try:
+            import hdf5plugin
+        except ImportError:
+            raise DatasetError(f"compression '{name}' needs the optional package hdf5plugin: "
+                               "pip install hdf5plugin (or use output.compression=gzip)") from None
+        cname = name.split("-")[1]
+        return dict(hdf5plugin.Blosc(cname=cname, clevel=level, shuffle=hdf5plugin.Blosc.BITSHUFFLE))
+    raise DatasetError(f"unknown compression {name!r}")
+
+
+def _write_table(group: h5py.Group, rows: list[dict], fields: dict) -> None:
+    counts = np.array([len(r[next(iter(fields))]) for r in rows], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    d = group.create_dataset("offsets", data=offsets)
+    d.attrs["description"] = "rows of frame i are offsets[i]:offsets[i+1]"
+    for name, (dtype, units, desc) in fields.items():
+        parts = [np.asarray(r[name], dtype=dtype) for r in rows]
+        data = np.concatenate(parts) if parts else np.zeros(0, dtype)
+        d = group.create_dataset(name, data=data)
+        d.attrs["units"] = units
+        d.attrs["description"] = desc
+
+
+def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: int,
+                frame_start: int, compression: str = "gzip", compression_level: int = 4,
+                corruption_names: tuple[str, ...] = ()) -> dict:
+    """Write rendered frames (a list of :class:`skygen.render.Frame`) as one shard.
+
+    Writes to a hidden temporary file in the same folder and renames it into place, so
+    an interruption never leaves a complete-looking shard. Returns the manifest entry.
+    """
+    path = Path(path)
+    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
+    n = len(frames)
+    try:
+        with h5py.File(tmp, "w", libver=LIBVER) as f:
+            a = f.attrs
+            a["format"] = FORMAT_NAME
+            a["schema_version"] = SCHEMA_VERSION
+            a["config"] = json.dumps(config, sort_keys=True)
+            a["dataset_id"] = config_id(config)
+            a["versions"] = json.dumps(library_versions(), sort_keys=True)
+            a["seed"] = int(config["seed"])
+            a["shard_index"] = shard_index
+            a["frame_start"] = frame_start
+            a["n_frames"] = n
+            a["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            a["conventions"] = json.dumps(CONVENTIONS, sort_keys=True)
+            comp = _compression(compression, compression_level)
+            images = np.stack([fr.image for fr in frames]) if n else np.zeros((0, 1, 1), np.uint16)
+            d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None,
+                                 **(comp if n else {}))
+            d.attrs["units"] = "ADU"
+            d.attrs["description"] = "sensor frames area-averaged to the stored size, [frame, y, x]"
+            d.attrs["downsample_factor"] = int(frames[0].downsample_factor) if n else 1
+            if n and frames[0].image_full is not None:
+                full = np.stack([fr.image_full for fr in frames])
+                d = f.create_dataset("images_full", data=full, chunks=(1,) + full.shape[1:], **comp)
+                d.attrs["units"] = "ADU"
+                d.attrs["description"] = "full-resolution sensor frames, [frame, y, x]"
+            g = f.create_group("frames")
+            for name, (dtype, units, desc) in FRAME_FIELDS.items():
+                d = g.create_dataset(name, data=np.array([getattr(fr, name) for fr in frames], dtype=dtype))
+                d.attrs["units"] = units
+                d.attrs["description"] = desc
+            g["split"].attrs["labels"] = json.dumps(SPLIT_NAMES)
+            g = f.create_group("boresight")
+            g.attrs["frame"] = "ICRS"
+            for name, (dtype, shape, units, desc) in BORESIGHT_FIELDS.items():
+                data = np.array([getattr(fr, name) for fr in frames], dtype=dtype).reshape((n,) + shape)
+                d = g.create_dataset(name, data=data)
+                d.attrs["units"] = units
+                d.attrs["description"] = desc
+            _write_table(f.create_group("stars"), [fr.stars for fr in frames], STAR_FIELDS)
+            _write_table(f.create_group("detections"), [fr.detections for fr in frames], DETECTION_FIELDS)
+            g = f.create_group("corruptions")
+            g.attrs["description"] = "per-frame severity applied for each registered corruption, in its units"
+            for name in corruption_names:
+                d = g.create_dataset(name, data=np.array([fr.applied.get(name, 0.0) for fr in frames], "f8"))
+            log = np.array([json.dumps(fr.log, sort_keys=True) for fr in frames], dtype=object)
+            d = g.create_dataset("log", data=log, dtype=h5py.string_dtype())
+            d.attrs["description"] = "JSON per frame: what each corruption/defect did (counts, vectors)"
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    splits = np.bincount([fr.split for fr in frames], minlength=3)
+    return {"file": path.name, "index": shard_index, "frame_start": frame_start, "n_frames": n,
+            "bytes": path.stat().st_size, "sha256": sha256_file(path),
+            "splits": {s: int(c) for s, c in zip(SPLIT_NAMES, splits)}}
+
+
+def write_json_atomic(path: str | Path, data: dict) -> None:
+    path = Path(path)
+    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_manifest(folder: str | Path, name: str = MANIFEST_NAME) -> dict:
+    path = Path(folder) / name
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path} not found: not a skygen dataset folder, or its render has not "
+                           "finished (re-run the same `skygen render` command to resume)") from None
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path} is unreadable or not JSON ({exc}); restore it or re-render") from None
+    if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
+        raise DatasetError(f"{path} is not a skygen manifest (format={data.get('format') if isinstance(data, dict) else None!r})")
+    _check_version(data.get("schema_version"), path)
+    return data
+
+
+def _check_version(version, path) -> None:
+    try:
+        major = int(str(version).split(".")[0])
+    except ValueError:
+        raise DatasetError(f"{path}: schema_version {version!r} is not a version number") from None
+    if major not in SUPPORTED_MAJOR:
+        raise DatasetError(f"{path}: schema version {version} is not supported by this skygen "
+                           f"(reads major version {', '.join(map(str, SUPPORTED_MAJOR))}); "
+                           "upgrade skygen or re-render the dataset")
+
+
+def open_shard_file(path: str | Path) -> h5py.File:
+    """Open one shard read-only, checking that it is a skygen shard of a known version."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: shard file is missing") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
+    if f.attrs.get("format") != FORMAT_NAME:
+        f.close()
+        raise DatasetError(f"{path}: not a skygen shard (HDF5 attribute format="
+                           f"{f.attrs.get('format')!r}, expected {FORMAT_NAME!r})")
+    _check_version(f.attrs.get("schema_version"), path)
+    return f
+
+
+@dataclass
+class _Shard:
+    path: Path
+    frame_start: int
+    n_frames: int
+    handle: h5py.File | None = None
+
+
+@dataclass
+class Dataset:
+    """A rendered dataset opened for reading. Use :func:`open_dataset`.
+
+    Small per-frame arrays (boresight, split, counts) are loaded on open; images and
+    star tables are read lazily from the shards. Safe to pickle into DataLoader
+    workers: open HDF5 handles are dropped and re-opened lazily in each process.
+    """
+
+    root: Path
+    manifest: dict
+    shards: list[_Shard]
+    boresight: dict = field(repr=False)
+    frames: dict = field(repr=False)
+
+    # -- basic facts -------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.frames["index"].shape[0])
+
+    @property
+    def config(self) -> dict:
+        return self.manifest["config"]
+
+    @property
+    def schema_version(self) -> str:
+        return self.manifest["schema_version"]
+
+    @property
+    def sensor_shape(self) -> tuple[int, int]:
+        cam = self.config["camera"]
+        return int(cam["height_px"]), int(cam["width_px"])
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        s = int(self.config["output"]["image_size_px"])
+        return s, s
+
+    @property
+    def downsample_factor(self) -> int:
+        return self.sensor_shape[1] // self.image_shape[1]
+
+    def indices(self, split: str | None = None) -> np.ndarray:
+        """Positions (0..len-1) of the frames in ``split`` ('train', 'val', 'test' or None)."""
+        if split is None:
+            return np.arange(len(self))
+        if split not in SPLIT_NAMES:
+            raise DatasetError(f"unknown split {split!r}; expected one of {', '.join(SPLIT_NAMES)}")
+        return np.flatnonzero(self.frames["split"] == SPLIT_NAMES.index(split))
+
+    # -- lazy access -------------------------------------------------------------
+    def _locate(self, i: int) -> tuple[_Shard, int]:
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame {i} out of range for a dataset of {len(self)} frames")
+        k = int(np.searchsorted(self._starts, i, side="right") - 1)
+        sh = self.shards[k]
+        if sh.handle is None:
+            sh.handle = open_shard_file(sh.path)
+        return sh, i - sh.frame_start
+
+    @property
+    def _starts(self) -> np.ndarray:
+        return np.array([s.frame_start for s in self.shards])
+
+    def image(self, i: int, full_res: bool = False) -> np.ndarray:
+        sh, j = self._locate(i)
+        name = "images_full" if full_res else "images"
+        if name not in sh.handle:
+            raise DatasetError(f"{sh.path}: no '{name}' (render with --full-res to store them)")
+        try:
+            return sh.handle[name][j]
+        except OSError as exc:
+            raise DatasetError(f"{sh.path}: cannot read {name}[{j}] (damaged shard?): {exc}") from None
+
+    def _table(self, group: str, i: int) -> dict:
+        sh, j = self._locate(i)
+        g = sh.handle[group]
+        lo, hi = g["offsets"][j:j + 2]
+        return {k: g[k][lo:hi] for k in g if k != "offsets"}
+
+    def detections(self, i: int) -> dict:
+        """Detections of frame ``i`` (brightest first): x_px, y_px, flux_adu, peak_adu, area_px, hip_id, star_index."""
+        return self._table("detections", i)
+
+    def true_stars(self, i: int) -> dict:
+        """True stars projected into frame ``i``: hip_id, x_px, y_px, mag, bv, electrons."""
+        return self._table("stars", i)
+
+    def corruption_log(self, i: int) -> dict:
+        sh, j = self._locate(i)
+        raw = sh.handle["corruptions/log"][j]
+        return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+
+    def close(self) -> None:
+        for sh in self.shards:
+            if sh.handle is not None:
+                sh.handle.close()
+                sh.handle = None
+
+    def __enter__(self) -> "Dataset":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["shards"] = [_Shard(s.path, s.frame_start, s.n_frames) for s in self.shards]
+        return state
+
+    def iter_frames(self) -> Iterator[int]:
+        return iter(range(len(self)))
+
+
+def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
+    try:
+        bore = {k: f["boresight"][k][...] for k in BORESIGHT_FIELDS}
+        frames = {k: f["frames"][k][...] for k in FRAME_FIELDS}
+    except (KeyError, OSError) as exc:
+        raise DatasetError(f"{path}: shard is missing required data ({exc}); re-render it") from None
+    return bore, frames
+
+
+def open_dataset(path: str | Path) -> Dataset:
+    """Open a dataset folder (or a single shard file) for reading.
+
+    Checks the manifest, each shard's format name and schema major version, and that
+    each shard's size matches the manifest (a cheap truncation check; ``skygen
+    validate`` also verifies checksums). Use as a context manager.
+    """
+    path = Path(path)
+    if path.is_file():
+        with open_shard_file(path) as f:
+            config = json.loads(f.attrs["config"])
+            n, start = int(f.attrs["n_frames"]), int(f.attrs["frame_start"])
+            version = str(f.attrs["schema_version"])
+        manifest = {"format": MANIFEST_FORMAT, "schema_version": version, "config": config,
+                    "shards": [{"file": path.name, "frame_start": start, "n_frames": n}]}
+        root = path.parent
+    elif path.is_dir():
+        manifest = read_manifest(path)
+        root = path
+    else:
+        raise DatasetError(f"{path}: no such dataset folder or shard file")
+    shards, bores, frames = [], [], []
+    for entry in manifest["shards"]:
+        p = root / entry["file"]
+        if "bytes" in entry:
+            try:
+                size = p.stat().st_size
+            except FileNotFoundError:
+                raise DatasetError(f"{p}: shard listed in the manifest is missing; "
+                                   "re-run `skygen render` with the same arguments to restore it") from None
+            if size != entry["bytes"]:
+                raise DatasetError(f"{p}: size {size} B differs from the manifest's {entry['bytes']} B "
+                                   "(truncated or replaced); delete it and re-run `skygen render` to resume")
+        with open_shard_file(p) as f:
+            if int(f.attrs["n_frames"]) != entry["n_frames"]:
+                raise DatasetError(f"{p}: holds {int(f.attrs['n_frames'])} frames, manifest says {entry['n_frames']}")
+            b, fr = _read_small(f, p)
+        bores.append(b)
+        frames.append(fr)
+        shards.append(_Shard(p, -1, entry["n_frames"]))
+    start = 0
+    for sh in shards:
+        sh.frame_start = start
+        start += sh.n_frames
+    cat = lambda parts, k: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0)
+    bore = {k: cat(bores, k) for k in BORESIGHT_FIELDS}
+    frm = {k: cat(frames, k) for k in FRAME_FIELDS}
+    return Dataset(root, manifest, shards, bore, frm)

@@ -1,0 +1,257 @@
+"""One frame, end to end: attitude -> stars -> optics -> sensor -> detection.
+
+:class:`Renderer` holds everything that is the same for every frame of a dataset (the
+catalog index, camera, photometry, static sensor maps). ``Renderer(cfg).render(i)``
+is a pure function of (config, i): frame i is identical whether rendered alone, in a
+worker pool, or after a resume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from . import corruptions as corr
+from .attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
+from .camera import Camera
+from .catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
+from .detect import detect, match
+from .photometry import Photometry, dark_current_e_s
+from .psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
+from .sensor import Exposure, read_out, sensor_maps
+
+SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
+BLUR_STEP_PX = 0.25   # sub-exposure spacing of a motion-blurred star
+
+
+@dataclass
+class Frame:
+    index: int
+    split: int
+    ra_deg: float
+    dec_deg: float
+    roll_deg: float
+    unit_vector: np.ndarray
+    quaternion: np.ndarray
+    image: np.ndarray
+    image_full: np.ndarray | None
+    downsample_factor: int
+    stars: dict
+    detections: dict
+    background_adu: float
+    noise_adu: float
+    applied: dict
+    log: dict = field(default_factory=dict)
+
+    @property
+    def n_stars(self) -> int:
+        return int(np.sum(self.stars["hip_id"] >= 0))
+
+    @property
+    def n_detections(self) -> int:
+        return len(self.detections["x_px"])
+
+
+def split_bounds(n_frames: int, fractions: tuple[float, float, float]) -> tuple[int, int]:
+    """Frames [0, a) are train, [a, b) val, [b, n) test."""
+    a = int(round(n_frames * fractions[0]))
+    b = int(round(n_frames * (fractions[0] + fractions[1])))
+    return a, b
+
+
+class Renderer:
+    """Renders frames of one configuration. Construct once per process."""
+
+    def __init__(self, cfg, catalog: StarTable | None = None):
+        self.cfg = cfg
+        s, o = cfg.sensor, cfg.optics
+        self.camera = Camera.from_config(cfg.camera)
+        self.photometry = Photometry.from_config(o, cfg.photometry, s)
+        self.sky_e = self.photometry.sky_electrons_per_px_s(cfg.photometry.sky_mag_arcsec2,
+                                                            self.camera.pixel_scale_arcsec) * s.exposure_s
+        self.dark_e = dark_current_e_s(s) * s.exposure_s
+        self.background_e = self.dark_e + self.sky_e
+        self.levels = corr.levels_of(cfg)
+        self.detection_limit_mag = self._detection_limit()
+        mag_limit = cfg.catalog.mag_limit
+        if mag_limit is None:
+            mag_limit = self.detection_limit_mag + cfg.catalog.mag_margin
+        self.mag_limit = float(mag_limit)
+        self.sky = SkyIndex(catalog if catalog is not None else load_catalog(cfg.catalog.path),
+                            cfg.epoch_yr, self.mag_limit)
+        self.maps = sensor_maps(cfg.camera.height_px, cfg.camera.width_px, s.sensor_seed, s.prnu_frac,
+                                s.fpn_adu, s.bias_adu, cfg.corruptions.hotpixels, s.hot_pixel_dark_e_s,
+                                s.dead_pixel_fraction)
+        self.psf_radius = stamp_radius_px(o.psf, o.psf_sigma_px)
+        self.split_bounds = split_bounds(cfg.n_frames, cfg.output.split_fractions)
+        self.factor = cfg.camera.width_px // cfg.output.image_size_px
+        self._corner = self.camera.corner_radius_rad()
+
+    # ------------------------------------------------------------------ helpers
+    def noise_e(self) -> float:
+        """Background noise per pixel in electrons (shot, read, quantisation, FPN)."""
+        s = self.cfg.sensor
+        g = s.gain_e_per_adu
+        return float(np.sqrt(self.background_e + s.read_noise_e ** 2 + self.levels["read_noise"] ** 2
+                             + g * g / 12.0 + (g * s.fpn_adu) ** 2))
+
+    def _detection_limit(self) -> float:
+        """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold."""
+        o = self.cfg.optics
+        peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta)
+        e_needed = self.cfg.detection.threshold_sigma * self.noise_e() / peak
+        return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
+
+    def split_of(self, i: int) -> int:
+        a, b = self.split_bounds
+        return 0 if i < a else (1 if i < b else 2)
+
+    def vignetting(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        v = self.cfg.optics.vignetting
+        if v == 0:
+            return np.ones_like(np.asarray(x, dtype=np.float64))
+        cam = self.camera
+        r2 = ((x - cam.cx_px) ** 2 + (y - cam.cy_px) ** 2) / ((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2)
+        return 1.0 - v * r2
+
+    # ------------------------------------------------------------------ stages
+    def _motion(self, rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray]:
+        """Angular-rate vector (rad/s, camera frame), number of sub-steps, sub-times (s)."""
+        rate = np.radians(self.levels["motion_blur"])
+        t = self.cfg.sensor.exposure_s
+        if rate == 0:
+            return np.zeros(3), 1, np.zeros(1)
+        axis = rng.standard_normal(3)
+        omega = rate * axis / np.linalg.norm(axis)
+        # worst-case image motion: rotation about an in-plane axis moves the centre by f*dtheta,
+        # about the boresight moves the corners by r*dtheta
+        path_px = rate * t * max(self.camera.f_px, np.hypot(self.camera.width_px, self.camera.height_px) / 2) * 1.5
+        n = max(2, int(np.ceil(path_px / BLUR_STEP_PX)))
+        taus = ((np.arange(n) + 0.5) / n - 0.5) * t
+        return omega, n, taus
+
+    def _stars(self, R: np.ndarray, omega: np.ndarray, taus: np.ndarray) -> dict:
+        """Catalog stars whose light can reach the sensor, with sub-exposure positions."""
+        cfg = self.cfg
+        blur = np.linalg.norm(omega) * cfg.sensor.exposure_s
+        margin = (self.psf_radius + 2) / self.camera.f_px
+        idx = self.sky.cone(R[:, 2], self._corner + blur + margin)
+        v_cam = self.sky.vectors[idx] @ R           # rows: camera-frame directions
+        x, y, front = self.camera.project(v_cam)
+        table = self.sky.table
+        margin_px = self.psf_radius + 1
+        keep = front & self.camera.inside(x, y, margin_px + blur * self.camera.f_px * 2)
+        idx, v_cam, x, y = idx[keep], v_cam[keep], x[keep], y[keep]
+        paths = None
+        if len(taus) > 1 and len(idx):
+            xs, ys = [], []
+            for tau in taus:
+                rot = rotation_about(omega, np.linalg.norm(omega) * tau)
+                px, py, _ = self.camera.project(v_cam @ rot)   # v_cam(tau) = rot.T @ v_cam
+                xs.append(px)
+                ys.append(py)
+            paths = (np.array(xs).T, np.array(ys).T)
+        e = self.photometry.electrons_per_s(table.mag[idx], table.bv[idx]) * cfg.sensor.exposure_s
+        e = e * self.vignetting(x, y)
+        return {"hip_id": table.hip[idx], "x_px": x, "y_px": y, "mag": table.mag[idx],
+                "bv": table.bv[idx], "electrons": e, "paths": paths}
+
+    def _false_stars(self, rng: np.random.Generator) -> dict:
+        n = int(rng.poisson(self.levels["false_stars"]))
+        w, h = self.camera.width_px, self.camera.height_px
+        x = rng.uniform(-0.5, w - 0.5, n)
+        y = rng.uniform(-0.5, h - 0.5, n)
+        lim = self.detection_limit_mag
+        mag = rng.uniform(lim - 4.0, lim, n).astype(np.float32)
+        bv = np.full(n, np.nan, np.float32)
+        e = self.photometry.electrons_per_s(mag, None) * self.cfg.sensor.exposure_s * self.vignetting(x, y)
+        return {"hip_id": np.full(n, -1, np.int64), "x_px": x, "y_px": y, "mag": mag, "bv": bv,
+                "electrons": e, "paths": None}
+
+    def _deposit(self, stars: dict, star_e: np.ndarray) -> list:
+        """Add every star's stamp (or streak) into ``star_e``; return the boxes touched."""
+        o, s = self.cfg.optics, self.cfg.sensor
+        flux = np.asarray(stars["electrons"], dtype=np.float64)
+        if stars["paths"] is None and o.psf == "gaussian":
+            stamps = gaussian_stamps(stars["x_px"], stars["y_px"], flux, o.psf_sigma_px)
+        elif stars["paths"] is None:
+            stamps = [stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta)
+                      for x, y, f in zip(stars["x_px"], stars["y_px"], flux)]
+        else:
+            stamps = [streak(xs, ys, float(f), o.psf, o.psf_sigma_px, o.moffat_beta)
+                      for xs, ys, f in zip(stars["paths"][0], stars["paths"][1], flux)]
+        boxes = []
+        fw, h = s.full_well_e, star_e.shape[0]
+        for (y0, x0, patch), f in zip(stamps, flux):
+            box = add_patch(star_e, y0, x0, patch)
+            if box is None:
+                continue
+            if s.blooming and patch.max() > 0.5 * fw:   # may bloom: leave room along the columns
+                extra = int(np.ceil(f / fw)) + 2
+                box = (max(box[0] - extra, 0), min(box[1] + extra, h), box[2], box[3])
+            boxes.append(box)
+        return boxes
+
+    # ------------------------------------------------------------------ frame
+    def render(self, i: int) -> Frame:
+        cfg = self.cfg
+        seed = cfg.seed
+        sh = (cfg.camera.height_px, cfg.camera.width_px)
+        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude"))
+        R = attitude_matrix(ra, dec, roll)
+        log: dict = {}
+        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur"))
+        if len(taus) > 1:
+            log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
+        stars = self._stars(R, omega, taus)
+        if self.levels["false_stars"] > 0:
+            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars"))
+            log["false_stars"] = {"n": len(fake["x_px"])}
+            stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
+            if stars["paths"] is not None and len(fake["x_px"]):
+                stars["paths"] = (np.concatenate([stars["paths"][0], np.repeat(fake["x_px"][:, None], len(taus), 1)]),
+                                  np.concatenate([stars["paths"][1], np.repeat(fake["y_px"][:, None], len(taus), 1)]))
+        star_e = np.zeros(sh, np.float32)
+        boxes = self._deposit(stars, star_e)
+        charge = None
+        if self.levels["cosmic_rays"] > 0:
+            patches, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
+                                                             self.levels["cosmic_rays"],
+                                                             corr.stage_rng(seed, i, "cosmic_rays"))
+            log["cosmic_rays"] = {"n_hits": n_hits}
+            if patches:
+                charge = np.zeros(sh, np.float32)
+                for y0, x0, p in patches:
+                    add_patch(charge, y0, x0, p)
+                boxes += cboxes
+        bg_map = None
+        if self.levels["stray_light"] > 0 or cfg.optics.vignetting > 0:
+            yy, xx = np.mgrid[0:sh[0], 0:sh[1]]
+            bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
+            if self.levels["stray_light"] > 0:
+                ramp, ang = corr.stray_light_map(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
+                                                 corr.stage_rng(seed, i, "stray_light"))
+                bg_map += ramp
+                log["stray_light"] = {"direction_deg": round(ang, 4)}
+        exposure = Exposure(star_e, charge, boxes, self.background_e, bg_map)
+        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, i, "noise"),
+                              self.levels["read_noise"])
+        if info["bloomed_columns"]:
+            log["blooming"] = {"columns": info["bloomed_columns"]}
+        d = cfg.detection
+        det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections)
+        inside = self.camera.inside(stars["x_px"], stars["y_px"])
+        true = {k: v[inside] for k, v in stars.items() if k != "paths"}
+        sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
+        det["star_index"] = sidx
+        det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
+        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, i)
+        log.update(dlog)
+        image = full if self.factor == 1 else cv2.resize(full, (sh[1] // self.factor, sh[0] // self.factor),
+                                                          interpolation=cv2.INTER_AREA)
+        q = matrix_to_quaternion(R)
+        return Frame(i, self.split_of(i), ra, dec, roll, radec_to_vec(np.radians(ra), np.radians(dec)), q,
+                     image, full if cfg.output.full_res else None, self.factor, true, det, bg, sigma,
+                     dict(self.levels), log)

@@ -1,0 +1,249 @@
+"""Sensor model: photo-electrons in, ADU out.
+
+Per pixel p, over one exposure of t seconds::
+
+    e_p   = Poisson(lambda_p) + cosmic-ray charge            [e-]
+    lambda_p = t * (dark(T) + sky * vig_p + stray_p) + prnu_p * star_p + t * hot_p
+    e_p  -> min(e_p, full_well), excess spilled along the column (blooming)
+    ADU_p = clip(floor((e_p + n_p) / gain) + bias + fpn_p, 0, 2^bits - 1),  n_p ~ N(0, sigma_read)
+
+Static maps (drawn once from ``sensor_seed``): ``prnu_p`` ~ 1 + N(0, prnu_frac); the
+integer fixed-pattern offset ``fpn_p`` = round(N(0, fpn_adu)); hot pixels (a pixel is hot
+when its static uniform rank is below the hot-pixel fraction, so a larger fraction is a
+superset of a smaller one) with log-normal dark current around ``hot_pixel_dark_e_s``;
+dead pixels that collect no charge (they read bias + read noise).
+
+Two samplers give the same distribution:
+
+* ``exact``: numpy Poisson and Gaussian draws for every pixel.
+* ``fast`` (default): for a spatially uniform background the distribution of
+  ``floor((Poisson(lambda_0) + N(0, sigma)) / gain)`` is computed once, exactly, and
+  sampled for every pixel from one 32-bit random integer through a two-level lookup
+  table (probabilities resolved to 2^-32). Every pixel that receives anything else — star
+  light, cosmic rays, hot or dead pixels — is drawn again with the exact per-pixel model
+  (its LUT value is discarded, so the two draws never mix). The
+  fast path neglects PRNU acting on the sub-electron diffuse sky only. A non-uniform
+  background (vignetting, stray light) uses the exact sampler automatically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.special import ndtr
+from scipy.stats import poisson
+
+from .photometry import dark_current_e_s
+
+_LITTLE = np.little_endian
+_AMBIGUOUS = 65535
+
+
+@dataclass(frozen=True)
+class SensorMaps:
+    """Static per-pixel maps of one physical sensor (same for every frame)."""
+
+    prnu: np.ndarray         # float32 (H, W), mean 1
+    offset_adu: np.ndarray   # int32 (H, W): bias + integer FPN
+    hot_index: np.ndarray    # flat indices of hot pixels
+    hot_dark_e_s: np.ndarray  # their extra dark current, e-/s
+    dead_index: np.ndarray   # flat indices of dead pixels
+    hot_map: np.ndarray      # float32 (H, W): extra dark current, e-/s (0 except hot pixels)
+    dead_mask: np.ndarray    # bool (H, W)
+
+
+@lru_cache(maxsize=4)
+def sensor_maps(height: int, width: int, seed: int, prnu_frac: float, fpn_adu: float, bias_adu: int,
+                hot_fraction: float, hot_dark_e_s: float, dead_fraction: float) -> SensorMaps:
+    """Draw the static maps from ``seed``; cached per process (same args, same maps)."""
+    rng = np.random.default_rng([seed, 0x5E45])
+    prnu = (1.0 + prnu_frac * rng.standard_normal((height, width), dtype=np.float32)).clip(0, None)
+    fpn = np.rint(fpn_adu * rng.standard_normal((height, width), dtype=np.float32)).astype(np.int32)
+    offset = fpn + np.int32(bias_adu)
+    rank_hot = rng.random(height * width, dtype=np.float32)
+    rank_dead = rng.random(height * width, dtype=np.float32)
+    hot = np.flatnonzero(rank_hot < hot_fraction)
+    # Each pixel's hot-pixel strength is fixed by its own index, so maps nest.
+    strength_rng = np.random.default_rng([seed, 0x407])
+    strength = hot_dark_e_s * 10 ** (0.5 * strength_rng.standard_normal(height * width, dtype=np.float32)[hot])
+    dead = np.flatnonzero(rank_dead < dead_fraction)
+    hot_keep = ~np.isin(hot, dead)
+    hot, strength = hot[hot_keep], strength[hot_keep].astype(np.float64)
+    hot_map = np.zeros(height * width, np.float32)
+    hot_map[hot] = strength
+    dead_mask = np.zeros(height * width, bool)
+    dead_mask[dead] = True
+    maps = SensorMaps(prnu, offset, hot, strength, dead, hot_map.reshape(height, width),
+                      dead_mask.reshape(height, width))
+    for arr in (prnu, offset, maps.hot_map, maps.dead_mask):
+        arr.setflags(write=False)
+    return maps
+
+
+class BackgroundSampler:
+    """Exact sampler of ``floor((Poisson(lam) + N(0, sigma)) / gain)`` via a 2-level LUT."""
+
+    def __init__(self, lam: float, sigma: float, gain: float):
+        self.lam, self.sigma, self.gain = lam, sigma, gain
+        sd = np.sqrt(lam)
+        e = np.arange(max(0, int(lam - 12 * sd - 12)), int(lam + 12 * sd + 40))
+        pe = poisson.pmf(e, lam)
+        kmin = int(np.floor((e[0] - 9 * sigma) / gain)) - 1
+        kmax = int(np.ceil((e[-1] + 9 * sigma) / gain)) + 1
+        k = np.arange(kmin, kmax + 1)
+        if sigma > 0:
+            upper = ndtr((gain * (k[:, None] + 1) - e[None, :]) / sigma)  # P(e + n < g (k+1))
+            cdf = upper @ pe
+        else:
+            cdf = np.array([pe[e < gain * (kk + 1)].sum() for kk in k])
+        cdf = np.maximum.accumulate(cdf / cdf[-1])
+        self.kmin = kmin
+        # u (uint32) maps to the first j with u < thresholds[j]
+        self.thresholds = np.minimum(np.rint(cdf * 2.0 ** 32), 2.0 ** 32).astype(np.uint64)
+        self.thresholds[-1] = 2 ** 32
+        prefixes = np.arange(65536, dtype=np.uint64) << np.uint64(16)
+        j_lo = np.searchsorted(self.thresholds, prefixes, side="right")
+        j_hi = np.searchsorted(self.thresholds, prefixes + np.uint64(65535), side="right")
+        if len(k) >= _AMBIGUOUS:
+            raise ValueError("background distribution too wide for the 16-bit table; use sampler=exact")
+        self.lut16 = np.where(j_lo == j_hi, j_lo, _AMBIGUOUS).astype(np.uint16)
+        self.pmf = np.diff(np.concatenate([[0.0], cdf]))
+        self.k = k
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` draws of the table index j (uint16); the value is ``kmin + j``."""
+        u = rng.integers(0, 2 ** 32, size=n, dtype=np.uint32)
+        j = np.take(self.lut16, u.view(np.uint16)[1::2] if _LITTLE else (u >> 16))
+        amb = np.flatnonzero(j == _AMBIGUOUS)
+        if amb.size:
+            j[amb] = np.searchsorted(self.thresholds, u[amb].astype(np.uint64), side="right")
+        return j
+
+
+@lru_cache(maxsize=16)
+def background_sampler(lam: float, sigma: float, gain: float) -> BackgroundSampler:
+    return BackgroundSampler(lam, sigma, gain)
+
+
+def bloom(e: np.ndarray, full_well: float) -> int:
+    """Spill charge above ``full_well`` along columns (in place); returns columns affected.
+
+    Excess charge of a column is shared equally between the pixels above and below the
+    saturated run, filling each to full well outwards; charge reaching the array edge
+    is lost (drained), as in a real sensor.
+    """
+    cols = np.flatnonzero((e > full_well).any(axis=0))
+    h = e.shape[0]
+    for c in cols:
+        col = e[:, c]
+        over = col > full_well
+        excess = float((col[over] - full_well).sum())
+        col[over] = full_well
+        rows = np.flatnonzero(over)
+        for direction, start in ((-1, rows[0] - 1), (1, rows[-1] + 1)):
+            q = excess / 2.0
+            r = start
+            while q > 0 and 0 <= r < h:
+                room = full_well - col[r]
+                take = min(room, q)
+                col[r] += take
+                q -= take
+                r += direction
+    return len(cols)
+
+
+def dark_e(sensor) -> float:
+    """Mean dark charge per pixel over the exposure, e-."""
+    return dark_current_e_s(sensor) * sensor.exposure_s
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """What reaches the sensor in one exposure (all in electrons over the exposure).
+
+    ``star_e``: expected photo-electrons from point sources per pixel (before PRNU);
+    ``charge_e``: charge deposited directly (cosmic rays), not Poisson-sampled again;
+    ``boxes``: half-open (y0, y1, x0, x1) rectangles outside which both are zero (they
+may overlap);
+    ``background_e``: uniform expected background (dark + sky);
+    ``background_map_e``: optional full non-uniform background (replaces the uniform one).
+    """
+
+    star_e: np.ndarray
+    charge_e: np.ndarray | None
+    boxes: list
+    background_e: float
+    background_map_e: np.ndarray | None = None
+
+
+def read_out(exp: Exposure, sensor, maps: SensorMaps, rng: np.random.Generator,
+             extra_read_noise_e: float = 0.0) -> tuple[np.ndarray, dict]:
+    """Sample one frame: electrons -> noise -> blooming -> ADC. Returns (uint16 image, info)."""
+    h, w = exp.star_e.shape
+    sigma = float(np.hypot(sensor.read_noise_e, extra_read_noise_e))
+    max_adu = 2 ** sensor.bit_depth - 1
+    t = sensor.exposure_s
+    if sensor.sampler == "fast" and exp.background_map_e is None:
+        sampler = background_sampler(round(float(exp.background_e), 9), round(sigma, 9), float(sensor.gain_e_per_adu))
+        out = _dense_background(sampler, maps, max_adu, h * w, rng).reshape(h, w)
+        painted = np.zeros((h, w), bool)
+        for y0, y1, x0, x1 in exp.boxes:
+            painted[y0:y1, x0:x1] = True
+        painted.ravel()[maps.hot_index] = True
+        painted.ravel()[maps.dead_index] = True
+        idx = np.flatnonzero(painted)
+    else:
+        out = np.empty((h, w), np.uint16)
+        idx = np.arange(h * w)
+    if exp.background_map_e is not None:
+        lam = exp.background_map_e.ravel()[idx].astype(np.float64)
+    else:
+        lam = np.full(idx.size, float(exp.background_e))
+    lam += exp.star_e.ravel()[idx] * maps.prnu.ravel()[idx]
+    lam += maps.hot_map.ravel()[idx] * t
+    e = rng.poisson(lam).astype(np.float64)
+    if exp.charge_e is not None:
+        e += exp.charge_e.ravel()[idx]
+    e[maps.dead_mask.ravel()[idx]] = 0.0
+    bloomed = 0
+    if sensor.blooming and (e > sensor.full_well_e).any():
+        # Saturating stars' boxes reach flux/full_well rows further along their columns
+        # (render._deposit), so spilled charge always lands on pixels drawn here.
+        cols = np.unique(idx[e > sensor.full_well_e] % w)
+        charge = np.zeros((h, w))
+        charge.ravel()[idx] = e
+        sub = charge[:, cols]
+        bloomed = bloom(sub, sensor.full_well_e)
+        charge[:, cols] = sub
+        e = charge.ravel()[idx]
+    np.minimum(e, sensor.full_well_e, out=e)
+    if sigma > 0:
+        e += sigma * rng.standard_normal(e.size)
+    k = np.floor(e / sensor.gain_e_per_adu).astype(np.int64) + maps.offset_adu.ravel()[idx]
+    out.ravel()[idx] = np.clip(k, 0, max_adu)
+    return out, {"exact_pixels": int(idx.size), "bloomed_columns": bloomed}
+
+
+def _dense_background(sampler: BackgroundSampler, maps: SensorMaps, max_adu: int, n: int,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Every pixel drawn from the uniform-background distribution, offsets added, as uint16."""
+    j = sampler.sample(n, rng)
+    kmax = sampler.kmin + len(sampler.k) - 1
+    key = (id(maps), sampler.kmin)
+    off = _OFFSET_CACHE.get(key)
+    if off is None:
+        lo, hi = int(maps.offset_adu.min()), int(maps.offset_adu.max())
+        off = (maps.offset_adu.ravel() + sampler.kmin).astype(np.uint16) \
+            if lo + sampler.kmin >= 0 and hi + kmax <= max_adu else None
+        _OFFSET_CACHE.clear()
+        _OFFSET_CACHE[key] = off if off is not None else False
+    if off is not None and off is not False:
+        j += off                       # no clipping possible: stay in uint16
+        return j
+    k = j.astype(np.int32) + sampler.kmin + maps.offset_adu.ravel()
+    return np.clip(k, 0, max_adu).astype(np.uint16)
+
+
+_OFFSET_CACHE: dict = {}
