@@ -20,8 +20,9 @@ bytes     name     meaning
 
 Positions are propagated from the catalog epoch to the observation epoch along the
 tangent-plane proper-motion vector and re-normalised (parallax and radial velocity
-neglected: below a milli-arcsecond over decades for all but a handful of stars; see
-``tests/test_catalog.py`` for a check against astropy's ``apply_space_motion``).
+neglected). For the 200 fastest stars over 1991.25-2024.0 this agrees with astropy's
+``apply_space_motion`` to better than 10 mas (``tests/test_catalog.py``), i.e. 1e-4
+pixel for the default camera.
 
 Parsing the 118k-line file takes about 0.1 s, so every render worker parses it itself.
 """
@@ -57,10 +58,11 @@ class StarTable:
     dec_rad: np.ndarray     # float64
     pmra_mas_yr: np.ndarray  # float64, includes cos(dec)
     pmdec_mas_yr: np.ndarray
-    mag: np.ndarray         # float32, Hp (or V for other sources)
+    mag: np.ndarray         # float32, in ``band``
     bv: np.ndarray          # float32, NaN where unknown
     epoch_yr: float
     source: str
+    band: str = "Hp"        # photometric band of ``mag``: "Hp" (Hipparcos) or "V"
 
     def __len__(self) -> int:
         return int(self.hip.shape[0])
@@ -68,7 +70,7 @@ class StarTable:
     def select(self, mask: np.ndarray) -> "StarTable":
         return StarTable(self.hip[mask], self.ra_rad[mask], self.dec_rad[mask],
                          self.pmra_mas_yr[mask], self.pmdec_mas_yr[mask], self.mag[mask],
-                         self.bv[mask], self.epoch_yr, self.source)
+                         self.bv[mask], self.epoch_yr, self.source, self.band)
 
 
 def hipparcos_path() -> Path:
@@ -131,7 +133,8 @@ def write_npz(table: StarTable, path: str | Path) -> None:
     tmp = path.with_name("." + path.name + f".tmp{os.getpid()}.npz")
     np.savez(tmp, hip=table.hip, ra_rad=table.ra_rad, dec_rad=table.dec_rad,
              pmra_mas_yr=table.pmra_mas_yr, pmdec_mas_yr=table.pmdec_mas_yr, mag=table.mag,
-             bv=table.bv, epoch_yr=table.epoch_yr, source=table.source, format="skygen-catalog-1")
+             bv=table.bv, epoch_yr=table.epoch_yr, source=table.source, band=table.band,
+             format="skygen-catalog-1")
     os.replace(tmp, path)
 
 
@@ -141,7 +144,8 @@ def read_npz(path: str | Path) -> StarTable:
             if str(z["format"]) != "skygen-catalog-1":
                 raise CatalogError(f"{path}: not a skygen catalog file")
             return StarTable(z["hip"], z["ra_rad"], z["dec_rad"], z["pmra_mas_yr"],
-                             z["pmdec_mas_yr"], z["mag"], z["bv"], float(z["epoch_yr"]), str(z["source"]))
+                             z["pmdec_mas_yr"], z["mag"], z["bv"], float(z["epoch_yr"]), str(z["source"]),
+                             str(z["band"]))
     except (OSError, KeyError, ValueError) as exc:
         raise CatalogError(f"{path}: unreadable catalog file ({exc})") from None
 

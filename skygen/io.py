@@ -245,11 +245,15 @@ def open_shard_file(path: str | Path) -> h5py.File:
         raise DatasetError(f"{path}: shard file is missing") from None
     except OSError as exc:
         raise DatasetError(f"{path}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
-    if f.attrs.get("format") != FORMAT_NAME:
+    fmt, version = f.attrs.get("format"), f.attrs.get("schema_version")
+    if fmt != FORMAT_NAME:
         f.close()
-        raise DatasetError(f"{path}: not a skygen shard (HDF5 attribute format="
-                           f"{f.attrs.get('format')!r}, expected {FORMAT_NAME!r})")
-    _check_version(f.attrs.get("schema_version"), path)
+        raise DatasetError(f"{path}: not a skygen shard (HDF5 attribute format={fmt!r}, expected {FORMAT_NAME!r})")
+    try:
+        _check_version(version, path)
+    except DatasetError:
+        f.close()
+        raise
     return f
 
 
@@ -401,6 +405,10 @@ def open_dataset(path: str | Path) -> Dataset:
         root = path.parent
     elif path.is_dir():
         manifest = read_manifest(path)
+        if not manifest.get("complete", False):
+            raise DatasetError(f"{path}: the render has not finished ({len(manifest.get('shards', []))} of "
+                               f"{manifest.get('n_shards', '?')} shards); re-run the same `skygen render` "
+                               "command to resume it")
         root = path
     else:
         raise DatasetError(f"{path}: no such dataset folder or shard file")

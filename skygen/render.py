@@ -79,8 +79,10 @@ class Renderer:
         if mag_limit is None:
             mag_limit = self.detection_limit_mag + cfg.catalog.mag_margin
         self.mag_limit = float(mag_limit)
-        self.sky = SkyIndex(catalog if catalog is not None else load_catalog(cfg.catalog.path),
-                            cfg.epoch_yr, self.mag_limit)
+        table = catalog if catalog is not None else load_catalog(cfg.catalog.path)
+        # the magnitude limit is in Hp; a V-band catalog is shifted onto the same scale
+        self.mag_offset_to_hp = cfg.photometry.hp_minus_v if table.band == "V" else 0.0
+        self.sky = SkyIndex(table, cfg.epoch_yr, self.mag_limit - self.mag_offset_to_hp)
         self.maps = sensor_maps(cfg.camera.height_px, cfg.camera.width_px, s.sensor_seed, s.prnu_frac,
                                 s.fpn_adu, s.bias_adu, cfg.corruptions.hotpixels, s.hot_pixel_dark_e_s,
                                 s.dead_pixel_fraction)
@@ -153,7 +155,7 @@ class Renderer:
                 xs.append(px)
                 ys.append(py)
             paths = (np.array(xs).T, np.array(ys).T)
-        e = self.photometry.electrons_per_s(table.mag[idx], table.bv[idx]) * cfg.sensor.exposure_s
+        e = self.photometry.electrons_per_s(table.mag[idx] + self.mag_offset_to_hp, table.bv[idx]) * cfg.sensor.exposure_s
         e = e * self.vignetting(x, y)
         return {"hip_id": table.hip[idx], "x_px": x, "y_px": y, "mag": table.mag[idx],
                 "bv": table.bv[idx], "electrons": e, "paths": paths}

@@ -1,0 +1,169 @@
+"""The resolved training configuration: one frozen dataclass per stage.
+
+Built like skygen's render config (:mod:`skygen.configlib`): defaults, then a YAML
+preset (``configs/*.yaml``), then dotted ``key=value`` overrides; unknown keys, wrong
+types and out-of-range values raise :class:`~skygen.errors.ConfigError` naming the
+dotted key. The defaults are the paper's recipe (``configs/paper.yaml`` repeats them
+explicitly). ``fusion train --help-config`` prints every key with its range and units.
+
+Units: angles in degrees unless the name ends in ``_rad``; image levels in ADU of the
+stored frame; positions in pixels of the named grid (``_px``: full-resolution sensor
+pixels unless stated otherwise, heatmap canvas pixels for ``model.heatmap``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from skygen.configlib import describe, from_dict, merge_overrides, param, read_yaml, section, to_dict
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    path: Optional[str] = param(None, doc="skygen dataset folder (set by --data)")
+    train_split: str = param("train", choices=("train", "val", "test"), doc="split the model is fitted on (and the K-means centroids)")
+    val_split: str = param("val", choices=("train", "val", "test"), doc="split used for early stopping and best.pt")
+    max_stars: int = param(6, lo=1, hi=256, doc="detections fed to the coordinate branch and heatmap (brightest first, padded)")
+    norm_scale_adu: float = param(8.0, lo=0, lo_open=True, hi=1e6, doc="image normalisation: x = log1p(max(adu - bias, 0)/s) / log1p((2**bits - 1 - bias)/s)")
+    log_flux_offset: float = param(3.0, lo=-10, hi=10, doc="coordinate flux feature = log10(1 + flux_adu) - offset")
+    max_frames: Optional[int] = param(None, lo=1, doc="use at most this many frames of each split (first ones; quick experiments)")
+
+
+@dataclass(frozen=True)
+class LabelsConfig:
+    k: int = param(15, lo=2, hi=100000, doc="number of spherical clusters (classes)")
+    soft_labels: bool = param(False, doc="train on geometry-aware soft targets q_k ~ exp(kappa v.c_k) instead of one-hot")
+    kappa: float = param(50.0, lo=0, lo_open=True, hi=1e6, doc="concentration of the soft targets (1/rad^2 scale: exp(kappa*(cos d - 1)))")
+    seed: int = param(0, lo=0, doc="seed of the K-Means++ initialisation")
+    n_init: int = param(4, lo=1, hi=100, doc="K-means restarts; the one with the largest total cosine similarity is kept")
+    max_iter: int = param(300, lo=1, hi=100000, doc="K-means iterations per restart at most")
+    tol_deg: float = param(1e-6, lo=0, hi=10, doc="converged when no centroid moves by more than this angle (and assignments are stable)")
+
+
+@dataclass(frozen=True)
+class BranchesConfig:
+    image: bool = param(True, doc="photometric branch (image backbone)")
+    heatmap: bool = param(True, doc="geometric branch: CNN over the rasterised detections")
+    coords: bool = param(True, doc="coordinate branch: MLP or set encoder over the detections")
+
+
+@dataclass(frozen=True)
+class HeatmapConfig:
+    canvas_px: int = param(64, lo=8, hi=1024, doc="heatmap canvas size (square), canvas pixels; covers the whole sensor")
+    sigma_px: float = param(1.0, lo=0.1, hi=100, doc="Gaussian sigma of each rasterised star, canvas pixels")
+    channels: tuple[int, ...] = param((32, 64, 128, 256), lo=1, hi=4096, doc="conv widths of the heatmap CNN (each conv 3x3, stride 2)")
+    pool_grid: int = param(4, lo=1, hi=64, doc="the CNN's last map is average-pooled to pool_grid x pool_grid, then flattened")
+    out_dim: int = param(384, lo=1, hi=65536, doc="feature size of the heatmap branch (linear projection of the flattened map)")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    name: str = param("star_fusion", doc="registered model (fusion.models.MODELS): star_fusion, swinv2_tiny, resnet50")
+    image_backbone: Optional[str] = param(None, doc="image backbone override: a timm model name or 'tiny_cnn' (None: the model's own)")
+    in_chans: Optional[int] = param(None, choices=(None, 1, 3), doc="image channels (None: 1 from scratch, 3 replicated with ImageNet weights)")
+    pretrained: Optional[str] = param(None, doc="ImageNet weights for the image backbone: a file or a hub name (None: from scratch)")
+    coord_encoder: str = param("mlp", choices=("mlp", "set"), doc="coordinate branch: 3-layer MLP over the ordered list, or permutation-invariant set encoder")
+    coord_hidden: int = param(256, lo=1, hi=65536, doc="hidden and output width of the coordinate encoder")
+    dropout: float = param(0.0, lo=0, hi=0.9, doc="dropout before the fusion classifier")
+    branches: BranchesConfig = section(BranchesConfig)
+    heatmap: HeatmapConfig = section(HeatmapConfig)
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    gamma: float = param(2.0, lo=0, hi=10, doc="focal-loss focusing parameter (0: weighted cross-entropy)")
+    alpha: str = param("balanced", choices=("balanced", "uniform"), doc="class weights: balanced = N/(K n_c), L1-normalised; uniform = 1/K")
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    lr: float = param(3e-4, lo=0, lo_open=True, hi=10, doc="peak learning rate (AdamW)")
+    betas: tuple[float, float] = param((0.9, 0.999), lo=0, hi=1, hi_open=True, doc="AdamW betas")
+    weight_decay: float = param(0.05, lo=0, hi=10, doc="AdamW decoupled weight decay (not applied to norms and biases)")
+    warmup_epochs: float = param(5.0, lo=0, hi=10000, doc="linear warm-up from 0 to lr, epochs (per optimiser step)")
+    min_lr: float = param(1e-6, lo=0, hi=10, doc="cosine decay ends at this learning rate after train.epochs")
+    grad_clip_norm: Optional[float] = param(None, lo=0, lo_open=True, doc="clip the global gradient norm (None: off)")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    epochs: int = param(80, lo=1, hi=100000, doc="maximum epochs (the cosine schedule spans them)")
+    batch_size: int = param(64, lo=1, hi=65536, doc="global batch size (split evenly over DDP processes)")
+    eval_batch_size: Optional[int] = param(None, lo=1, doc="batch size for validation (None: 2 x batch_size)")
+    patience: Optional[int] = param(10, lo=1, doc="early stopping: epochs without a new best val loss (None: off)")
+    amp: str = param("auto", choices=("auto", "off", "bf16", "fp16"), doc="mixed precision on CUDA (auto: bf16 where supported); always off on CPU")
+    seed: int = param(0, lo=0, doc="seed of weights, shuffling and augmentation")
+    workers: int = param(4, lo=0, hi=256, doc="DataLoader worker processes per training process")
+    device: str = param("auto", choices=("auto", "cpu", "cuda"), doc="auto: cuda if available")
+    progress: bool = param(True, doc="tqdm progress bars (only on a terminal, rank 0)")
+    deterministic: bool = param(True, doc="torch deterministic algorithms (exact repeats on CPU; may cost speed on GPU)")
+
+
+@dataclass(frozen=True)
+class AugConfig:
+    """Training-time augmentations, each applied to the image and the detections alike."""
+    rotation: bool = param(True, doc="in-plane rotation about the image centre (optical axis)")
+    rotation_max_deg: float = param(10.0, lo=0, hi=180, doc="rotation angle drawn uniformly in [-max, max]")
+    jitter: bool = param(True, doc="brightness/contrast jitter (about the bias level)")
+    brightness_adu: float = param(2.0, lo=0, hi=1e5, doc="offset drawn uniformly in [-b, b], stored-image ADU")
+    contrast_frac: float = param(0.2, lo=0, hi=0.99, doc="gain drawn uniformly in [1-c, 1+c]; detection fluxes scale with it")
+    noise: bool = param(True, doc="additive Gaussian pixel noise")
+    noise_max_adu: float = param(2.0, lo=0, hi=1e5, doc="noise sigma drawn uniformly in [0, max], stored-image ADU")
+    dropout: bool = param(True, doc="star dropout (detections lost)")
+    dropout_prob: float = param(0.1, lo=0, hi=1, doc="each detection is lost with this probability")
+    dropout_erase_image: bool = param(False, doc="also paint the dropped star out of the image (False: a missed detection, the star stays visible)")
+    false_stars: bool = param(True, doc="false-star injection (a point source added to the image and the detections)")
+    false_star_rate: float = param(0.5, lo=0, hi=100, doc="mean number of injected stars per frame (Poisson)")
+    false_star_snr: tuple[float, float] = param((10.0, 200.0), lo=0, lo_open=True, doc="peak amplitude of injected stars, in units of the frame's noise, log-uniform range")
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    data: DataConfig = section(DataConfig)
+    labels: LabelsConfig = section(LabelsConfig)
+    model: ModelConfig = section(ModelConfig)
+    loss: LossConfig = section(LossConfig)
+    optim: OptimConfig = section(OptimConfig)
+    train: TrainConfig = section(TrainConfig)
+    aug: AugConfig = section(AugConfig)
+
+
+def check_consistency(cfg: FusionConfig) -> None:
+    """Checks that involve several keys (single keys are checked on construction)."""
+    b = cfg.model.branches
+    if not (b.image or b.heatmap or b.coords):
+        raise ConfigError("model.branches: all three branches are off; switch on at least one of "
+                          "model.branches.image, model.branches.heatmap, model.branches.coords")
+    if cfg.optim.min_lr > cfg.optim.lr:
+        raise ConfigError(f"optim.min_lr ({cfg.optim.min_lr}) must not exceed optim.lr ({cfg.optim.lr})")
+    lo, hi = cfg.aug.false_star_snr
+    if hi < lo:
+        raise ConfigError(f"aug.false_star_snr: {[lo, hi]} must be [lo, hi] with lo <= hi")
+    if cfg.data.train_split == cfg.data.val_split:
+        raise ConfigError(f"data.val_split must differ from data.train_split (both {cfg.data.train_split!r})")
+
+
+def build_config(data: dict | None = None) -> FusionConfig:
+    cfg = from_dict(FusionConfig, data or {})
+    check_consistency(cfg)
+    return cfg
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> FusionConfig:
+    """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
+    data = read_yaml(path) if path else {}
+    return build_config(merge_overrides(data, list(overrides)))
+
+
+def config_dict(cfg: FusionConfig) -> dict:
+    return to_dict(cfg)
+
+
+def config_help() -> str:
+    rows = describe(FusionConfig)
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"{k:<{width}}  {d!r:<14} {allowed:<26} {doc}" for k, d, allowed, doc in rows)

@@ -1,0 +1,141 @@
+"""Evaluation (``fusion evaluate``): a checkpoint on one split, as JSON, Markdown and a PNG.
+
+The checkpoint carries everything needed: the model config, K and the centroids fitted
+on its training split; the split's frames are labelled against those centroids (max
+cosine). Reported (angles in degrees, see :mod:`fusion.metrics` for definitions):
+
+* top-1/3/5 accuracy;
+* angular error of the prediction ``arccos(v . c_pred)`` — mean, median, p95 — and the
+  *quantisation floor*, the same statistics for ``arccos(v . c_true)``: the error a
+  perfect classifier still makes because it answers with a centroid;
+* per-class accuracy and the confusion matrix (rows true, columns predicted; PNG too);
+* the share of errors between neighbouring clusters (Voronoi neighbours on the sphere).
+
+Outputs ``eval-<split>.json``, ``eval-<split>.md`` and ``confusion-<split>.png`` in
+``out`` (default: the checkpoint's folder).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from skygen.io import open_dataset
+
+from .checkpoint import atomic_write_text, load_checkpoint, write_json
+from .data import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
+from .distributed import pick_device
+from .errors import CheckpointError, DatasetError
+from .labels import assign
+from .metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share, per_class_accuracy,
+                      topk_accuracy, voronoi_neighbours)
+from .plots import plot_confusion
+from .train import autocast_dtype, load_trained_model, predict
+
+NEIGHBOUR_DEFINITION = ("clusters whose Voronoi cells on the sphere share a boundary arc (edges of the spherical "
+                        "Delaunay triangulation of the centroids, from their convex hull)")
+
+
+def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarray, centroids: np.ndarray) -> dict:
+    """All metrics of one split from its logits, true labels and true boresight vectors."""
+    k = len(centroids)
+    pred = np.argmax(logits, axis=1)
+    cm = confusion_matrix(labels, pred, k)
+    adj = voronoi_neighbours(centroids)
+    return {
+        "n_frames": int(len(labels)), "num_classes": k, "chance_top1": 1.0 / k,
+        **topk_accuracy(logits, labels),
+        "angular_error": error_stats(angular_error_deg(v, centroids, pred)),
+        "quantisation_floor": error_stats(angular_error_deg(v, centroids, labels)),
+        "per_class": per_class_accuracy(cm),
+        "confusion_matrix": cm.tolist(),
+        "n_errors": int((pred != labels).sum()),
+        "neighbour_error_share": neighbour_error_share(labels, pred, adj),
+        "neighbour_definition": NEIGHBOUR_DEFINITION,
+        "neighbour_pairs": int(adj.sum() // 2),
+    }
+
+
+def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "test", out: str | Path | None = None,
+                        *, batch_size: int = 64, workers: int = 0, device: str = "auto",
+                        max_frames: int | None = None, log=print) -> dict:
+    """Evaluate ``checkpoint`` on ``split`` of dataset ``data``; write and return the report."""
+    t0 = time.perf_counter()
+    checkpoint = Path(checkpoint)
+    ckpt = load_checkpoint(checkpoint)
+    model, cfg = load_trained_model(ckpt, str(checkpoint))
+    centroids = ckpt["centroids"].numpy()
+    dev = pick_device(device)
+    model.to(dev)
+    with open_dataset(data) as ds:
+        if ds.image_shape[0] != int(ckpt["image_size"]):
+            raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {checkpoint} was trained on "
+                               f"{ckpt['image_size']} px images; render with output.image_size_px="
+                               f"{ckpt['image_size']} or train on this dataset")
+        pos = split_positions(ds, split, max_frames)
+        v = boresight_vectors(ds, pos)
+        labels = assign(v, centroids)
+        d = cfg.data
+        frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
+                              log_flux_offset=d.log_flux_offset)
+        loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
+        pred = predict(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
+        sparse = count_sparse_frames(ds, pos)
+        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split}
+    if not np.array_equal(pred["index"], pos):
+        raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
+    report = report_from_predictions(pred["logits"], labels, v, centroids)
+    report.update({"checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]), "model": ckpt["model_name"],
+                   "branches": ckpt["branches"], "dataset": dataset_info, "frames_with_lt2_detections": sparse,
+                   "device": str(dev), "wall_time_s": time.perf_counter() - t0})
+    out = Path(out) if out is not None else checkpoint.parent
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"eval-{split}.json", report)
+    atomic_write_text(out / f"eval-{split}.md", markdown_report(report))
+    plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{split}.png",
+                   f"{ckpt['model_name']} on {split} (K={report['num_classes']})")
+    log(summary_line(report))
+    log(f"wrote {out / f'eval-{split}.json'}, eval-{split}.md, confusion-{split}.png")
+    return report
+
+
+def summary_line(r: dict) -> str:
+    ae, qf = r["angular_error"], r["quantisation_floor"]
+    share = r["neighbour_error_share"]
+    return (f"{r['dataset']['split']}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
+            f"top-3 {r['top3']:.3f} top-5 {r['top5']:.3f} (chance {r['chance_top1']:.3f}); angular error "
+            f"mean {ae['mean_deg']:.2f} median {ae['median_deg']:.2f} p95 {ae['p95_deg']:.2f} deg (floor "
+            f"median {qf['median_deg']:.2f}); errors between neighbours "
+            f"{'n/a' if share is None else f'{100 * share:.1f}%'}")
+
+
+def _fmt(x, pct: bool = False) -> str:
+    if x is None or (isinstance(x, float) and np.isnan(x)):
+        return "n/a"
+    return f"{100 * x:.1f}%" if pct else f"{x:.2f}"
+
+
+def markdown_report(r: dict) -> str:
+    ae, qf = r["angular_error"], r["quantisation_floor"]
+    lines = [
+        f"# Evaluation of `{r['checkpoint']}` (epoch {r['epoch']})", "",
+        f"Model `{r['model']}`, branches {r['branches']}; dataset `{r['dataset']['path']}`, split "
+        f"**{r['dataset']['split']}**: {r['n_frames']} frames ({r['frames_with_lt2_detections']} with fewer than "
+        f"2 detections), K = {r['num_classes']} (chance top-1 {_fmt(r['chance_top1'], True)}).", "",
+        "| top-1 | top-3 | top-5 |", "|---|---|---|",
+        f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
+        "## Angular error (degrees)", "",
+        "| | mean | median | p95 |", "|---|---|---|---|",
+        f"| prediction, arccos(v · c_pred) | {_fmt(ae['mean_deg'])} | {_fmt(ae['median_deg'])} | {_fmt(ae['p95_deg'])} |",
+        f"| quantisation floor, arccos(v · c_true) | {_fmt(qf['mean_deg'])} | {_fmt(qf['median_deg'])} | "
+        f"{_fmt(qf['p95_deg'])} |", "",
+        f"Errors: {r['n_errors']}; share between neighbouring clusters: {_fmt(r['neighbour_error_share'], True)} "
+        f"(neighbours: {r['neighbour_definition']}; {r['neighbour_pairs']} neighbour pairs).", "",
+        "## Per-class accuracy", "", "| class | frames | top-1 |", "|---|---|---|",
+    ]
+    lines += [f"| {c['class']} | {c['n']} | {_fmt(c['top1'], True)} |" for c in r["per_class"]]
+    lines += ["", f"Confusion matrix: `confusion-{r['dataset']['split']}.png` (rows true, columns predicted).", ""]
+    return "\n".join(lines)

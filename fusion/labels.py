@@ -1,0 +1,148 @@
+"""Boresight labels: spherical K-means on the training directions.
+
+A boresight (RA, Dec) becomes the ICRS unit vector ``v = [cos d cos a, cos d sin a, sin d]``
+(the same vector skygen stores as ``boresight/unit_vector``). Class k is the spherical
+cluster with centroid ``c_k`` (unit vector); a direction belongs to the class of largest
+cosine ``v . c_k`` (ties go to the lower index). Centroids are fitted on the training
+split only and then frozen; validation and test directions are labelled against them.
+
+Algorithm (:func:`spherical_kmeans`)
+    K-Means++ initialisation with the chordal distance ``|v - c|^2 = 2 (1 - v.c)``,
+    seeded; then alternate assignment (max cosine) and update (mean of the members,
+    re-normalised to unit length). An empty cluster (or one whose members sum to zero)
+    is re-seeded with the direction worst served by its current centroid. **Convergence:**
+    an iteration in which no assignment changes and no centroid moves by more than
+    ``tol_deg``; otherwise stop after ``max_iter`` iterations (``converged=False`` is
+    reported). ``n_init`` restarts (seeds ``[seed, r]``) and the one with the largest total
+    cosine similarity is kept.
+
+Soft targets (:func:`soft_targets`)
+    ``q_k ∝ exp(kappa v . c_k)``: a von Mises–Fisher-like spread over the clusters near
+    the true direction; kappa in 1/(unit of cosine). For a neighbour whose centroid is
+    an angle ``d`` (rad) farther, the weight ratio is ``exp(-kappa (1 - cos d)) ≈ exp(-kappa d^2/2)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import DatasetError
+
+
+def radec_to_unit(ra_deg, dec_deg) -> np.ndarray:
+    """(N, 3) ICRS unit vectors from RA/Dec in degrees."""
+    a, d = np.radians(np.asarray(ra_deg, float)), np.radians(np.asarray(dec_deg, float))
+    return np.stack([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)], axis=-1)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    if np.any(n == 0) or not np.all(np.isfinite(v)):
+        raise DatasetError("boresight directions contain zero or non-finite vectors; the dataset is damaged")
+    return v / n
+
+
+def assign(v: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Class of each direction: the centroid of largest cosine (ties: lower index)."""
+    return np.argmax(np.asarray(v, np.float64) @ np.asarray(centroids, np.float64).T, axis=1).astype(np.int64)
+
+
+def soft_targets(v: np.ndarray, centroids: np.ndarray, kappa: float) -> np.ndarray:
+    """(N, K) targets ``q_k ∝ exp(kappa v . c_k)``; rows sum to 1."""
+    z = kappa * (np.asarray(v, np.float64) @ np.asarray(centroids, np.float64).T)
+    z -= z.max(axis=1, keepdims=True)
+    q = np.exp(z)
+    return q / q.sum(axis=1, keepdims=True)
+
+
+def angular_distance_deg(v: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Row-wise angle between unit vectors, degrees: arccos(v . c), clipped to [-1, 1]."""
+    cos = np.clip(np.sum(np.asarray(v, np.float64) * np.asarray(c, np.float64), axis=-1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+@dataclass(frozen=True)
+class KMeansResult:
+    centroids: np.ndarray     # (K, 3) unit vectors
+    labels: np.ndarray        # (N,) class of each training direction
+    n_iter: int
+    converged: bool
+    total_cosine: float       # sum over directions of the cosine to their centroid (higher is tighter)
+
+
+def kmeanspp_init(v: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K-Means++ seeding with the chordal squared distance 2 (1 - v.c)."""
+    n = len(v)
+    centroids = [v[rng.integers(n)]]
+    d2 = 2.0 * (1.0 - v @ centroids[0])
+    for _ in range(1, k):
+        d2 = np.clip(d2, 0.0, None)
+        total = d2.sum()
+        j = rng.choice(n, p=d2 / total) if total > 0 else rng.integers(n)
+        centroids.append(v[j])
+        d2 = np.minimum(d2, 2.0 * (1.0 - v @ v[j]))
+    return np.array(centroids)
+
+
+def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, tol_deg: float) -> KMeansResult:
+    c = kmeanspp_init(v, k, rng)
+    labels = np.full(len(v), -1, np.int64)
+    tol_cos = np.cos(np.radians(tol_deg))
+    converged, it = False, 0
+    for it in range(1, max_iter + 1):
+        new = assign(v, c)
+        sums = np.zeros_like(c)
+        np.add.at(sums, new, v)
+        norms = np.linalg.norm(sums, axis=1)
+        new_c = c.copy()
+        ok = norms > 1e-12
+        new_c[ok] = sums[ok] / norms[ok, None]
+        for j in np.flatnonzero(~ok):   # empty or degenerate cluster: re-seed deterministically
+            worst = int(np.argmin(np.sum(v * new_c[new], axis=1)))
+            new_c[j] = v[worst]
+            new[worst] = j
+        moved = np.min(np.sum(new_c * c, axis=1))
+        stable = np.array_equal(new, labels) and ok.all()
+        c, labels = new_c, new
+        if stable and moved >= tol_cos:
+            converged = True
+            break
+    labels = assign(v, c)
+    total = float(np.sum(v * c[labels]))
+    return KMeansResult(c, labels, it, converged, total)
+
+
+def spherical_kmeans(v: np.ndarray, k: int, seed: int = 0, n_init: int = 4, max_iter: int = 300,
+                     tol_deg: float = 1e-6) -> KMeansResult:
+    """Fit K unit centroids to unit vectors ``v`` (N, 3). See the module docstring."""
+    v = _unit(v)
+    n_distinct = len(np.unique(np.round(v, 12), axis=0))
+    if n_distinct < k:
+        raise DatasetError(f"cannot fit labels.k={k} clusters to {n_distinct} distinct training boresights; "
+                           "render more frames or lower labels.k")
+    best = None
+    for r in range(n_init):
+        res = _fit_once(v, k, np.random.default_rng([seed, r]), max_iter, tol_deg)
+        if best is None or res.total_cosine > best.total_cosine + 1e-9:
+            best = res
+    # a canonical class order (by Dec, then RA of the centroid) so that class ids read sensibly
+    order = np.lexsort((np.arctan2(best.centroids[:, 1], best.centroids[:, 0]), -best.centroids[:, 2]))
+    c = best.centroids[order]
+    return KMeansResult(c, assign(v, c), best.n_iter, best.converged, best.total_cosine)
+
+
+def class_weights(labels: np.ndarray, k: int, mode: str = "balanced") -> np.ndarray:
+    """Per-class alpha: ``balanced`` = N/(K n_c) L1-normalised (sums to 1); ``uniform`` = 1/K.
+
+    A class with no training sample gets the weight of a class with one sample.
+    """
+    if mode == "uniform":
+        return np.full(k, 1.0 / k)
+    if mode != "balanced":
+        raise ValueError(f"unknown alpha mode {mode!r}")
+    counts = np.bincount(np.asarray(labels, np.int64), minlength=k).astype(np.float64)
+    alpha = len(labels) / (k * np.maximum(counts, 1.0))
+    return alpha / alpha.sum()

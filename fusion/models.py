@@ -1,0 +1,292 @@
+"""Star-Fusion and its baselines: one registry, one ``create_model``.
+
+Every model maps ``(image, coords, mask)`` to K logits through three optional branches
+(the paper's Figure 2):
+
+* photometric — an image backbone pooled to a vector: timm ``swinv2_tiny_window8_256``
+  (768-d) for ``star_fusion``, or any timm model name, or ``tiny_cnn`` (a 5-stage
+  CNN with 128-d output that trains on a 2-core CPU in minutes);
+* geometric — the detections rasterised on a fixed canvas (:mod:`fusion.heatmap`), a
+  shallow CNN (3x3 stride-2 convolutions with BatchNorm and ReLU), average-pooled to a
+  small grid, flattened and projected linearly;
+* coordinates — a 3-layer MLP over the ordered, padded rows and their mask, or a
+  permutation-invariant set encoder (a shared per-star MLP, masked mean and max pooling,
+  an MLP on the pooled vector).
+
+The branch features are concatenated, layer-normalised and mapped by one linear layer to
+the logits (softmax is in the loss). Like timm models: ``forward_features`` (the fused,
+not yet normalised vector) -> ``forward_head`` -> ``forward``.
+
+Registered names (:data:`MODELS`):
+
+* ``star_fusion`` — the three branches (each switchable off by ``model.branches``);
+* ``swinv2_tiny`` — SwinV2-Tiny, image only (baseline);
+* ``resnet50`` — ResNet-50, image only (baseline).
+
+Baselines ignore ``model.branches``: :func:`resolve_model_config` sets them to image only,
+and that resolved config is what a run saves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import nn
+
+from .config import ModelConfig
+from .errors import CheckpointError, ConfigError
+from .heatmap import HeatmapRasteriser
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+N_COORD_FEATURES = 3
+
+
+# --------------------------------------------------------------------------- registry
+@dataclass(frozen=True)
+class ModelSpec:
+    name: str
+    image_backbone: str
+    image_only: bool
+    doc: str
+
+
+MODELS: dict[str, ModelSpec] = {}
+
+
+def register_model(name: str, image_backbone: str, image_only: bool, doc: str) -> None:
+    MODELS[name] = ModelSpec(name, image_backbone, image_only, doc)
+
+
+register_model("star_fusion", "swinv2_tiny_window8_256", False,
+               "SwinV2-Tiny image branch + heatmap CNN + coordinate encoder, fused by LayerNorm + Linear")
+register_model("swinv2_tiny", "swinv2_tiny_window8_256", True, "SwinV2-Tiny, image only (baseline)")
+register_model("resnet50", "resnet50", True, "ResNet-50, image only (baseline)")
+
+
+def get_spec(name: str) -> ModelSpec:
+    try:
+        return MODELS[name]
+    except KeyError:
+        raise ConfigError(f"model.name: unknown model {name!r}; registered: {', '.join(MODELS)}") from None
+
+
+def resolve_model_config(cfg: ModelConfig) -> ModelConfig:
+    """Fill the registry's defaults: the backbone, image-only branches for baselines, in_chans."""
+    spec = get_spec(cfg.name)
+    backbone = cfg.image_backbone or spec.image_backbone
+    branches = cfg.branches
+    if spec.image_only:
+        branches = replace(branches, image=True, heatmap=False, coords=False)
+    in_chans = cfg.in_chans or (3 if cfg.pretrained else 1)
+    if cfg.pretrained and backbone in BACKBONES:
+        raise ConfigError(f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
+                          "use a timm backbone (model.image_backbone) or drop --pretrained")
+    return replace(cfg, image_backbone=backbone, branches=branches, in_chans=in_chans)
+
+
+# --------------------------------------------------------------------------- image backbones
+class TinyCNN(nn.Module):
+    """Five conv3x3-BN-ReLU-maxpool2 stages (8..128 channels), global average pool: 128-d."""
+
+    def __init__(self, in_chans: int = 1, widths: tuple[int, ...] = (8, 16, 32, 64, 128)):
+        super().__init__()
+        layers, c = [], in_chans
+        for w in widths:
+            layers += [nn.Conv2d(c, w, 3, padding=1, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True),
+                       nn.MaxPool2d(2)]
+            c = w
+        self.features = nn.Sequential(*layers)
+        self.num_features = c
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.features(x).mean(dim=(2, 3))
+
+
+BACKBONES: dict[str, Callable[..., nn.Module]] = {"tiny_cnn": TinyCNN}
+
+
+def _pretrained_overlay(pretrained: str) -> dict:
+    """timm ``pretrained_cfg_overlay`` for a file, a hub repo (``hf-hub:org/name``) or ``timm``."""
+    if Path(pretrained).expanduser().is_file():
+        return {"file": str(Path(pretrained).expanduser())}
+    if pretrained.startswith(("hf-hub:", "hf_hub:")):
+        return {"hf_hub_id": pretrained.split(":", 1)[1]}
+    if pretrained in ("timm", "imagenet"):
+        return {}
+    raise ConfigError(f"model.pretrained: {pretrained!r} is neither an existing file nor a hub name; "
+                      "give a weights file (.pth/.safetensors), 'hf-hub:ORG/REPO', or 'timm' for timm's "
+                      "default ImageNet weights of the backbone")
+
+
+def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretrained: str | None = None) -> nn.Module:
+    """An image backbone returning pooled features, with ``num_features`` set."""
+    if name in BACKBONES:
+        return BACKBONES[name](in_chans=in_chans)
+    import timm
+    if not timm.is_model(name):
+        raise ConfigError(f"model.image_backbone: {name!r} is neither a timm model nor one of "
+                          f"{', '.join(BACKBONES)}")
+    kw = {"num_classes": 0, "in_chans": in_chans}
+    if pretrained:
+        kw.update(pretrained=True, pretrained_cfg_overlay=_pretrained_overlay(pretrained))
+    default_size = timm.models.get_pretrained_cfg_value(name, "input_size") or (3, img_size, img_size)
+    try:
+        if default_size[-1] != img_size:
+            try:
+                return timm.create_model(name, img_size=img_size, **kw)
+            except TypeError:   # models without an img_size argument (CNNs) take any size
+                pass
+        return timm.create_model(name, **kw)
+    except (OSError, RuntimeError, ValueError) as exc:
+        if pretrained:
+            raise CheckpointError(f"cannot load pretrained weights {pretrained!r} into {name}: {exc}") from None
+        raise
+
+
+class ImageBranch(nn.Module):
+    """Replicates the 1-channel input to ``in_chans`` and applies ImageNet statistics when pretrained."""
+
+    def __init__(self, backbone: nn.Module, in_chans: int, imagenet_norm: bool):
+        super().__init__()
+        self.backbone, self.in_chans = backbone, in_chans
+        mean = torch.tensor(IMAGENET_MEAN[:in_chans] if in_chans == 3 else [sum(IMAGENET_MEAN) / 3])
+        std = torch.tensor(IMAGENET_STD[:in_chans] if in_chans == 3 else [sum(IMAGENET_STD) / 3])
+        self.imagenet_norm = imagenet_norm
+        self.register_buffer("mean", mean.view(1, -1, 1, 1), persistent=False)
+        self.register_buffer("std", std.view(1, -1, 1, 1), persistent=False)
+        self.out_dim = int(backbone.num_features)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        if image.shape[1] != self.in_chans:
+            image = image.expand(-1, self.in_chans, -1, -1)
+        if self.imagenet_norm:
+            image = (image - self.mean) / self.std
+        return self.backbone(image)
+
+
+# --------------------------------------------------------------------------- geometric branches
+class HeatmapBranch(nn.Module):
+    """Rasterise the detections, shallow CNN, pool to a grid, flatten, project to ``out_dim``."""
+
+    def __init__(self, canvas_px: int = 64, sigma_px: float = 1.0, channels: tuple[int, ...] = (32, 64, 128, 256),
+                 pool_grid: int = 4, out_dim: int = 384):
+        super().__init__()
+        self.rasterise = HeatmapRasteriser(canvas_px, sigma_px)
+        layers, c = [], 1
+        for w in channels:
+            layers += [nn.Conv2d(c, w, 3, stride=2, padding=1, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True)]
+            c = w
+        self.cnn = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(pool_grid), nn.Flatten())
+        self.proj = nn.Linear(c * pool_grid * pool_grid, out_dim)
+        self.out_dim = out_dim
+
+    def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return self.proj(self.cnn(self.rasterise(coords, mask)))
+
+
+class CoordMLP(nn.Module):
+    """3-layer MLP over the ordered rows (padding zeroed) and the mask: (B, M, F), (B, M) -> (B, hidden)."""
+
+    def __init__(self, max_stars: int, n_features: int = N_COORD_FEATURES, hidden: int = 256):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(max_stars * (n_features + 1), hidden), nn.GELU(),
+                                 nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+        self.out_dim = hidden
+
+    def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        m = mask.to(coords.dtype)[..., None]
+        x = torch.cat([coords * m, m], dim=-1)
+        return self.net(x.flatten(1))
+
+
+class SetEncoder(nn.Module):
+    """Permutation-invariant: shared per-star MLP, masked mean and max pooling, MLP. Empty sets give rho(0)."""
+
+    def __init__(self, n_features: int = N_COORD_FEATURES, hidden: int = 256):
+        super().__init__()
+        self.phi = nn.Sequential(nn.Linear(n_features, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU())
+        self.rho = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+        self.out_dim = hidden
+
+    def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        h = self.phi(coords)                                    # (B, M, H)
+        m = mask[..., None]
+        count = m.sum(dim=1).clamp(min=1).to(h.dtype)
+        mean = (h * m.to(h.dtype)).sum(dim=1) / count
+        mx = h.masked_fill(~m, float("-inf")).amax(dim=1)
+        mx = torch.where(torch.isfinite(mx), mx, torch.zeros_like(mx))
+        return self.rho(torch.cat([mean, mx], dim=-1))
+
+
+# --------------------------------------------------------------------------- the fused model
+class StarFusion(nn.Module):
+    """Any non-empty subset of {image, heatmap, coords} branches -> concat -> LayerNorm -> Linear(K)."""
+
+    def __init__(self, num_classes: int, image: nn.Module | None = None, heatmap: nn.Module | None = None,
+                 coords: nn.Module | None = None, dropout: float = 0.0):
+        super().__init__()
+        if image is None and heatmap is None and coords is None:
+            raise ConfigError("model.branches: at least one branch must be on")
+        self.image, self.heatmap, self.coords = image, heatmap, coords
+        dim = sum(b.out_dim for b in (image, heatmap, coords) if b is not None)
+        self.num_classes, self.num_features = num_classes, dim
+        self.norm = nn.LayerNorm(dim)
+        self.drop = nn.Dropout(dropout)
+        self.head = nn.Linear(dim, num_classes)
+
+    @property
+    def branches(self) -> dict[str, bool]:
+        return {"image": self.image is not None, "heatmap": self.heatmap is not None, "coords": self.coords is not None}
+
+    def forward_features(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
+                         mask: torch.Tensor | None = None) -> torch.Tensor:
+        parts = []
+        if self.image is not None:
+            parts.append(self.image(image))
+        if self.heatmap is not None:
+            parts.append(self.heatmap(coords, mask))
+        if self.coords is not None:
+            parts.append(self.coords(coords, mask))
+        return torch.cat(parts, dim=-1)
+
+    def forward_head(self, z: torch.Tensor) -> torch.Tensor:
+        return self.head(self.drop(self.norm(z)))
+
+    def forward(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self.forward_head(self.forward_features(image, coords, mask))
+
+
+def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *, image_size: int = 256,
+                 max_stars: int = 6, load_pretrained: bool = True) -> StarFusion:
+    """Build registered model ``name`` with K = ``num_classes`` outputs from a :class:`ModelConfig`.
+
+    ``load_pretrained=False`` builds the architecture of a pretrained model (3 channels,
+    ImageNet input statistics) without fetching the weights, e.g. to load a checkpoint.
+    """
+    cfg = resolve_model_config(replace(cfg or ModelConfig(), name=name))
+    b, h = cfg.branches, cfg.heatmap
+    image = heat = coords = None
+    if b.image:
+        backbone = create_backbone(cfg.image_backbone, cfg.in_chans, image_size,
+                                   cfg.pretrained if load_pretrained else None)
+        image = ImageBranch(backbone, cfg.in_chans, imagenet_norm=bool(cfg.pretrained))
+    if b.heatmap:
+        heat = HeatmapBranch(h.canvas_px, h.sigma_px, h.channels, h.pool_grid, h.out_dim)
+    if b.coords:
+        coords = (CoordMLP(max_stars, hidden=cfg.coord_hidden) if cfg.coord_encoder == "mlp"
+                  else SetEncoder(hidden=cfg.coord_hidden))
+    return StarFusion(num_classes, image, heat, coords, cfg.dropout)
+
+
+def parameter_counts(model: StarFusion) -> dict[str, int]:
+    """Parameters per branch, the fusion head, and the total."""
+    count = lambda m: 0 if m is None else sum(p.numel() for p in m.parameters())
+    out = {"image": count(model.image), "heatmap": count(model.heatmap), "coords": count(model.coords),
+           "head": count(model.norm) + count(model.head)}
+    out["total"] = sum(out.values())
+    return out

@@ -1,0 +1,200 @@
+"""``skygen`` command line: render, inspect, preview, validate, catalog, config.
+
+Each subcommand is a thin wrapper over a library function; ``main(argv) -> int``.
+Exit codes: 0 success, 1 validation found problems, 2 bad input (message on stderr),
+130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from .errors import SkygenError
+
+EPILOG = """examples:
+  skygen render --n 2000 --workers 2            # into data/sky-n2000-s0
+  skygen render --n 50000 --set sensor.exposure_s=0.05 --set corruptions.false_stars=1
+  skygen render --n 50000 --slice 3/10 --out /scratch/big   # one slice of a job array
+  skygen inspect data/sky-n2000-s0
+  skygen preview data/sky-n2000-s0 --out grid.png
+  skygen validate data/sky-n2000-s0
+  skygen config --keys                          # every config key, default, range and unit
+"""
+
+
+def _default_out(n: int, seed: int) -> Path:
+    return Path("data") / f"sky-n{n}-s{seed}"
+
+
+def _parse_slice(text: str | None) -> tuple[int, int]:
+    if not text:
+        return 0, 1
+    try:
+        i, k = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise SkygenError(f"--slice {text!r} must look like I/K, e.g. 3/10 (slice 3 of 10, counting from 0)") from None
+    if k < 1 or not 0 <= i < k:
+        raise SkygenError(f"--slice {text}: need 0 <= I < K")
+    return i, k
+
+
+def _load(args) -> "RenderConfig":
+    from .config import load_config
+    sets = list(args.set or [])
+    if getattr(args, "n", None) is not None:
+        sets.append(f"n_frames={args.n}")
+    if getattr(args, "seed", None) is not None:
+        sets.append(f"seed={args.seed}")
+    if getattr(args, "full_res", False):
+        sets.append("output.full_res=true")
+    return load_config(args.config, sets)
+
+
+def cmd_render(args) -> int:
+    from .dataset import render_dataset
+    cfg = _load(args)
+    out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
+    i, k = _parse_slice(args.slice)
+    workers = args.workers or os.cpu_count() or 1
+    man = render_dataset(cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force,
+                         progress=not args.quiet)
+    print(f"{man['n_frames']} frames in {len(man['shards'])} shard(s) at {out}  "
+          f"(train {man['splits']['train']}, val {man['splits']['val']}, test {man['splits']['test']})")
+    print(f"look at it:  skygen inspect {out}   |   skygen preview {out} --out {out}/preview.png")
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    from .inspect import inspect_dataset
+    print(inspect_dataset(args.path, as_json=args.json))
+    return 0
+
+
+def cmd_preview(args) -> int:
+    from .preview import preview
+    out = preview(args.path, args.out, n=args.n, split=args.split, start=args.start)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from .validate import validate
+    report = validate(args.path, checksums=not args.no_checksums)
+    print(report.text())
+    return 0 if report.ok else 1
+
+
+def cmd_catalog(args) -> int:
+    from .catalog import load_catalog
+    if args.action == "fetch":
+        from .vizier import fetch
+        out = Path(args.out or f"catalogs/{args.catalog}.npz")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stars = fetch(args.catalog, out, args.mag_limit)
+        print(f"saved {len(stars)} stars to {out}; use it with --set catalog.path={out}")
+        return 0
+    table = load_catalog(args.path)
+    import numpy as np
+    print(f"source: {table.source}\nstars: {len(table)}\nepoch: J{table.epoch_yr}\nband: {table.band}")
+    for m in (3, 4, 5, 6, 7, 8, 9):
+        print(f"  {table.band} <= {m}: {int(np.sum(table.mag <= m))}")
+    return 0
+
+
+def cmd_config(args) -> int:
+    import yaml
+    from .config import config_dict, config_help
+    if args.keys:
+        print(config_help())
+        return 0
+    cfg = _load(args)
+    print(yaml.safe_dump(config_dict(cfg), sort_keys=False), end="")
+    if args.summary:
+        from .render import Renderer
+        r = Renderer(cfg)
+        fx, fy = r.camera.fov_deg
+        print(f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
+              f"detection limit Hp {r.detection_limit_mag:.2f}, rendering to Hp {r.mag_limit:.2f} "
+              f"({len(r.sky)} stars), background {r.background_e:.2f} e-/px, noise {r.noise_e():.2f} e-/px")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
+                                "writing shareable HDF5 shards.", epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def config_args(sp, with_n=True):
+        sp.add_argument("--config", metavar="FILE.yaml", help="YAML config (keys as in `skygen config`)")
+        sp.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override one config key, e.g. --set sensor.exposure_s=0.05 (repeatable)")
+        if with_n:
+            sp.add_argument("--n", type=int, help="number of frames (config n_frames; default 1000)")
+        sp.add_argument("--seed", type=int, help="dataset seed (config seed; default 0)")
+
+    r = sub.add_parser("render", help="render a dataset (resumes an interrupted one)",
+                       description="Render frames into HDF5 shards plus manifest.json. Re-running the same "
+                       "command resumes; Ctrl-C never leaves a broken shard.")
+    config_args(r)
+    r.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED})")
+    r.add_argument("--workers", type=int, default=0, help="worker processes (default: all cores)")
+    r.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
+    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays); the last "
+                   "slice to finish writes manifest.json")
+    r.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_render)
+
+    i = sub.add_parser("inspect", help="counts, splits, star and detection histograms, config summary")
+    i.add_argument("path")
+    i.add_argument("--json", action="store_true", help="machine-readable output")
+    i.set_defaults(func=cmd_inspect)
+
+    v = sub.add_parser("preview", help="PNG grid of frames with detections and true stars")
+    v.add_argument("path")
+    v.add_argument("--out", default="preview.png")
+    v.add_argument("--n", type=int, default=12, help="frames to show")
+    v.add_argument("--start", type=int, default=0, help="first frame (within the split)")
+    v.add_argument("--split", choices=("train", "val", "test"), default=None)
+    v.set_defaults(func=cmd_preview)
+
+    va = sub.add_parser("validate", help="check schema, shapes, value ranges and checksums")
+    va.add_argument("path")
+    va.add_argument("--no-checksums", action="store_true", help="skip sha256 verification (faster)")
+    va.set_defaults(func=cmd_validate)
+
+    c = sub.add_parser("catalog", help="show the catalog, or fetch another one from VizieR (online)")
+    c.add_argument("action", choices=("info", "fetch"))
+    c.add_argument("--catalog", default="hipparcos-v", help="fetch: hipparcos-v (I/239) or tycho2 (I/259)")
+    c.add_argument("--mag-limit", type=float, default=9.0, help="fetch: faintest V magnitude")
+    c.add_argument("--out", help="fetch: output .npz (default catalogs/NAME.npz)")
+    c.add_argument("--path", help="info: catalog file (default: bundled Hipparcos-2)")
+    c.set_defaults(func=cmd_catalog)
+
+    cf = sub.add_parser("config", help="print the resolved config, or every key with --keys")
+    config_args(cf)
+    cf.add_argument("--keys", action="store_true", help="list keys, defaults, allowed ranges and units")
+    cf.add_argument("--summary", action="store_true", help="also print FOV, detection limit, noise")
+    cf.set_defaults(func=cmd_config)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except SkygenError as exc:
+        print(f"skygen {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"\nskygen {args.command}: interrupted; finished shards are kept — run the same command "
+              "again to resume.", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

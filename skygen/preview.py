@@ -1,0 +1,58 @@
+"""``skygen preview``: a PNG grid of stored frames with detections and true stars overlaid.
+
+Frames are shown with an asinh stretch around the background. Circles: detections
+(green: matched to a catalog star, red: false). Small crosses: true stars down to half a
+magnitude below the detection limit. Positions are
+converted from full-resolution to stored pixels with :func:`conventions.full_to_stored`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .conventions import full_to_stored
+from .io import open_dataset
+
+
+def preview(path, out, n: int = 12, split: str | None = None, start: int = 0) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    out = Path(out)
+    with open_dataset(path) as ds:
+        idx = ds.indices(split)[start:start + n]
+        cols = min(4, max(1, len(idx)))
+        rows = int(np.ceil(len(idx) / cols)) or 1
+        fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.7 * rows), squeeze=False)
+        f = ds.downsample_factor
+        for ax in axes.ravel():
+            ax.axis("off")
+        for ax, i in zip(axes.ravel(), idx):
+            img = ds.image(int(i)).astype(np.float32)
+            bg = np.median(img)
+            noise = max(np.std(img[img < np.percentile(img, 90)]), 0.5)
+            ax.imshow(np.arcsinh((img - bg) / (3 * noise)), cmap="gray", vmin=-0.5, vmax=4, origin="upper")
+            t = ds.true_stars(int(i))
+            lim = ds.manifest.get("detection_limit_mag")
+            if lim is not None:   # stars far below the detection limit would only clutter the view
+                t = {k: v[t["mag"] <= lim + 0.5] for k, v in t.items()}
+            ax.plot(full_to_stored(t["x_px"], f), full_to_stored(t["y_px"], f), "+", color="#4aa3ff", ms=4, mew=0.6)
+            d = ds.detections(int(i))
+            ok = d["hip_id"] >= 0
+            for sel, colour in ((ok, "#3cdc5a"), (~ok, "#ff4040")):
+                ax.scatter(full_to_stored(d["x_px"][sel], f), full_to_stored(d["y_px"][sel], f), s=60,
+                           facecolors="none", edgecolors=colour, linewidths=0.8)
+            b = ds.boresight
+            ax.set_title(f"#{ds.frames['index'][i]} RA {b['ra_deg'][i]:.1f} Dec {b['dec_deg'][i]:+.1f} "
+                         f"roll {b['roll_deg'][i]:.0f}\n{len(d['x_px'])} det ({int(ok.sum())} matched), "
+                         f"{len(t['x_px'])} stars", fontsize=7)
+            ax.set_xlim(-0.5, img.shape[1] - 0.5)
+            ax.set_ylim(img.shape[0] - 0.5, -0.5)
+        fig.suptitle(f"{path}: green = matched detection, red = false detection, + = true star (to 0.5 mag below the detection limit)", fontsize=8)
+        fig.tight_layout()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=110)
+        plt.close(fig)
+    return out

@@ -1,0 +1,58 @@
+"""Config validation: every invalid value is caught at the boundary with a clear message."""
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from skygen.config import RenderConfig, load_config
+from skygen.configlib import describe
+from skygen.errors import ConfigError
+from skygen.render import Renderer
+
+KEYS = {k: (d, allowed) for k, d, allowed, _ in describe(RenderConfig)}
+
+
+@pytest.mark.parametrize("override, key", [
+    ("sensor.exposure_s=0", "sensor.exposure_s"), ("camera.fov_deg=-3", "camera.fov_deg"),
+    ("optics.psf=box", "optics.psf"), ("sensor.bit_depth=32", "sensor.bit_depth"),
+    ("sensor.blooming=maybe", "sensor.blooming"), ("n_frames=1.5", "n_frames"),
+    ("corruptions.dropout=2", "corruptions.dropout"), ("output.image_size_px=100", "output.image_size_px"),
+    ("attitude.roll_range_deg=[10,5]", "attitude.roll_range_deg"), ("sensor.bias_adu=5000", "sensor.bias_adu"),
+])
+def test_invalid_values_name_their_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(overrides=[override])
+
+
+def test_unknown_key_suggests_the_right_one():
+    with pytest.raises(ConfigError, match="did you mean 'sensor.read_noise_e'"):
+        load_config(overrides=["sensor.read_nosie_e=3"])
+
+
+numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6),
+                    st.booleans(), st.text(max_size=5), st.none())
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(key=st.sampled_from(sorted(KEYS)), value=numbers)
+def test_any_value_is_accepted_or_rejected_with_the_key(key, value):
+    import yaml
+    try:
+        load_config(overrides=[f"{key}={yaml.safe_dump(value).strip().removesuffix('...').strip()}"])
+    except ConfigError as exc:
+        assert key.split(".")[-1] in str(exc) or "must" in str(exc)
+
+
+SMALL = ["camera.width_px=128", "camera.height_px=128", "camera.pixel_pitch_um=44", "output.image_size_px=32"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(exposure=st.floats(0.001, 2.0), sigma=st.floats(0.3, 4.0), psf=st.sampled_from(["gaussian", "moffat", "airy"]),
+       read=st.floats(0, 50), temp=st.floats(-40, 60), fov=st.floats(5, 60), blur=st.floats(0, 3))
+def test_valid_configs_render_a_frame(exposure, sigma, psf, read, temp, fov, blur):
+    cfg = load_config(overrides=SMALL + [f"sensor.exposure_s={exposure}", f"optics.psf_sigma_px={sigma}",
+                                         f"optics.psf={psf}", f"sensor.read_noise_e={read}",
+                                         f"sensor.temperature_c={temp}", f"camera.fov_deg={fov}",
+                                         f"corruptions.motion_blur={blur}"])
+    f = Renderer(cfg).render(0)
+    assert f.image.shape == (32, 32)

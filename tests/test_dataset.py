@@ -1,0 +1,134 @@
+"""Dataset rendering: worker-count independence, resume after interruption, slices, safety."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from skygen import dataset as dsmod
+from skygen.config import load_config
+from skygen.dataset import render_dataset
+from skygen.errors import DatasetError
+from skygen.io import open_dataset
+from skygen.validate import validate
+
+
+def contents(path):
+    with open_dataset(path) as ds:
+        return [(ds.image(i).tobytes(), ds.detections(i)["x_px"].tobytes(), ds.true_stars(i)["hip_id"].tobytes())
+                for i in range(len(ds))], dict(ds.boresight)
+
+
+def same_data(a, b) -> bool:
+    ca, ba = contents(a)
+    cb, bb = contents(b)
+    return ca == cb and all(np.array_equal(ba[k], bb[k]) for k in ba)
+
+
+def test_workers_do_not_change_frames(tmp_path, small_overrides, small_dataset):
+    cfg = load_config(overrides=small_overrides + ["n_frames=50"])
+    render_dataset(cfg, tmp_path / "w2", workers=2, progress=False)
+    assert same_data(small_dataset, tmp_path / "w2")
+    assert validate(tmp_path / "w2").ok
+
+
+def test_resume_after_interrupt_is_identical(tmp_path, small_overrides, small_dataset, monkeypatch):
+    cfg = load_config(overrides=small_overrides + ["n_frames=50"])
+    real = dsmod._render_shard
+    calls = {"n": 0}
+
+    def flaky(task):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(task)
+
+    monkeypatch.setattr(dsmod, "_render_shard", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        render_dataset(cfg, tmp_path / "r", workers=1, progress=False)
+    man = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert not man["complete"] and len(man["shards"]) == 1
+    assert not list((tmp_path / "r").glob(".*tmp*"))          # no half-written file left
+    with pytest.raises(DatasetError, match="has not finished"):
+        open_dataset(tmp_path / "r")
+    monkeypatch.setattr(dsmod, "_render_shard", real)
+    render_dataset(cfg, tmp_path / "r", workers=1, progress=False)
+    assert same_data(small_dataset, tmp_path / "r")
+
+
+def test_sigkill_then_resume(tmp_path, small_overrides, small_dataset):
+    """A real render process killed with SIGKILL, then resumed, gives identical frames."""
+    out = tmp_path / "k"
+    args = [sys.executable, "-m", "skygen.cli", "render", "--quiet", "--workers", "1", "--out", str(out), "--n", "50"]
+    args += sum((["--set", o] for o in small_overrides), [])
+    proc = subprocess.Popen(args)
+    deadline = time.time() + 60
+    while time.time() < deadline and not list(out.glob("shard-*.h5")):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert subprocess.run(args).returncode == 0
+    assert same_data(small_dataset, out)
+    assert validate(out).ok
+
+
+def test_slices_combine_into_one_dataset(tmp_path, small_overrides, small_dataset):
+    cfg = load_config(overrides=small_overrides + ["n_frames=50"])
+    for i in range(3):
+        man = render_dataset(cfg, tmp_path / "s", workers=1, slice_index=i, num_slices=3, progress=False)
+    assert man["complete"] and (tmp_path / "s" / "manifest.json").exists()
+    assert same_data(small_dataset, tmp_path / "s")
+
+
+def test_other_dataset_in_folder_is_not_overwritten(tmp_path, small_overrides):
+    cfg = load_config(overrides=small_overrides + ["n_frames=20"])
+    render_dataset(cfg, tmp_path / "d", progress=False)
+    before = sorted(p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir())
+    other = load_config(overrides=small_overrides + ["n_frames=20", "sensor.exposure_s=0.2"])
+    with pytest.raises(DatasetError, match="sensor.exposure_s"):
+        render_dataset(other, tmp_path / "d", progress=False)
+    assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir()) == before
+    render_dataset(other, tmp_path / "d", progress=False, force=True)
+    with open_dataset(tmp_path / "d") as ds:
+        assert ds.config["sensor"]["exposure_s"] == 0.2
+
+
+def test_disk_full_leaves_existing_dataset_untouched(tmp_path, small_overrides, monkeypatch):
+    import errno
+    cfg = load_config(overrides=small_overrides + ["n_frames=40"])
+    out = tmp_path / "full"
+    render_dataset(cfg, out, progress=False)
+    (out / "shard-00001.h5").unlink()                 # force one shard to be rendered again
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def no_space(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(dsmod, "write_shard", no_space)
+    with pytest.raises(DatasetError, match="No space left"):
+        render_dataset(cfg, out, progress=False)
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert after.keys() == before.keys() and after["shard-00000.h5"] == before["shard-00000.h5"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores folder permissions")
+def test_read_only_output_folder(tmp_path, small_overrides):
+    out = tmp_path / "ro"
+    out.mkdir()
+    out.chmod(0o500)
+    try:
+        with pytest.raises(DatasetError, match="cannot write"):
+            render_dataset(load_config(overrides=small_overrides + ["n_frames=5"]), out, progress=False)
+    finally:
+        out.chmod(0o700)
+
+
+def test_splits_are_contiguous_and_complete(small_dataset):
+    with open_dataset(small_dataset) as ds:
+        assert len(ds.indices("train")) == 40 and len(ds.indices("val")) == 5 and len(ds.indices("test")) == 5
+        assert ds.indices("test").min() > ds.indices("val").max() > ds.indices("train").max()

@@ -1,0 +1,59 @@
+"""Detector: finds stars, centroids them accurately, and rarely invents any."""
+
+import dataclasses
+
+import numpy as np
+
+from skygen.config import load_config
+from skygen.detect import detect, estimate_background, match
+from skygen.psf import add_patch, stamp
+from skygen.sensor import Exposure, read_out, sensor_maps
+
+
+def frame_with_stars(xs, ys, flux, seed=0, size=512):
+    s = dataclasses.replace(load_config().sensor, dead_pixel_fraction=0.0)
+    maps = sensor_maps(size, size, s.sensor_seed, s.prnu_frac, s.fpn_adu, s.bias_adu, 0.0, s.hot_pixel_dark_e_s, 0.0)
+    star = np.zeros((size, size), np.float32)
+    boxes = []
+    for x, y in zip(xs, ys):
+        y0, x0, p = stamp(x, y, flux, "gaussian", 1.2)
+        boxes.append(add_patch(star, y0, x0, p))
+    img, _ = read_out(Exposure(star, None, boxes, 7.7), s, maps, np.random.default_rng(seed))
+    return img
+
+
+def test_centroid_recovery_of_bright_stars():
+    rng = np.random.default_rng(0)
+    gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)   # well separated
+    xs, ys = gx.ravel() + rng.uniform(-0.5, 0.5, 30), gy.ravel() + rng.uniform(-0.5, 0.5, 30)
+    img = frame_with_stars(xs, ys, 20000.0)
+    det, bg, sigma = detect(img)
+    idx = match(det["x_px"], det["y_px"], xs, ys, np.ones(30), 2.0)
+    assert (idx >= 0).sum() == 30
+    err = np.hypot(det["x_px"][idx >= 0] - xs[idx[idx >= 0]], det["y_px"][idx >= 0] - ys[idx[idx >= 0]])
+    assert np.sqrt(np.mean(err ** 2)) < 0.05
+
+
+def test_background_and_noise_estimate():
+    img = frame_with_stars([], [], 0.0)
+    s = load_config().sensor
+    bg, sigma = estimate_background(img)
+    expected = np.sqrt((7.7 + s.read_noise_e ** 2) / s.gain_e_per_adu ** 2 + 1 / 12 + s.fpn_adu ** 2)
+    assert abs(bg - (s.bias_adu + 7.7 / s.gain_e_per_adu - 0.5)) < 0.2
+    assert abs(sigma / expected - 1) < 0.1
+
+
+def test_no_detections_on_pure_noise():
+    n = sum(len(detect(frame_with_stars([], [], 0.0, seed=k))[0]["x_px"]) for k in range(5))
+    assert n <= 1
+
+
+def test_brightest_first_and_match_is_one_to_one():
+    img = frame_with_stars([100.0, 300.0, 400.0], [100.0, 300.0, 120.0], 5000.0)
+    img2 = frame_with_stars([100.0], [100.0], 50000.0, seed=1)
+    both = np.maximum(img, img2)
+    det, _, _ = detect(both)
+    assert np.all(np.diff(det["flux_adu"]) <= 0)
+    idx = match(det["x_px"], det["y_px"], np.array([100.0, 100.5]), np.array([100.0, 100.0]),
+                np.array([1.0, 2.0]), 2.0)
+    assert sorted(idx[idx >= 0].tolist()) == [1]     # two stars, one detection: brightest claims it

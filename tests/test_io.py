@@ -1,0 +1,117 @@
+"""Shard format: round trip, attributes, and deliberately broken files."""
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from skygen.errors import DatasetError
+from skygen.io import SCHEMA_VERSION, open_dataset, open_shard_file
+from skygen.validate import validate
+
+
+@pytest.fixture
+def copy(small_dataset, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(small_dataset, dst)
+    return dst
+
+
+def test_round_trip_and_self_description(small_dataset):
+    with open_dataset(small_dataset) as ds:
+        assert len(ds) == 50 and ds.image(0).dtype == np.uint16 and ds.image(0).shape == (64, 64)
+        d = ds.detections(3)
+        assert np.all(np.diff(d["flux_adu"]) <= 0)
+        assert set(d) >= {"x_px", "y_px", "flux_adu", "peak_adu", "area_px", "hip_id", "star_index"}
+        np.testing.assert_allclose(np.linalg.norm(ds.boresight["unit_vector"], axis=1), 1, atol=1e-12)
+    with h5py.File(small_dataset / "shard-00000.h5") as f:
+        assert f.attrs["format"] == "skygen-shard" and f.attrs["schema_version"] == SCHEMA_VERSION
+        assert "roll" in json.loads(f.attrs["conventions"])
+        assert json.loads(f.attrs["config"])["n_frames"] == 50
+        assert f["images"].chunks == (1, 64, 64) and f["images"].compression == "gzip"
+        assert f["images"].compression_opts == 4 and f["images"].shuffle
+        for name in ("boresight/ra_deg", "stars/x_px", "detections/flux_adu", "images"):
+            assert "units" in f[name].attrs
+        assert f["boresight"].attrs["frame"] == "ICRS"
+
+
+def test_dataset_pickles_without_open_handles(small_dataset):
+    import pickle
+    with open_dataset(small_dataset) as ds:
+        ds.image(0)
+        clone = pickle.loads(pickle.dumps(ds))
+        assert all(s.handle is None for s in clone.shards)
+        assert np.array_equal(clone.image(21), ds.image(21))
+
+
+def test_truncated_shard(copy):
+    p = copy / "shard-00001.h5"
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.raises(DatasetError, match="shard-00001.h5.*(truncated|size)"):
+        open_dataset(copy)
+    assert not validate(copy).ok
+
+
+def test_foreign_and_garbage_files(tmp_path):
+    with h5py.File(tmp_path / "foreign.h5", "w") as f:
+        f["x"] = np.arange(3)
+    with pytest.raises(DatasetError, match="foreign.h5: not a skygen shard"):
+        open_shard_file(tmp_path / "foreign.h5")
+    (tmp_path / "junk.h5").write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(DatasetError, match="junk.h5: not a readable HDF5"):
+        open_dataset(tmp_path / "junk.h5")
+    with pytest.raises(DatasetError, match="no such dataset"):
+        open_dataset(tmp_path / "missing")
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(DatasetError, match="manifest.json is unreadable"):
+        open_dataset(tmp_path)
+
+
+def test_unknown_major_version_is_refused(copy):
+    with h5py.File(copy / "shard-00000.h5", "r+") as f:
+        f.attrs["schema_version"] = "2.0.0"
+    with pytest.raises(DatasetError, match="schema version 2.0.0 is not supported"):
+        open_shard_file(copy / "shard-00000.h5")
+    man = json.loads((copy / "manifest.json").read_text())
+    man["schema_version"] = "9.1.0"
+    (copy / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(DatasetError, match="9.1.0"):
+        open_dataset(copy)
+
+
+def test_validate_catches_damage(copy, small_dataset, tmp_path):
+    assert validate(copy).ok
+    # a flipped byte inside a shard
+    p = copy / "shard-00002.h5"
+    data = bytearray(p.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    p.write_bytes(bytes(data))
+    rep = validate(copy)
+    assert not rep.ok and any("sha256" in x for x in rep.problems)
+    # a missing shard
+    (copy / "shard-00001.h5").unlink()
+    assert any("missing" in x for x in validate(copy).problems)
+    # a shard that the manifest does not list, and a hand-edited manifest
+    shutil.copy(small_dataset / "shard-00000.h5", copy / "shard-00009.h5")
+    man = json.loads((copy / "manifest.json").read_text())
+    man["config"]["seed"] = 99
+    (copy / "manifest.json").write_text(json.dumps(man))
+    problems = validate(copy).problems
+    assert any("does not list" in x for x in problems) and any("edited by hand" in x for x in problems)
+
+
+def test_validate_catches_shard_from_another_dataset(tmp_path, small_overrides, small_dataset):
+    from skygen.config import load_config
+    from skygen.dataset import render_dataset
+    other = tmp_path / "other"
+    render_dataset(load_config(overrides=small_overrides + ["n_frames=50", "seed=5"]), other, progress=False)
+    mixed = tmp_path / "mixed"
+    shutil.copytree(small_dataset, mixed)
+    shutil.copy(other / "shard-00001.h5", mixed / "shard-00001.h5")
+    man = json.loads((mixed / "manifest.json").read_text())
+    om = json.loads((other / "manifest.json").read_text())
+    man["shards"][1] = om["shards"][1]                 # even with its checksum copied over
+    (mixed / "manifest.json").write_text(json.dumps(man))
+    assert any("another dataset" in x for x in validate(mixed).problems)
