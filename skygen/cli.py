@@ -21,6 +21,7 @@ EPILOG = """examples:
   skygen inspect data/sky-n2000-s0
   skygen preview data/sky-n2000-s0 --out grid.png
   skygen validate data/sky-n2000-s0
+  skygen merge /scratch/part-a /scratch/part-b --out /scratch/all
   skygen config --keys                          # every config key, default, range and unit
 """
 
@@ -85,6 +86,14 @@ def cmd_validate(args) -> int:
     report = validate(args.path, checksums=not args.no_checksums)
     print(report.text())
     return 0 if report.ok else 1
+
+
+def cmd_merge(args) -> int:
+    from .merge import merge_datasets
+    man = merge_datasets(args.inputs, args.out)
+    print(f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
+          f"{man['n_shards']} shards (no frame data copied; shards are referenced by relative path)")
+    return 0
 
 
 def cmd_catalog(args) -> int:
@@ -166,6 +175,14 @@ def build_parser() -> argparse.ArgumentParser:
     va.add_argument("path")
     va.add_argument("--no-checksums", action="store_true", help="skip sha256 verification (faster)")
     va.set_defaults(func=cmd_validate)
+
+    m = sub.add_parser("merge", help="combine slices or compatible datasets into one (no data copied)",
+                       description="Write OUT/manifest.json listing the shards of several dataset folders: "
+                       "slices of one job-array render, or datasets whose configs differ only in seed, "
+                       "n_frames or storage options. Incompatible inputs are refused with the differing keys.")
+    m.add_argument("inputs", nargs="+", help="dataset folders")
+    m.add_argument("--out", required=True, help="new folder for the merged manifest")
+    m.set_defaults(func=cmd_merge)
 
     c = sub.add_parser("catalog", help="show the catalog, or fetch another one from VizieR (online)")
     c.add_argument("action", choices=("info", "fetch"))

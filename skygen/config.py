@@ -87,7 +87,7 @@ class SensorConfig:
     full_well_e: float = param(13500.0, lo=1, hi=1e7, doc="full-well capacity, e-")
     bit_depth: int = param(12, lo=8, hi=16, doc="ADC bits")
     blooming: bool = param(True, doc="charge above full well spills along the column")
-    hot_pixel_dark_e_s: float = param(20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 1 dex spread)")
+    hot_pixel_dark_e_s: float = param(20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 0.5 dex rms)")
     dead_pixel_fraction: float = param(1e-5, lo=0, hi=0.1, doc="fraction of pixels with no response (static map)")
     sensor_seed: int = param(1234, lo=0, doc="seed of the static sensor maps (PRNU, FPN, hot and dead pixels)")
     sampler: str = param("fast", choices=("fast", "exact"), doc="noise sampler: fast (exact LUT for the uniform background) or exact (per-pixel numpy draws)")

@@ -379,12 +379,29 @@ class Dataset:
 
 
 def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
-    try:
-        bore = {k: f["boresight"][k][...] for k in BORESIGHT_FIELDS}
-        frames = {k: f["frames"][k][...] for k in FRAME_FIELDS}
-    except (KeyError, OSError) as exc:
-        raise DatasetError(f"{path}: shard is missing required data ({exc}); re-render it") from None
-    return bore, frames
+    """Per-frame arrays (boresight labels, splits, counts), checked: dtype, shape, finite."""
+    n = int(f.attrs["n_frames"])
+    out = []
+    for group, fields in (("boresight", BORESIGHT_FIELDS), ("frames", FRAME_FIELDS)):
+        arrays = {}
+        for k, spec in fields.items():
+            name = f"{group}/{k}"
+            shape = (n,) + (spec[1] if group == "boresight" else ())
+            try:
+                d = f[name]
+                if d.dtype != np.dtype(spec[0]) or d.shape != shape:
+                    raise DatasetError(f"{path}: '{name}' is {d.dtype}{d.shape}, expected "
+                                       f"{np.dtype(spec[0])}{shape}; the shard is damaged or foreign")
+                arrays[k] = d[...]
+            except KeyError:
+                raise DatasetError(f"{path}: '{name}' is missing; the shard is damaged or foreign") from None
+            except OSError as exc:
+                raise DatasetError(f"{path}: '{name}' is unreadable ({exc}); re-render the shard") from None
+            if arrays[k].dtype.kind == "f" and not np.all(np.isfinite(arrays[k])):
+                raise DatasetError(f"{path}: '{name}' holds NaN or infinite values; labels must be finite "
+                                   "(re-render the shard)")
+        out.append(arrays)
+    return out[0], out[1]
 
 
 def open_dataset(path: str | Path) -> Dataset:

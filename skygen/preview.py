@@ -25,7 +25,7 @@ def preview(path, out, n: int = 12, split: str | None = None, start: int = 0) ->
         idx = ds.indices(split)[start:start + n]
         cols = min(4, max(1, len(idx)))
         rows = int(np.ceil(len(idx) / cols)) or 1
-        fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.7 * rows), squeeze=False)
+        fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 4.0 * rows), squeeze=False)
         f = ds.downsample_factor
         for ax in axes.ravel():
             ax.axis("off")
@@ -53,6 +53,6 @@ def preview(path, out, n: int = 12, split: str | None = None, start: int = 0) ->
         fig.suptitle(f"{path}: green = matched detection, red = false detection, + = true star (to 0.5 mag below the detection limit)", fontsize=8)
         fig.tight_layout()
         out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=110)
+        fig.savefig(out, dpi=90)
         plt.close(fig)
     return out

@@ -75,9 +75,11 @@ def _check_shard(path: Path, rep: Report, manifest: dict | None, frame_start: in
             rep.problems.append(f"{where}: root attributes damaged ({exc})")
             return 0
         if manifest is not None:
-            if f.attrs.get("dataset_id") != manifest.get("dataset_id") or cfg != manifest.get("config"):
+            want_id = manifest.get("expect_id", manifest.get("dataset_id"))
+            want_cfg = manifest.get("expect_config", manifest.get("config"))
+            if f.attrs.get("dataset_id") != want_id or cfg != want_cfg:
                 rep.problems.append(f"{where}: belongs to another dataset (dataset_id {f.attrs.get('dataset_id')} "
-                                    f"!= manifest {manifest.get('dataset_id')})")
+                                    f"!= manifest {want_id})")
         elif f.attrs.get("dataset_id") != config_id(cfg):
             rep.problems.append(f"{where}: dataset_id does not match its own config")
         try:
@@ -162,7 +164,11 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
     rep.checked.append(MANIFEST_NAME)
     if not man.get("complete"):
         rep.problems.append("manifest says the render is not complete; re-run `skygen render` to finish it")
-    if man.get("dataset_id") != config_id(man.get("config", {})):
+    sources = {src["dataset_id"]: src["config"] for src in man.get("sources", [])}
+    for dsid, cfg in sources.items():
+        if dsid != config_id(cfg):
+            rep.problems.append(f"merged manifest: source {dsid} does not match its config (edited by hand?)")
+    if not sources and man.get("dataset_id") != config_id(man.get("config", {})):
         rep.problems.append("manifest dataset_id does not match its config (edited by hand?)")
     listed = set()
     total = 0
@@ -183,15 +189,18 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
         if checksums and sha256_file(p) != e.get("sha256"):
             rep.problems.append(f"{e['file']}: sha256 differs from the manifest (file changed or corrupted)")
             continue
-        n = _check_shard(p, rep, man, e.get("frame_start"))
+        expect = man
+        if sources:
+            expect = {"expect_id": e.get("dataset_id"), "expect_config": sources.get(e.get("dataset_id"))}
+        n = _check_shard(p, rep, expect, None if sources else e.get("frame_start"))
         if n != e.get("n_frames"):
             rep.problems.append(f"{e['file']}: holds {n} frames, manifest says {e.get('n_frames')}")
         total += n
     for p in sorted(path.glob("shard-*.h5")):
-        if p.name not in listed:
+        if p.name not in listed and not sources:
             rep.problems.append(f"{p.name}: a shard file that the manifest does not list")
     cfg_n = man.get("config", {}).get("n_frames")
-    if man.get("complete") and total != cfg_n:
+    if man.get("complete") and total != cfg_n and not sources:
         rep.problems.append(f"dataset holds {total} readable frames, config n_frames is {cfg_n}")
     if man.get("n_frames") != sum(e.get("n_frames", 0) for e in man.get("shards", [])):
         rep.problems.append("manifest n_frames disagrees with the sum over its shards")

@@ -132,3 +132,55 @@ def test_splits_are_contiguous_and_complete(small_dataset):
     with open_dataset(small_dataset) as ds:
         assert len(ds.indices("train")) == 40 and len(ds.indices("val")) == 5 and len(ds.indices("test")) == 5
         assert ds.indices("test").min() > ds.indices("val").max() > ds.indices("train").max()
+
+
+def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dataset):
+    from skygen.merge import merge_datasets
+    cfg = load_config(overrides=small_overrides + ["n_frames=50"])
+    for i in range(2):
+        render_dataset(cfg, tmp_path / f"part{i}", workers=1, slice_index=i, num_slices=2, progress=False)
+    merge_datasets([tmp_path / "part0", tmp_path / "part1"], tmp_path / "all")
+    assert same_data(small_dataset, tmp_path / "all")
+    assert validate(tmp_path / "all").ok
+    with pytest.raises(DatasetError, match="incomplete"):
+        merge_datasets([tmp_path / "part0", tmp_path / "part0"], tmp_path / "half")
+
+
+def test_merge_compatible_datasets_and_refuse_others(tmp_path, small_overrides, small_dataset):
+    from skygen.merge import merge_datasets
+    render_dataset(load_config(overrides=small_overrides + ["n_frames=30", "seed=7"]), tmp_path / "b", progress=False)
+    man = merge_datasets([small_dataset, tmp_path / "b"], tmp_path / "ab")
+    assert man["n_frames"] == 80 and len(man["sources"]) == 2
+    assert validate(tmp_path / "ab").ok
+    with open_dataset(tmp_path / "ab") as ds:
+        assert len(ds) == 80 and len(ds.indices("train")) == 40 + 24
+    render_dataset(load_config(overrides=small_overrides + ["n_frames=20", "sensor.gain_e_per_adu=2"]),
+                   tmp_path / "c", progress=False)
+    with pytest.raises(DatasetError, match="sensor.gain_e_per_adu"):
+        merge_datasets([small_dataset, tmp_path / "c"], tmp_path / "ac")
+
+
+def test_skygen_reads_without_torch(small_dataset):
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from skygen.io import open_dataset; from skygen.validate import validate\n"
+            f"ds = open_dataset({str(small_dataset)!r}); ds.image(3); assert validate({str(small_dataset)!r}).ok\n")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+@pytest.mark.slow
+def test_ten_sigkills_then_resume(tmp_path, small_overrides):
+    """Kill `skygen render` with SIGKILL at random moments ten times, resuming each time."""
+    out = tmp_path / "kills"
+    args = [sys.executable, "-m", "skygen.cli", "render", "--quiet", "--workers", "2", "--out", str(out), "--n", "400"]
+    args += sum((["--set", o] for o in small_overrides), [])
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        proc = subprocess.Popen(args)
+        time.sleep(rng.uniform(0.5, 3.0))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        assert not any(p.name.startswith("shard-") and p.suffix != ".h5" for p in out.glob("*"))
+    assert subprocess.run(args).returncode == 0
+    ref = tmp_path / "ref"
+    render_dataset(load_config(overrides=small_overrides + ["n_frames=400"]), ref, workers=2, progress=False)
+    assert same_data(ref, out) and validate(out).ok

@@ -115,3 +115,18 @@ def test_validate_catches_shard_from_another_dataset(tmp_path, small_overrides, 
     man["shards"][1] = om["shards"][1]                 # even with its checksum copied over
     (mixed / "manifest.json").write_text(json.dumps(man))
     assert any("another dataset" in x for x in validate(mixed).problems)
+
+
+@pytest.mark.parametrize("damage, words", [
+    (lambda f: f["boresight/ra_deg"].__setitem__(0, np.nan), "NaN"),
+    (lambda f: (f.__delitem__("frames/split"), f.create_dataset("frames/split", data=np.zeros(20, "f4"))), "float32"),
+    (lambda f: f.__delitem__("boresight/dec_deg"), "missing"),
+])
+def test_damaged_labels_name_file_and_dataset(copy, damage, words):
+    with h5py.File(copy / "shard-00001.h5", "r+") as f:
+        damage(f)
+    man = json.loads((copy / "manifest.json").read_text())
+    man["shards"][1]["bytes"] = (copy / "shard-00001.h5").stat().st_size
+    (copy / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(DatasetError, match=f"shard-00001.h5.*{words}"):
+        open_dataset(copy)

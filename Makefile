@@ -1,0 +1,42 @@
+# Two commands on a fresh machine (Python >= 3.11):
+#   make demo   install everything, render a small dataset, look at it, train and evaluate briefly
+#   make test   install everything and run the test suite (what CI runs)
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO   ?= data/demo
+RUN    ?= runs/demo
+WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
+
+.PHONY: install demo test test-all bench clean-demo
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+	$(BIN)/python -m pip install -e ".[dev]"
+	$(BIN)/python -c "import timm, torch, torchvision, h5py, cv2, astropy; print('imports ok: torch', torch.__version__, 'timm', timm.__version__)"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/skygen render --n 2000 --workers $(WORKERS) --out $(DEMO)
+	$(BIN)/skygen inspect $(DEMO)
+	$(BIN)/skygen preview $(DEMO) --out $(DEMO)/preview.png
+	$(BIN)/skygen validate $(DEMO) --no-checksums
+	$(BIN)/fusion train --data $(DEMO) --out $(RUN) --config configs/cpu.yaml --force
+	$(BIN)/fusion evaluate --checkpoint $(RUN)/best.pt --data $(DEMO) --split test --out $(RUN)/eval-test
+	@echo "dataset: $(DEMO) (preview: $(DEMO)/preview.png)  run: $(RUN)  report: $(RUN)/eval-test/report.md"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not gpu"
+
+test-all: $(STAMP)
+	RUN_SLOW=1 $(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/render_bench.py
+
+clean-demo:
+	rm -rf $(DEMO) $(RUN)
