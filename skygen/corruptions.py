@@ -41,6 +41,17 @@ class Corruption:
     unit: str
     sweep: tuple[float, ...]
     description: str
+    combine: str = "add"   # how an extra severity stacks on a dataset's own: add, quadrature, probability
+
+    def stack(self, base: float, extra: float) -> float:
+        """Severity of ``extra`` applied on top of ``base`` (``extra`` = 0 gives ``base`` exactly)."""
+        if extra == 0:
+            return base
+        if self.combine == "quadrature":
+            return float((base ** 2 + extra ** 2) ** 0.5)
+        if self.combine == "probability":
+            return float(1 - (1 - base) * (1 - extra))
+        return float(base + extra)
 
 
 REGISTRY: dict[str, Corruption] = {c.name: c for c in (
@@ -54,16 +65,16 @@ REGISTRY: dict[str, Corruption] = {c.name: c for c in (
     Corruption("stray_light", "scene", "e-/px/s", (0.0, 1e3, 5e3, 2e4, 1e5),
                "linear stray-light ramp across the frame, this bright at the brightest edge"),
     Corruption("read_noise", "sensor", "e- rms", (0.0, 5.0, 10.0, 20.0, 40.0),
-               "extra Gaussian read noise added in quadrature to the sensor's"),
+               "extra Gaussian read noise added in quadrature to the sensor's", "quadrature"),
     Corruption("false_stars", "scene", "sources/frame", (0.0, 1.0, 2.0, 4.0, 8.0),
                "Poisson number of uncatalogued point sources (debris, planets, glints) at random "
                "positions, brightness uniform in magnitude up to the detection limit"),
     Corruption("dropout", "detections", "probability", (0.0, 0.1, 0.2, 0.3, 0.5),
-               "each detection is lost independently with this probability"),
+               "each detection is lost independently with this probability", "probability"),
     Corruption("centroid_noise", "detections", "px rms", (0.0, 0.5, 1.0, 2.0, 4.0),
-               "Gaussian error added to each detected centroid, per axis"),
+               "Gaussian error added to each detected centroid, per axis", "quadrature"),
     Corruption("magnitude_noise", "detections", "mag rms", (0.0, 0.1, 0.25, 0.5, 1.0),
-               "Gaussian magnitude error applied to each detected flux"),
+               "Gaussian magnitude error applied to each detected flux", "quadrature"),
 )}
 
 
@@ -83,6 +94,13 @@ def with_level(cfg, name: str, level: float):
     return build_config(data)
 
 
+def with_extra(cfg, name: str, extra: float):
+    """A RenderConfig with ``extra`` severity of ``name`` stacked on the config's own
+    (see :meth:`Corruption.stack`); ``extra`` = 0 returns an identical config."""
+    c = get(name)
+    return with_level(cfg, name, c.stack(float(getattr(cfg.corruptions, name)), float(extra)))
+
+
 def stage_rng(seed: int, frame_index: int, stage: str) -> np.random.Generator:
     """The generator of one stage of one frame: depends only on (seed, frame, stage name)."""
     return np.random.default_rng([seed, frame_index, zlib.crc32(stage.encode())])
@@ -94,30 +112,31 @@ def levels_of(cfg) -> dict[str, float]:
 
 # ---------------------------------------------------------------- detection level
 def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, frame_index: int,
-                                gain_e_per_adu: float = 1.0) -> tuple[dict, dict]:
+                                stream: str = "") -> tuple[dict, dict]:
     """Apply dropout, centroid noise and magnitude noise to a detection table.
 
     Returns the new table (rows kept in brightness order of the perturbed flux) and a log.
-    Severity 0 returns the table unchanged.
+    Severity 0 returns the table unchanged. ``stream`` selects independent random
+    streams (a sweep applied on top of stored detections uses its own).
     """
     det = {k: np.array(v, copy=True) for k, v in det.items()}
     log = {}
     n = len(det["x_px"])
     p = levels.get("dropout", 0.0)
     if p > 0 and n:
-        keep = stage_rng(seed, frame_index, "dropout").random(n) >= p
+        keep = stage_rng(seed, frame_index, "dropout" + stream).random(n) >= p
         det = {k: v[keep] for k, v in det.items()}
         log["dropout"] = {"n_dropped": int(n - keep.sum())}
         n = int(keep.sum())
     s = levels.get("centroid_noise", 0.0)
     if s > 0 and n:
-        d = stage_rng(seed, frame_index, "centroid_noise").normal(0.0, s, size=(2, n))
+        d = stage_rng(seed, frame_index, "centroid_noise" + stream).normal(0.0, s, size=(2, n))
         det["x_px"] = det["x_px"] + d[0]
         det["y_px"] = det["y_px"] + d[1]
         log["centroid_noise"] = {"rms_px": float(np.sqrt((d ** 2).mean()))}
     m = levels.get("magnitude_noise", 0.0)
     if m > 0 and n:
-        dm = stage_rng(seed, frame_index, "magnitude_noise").normal(0.0, m, size=n)
+        dm = stage_rng(seed, frame_index, "magnitude_noise" + stream).normal(0.0, m, size=n)
         factor = (10 ** (-0.4 * dm)).astype(np.float32)
         det["flux_adu"] = det["flux_adu"] * factor
         det["peak_adu"] = det["peak_adu"] * factor

@@ -117,6 +117,15 @@ def test_severity_increases_damage(name, small_overrides):
     assert d[2] > d[0] and d[1] >= d[0] - 0.02 and d[2] >= d[1] - 0.02, d
 
 
+def test_extra_severity_stacks_on_the_dataset_and_zero_is_identity():
+    cfg = load_config(overrides=["corruptions.dropout=0.2", "corruptions.centroid_noise=3"])
+    for name in corr.REGISTRY:
+        assert corr.with_extra(cfg, name, 0.0) == cfg
+    assert corr.with_extra(cfg, "dropout", 0.5).corruptions.dropout == pytest.approx(0.6)
+    assert corr.with_extra(cfg, "centroid_noise", 4.0).corruptions.centroid_noise == pytest.approx(5.0)
+    assert corr.with_extra(cfg, "cosmic_rays", 10.0).corruptions.cosmic_rays == pytest.approx(15.0)
+
+
 def test_corruption_log_records_what_happened(small_overrides):
     cfg = load_config(overrides=small_overrides + ["corruptions.cosmic_rays=20000", "corruptions.false_stars=3",
                                                    "corruptions.dropout=0.3"])
