@@ -34,6 +34,11 @@ import numpy as np
 
 from .config import AugConfig
 
+# OpenCV's own thread pool does not survive fork(): a DataLoader worker forked from a process
+# whose pool had started deadlocks inside OpenCV. The parallelism here is the DataLoader's
+# workers, so OpenCV stays single-threaded in every process that imports this module.
+cv2.setNumThreads(1)
+
 
 @dataclass(frozen=True)
 class FrameGeometry:
@@ -131,7 +136,7 @@ def add_noise(sample: Sample, sigma_adu: float, rng: np.random.Generator) -> Sam
     """Add N(0, sigma_adu^2) to every stored pixel."""
     if sigma_adu <= 0:
         return sample
-    img = sample.image + rng.normal(0.0, sigma_adu, sample.image.shape).astype(np.float32)
+    img = sample.image + np.float32(sigma_adu) * rng.standard_normal(sample.image.shape, dtype=np.float32)
     return replace(sample, image=img, noise_adu=float(np.hypot(sample.noise_adu, sigma_adu)))
 
 
@@ -201,7 +206,8 @@ def augment(sample: Sample, cfg: AugConfig, rng: np.random.Generator, geo: Frame
         sample = rotate(sample, float(rng.uniform(-cfg.rotation_max_deg, cfg.rotation_max_deg)), geo)
     if cfg.jitter:
         gain = float(rng.uniform(1 - cfg.contrast_frac, 1 + cfg.contrast_frac))
-        sample = jitter(sample, gain, float(rng.uniform(-cfg.brightness_adu, cfg.brightness_adu)), geo)
-    if cfg.noise and cfg.noise_max_adu > 0:
-        sample = add_noise(sample, float(rng.uniform(0, cfg.noise_max_adu)), rng)
+        offset = float(rng.uniform(-cfg.brightness_sigma, cfg.brightness_sigma)) * sample.noise_adu
+        sample = jitter(sample, gain, offset, geo)
+    if cfg.noise and cfg.noise_max_sigma > 0:
+        sample = add_noise(sample, float(rng.uniform(0, cfg.noise_max_sigma)) * sample.noise_adu, rng)
     return sample

@@ -46,8 +46,8 @@ def versions() -> dict:
     import timm
     from skygen import __version__ as skygen_version
     from . import __version__
-    return {"fusion": __version__, "skygen": skygen_version, "torch": torch.__version__, "timm": timm.__version__,
-            "numpy": np.__version__, "python": platform.python_version()}
+    return {"fusion": __version__, "skygen": skygen_version, "torch": str(torch.__version__),
+            "timm": str(timm.__version__), "numpy": str(np.__version__), "python": platform.python_version()}
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -92,7 +92,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {exc}); "
                               "it may be truncated or from another program") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a fusion checkpoint (format={ckpt.get('format') if isinstance(ckpt, dict) else None!r})")
+        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise CheckpointError(f"{path}: not a fusion checkpoint (format={found!r}); give a best.pt or last.pt "
+                              "written by `fusion train`")
     if ckpt.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {ckpt.get('format_version')} is not supported "
                               f"(this fusion reads version {FORMAT_VERSION}); use the fusion version that wrote it")

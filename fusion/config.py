@@ -105,14 +105,19 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class AugConfig:
-    """Training-time augmentations, each applied to the image and the detections alike."""
+    """Training-time augmentations, each applied to the image and the detections alike.
+
+    Image levels are in units of the frame's own background noise in the stored image
+    (skygen's ``noise_adu`` divided by the downsample factor), so the same values suit
+    any sensor and image size.
+    """
     rotation: bool = param(True, doc="in-plane rotation about the image centre (optical axis)")
     rotation_max_deg: float = param(10.0, lo=0, hi=180, doc="rotation angle drawn uniformly in [-max, max]")
     jitter: bool = param(True, doc="brightness/contrast jitter (about the bias level)")
-    brightness_adu: float = param(2.0, lo=0, hi=1e5, doc="offset drawn uniformly in [-b, b], stored-image ADU")
+    brightness_sigma: float = param(0.5, lo=0, hi=1e4, doc="offset drawn uniformly in [-b, b] x the frame's stored background noise")
     contrast_frac: float = param(0.2, lo=0, hi=0.99, doc="gain drawn uniformly in [1-c, 1+c]; detection fluxes scale with it")
     noise: bool = param(True, doc="additive Gaussian pixel noise")
-    noise_max_adu: float = param(2.0, lo=0, hi=1e5, doc="noise sigma drawn uniformly in [0, max], stored-image ADU")
+    noise_max_sigma: float = param(0.5, lo=0, hi=1e4, doc="added noise sigma drawn uniformly in [0, max] x the frame's stored background noise")
     dropout: bool = param(True, doc="star dropout (detections lost)")
     dropout_prob: float = param(0.1, lo=0, hi=1, doc="each detection is lost with this probability")
     dropout_erase_image: bool = param(False, doc="also paint the dropped star out of the image (False: a missed detection, the star stays visible)")

@@ -95,15 +95,20 @@ def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
     return coords, mask
 
 
-def read_sample(ds: SkyDataset, i: int, geo: FrameGeometry) -> Sample:
-    """Frame ``i`` as a :class:`Sample` in ADU, detections brightest first."""
+def read_detections(ds: SkyDataset, i: int) -> tuple[np.ndarray, ...]:
+    """(x_px, y_px, flux_adu, area_px) of frame ``i``, brightest first."""
     det = ds.detections(i)
-    f = geo.factor
-    return Sample(image=ds.image(i).astype(np.float32), x_px=np.asarray(det["x_px"], np.float64),
-                  y_px=np.asarray(det["y_px"], np.float64), flux_adu=np.asarray(det["flux_adu"], np.float32),
-                  area_px=np.asarray(det["area_px"], np.int32),
+    order = np.argsort(-np.asarray(det["flux_adu"]), kind="stable")
+    return (np.asarray(det["x_px"], np.float64)[order], np.asarray(det["y_px"], np.float64)[order],
+            np.asarray(det["flux_adu"], np.float32)[order], np.asarray(det["area_px"], np.int32)[order])
+
+
+def read_sample(ds: SkyDataset, i: int, geo: FrameGeometry, detections: tuple | None = None) -> Sample:
+    """Frame ``i`` as a :class:`Sample` in ADU, detections brightest first."""
+    x, y, flux, area = detections if detections is not None else read_detections(ds, i)
+    return Sample(image=ds.image(i).astype(np.float32), x_px=x, y_px=y, flux_adu=flux, area_px=area,
                   background_adu=float(ds.frames["background_adu"][i]),
-                  noise_adu=float(ds.frames["noise_adu"][i]) / f).sorted()
+                  noise_adu=float(ds.frames["noise_adu"][i]) / geo.factor)
 
 
 class FrameDataset(torch.utils.data.Dataset):
@@ -126,6 +131,12 @@ class FrameDataset(torch.utils.data.Dataset):
         self.geo = FrameGeometry.from_render_config(ds.config)
         self.max_stars, self.norm_scale_adu, self.log_flux_offset = max_stars, norm_scale_adu, log_flux_offset
         self.aug, self.seed = aug, seed
+        self._detections: dict[int, tuple] = {}   # per-process cache: the tables are small, reads are not
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_detections"] = {}
+        return state
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -134,7 +145,9 @@ class FrameDataset(torch.utils.data.Dataset):
         """The (augmented, for training) :class:`Sample` behind item ``key``."""
         j, epoch = key if isinstance(key, tuple) else (key, 0)
         i = int(self.positions[j])
-        s = read_sample(self.ds, i, self.geo)
+        if i not in self._detections:
+            self._detections[i] = read_detections(self.ds, i)
+        s = read_sample(self.ds, i, self.geo, self._detections[i])
         if self.aug is not None:
             s = augment(s, self.aug, np.random.default_rng([self.seed, epoch, i]), self.geo)
         return s
@@ -168,7 +181,10 @@ class EpochSampler(Sampler):
         self.epoch = epoch
 
     def _order(self) -> np.ndarray:
-        order = np.random.default_rng([self.seed, self.epoch]).permutation(self.n) if self.shuffle else np.arange(self.n)
+        if self.shuffle:
+            order = np.random.default_rng([self.seed, self.epoch]).permutation(self.n)
+        else:
+            order = np.arange(self.n)
         if self.pad and self.world > 1:
             total = math.ceil(self.n / self.world) * self.world
             order = np.concatenate([order, order[: total - self.n]])
@@ -182,10 +198,19 @@ class EpochSampler(Sampler):
 
 
 def worker_init(worker_id: int) -> None:
-    """One thread per worker for OpenCV and torch (the workers are the parallelism)."""
+    """Per-worker setup: own HDF5 handles, one thread for OpenCV and torch (the workers are the parallelism).
+
+    With the fork start method a worker inherits the parent's open HDF5 handles, which
+    must not be shared between processes; a pickle round trip (skygen's reader drops
+    open handles when pickled) gives the worker its own, opened lazily on first read.
+    """
+    import pickle
     import cv2
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
+    info = torch.utils.data.get_worker_info()
+    if info is not None and isinstance(info.dataset, FrameDataset):
+        info.dataset.ds = pickle.loads(pickle.dumps(info.dataset.ds))
 
 
 def make_loader(dataset: FrameDataset, batch_size: int, *, shuffle: bool, seed: int = 0, workers: int = 0,

@@ -21,14 +21,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from skygen.io import open_dataset
 
 from .checkpoint import atomic_write_text, load_checkpoint, write_json
 from .data import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
 from .distributed import pick_device
-from .errors import CheckpointError, DatasetError
+from .errors import DatasetError
 from .labels import assign
 from .metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share, per_class_accuracy,
                       topk_accuracy, voronoi_neighbours)
@@ -129,9 +128,10 @@ def markdown_report(r: dict) -> str:
         f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
         "## Angular error (degrees)", "",
         "| | mean | median | p95 |", "|---|---|---|---|",
-        f"| prediction, arccos(v · c_pred) | {_fmt(ae['mean_deg'])} | {_fmt(ae['median_deg'])} | {_fmt(ae['p95_deg'])} |",
-        f"| quantisation floor, arccos(v · c_true) | {_fmt(qf['mean_deg'])} | {_fmt(qf['median_deg'])} | "
-        f"{_fmt(qf['p95_deg'])} |", "",
+        f"| prediction, arccos(v · c_pred) | {_fmt(ae['mean_deg'])} | {_fmt(ae['median_deg'])} "
+        f"| {_fmt(ae['p95_deg'])} |",
+        f"| quantisation floor, arccos(v · c_true) | {_fmt(qf['mean_deg'])} | {_fmt(qf['median_deg'])} "
+        f"| {_fmt(qf['p95_deg'])} |", "",
         f"Errors: {r['n_errors']}; share between neighbouring clusters: {_fmt(r['neighbour_error_share'], True)} "
         f"(neighbours: {r['neighbour_definition']}; {r['neighbour_pairs']} neighbour pairs).", "",
         "## Per-class accuracy", "", "| class | frames | top-1 |", "|---|---|---|",

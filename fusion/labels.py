@@ -90,7 +90,7 @@ def kmeanspp_init(v: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray
 def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, tol_deg: float) -> KMeansResult:
     c = kmeanspp_init(v, k, rng)
     labels = np.full(len(v), -1, np.int64)
-    tol_cos = np.cos(np.radians(tol_deg))
+    tol_chord = 2.0 * np.sin(np.radians(tol_deg) / 2.0)    # chord length of the tolerance angle
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         new = assign(v, c)
@@ -104,10 +104,10 @@ def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, to
             worst = int(np.argmin(np.sum(v * new_c[new], axis=1)))
             new_c[j] = v[worst]
             new[worst] = j
-        moved = np.min(np.sum(new_c * c, axis=1))
+        moved = np.max(np.linalg.norm(new_c - c, axis=1))     # chord, accurate for tiny angles
         stable = np.array_equal(new, labels) and ok.all()
         c, labels = new_c, new
-        if stable and moved >= tol_cos:
+        if stable and moved <= tol_chord:
             converged = True
             break
     labels = assign(v, c)

@@ -28,6 +28,7 @@ import contextlib
 import csv
 import io
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -41,11 +42,11 @@ from skygen.io import Dataset as SkyDataset
 from skygen.io import open_dataset
 
 from . import distributed as D
-from .checkpoint import (atomic_save_numpy, atomic_write_text, load_model_state, prepare_run_folder, rng_state,
-                         save_checkpoint, set_rng_state, versions, write_json)
+from .checkpoint import (atomic_save_numpy, atomic_write_text, load_checkpoint, load_model_state, prepare_run_folder,
+                         rng_state, save_checkpoint, set_rng_state, versions, write_json)
 from .config import FusionConfig, build_config, config_dict
 from .data import (FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions)
-from .errors import CheckpointError, ConfigError
+from .errors import CheckpointError, ConfigError, FusionError
 from .labels import KMeansResult, assign, class_weights, soft_targets, spherical_kmeans
 from .losses import FocalLoss, focal_loss
 from .metrics import topk_accuracy
@@ -86,7 +87,8 @@ def prepare_data(cfg: FusionConfig, centroids: np.ndarray | None = None) -> Prep
     labels = {name: assign(v, centroids) for name, v in vec.items()}
     soft = {name: (soft_targets(v, centroids, lab.kappa) if lab.soft_labels else None) for name, v in vec.items()}
     common = dict(max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
-    train = FrameDataset(ds, pos["train"], labels["train"], soft=soft["train"], aug=cfg.aug, seed=cfg.train.seed, **common)
+    train = FrameDataset(ds, pos["train"], labels["train"], soft=soft["train"], aug=cfg.aug, seed=cfg.train.seed,
+                         **common)
     val = FrameDataset(ds, pos["val"], labels["val"], soft=soft["val"], aug=None, seed=cfg.train.seed, **common)
     return PreparedData(ds, np.asarray(centroids, np.float64), train, val,
                         class_weights(labels["train"], lab.k, cfg.loss.alpha), km,
@@ -168,8 +170,7 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
             logits = model(image, coords, mask)
         loss = loss_fn(logits.float(), target)
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"training loss became {loss.item()}; lower optim.lr or enable "
-                                     "optim.grad_clip_norm")
+            raise FusionError(f"training loss became {loss.item()}; lower optim.lr or enable optim.grad_clip_norm")
         optimizer.zero_grad(set_to_none=True)
         scaler.scale(loss).backward()
         if grad_clip_norm:
@@ -295,14 +296,13 @@ def train(cfg: FusionConfig, out: str | Path, *, resume: bool = False, force: bo
     info, device = D.init(cfg.train.device)
     say = log if info.is_main else (lambda *a, **k: None)
     try:
+        cfg = replace(cfg, model=resolve_model_config(cfg.model))
         _broadcast_error(lambda: prepare_run_folder(out, resume=resume, force=force), info)
         D.barrier(info)
         ckpt = None
         if resume:
-            from .checkpoint import load_checkpoint
             ckpt = load_checkpoint(out / "last.pt")
             cfg = check_resume_config(cfg, ckpt)
-        cfg = replace(cfg, model=resolve_model_config(cfg.model))
         return _run(cfg, out, ckpt, info, device, say)
     finally:
         D.shutdown(info)
@@ -312,8 +312,11 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     t_start = time.perf_counter()
     tc, oc = cfg.train, cfg.optim
     if tc.batch_size % info.world:
-        raise ConfigError(f"train.batch_size ({tc.batch_size}) must be divisible by the number of processes ({info.world})")
+        raise ConfigError(f"train.batch_size ({tc.batch_size}) must be divisible by the number of processes "
+                          f"({info.world})")
     if tc.deterministic:
+        if device.type == "cuda":   # cuBLAS needs this before its first call to be deterministic
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
     torch.manual_seed(tc.seed)
@@ -382,7 +385,9 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
         tr = train_one_epoch(net, train_loader, loss_fn, optimizer, scheduler, scaler, device, amp_dtype=amp_dtype,
                              grad_clip_norm=oc.grad_clip_norm, soft=soft, progress=tc.progress and info.is_main,
                              desc=f"epoch {epoch + 1}/{tc.epochs}")
-        va = evaluate(net, val_loader, loss_fn, device, info, amp_dtype=amp_dtype, soft=soft,
+        # the unwrapped model: ranks see different numbers of validation batches, and a DDP
+        # forward may broadcast buffers (a collective every rank must join)
+        va = evaluate(model, val_loader, loss_fn, device, info, amp_dtype=amp_dtype, soft=soft,
                       progress=tc.progress and info.is_main)
         improved = va["loss"] < best["val_loss"]
         if improved:

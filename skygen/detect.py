@@ -104,7 +104,8 @@ def match(det_x: np.ndarray, det_y: np.ndarray, star_x: np.ndarray, star_y: np.n
         return out
     d2 = (det_x[None, :] - star_x[:, None]) ** 2 + (det_y[None, :] - star_y[:, None]) ** 2
     free = np.ones(len(det_x), bool)
-    for s in np.argsort(-star_flux, kind="stable"):
+    near = np.flatnonzero((d2 <= radius_px ** 2).any(axis=1))    # only these can claim one
+    for s in near[np.argsort(-star_flux[near], kind="stable")]:
         cand = np.where(free & (d2[s] <= radius_px ** 2), d2[s], np.inf)
         j = int(np.argmin(cand))
         if np.isfinite(cand[j]):

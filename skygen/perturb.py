@@ -74,9 +74,22 @@ def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers
             if progress:
                 progress(len(results))
     else:
-        with mp.get_context("spawn").Pool(min(workers, len(chunks))) as pool:
-            for part in pool.imap(_render_some, tasks):
-                results += part
-                if progress:
-                    progress(len(results))
+        for part in _pool(workers).imap(_render_some, tasks):
+            results += part
+            if progress:
+                progress(len(results))
     return results
+
+
+_POOLS: dict = {}
+
+
+def _pool(workers: int):
+    """One worker pool per process and size, reused across corruptions and severities
+    (each worker keeps its Renderer for the last config it saw)."""
+    if workers not in _POOLS:
+        import atexit
+        pool = mp.get_context("spawn").Pool(workers)
+        _POOLS[workers] = pool
+        atexit.register(pool.terminate)
+    return _POOLS[workers]

@@ -18,8 +18,8 @@ Two samplers give the same distribution:
 * ``exact``: numpy Poisson and Gaussian draws for every pixel.
 * ``fast`` (default): for a spatially uniform background the distribution of
   ``floor((Poisson(lambda_0) + N(0, sigma)) / gain)`` is computed once, exactly, and
-  sampled for every pixel from one 32-bit random integer through a two-level lookup
-  table (probabilities resolved to 2^-32). Every pixel that receives anything else — star
+  sampled for every pixel from one 32-bit uniform through a two-level lookup table
+  (probabilities resolved to 2^-32; only the top byte is drawn where it decides alone). Every pixel that receives anything else — star
   light, cosmic rays, hot or dead pixels — is drawn again with the exact per-pixel model
   (its LUT value is discarded, so the two draws never mix). The
   fast path neglects PRNU acting on the sub-electron diffuse sky only. A non-uniform
@@ -32,13 +32,14 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+import cv2
 from scipy.special import ndtr
 from scipy.stats import poisson
 
 from .photometry import dark_current_e_s
 
-_LITTLE = np.little_endian
 _AMBIGUOUS = 65535
+_AMBIGUOUS8 = 255
 
 
 @dataclass(frozen=True)
@@ -109,16 +110,38 @@ class BackgroundSampler:
         if len(k) >= _AMBIGUOUS:
             raise ValueError("background distribution too wide for the 16-bit table; use sampler=exact")
         self.lut16 = np.where(j_lo == j_hi, j_lo, _AMBIGUOUS).astype(np.uint16)
+        self.lut8 = None
+        if len(k) < _AMBIGUOUS8:
+            p8 = np.arange(256, dtype=np.uint64) << np.uint64(24)
+            lo8 = np.searchsorted(self.thresholds, p8, side="right")
+            hi8 = np.searchsorted(self.thresholds, p8 + np.uint64((1 << 24) - 1), side="right")
+            self.lut8 = np.where(lo8 == hi8, lo8, _AMBIGUOUS8).astype(np.uint8)
+
         self.pmf = np.diff(np.concatenate([[0.0], cdf]))
         self.k = k
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """``n`` draws of the table index j (uint16); the value is ``kmin + j``."""
-        u = rng.integers(0, 2 ** 32, size=n, dtype=np.uint32)
-        j = np.take(self.lut16, u.view(np.uint16)[1::2] if _LITTLE else (u >> 16))
-        amb = np.flatnonzero(j == _AMBIGUOUS)
-        if amb.size:
-            j[amb] = np.searchsorted(self.thresholds, u[amb].astype(np.uint64), side="right")
+        """``n`` draws of the table index j (uint8, or uint16 for wide tables); value = ``kmin + j``.
+
+        The top byte of a 32-bit uniform ``u`` (raw generator output) picks the answer
+        from a 256-entry table wherever that byte alone decides it (about 95 % of draws);
+        where it straddles a CDF step, 24 more bits are drawn and the exact 32-bit
+        thresholds searched.
+        """
+        if self.lut8 is None:
+            u = rng.bit_generator.random_raw((n + 1) // 2).view(np.uint32)[:n]
+            j = np.take(self.lut16, u >> 16)
+            amb = np.flatnonzero(j == _AMBIGUOUS)
+            if amb.size:
+                j[amb] = np.searchsorted(self.thresholds, u[amb].astype(np.uint64), side="right")
+            return j
+        top = rng.bit_generator.random_raw((n + 7) // 8).view(np.uint8)[:n]
+        j = cv2.LUT(top, self.lut8).ravel()
+        amb = np.flatnonzero(j == _AMBIGUOUS8)
+        if amb.size:                       # the straddling top bytes: 24 more bits, exact search
+            low = rng.bit_generator.random_raw(amb.size) & np.uint64(0xFFFFFF)
+            u = (top[amb].astype(np.uint64) << np.uint64(24)) | low
+            j[amb] = np.searchsorted(self.thresholds, u, side="right")
         return j
 
 
@@ -240,8 +263,7 @@ def _dense_background(sampler: BackgroundSampler, maps: SensorMaps, max_adu: int
         _OFFSET_CACHE.clear()
         _OFFSET_CACHE[key] = off if off is not None else False
     if off is not None and off is not False:
-        j += off                       # no clipping possible: stay in uint16
-        return j
+        return np.add(j, off, dtype=np.uint16)    # no clipping possible: stay in uint16
     k = j.astype(np.int32) + sampler.kmin + maps.offset_adu.ravel()
     return np.clip(k, 0, max_adu).astype(np.uint16)
 

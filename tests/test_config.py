@@ -24,6 +24,10 @@ def test_invalid_values_name_their_key(override, key):
         load_config(overrides=[override])
 
 
+def test_scientific_notation_without_a_dot_is_a_number():
+    assert load_config(overrides=["corruptions.hotpixels=1e-4"]).corruptions.hotpixels == 1e-4
+
+
 def test_unknown_key_suggests_the_right_one():
     with pytest.raises(ConfigError, match="did you mean 'sensor.read_noise_e'"):
         load_config(overrides=["sensor.read_nosie_e=3"])
@@ -46,7 +50,7 @@ def test_any_value_is_accepted_or_rejected_with_the_key(key, value):
 SMALL = ["camera.width_px=128", "camera.height_px=128", "camera.pixel_pitch_um=44", "output.image_size_px=32"]
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=12, deadline=None)
 @given(exposure=st.floats(0.001, 2.0), sigma=st.floats(0.3, 4.0), psf=st.sampled_from(["gaussian", "moffat", "airy"]),
        read=st.floats(0, 50), temp=st.floats(-40, 60), fov=st.floats(5, 60), blur=st.floats(0, 3))
 def test_valid_configs_render_a_frame(exposure, sigma, psf, read, temp, fov, blur):

@@ -1,0 +1,309 @@
+"""ONNX export (``fusion export``), verified against onnxruntime before the file appears.
+
+The graph takes the model's own inputs, with a dynamic batch axis ``batch``:
+
+``image``   float32 (batch, 1, S, S) — the stored-size frame after the log stretch of
+            :func:`fusion.data.normalise_image` (only when the image branch is on);
+``coords``  float32 (batch, max_stars, 3) — ``[x, y, log_flux]`` rows of
+            :func:`fusion.data.encode_detections`;
+``mask``    bool (batch, max_stars) — True for real detections, False for padding
+            (``coords`` and ``mask`` only when the heatmap or coordinate branch is on;
+            ``--mask-dtype float32`` takes 0/1 floats instead, for runtimes that reject
+            boolean inputs);
+
+and returns ``logits`` float32 (batch, K); apply a softmax for class probabilities. The
+heatmap is rasterised inside the graph, so preprocessing stops at the coordinate rows.
+
+Exporters: ``legacy`` (TorchScript-based ``torch.onnx.export(dynamo=False)``, default) at
+opset 17 suits the TensorRT of JetPack 5 / 6.0; ``dynamo`` (``torch.export``-based) is the
+newer path. Both were checked on SwinV2-T.
+
+Verification: onnxruntime (CPU) runs the file on random inputs at batch 1 and 3 (the
+dynamic axis) and on real-looking inputs — a dark frame with Gaussian stars at the
+positions of the coordinate rows, brightest first, or real frames of ``--data`` — and the
+largest absolute difference of the logits from PyTorch's is reported. Above the tolerance
+(1e-4 by default) the export fails with :class:`ExportError` and no file is left behind:
+the graph is written to a hidden temporary name in the same folder and renamed only after
+it passed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import logging
+import os
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .errors import ConfigError, FusionError
+from .models import StarFusion
+
+DEFAULT_TOLERANCE = 1e-4
+EXPORTERS = ("legacy", "dynamo")
+MASK_DTYPES = ("bool", "float32")
+
+
+class ExportError(FusionError):
+    """The exported graph could not be built or does not reproduce the PyTorch model."""
+
+
+class ExportWrapper(nn.Module):
+    """The model with exactly the inputs its branches use, in the order ``image, coords, mask``.
+
+    ``mask_dtype="float32"`` takes the mask as 0/1 floats (True where > 0.5) for runtimes
+    that reject boolean graph inputs.
+    """
+
+    def __init__(self, model: StarFusion, mask_dtype: str = "bool"):
+        super().__init__()
+        if mask_dtype not in MASK_DTYPES:
+            raise ConfigError(f"--mask-dtype: {mask_dtype!r}; expected one of {', '.join(MASK_DTYPES)}")
+        self.model, self.mask_dtype = model, mask_dtype
+        b = model.branches
+        self.uses_image, self.uses_geometry = b["image"], b["heatmap"] or b["coords"]
+
+    @property
+    def input_names(self) -> list[str]:
+        return (["image"] if self.uses_image else []) + (["coords", "mask"] if self.uses_geometry else [])
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        named = dict(zip(self.input_names, inputs))
+        mask = named.get("mask")
+        if mask is not None and mask.dtype != torch.bool:
+            mask = mask > 0.5
+        return self.model(named.get("image"), named.get("coords"), mask)
+
+    def feeds(self, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``inputs`` (bool mask) in this graph's input types."""
+        out = {k: np.ascontiguousarray(inputs[k]) for k in self.input_names}
+        if "mask" in out and self.mask_dtype == "float32":
+            out["mask"] = out["mask"].astype(np.float32)
+        return out
+
+
+# --------------------------------------------------------------------------- inputs
+def random_inputs(batch: int, image_size: int, max_stars: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Uniform image in [0, 1), positions in [-1, 1], a random number of real rows per sample."""
+    n = rng.integers(0, max_stars + 1, size=batch)
+    mask = np.arange(max_stars)[None, :] < n[:, None]
+    coords = rng.uniform(-1, 1, size=(batch, max_stars, 3)).astype(np.float32) * mask[..., None]
+    return {"image": rng.random((batch, 1, image_size, image_size), dtype=np.float32),
+            "coords": coords.astype(np.float32), "mask": mask}
+
+
+def star_like_inputs(batch: int, image_size: int, max_stars: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """A dark, slightly noisy frame with Gaussian stars at the rows' positions, brightest first (2..max rows)."""
+    image = np.abs(rng.normal(0.02, 0.01, size=(batch, 1, image_size, image_size))).astype(np.float32)
+    coords = np.zeros((batch, max_stars, 3), np.float32)
+    mask = np.zeros((batch, max_stars), bool)
+    yy, xx = np.mgrid[0:image_size, 0:image_size]
+    for b in range(batch):
+        n = int(rng.integers(min(2, max_stars), max_stars + 1))
+        xy = rng.uniform(-0.95, 0.95, size=(n, 2))
+        log_flux = np.sort(rng.uniform(-0.5, 2.0, size=n))[::-1]
+        coords[b, :n, :2], coords[b, :n, 2], mask[b, :n] = xy, log_flux, True
+        for (x, y), f in zip(xy, log_flux):
+            u, v = (x + 1) * image_size / 2 - 0.5, (y + 1) * image_size / 2 - 0.5
+            amp = min(1.0, 0.2 + 0.3 * f)
+            image[b, 0] += (amp * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2 ** 2))).astype(np.float32)
+    return {"image": np.clip(image, 0, 1), "coords": coords, "mask": mask}
+
+
+def dataset_inputs(data: str | Path, cfg, n: int = 4) -> dict[str, np.ndarray]:
+    """The first ``n`` test frames of a skygen dataset, preprocessed as in training."""
+    from skygen.io import open_dataset
+    from .data import FrameDataset, split_positions
+    with open_dataset(data) as ds:
+        pos = split_positions(ds, "test")[:n]
+        d = cfg.data
+        fd = FrameDataset(ds, pos, np.zeros(len(pos), np.int64), max_stars=d.max_stars,
+                          norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
+        items = [fd[j] for j in range(len(pos))]
+    return {k: torch.stack([it[k] for it in items]).numpy() for k in ("image", "coords", "mask")}
+
+
+# --------------------------------------------------------------------------- export and verify
+def _torch_logits(wrapper: ExportWrapper, feeds: dict[str, np.ndarray]) -> np.ndarray:
+    with torch.inference_mode():
+        return wrapper(*[torch.from_numpy(feeds[k]) for k in wrapper.input_names]).numpy()
+
+
+def onnxruntime_logits(path: str | Path, feeds: dict[str, np.ndarray]) -> np.ndarray:
+    """Run the ONNX file on CPU with onnxruntime; ``feeds`` may hold unused inputs."""
+    import onnxruntime as ort
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    names = [i.name for i in sess.get_inputs()]
+    return sess.run(None, {k: feeds[k] for k in names})[0]
+
+
+def verify(path: str | Path, wrapper: ExportWrapper, checks: dict[str, dict[str, np.ndarray]],
+           tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """Max |onnxruntime - PyTorch| of the logits for each named input set; ExportError above ``tolerance``."""
+    diffs = {}
+    for name, inputs in checks.items():
+        feeds = wrapper.feeds(inputs)
+        ref = _torch_logits(wrapper, feeds)
+        got = onnxruntime_logits(path, feeds)
+        if got.shape != ref.shape:
+            raise ExportError(f"{name}: onnxruntime returned logits of shape {got.shape}, PyTorch {ref.shape}")
+        diffs[name] = float(np.max(np.abs(got.astype(np.float64) - ref))) if ref.size else 0.0
+        if not np.isfinite(diffs[name]):
+            diffs[name] = float("inf")
+    worst = max(diffs, key=diffs.get)
+    result = {"max_abs_diff": diffs[worst], "by_check": diffs, "tolerance": tolerance, "passed": diffs[worst] <= tolerance}
+    if not result["passed"]:
+        raise ExportError(f"ONNX graph does not match PyTorch: max |difference| of the logits {diffs[worst]:.3g} on "
+                          f"'{worst}' inputs exceeds the tolerance {tolerance:g} (all checks: "
+                          + ", ".join(f"{k} {v:.3g}" for k, v in diffs.items())
+                          + "); try the other --exporter or another --opset; no file was written")
+    return result
+
+
+@contextlib.contextmanager
+def _quiet():
+    """Silence the exporters' warnings and progress logs (failures still raise)."""
+    loggers = [logging.getLogger(n) for n in ("torch.onnx", "onnxscript", "torch.export", "torch._dynamo")]
+    levels = [lg.level for lg in loggers]
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.CRITICAL)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        for lg, lvl in zip(loggers, levels):
+            lg.setLevel(lvl)
+
+
+def written_opset(path: str | Path) -> int:
+    """The default-domain opset version recorded in an ONNX file."""
+    import onnx
+    model = onnx.load(str(path), load_external_data=False)
+    return next(int(o.version) for o in model.opset_import if o.domain in ("", "ai.onnx"))
+
+
+def _export(wrapper: ExportWrapper, example: dict[str, np.ndarray], path: Path, opset: int, exporter: str) -> None:
+    feeds = wrapper.feeds(example)
+    args = tuple(torch.from_numpy(feeds[k]) for k in wrapper.input_names)
+    names = wrapper.input_names
+    with _quiet():
+        if exporter == "legacy":
+            torch.onnx.export(wrapper, args, str(path), dynamo=False, opset_version=opset, input_names=names,
+                              output_names=["logits"], do_constant_folding=True,
+                              dynamic_axes={**{k: {0: "batch"} for k in names}, "logits": {0: "batch"}})
+        else:
+            batch = torch.export.Dim("batch", min=1, max=4096)
+            prog = torch.onnx.export(wrapper, args, dynamo=True, opset_version=opset, input_names=names,
+                                     output_names=["logits"], verbose=False,
+                                     dynamic_shapes=(tuple({0: batch} for _ in names),))   # one entry: *inputs
+            prog.save(str(path), external_data=False)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 17, exporter: str = "legacy",
+                tolerance: float = DEFAULT_TOLERANCE, data: str | Path | None = None, seed: int = 0,
+                mask_dtype: str = "bool") -> dict:
+    """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place."""
+    from .checkpoint import load_checkpoint
+    from .train import load_trained_model
+    if exporter not in EXPORTERS:
+        raise ConfigError(f"--exporter: {exporter!r}; expected one of {', '.join(EXPORTERS)}")
+    if not 7 <= opset <= 23:
+        raise ConfigError(f"--opset: {opset} is outside 7..23 (17 suits TensorRT 8.5+ on JetPack 5/6.0)")
+    if not tolerance > 0:
+        raise ConfigError(f"--tolerance: {tolerance}; give a positive number")
+    t0 = time.perf_counter()
+    ckpt = load_checkpoint(checkpoint)
+    model, cfg = load_trained_model(ckpt, str(checkpoint))
+    wrapper = ExportWrapper(model.eval().float(), mask_dtype)
+    size, stars = int(ckpt["image_size"]), int(ckpt["max_stars"])
+    rng = np.random.default_rng(seed)
+    checks = {"random_batch1": random_inputs(1, size, stars, rng), "random_batch3": random_inputs(3, size, stars, rng),
+              "star_like_batch2": star_like_inputs(2, size, stars, rng)}
+    if data is not None:
+        checks["dataset_frames"] = dataset_inputs(data, cfg)
+    out = Path(onnx_path)
+    if out.is_dir():
+        raise ConfigError(f"--onnx {out} is a folder; give a file name such as model.onnx")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    try:
+        try:
+            _export(wrapper, checks["random_batch1"], tmp, opset, exporter)
+            import onnx
+            onnx.checker.check_model(str(tmp))
+        except Exception as exc:  # exporters raise many types; the user needs the reason, not the trace
+            raise ExportError(f"ONNX export of {checkpoint} failed with the {exporter} exporter at opset {opset}: "
+                              f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}")
+        got = written_opset(tmp)
+        if got != opset:
+            raise ExportError(f"the {exporter} exporter wrote opset {got}, not the requested {opset} (it cannot convert "
+                              f"this graph down); use --exporter legacy for opset {opset}, or --opset {got} if your "
+                              "runtime supports it")
+        result = verify(tmp, wrapper, checks, tolerance)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    import onnxruntime
+    return {"onnx": str(out), "checkpoint": str(checkpoint), "exporter": exporter, "opset": opset,
+            "inputs": {k: _shape(k, size, stars) for k in wrapper.input_names},
+            "input_types": {k: ("bool" if k == "mask" and mask_dtype == "bool" else "float32")
+                            for k in wrapper.input_names},
+            "outputs": {"logits": ["batch", model.num_classes]}, "model": ckpt["model_name"],
+            "branches": model.branches, "verification": result, "bytes": out.stat().st_size,
+            "sha256": _sha256(out), "onnxruntime": onnxruntime.__version__, "torch": str(torch.__version__),
+            "time_s": time.perf_counter() - t0}
+
+
+def _shape(name: str, size: int, stars: int) -> list:
+    return {"image": ["batch", 1, size, size], "coords": ["batch", stars, 3], "mask": ["batch", stars]}[name]
+
+
+def summary_text(r: dict) -> str:
+    v = r["verification"]
+    ins = ", ".join(f"{k} {tuple(s)}" for k, s in r["inputs"].items())
+    return (f"wrote {r['onnx']} ({r['bytes'] / 1e6:.1f} MB, {r['exporter']} exporter, opset {r['opset']}); inputs {ins}; "
+            f"output logits {tuple(r['outputs']['logits'])}; onnxruntime {r['onnxruntime']} vs PyTorch: max abs "
+            f"difference {v['max_abs_diff']:.2e} (tolerance {v['tolerance']:g})")
+
+
+# --------------------------------------------------------------------------- command line
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="a trained checkpoint (best.pt)")
+    p.add_argument("--onnx", required=True, help="ONNX file to write (replaced only after verification)")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17: TensorRT of JetPack 5 / 6.0)")
+    p.add_argument("--exporter", default="legacy", choices=EXPORTERS, help="legacy TorchScript-based (default) or "
+                   "dynamo (torch.export-based)")
+    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+                   help="largest allowed |onnxruntime - PyTorch| of the logits (default 1e-4)")
+    p.add_argument("--data", help="also verify on the first test frames of this skygen dataset")
+    p.add_argument("--mask-dtype", default="bool", choices=MASK_DTYPES,
+                   help="type of the mask input: bool (as in PyTorch, default) or float32 0/1 for runtimes that "
+                        "reject boolean inputs")
+    p.add_argument("--report", help="also write the export report (inputs, differences, sha256) to this JSON file")
+
+
+def run(args: argparse.Namespace) -> int:
+    r = export_onnx(args.checkpoint, args.onnx, opset=args.opset, exporter=args.exporter, tolerance=args.tolerance,
+                    data=args.data, mask_dtype=args.mask_dtype)
+    if args.report:
+        from .checkpoint import write_json
+        write_json(args.report, r)
+    print(summary_text(r))
+    return 0

@@ -1,0 +1,63 @@
+"""The fusion command line: main([...]) == 0, and one clear line with status 2 on bad input."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from fusion.cli import main
+from fusion.testing import small_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = str(ROOT / "configs" / "smoke.yaml")
+
+
+def test_train_then_evaluate(tmp_path, capsys):
+    data = str(small_dataset("smoke"))
+    run = tmp_path / "run"
+    assert main(["train", "--data", data, "--out", str(run), "--config", SMOKE, "train.epochs=2"]) == 0
+    assert (run / "best.pt").is_file()
+    assert main(["evaluate", "--checkpoint", str(run / "best.pt"), "--data", data, "--split", "val"]) == 0
+    report = json.loads((run / "eval-val.json").read_text())
+    assert report["dataset"]["split"] == "val"
+    out = capsys.readouterr().out
+    assert "top-1" in out and "K=4" in out
+    # a finished run is refused, one line, status 2
+    assert main(["train", "--data", data, "--out", str(run), "--config", SMOKE]) == 2
+    err = capsys.readouterr().err
+    assert "finished run" in err and "--force" in err and "Traceback" not in err
+
+
+def test_resume_from_the_run_folder_config(tmp_path):
+    data = str(small_dataset("smoke"))
+    run = tmp_path / "run"
+    assert main(["train", "--data", data, "--out", str(run), "--config", SMOKE, "train.epochs=1"]) == 0
+    (run / "summary.json").unlink()          # pretend it was killed after its last checkpoint
+    assert main(["train", "--data", data, "--out", str(run), "--resume"]) == 0
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["train.nonsense=1"], "unknown config key 'train.nonsense'"),
+    (["train.epochs=abc"], "train.epochs: expected an integer"),
+    (["labels.k=1"], "labels.k: 1 is out of range"),
+    (["model.name=vgg"], "unknown model 'vgg'"),
+])
+def test_bad_config_is_one_line_and_status_2(tmp_path, capsys, args, needle):
+    rc = main(["train", "--data", str(small_dataset("smoke")), "--out", str(tmp_path / "r"), "--config", SMOKE, *args])
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+
+
+def test_missing_dataset_and_checkpoint_are_clear(tmp_path, capsys):
+    assert main(["train", "--data", str(tmp_path / "nope"), "--out", str(tmp_path / "r"), "--config", SMOKE]) == 2
+    assert "no such dataset folder" in capsys.readouterr().err
+    assert main(["evaluate", "--checkpoint", str(tmp_path / "x.pt"), "--data", str(small_dataset("smoke"))]) == 2
+    assert "checkpoint file not found" in capsys.readouterr().err
+
+
+def test_help_config_and_no_command(capsys):
+    assert main(["train", "--help-config"]) == 0
+    out = capsys.readouterr().out
+    assert "labels.k" in out and "aug.rotation_max_deg" in out
+    assert main([]) == 2
