@@ -1,5 +1,5 @@
 # Two commands on a fresh machine (Python >= 3.11):
-#   make demo   install everything, render a small dataset, look at it, train and evaluate briefly
+#   make demo   install everything, render 4,000 frames, look at them, train the CPU preset, evaluate
 #   make test   install everything and run the test suite (what CI runs)
 PYTHON ?= python3
 VENV   ?= .venv
@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/skygen render --n 2000 --workers $(WORKERS) --out $(DEMO)
+	$(BIN)/skygen render --n 4000 --workers $(WORKERS) --out $(DEMO)
 	$(BIN)/skygen inspect $(DEMO)
 	$(BIN)/skygen preview $(DEMO) --out $(DEMO)/preview.png
 	$(BIN)/skygen validate $(DEMO) --no-checksums
