@@ -83,7 +83,6 @@ def main(argv=None) -> int:
     cv2.setNumThreads(1)
     cfg = load_config(overrides=a.set + [f"n_frames={a.frames}", f"output.shard_size={max(1, a.frames // 4)}"])
     stages = stage_times(cfg, min(a.frames, 200))
-    rows = [("stage (one core)", "ms/frame")] + [(k, f"{v:.2f}") for k, v in stages.items()]
     runs = {}
     for w in sorted({int(x) for x in a.workers.split(",")}):
         pipeline(cfg, w) if not runs else None       # warm the page cache and imports once

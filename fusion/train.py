@@ -41,6 +41,8 @@ import yaml
 from skygen.io import Dataset as SkyDataset
 from skygen.io import open_dataset
 
+from skygen.configlib import flatten
+
 from . import distributed as D
 from .checkpoint import (atomic_save_numpy, atomic_write_text, load_checkpoint, load_model_state, prepare_run_folder,
                          rng_state, save_checkpoint, set_rng_state, versions, write_json)
@@ -245,19 +247,9 @@ def write_config_yaml(path: Path, cfg: FusionConfig) -> None:
     atomic_write_text(path, text)
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, prefix + k + "."))
-        else:
-            out[prefix + k] = v
-    return out
-
-
 def check_resume_config(cfg: FusionConfig, ckpt: dict) -> FusionConfig:
     """The checkpoint's config, with only :data:`RESUMABLE_KEYS` taken from ``cfg``; other differences raise."""
-    saved, asked = _flatten(ckpt["config"]), _flatten(config_dict(cfg))
+    saved, asked = flatten(ckpt["config"]), flatten(config_dict(cfg))
     diff = sorted(k for k in set(saved) | set(asked) if saved.get(k) != asked.get(k) and k not in RESUMABLE_KEYS)
     if diff:
         details = ", ".join(f"{k}: {saved.get(k)!r} -> {asked.get(k)!r}" for k in diff[:8])

@@ -42,7 +42,7 @@ def _parse_slice(text: str | None) -> tuple[int, int]:
     return i, k
 
 
-def _load(args) -> "RenderConfig":
+def _load(args):
     from .config import load_config
     sets = list(args.set or [])
     if getattr(args, "n", None) is not None:

@@ -17,10 +17,10 @@ import multiprocessing as mp
 import time
 from pathlib import Path
 
-import numpy as np
 
 from . import corruptions as corr
 from .config import RenderConfig, config_dict
+from .configlib import flatten
 from .errors import DatasetError
 from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
@@ -30,19 +30,9 @@ def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
     return [(s, min(s + shard_size, n_frames)) for s in range(0, n_frames, shard_size)]
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, prefix + k + "."))
-        else:
-            out[prefix + k] = v
-    return out
-
-
 def config_differences(a: dict, b: dict) -> list[str]:
     """Dotted keys whose values differ between two config dicts."""
-    fa, fb = _flatten(a), _flatten(b)
+    fa, fb = flatten(a), flatten(b)
     return sorted(k for k in set(fa) | set(fb) if fa.get(k, "<missing>") != fb.get(k, "<missing>"))
 
 

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 
 import numpy as np
 import pytest
 import torch
 
+from fusion import cli as fcli
 from fusion import export as exp
 from fusion.errors import CheckpointError, FusionError
 from skygen.errors import SkygenError
@@ -19,18 +18,8 @@ ort = pytest.importorskip("onnxruntime")
 
 
 def cli(argv: list[str]) -> int:
-    """``fusion export ARGS`` through the real CLI once it is wired, else the same wrapper it uses."""
-    from fusion import cli as fcli
-    if "export" in getattr(fcli, "SUBCOMMANDS", {}):
-        return fcli.main(["export", *argv])
-    p = argparse.ArgumentParser(prog="fusion export")
-    exp.add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return exp.run(args)
-    except SkygenError as exc:
-        print(f"fusion export: error: {exc}", file=sys.stderr)
-        return 2
+    """``fusion export ARGS`` through the real command line."""
+    return fcli.main(["export", *argv])
 
 
 @pytest.fixture(scope="module")

@@ -2,39 +2,26 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
-import sys
 
 import numpy as np
 import pytest
 import torch
 
+from fusion import cli as fcli
 from fusion import robustness as rob
 from fusion.errors import CheckpointError, ConfigError
 from fusion.testing import render_small, small_dataset
 from skygen import corruptions as corr
-from skygen.errors import SkygenError
 from skygen.io import open_dataset
 from skygen.perturb import perturbed_frames
 
 
 def cli(argv: list[str]) -> int:
-    """``fusion robustness ARGS`` through the real CLI once it is wired, else the same wrapper it uses."""
-    from fusion import cli as fcli
-    if "robustness" in getattr(fcli, "SUBCOMMANDS", {}):
-        return fcli.main(["robustness", *argv])
-    p = argparse.ArgumentParser(prog="fusion robustness")
-    rob.add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return rob.run(args)
-    except SkygenError as exc:
-        print(f"fusion robustness: error: {exc}", file=sys.stderr)
-        return 2
-
+    """``fusion robustness ARGS`` through the real command line."""
+    return fcli.main(["robustness", *argv])
 
 def _train(out, overrides=()):
     from fusion.config import load_config

@@ -2,35 +2,22 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 
 import numpy as np
 import pytest
 import torch
 
+from fusion import cli as fcli
 from fusion import timing as tim
 from fusion.errors import ConfigError
-from skygen.errors import SkygenError
 
 STAT_KEYS = {"median_ms", "p90_ms", "p99_ms", "mean_ms", "min_ms", "max_ms", "std_ms", "n", "throughput_per_s"}
 
 
 def cli(argv: list[str]) -> int:
-    """``fusion timing ARGS`` through the real CLI once it is wired, else the same wrapper it uses."""
-    from fusion import cli as fcli
-    if "timing" in getattr(fcli, "SUBCOMMANDS", {}):
-        return fcli.main(["timing", *argv])
-    p = argparse.ArgumentParser(prog="fusion timing")
-    tim.add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return tim.run(args)
-    except SkygenError as exc:
-        print(f"fusion timing: error: {exc}", file=sys.stderr)
-        return 2
-
+    """``fusion timing ARGS`` through the real command line."""
+    return fcli.main(["timing", *argv])
 
 def _check_stats(s: dict, iters: int) -> None:
     assert STAT_KEYS <= set(s)

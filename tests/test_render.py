@@ -49,7 +49,6 @@ def test_true_stars_are_where_the_detector_finds_them():
 def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     cfg = load_config(overrides=CLEAN + ["corruptions.motion_blur=1.0"])
     r = Renderer(cfg)
-    R = np.eye(3)
     omega, n, taus = r._motion(np.random.default_rng(0))
     assert n > 10 and abs(np.degrees(np.linalg.norm(omega)) - 1.0) < 1e-12
     from skygen.attitude import attitude_matrix
