@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from skygen.configlib import describe, from_dict, merge_overrides, param, read_yaml, section, to_dict
+from skygen import configlib
+from skygen.configlib import param, section, to_dict
 
 from .errors import ConfigError
 
@@ -153,15 +154,12 @@ def check_consistency(cfg: FusionConfig) -> None:
 
 
 def build_config(data: dict | None = None) -> FusionConfig:
-    cfg = from_dict(FusionConfig, data or {})
-    check_consistency(cfg)
-    return cfg
+    return configlib.build(FusionConfig, data, check_consistency)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> FusionConfig:
     """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
-    data = read_yaml(path) if path else {}
-    return build_config(merge_overrides(data, list(overrides)))
+    return configlib.load(FusionConfig, path, overrides, check_consistency)
 
 
 def config_dict(cfg: FusionConfig) -> dict:
@@ -169,6 +167,4 @@ def config_dict(cfg: FusionConfig) -> dict:
 
 
 def config_help() -> str:
-    rows = describe(FusionConfig)
-    width = max(len(r[0]) for r in rows)
-    return "\n".join(f"{k:<{width}}  {d!r:<14} {allowed:<26} {doc}" for k, d, allowed, doc in rows)
+    return configlib.help_table(FusionConfig)

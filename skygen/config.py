@@ -11,7 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from .configlib import describe, from_dict, merge_overrides, param, read_yaml, section, to_dict
+from . import configlib
+from .configlib import param, section, to_dict
 from .errors import ConfigError
 
 INF = float("inf")
@@ -172,15 +173,12 @@ def check_consistency(cfg: RenderConfig) -> None:
 
 
 def build_config(data: dict | None = None) -> RenderConfig:
-    cfg = from_dict(RenderConfig, data or {})
-    check_consistency(cfg)
-    return cfg
+    return configlib.build(RenderConfig, data, check_consistency)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> RenderConfig:
     """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
-    data = read_yaml(path) if path else {}
-    return build_config(merge_overrides(data, overrides))
+    return configlib.load(RenderConfig, path, overrides, check_consistency)
 
 
 def config_dict(cfg: RenderConfig) -> dict:
@@ -188,6 +186,4 @@ def config_dict(cfg: RenderConfig) -> dict:
 
 
 def config_help() -> str:
-    rows = describe(RenderConfig)
-    width = max(len(r[0]) for r in rows)
-    return "\n".join(f"{k:<{width}}  {d!r:<12} {allowed:<28} {doc}" for k, d, allowed, doc in rows)
+    return configlib.help_table(RenderConfig)

@@ -219,6 +219,27 @@ def read_yaml(path: str | Path) -> dict:
     return data
 
 
+def build(cls: type, data: dict | None = None, check=None) -> Any:
+    """Build and validate config ``cls`` from a nested dict; ``check(cfg)`` covers multi-key rules."""
+    cfg = from_dict(cls, data or {})
+    if check is not None:
+        check(cfg)
+    return cfg
+
+
+def load(cls: type, path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (), check=None) -> Any:
+    """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
+    data = read_yaml(path) if path else {}
+    return build(cls, merge_overrides(data, list(overrides)), check)
+
+
+def help_table(cls: type) -> str:
+    """Every key of ``cls`` with its default, allowed values and help text, one per line."""
+    rows = describe(cls)
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"{k:<{width}}  {d!r:<14} {allowed:<28} {doc}" for k, d, allowed, doc in rows)
+
+
 def describe(cls: type, prefix: str = "") -> list[tuple[str, Any, str, str]]:
     """(dotted key, default, allowed, help) rows for documentation and ``--help``."""
     rows = []
