@@ -27,7 +27,7 @@ demo: $(STAMP)
 	$(BIN)/skygen validate $(DEMO) --no-checksums
 	$(BIN)/fusion train --data $(DEMO) --out $(RUN) --config configs/cpu.yaml --force
 	$(BIN)/fusion evaluate --checkpoint $(RUN)/best.pt --data $(DEMO) --split test --out $(RUN)/eval-test
-	@echo "dataset: $(DEMO) (preview: $(DEMO)/preview.png)  run: $(RUN)  report: $(RUN)/eval-test/report.md"
+	@echo "dataset: $(DEMO) (preview: $(DEMO)/preview.png)  run: $(RUN)  report: $(RUN)/eval-test/eval-test.md"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not gpu"

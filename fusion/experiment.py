@@ -302,6 +302,7 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     ``data_dir`` (default data/experiment-<preset>) and the run folders with checkpoints to
     ``runs_dir`` (default runs/experiment-<preset>), both ignored by git."""
     t_start = time.perf_counter()
+    revision = _git_revision()          # the code that runs, not the code at the end
     preset = load_preset(preset_name)
     bad = [s for s in sections if s not in SECTIONS]
     if bad:
@@ -364,7 +365,7 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
         md += _latency_section(preset, folders[runs["latency"][0].key], data, out, results, log)
     wall = time.perf_counter() - t_start
     md += ["## Provenance", "", f"- command: `fusion experiment --preset {preset.name} --out {out}`",
-           f"- git revision: {_git_revision()}", f"- hardware: {_hardware()}",
+           f"- git revision at start: {revision}", f"- hardware: {_hardware()}",
            f"- wall time of this invocation: {wall / 60:.1f} min (finished steps are skipped on re-runs)",
            f"- raw results: `results.json` here; each run's config, metrics, checkpoints and `eval-{split}.json` "
            f"under `{runs_dir}/` and the dataset in `{data}/` (not committed)", ""]
