@@ -21,7 +21,6 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import h5py
 import numpy as np
@@ -324,9 +323,9 @@ class Dataset:
             sh.handle = open_shard_file(sh.path)
         return sh, i - sh.frame_start
 
-    @property
-    def _starts(self) -> np.ndarray:
-        return np.array([s.frame_start for s in self.shards])
+    def __post_init__(self) -> None:
+        # first frame of each shard, for the per-frame lookup in _locate (computed once)
+        self._starts = np.array([s.frame_start for s in self.shards])
 
     def image(self, i: int, full_res: bool = False) -> np.ndarray:
         sh, j = self._locate(i)
@@ -373,9 +372,6 @@ class Dataset:
         state = dict(self.__dict__)
         state["shards"] = [_Shard(s.path, s.frame_start, s.n_frames) for s in self.shards]
         return state
-
-    def iter_frames(self) -> Iterator[int]:
-        return iter(range(len(self)))
 
 
 def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
