@@ -1,4 +1,4 @@
-"""``skygen`` command line: render, inspect, preview, validate, catalog, config.
+"""``skygen`` command line: render, inspect, preview, validate, merge, calibrate, stream, catalog, config.
 
 Each subcommand is a thin wrapper over a library function; ``main(argv) -> int``.
 Exit codes: 0 success, 1 validation found problems, 2 bad input (message on stderr),
@@ -12,6 +12,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from .errors import SkygenError
 
 EPILOG = """examples:
@@ -23,6 +25,8 @@ EPILOG = """examples:
   skygen validate data/sky-n2000-s0
   skygen merge /scratch/part-a /scratch/part-b --out /scratch/all
   skygen config --keys                          # every config key, default, range and unit
+  skygen stream --kind detections --n 100000     # training samples on the fly: throughput + statistics
+  skygen calibrate --out detector.json           # fit the detector emulator for a config
 """
 
 
@@ -131,6 +135,78 @@ def cmd_config(args) -> int:
     return 0
 
 
+def cmd_calibrate(args) -> int:
+    from . import emulator as emu
+    if args.path:
+        if args.config or args.set:
+            raise SkygenError("calibrate: give either a dataset DIR (its own config is used) or --config/--set "
+                              "(frames are rendered), not both")
+        model = emu.calibrate_from_dataset(args.path, args.max_frames)
+    else:
+        cfg = _load(args)
+        bar = None
+        if not args.quiet:
+            from tqdm import tqdm
+            bar = tqdm(total=args.frames, desc="calibration frames", unit="frame")
+        model = emu.calibrate_from_renders(cfg, args.frames, progress=(lambda k, n: bar.update(1)) if bar else None)
+        if bar:
+            bar.close()
+    emu.save(model, args.out)
+    c = model.completeness
+    u50 = float(emu.U_EDGES[np.argmax(c >= 0.5)]) if (c >= 0.5).any() else float("nan")
+    print(f"wrote {args.out}: {model.info['frames']} frames, {model.info['matched_rows']} matched isolated "
+          f"detections, threshold {model.threshold_e:.0f} e-, 50 % completeness at {10 ** u50:.2f} x threshold, "
+          f"pairs of stars at 10 x threshold merged below {model.blend_radius_px(10 * model.threshold_e):.1f} px, {model.info['spurious_per_frame']:.2f} spurious "
+          "detections per frame")
+    return 0
+
+
+def cmd_stream(args) -> int:
+    import json
+    import time
+    from .config import config_dict
+    from .stream import SampleStream, stream_summary, write_detection_sets
+    if args.n < 1:
+        raise SkygenError(f"--n {args.n}: need at least 1 sample")
+    if args.start < 0:
+        raise SkygenError(f"--start {args.start}: the stream index must be >= 0")
+    cfg = _load(args)
+    ranges = {}
+    for text in args.range or []:
+        try:
+            name, lohi = text.split("=")
+            lo, hi = (float(v) for v in lohi.split(":"))
+        except ValueError:
+            raise SkygenError(f"--range {text!r} must look like NAME=LO:HI, e.g. dropout=0:0.3") from None
+        ranges[name] = (lo, hi)
+    stream = SampleStream(cfg, args.kind, calibration=args.calibration, level_ranges=ranges)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if args.kind == "detections":
+        batches = [stream.batch(range(a, min(a + args.batch, args.start + args.n)))
+                   for a in range(args.start, args.start + args.n, args.batch)]
+    else:
+        from .stream import frames_as_batch
+        batches = [frames_as_batch([stream.frame(i) for i in range(args.start, args.start + args.n)])]
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    summary = stream_summary(batches)
+    summary.update({"kind": args.kind, "start": args.start, "wall_s": wall, "samples_per_s": args.n / wall,
+                    "samples_per_cpu_s": args.n / max(cpu, 1e-9)})
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        d, m = summary["detections_per_sample"], summary["detected_mag"]
+        print(f"{args.n} {args.kind} samples from index {args.start} in {wall:.2f} s: {summary['samples_per_s']:.0f} "
+              f"samples/s ({summary['samples_per_cpu_s']:.0f} per CPU-second)")
+        print(f"detections per sample: mean {d['mean']:.1f}, median {d['median']:.0f}, p10-p90 {d['p10']:.0f}-"
+              f"{d['p90']:.0f}, min {d['min']}, max {d['max']}; fewer than 3: {100 * summary['fewer_than_3']:.1f} %")
+        print(f"detected catalog stars Hp: p10 {m['p10']:.2f}, median {m['median']:.2f}, p90 {m['p90']:.2f}; "
+              f"spurious detections {100 * summary['spurious_share']:.2f} %")
+    if args.out:
+        write_detection_sets(batches, args.out, config_dict(cfg))
+        print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
                                 "writing shareable HDF5 shards.", epilog=EPILOG,
@@ -191,6 +267,38 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", help="fetch: output .npz (default catalogs/NAME.npz)")
     c.add_argument("--path", help="info: catalog file (default: bundled Hipparcos-2)")
     c.set_defaults(func=cmd_catalog)
+
+    ca = sub.add_parser("calibrate", help="fit the detector emulator of the detections stream",
+                        description="Fit the detector emulator (skygen.emulator) to the real detector: from a "
+                        "rendered dataset DIR (its frames and config), or, without DIR, from --frames frames "
+                        "rendered for --config/--set in their own random streams. The calibration is valid for "
+                        "that camera, optics, photometry, sensor and detector only; streams refuse it for "
+                        "any other.")
+    ca.add_argument("path", nargs="?", help="rendered dataset folder to fit on (optional; default: render frames)")
+    config_args(ca, with_n=False)
+    ca.add_argument("--frames", type=int, default=3000, help="frames to render when no DIR is given (default 3000)")
+    ca.add_argument("--max-frames", type=int, default=None, help="with DIR: use at most this many frames")
+    ca.add_argument("--out", required=True, help="calibration JSON to write")
+    ca.add_argument("--quiet", action="store_true", help="no progress bar")
+    ca.set_defaults(func=cmd_calibrate)
+
+    st = sub.add_parser("stream", help="synthesise training samples on the fly; print throughput and statistics",
+                        description="Make --n samples of an endless stream (sample i is a pure function of "
+                        "config, seed, kind and i) and print what a model would see. 'detections' uses the "
+                        "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' renders and detects "
+                        "like `skygen render`.")
+    config_args(st, with_n=False)
+    st.add_argument("--kind", choices=("detections", "frames"), default="detections", help="sample kind")
+    st.add_argument("--n", type=int, default=10000, help="samples to make (default 10000)")
+    st.add_argument("--start", type=int, default=0, help="first sample index (default 0)")
+    st.add_argument("--batch", type=int, default=1024, help="detections: samples per vectorised batch")
+    st.add_argument("--calibration", help="detector calibration JSON (default: the shipped one for the default camera)")
+    st.add_argument("--range", action="append", metavar="NAME=LO:HI",
+                    help="per-sample severity range of a corruption (false_stars, dropout, centroid_noise, "
+                    "magnitude_noise), e.g. --range dropout=0:0.3 (repeatable)")
+    st.add_argument("--out", help="also write the detection sets to this HDF5 file (shard table layout)")
+    st.add_argument("--json", action="store_true", help="print the summary as JSON")
+    st.set_defaults(func=cmd_stream)
 
     cf = sub.add_parser("config", help="print the resolved config, or every key with --keys")
     config_args(cf)

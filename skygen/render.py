@@ -64,8 +64,11 @@ def split_bounds(n_frames: int, fractions: tuple[float, float, float]) -> tuple[
 class Renderer:
     """Renders frames of one configuration. Construct once per process."""
 
-    def __init__(self, cfg, catalog: StarTable | None = None):
+    def __init__(self, cfg, catalog: StarTable | None = None, rng_tag: str = ""):
         self.cfg = cfg
+        # appended to every stage name of the per-frame generators: "" for datasets; the
+        # streams of skygen.stream use their own tag so their frames never repeat a dataset's
+        self.rng_tag = rng_tag
         s, o = cfg.sensor, cfg.optics
         self.camera = Camera.from_config(cfg.camera)
         self.photometry = Photometry.from_config(o, cfg.photometry, s)
@@ -197,19 +200,29 @@ class Renderer:
         return boxes
 
     # ------------------------------------------------------------------ frame
-    def render(self, i: int) -> Frame:
+    def render(self, i: int, levels: dict | None = None) -> Frame:
+        """Frame ``i``; ``levels`` overrides corruption severities of scene and detection stages
+        for this frame only (the streams draw them per sample)."""
+        if levels is not None:
+            saved = self.levels
+            self.levels = {**saved, **levels}
+            try:
+                return self.render(i)
+            finally:
+                self.levels = saved
         cfg = self.cfg
         seed = cfg.seed
+        tag = self.rng_tag
         sh = (cfg.camera.height_px, cfg.camera.width_px)
-        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude"))
+        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude" + tag))
         R = attitude_matrix(ra, dec, roll)
         log: dict = {}
-        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur"))
+        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur" + tag))
         if len(taus) > 1:
             log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
         stars = self._stars(R, omega, taus)
         if self.levels["false_stars"] > 0:
-            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars"))
+            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars" + tag))
             log["false_stars"] = {"n": len(fake["x_px"])}
             stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
             if stars["paths"] is not None and len(fake["x_px"]):
@@ -221,7 +234,7 @@ class Renderer:
         if self.levels["cosmic_rays"] > 0:
             patches, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
                                                              self.levels["cosmic_rays"],
-                                                             corr.stage_rng(seed, i, "cosmic_rays"))
+                                                             corr.stage_rng(seed, i, "cosmic_rays" + tag))
             log["cosmic_rays"] = {"n_hits": n_hits}
             if patches:
                 charge = np.zeros(sh, np.float32)
@@ -234,11 +247,11 @@ class Renderer:
             bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
             if self.levels["stray_light"] > 0:
                 ramp, ang = corr.stray_light_map(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
-                                                 corr.stage_rng(seed, i, "stray_light"))
+                                                 corr.stage_rng(seed, i, "stray_light" + tag))
                 bg_map += ramp
                 log["stray_light"] = {"direction_deg": round(ang, 4)}
         exposure = Exposure(star_e, charge, boxes, self.background_e, bg_map)
-        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, i, "noise"),
+        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, i, "noise" + tag),
                               self.levels["read_noise"])
         if info["bloomed_columns"]:
             log["blooming"] = {"columns": info["bloomed_columns"]}
@@ -249,7 +262,7 @@ class Renderer:
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
         det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
-        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, i)
+        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, i, stream=tag)
         log.update(dlog)
         image = full if self.factor == 1 else cv2.resize(full, (sh[1] // self.factor, sh[0] // self.factor),
                                                           interpolation=cv2.INTER_AREA)

@@ -1,0 +1,453 @@
+"""Endless, deterministic streams of training samples (no files written).
+
+``SampleStream(cfg, kind)`` makes sample ``i`` for any ``i >= 0``, as a pure function of
+(resolved config, seed, kind, i): a stream restarted at any index, split over DataLoader
+workers or DDP ranks (:func:`partition`), or asked for one sample or a batch gives the
+same samples. Two kinds:
+
+``frames``
+    The full render of :class:`skygen.render.Renderer` — image at the stored size,
+    detections from the real detector, true stars, labels: exactly what ``skygen render``
+    writes, without writing it. ~12 ms per sample per core.
+``detections``
+    The fast path: attitude, catalog cone search, projection and photometry (the
+    renderer's own camera, catalog index and photometry), false stars, then the
+    calibrated :mod:`skygen.emulator` instead of pixels and detector, then the corruption
+    registry's detection-level corruptions. Same detection table and labels, no image.
+    ~0.05 ms per sample per core in batches (``benchmarks/stream_bench.py``).
+
+Sample identity
+    A stream never reproduces a dataset's frames, even with the same seed: frame-stream
+    sample ``i`` draws from generators tagged ``@stream-frames`` (a dataset's frame ``i``
+    uses untagged ones), and the detection stream draws counter-based numbers keyed by
+    (seed, ``"@stream-detections"``) (:mod:`skygen.hashrng`). ``tests/test_stream.py``
+    checks both.
+
+Corruption-aware training
+    ``level_ranges={"dropout": (0, 0.3), ...}`` draws each sample's severity of the named
+    scene/detection corruptions uniformly in its range (from the sample's own random
+    numbers), on top of nothing: the range replaces the config's level. Only
+    :data:`RANGED` corruptions can vary per sample; the others are fixed by the config
+    (and, for ``detections``, by the calibration).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import corruptions as corr
+from . import emulator as emu
+from . import hashrng
+from .attitude import attitude_matrix
+from .catalog import radec_to_vec
+from .errors import ConfigError
+
+KINDS = ("frames", "detections")
+RANGED = ("false_stars", "dropout", "centroid_noise", "magnitude_noise")
+TAGS = {"frames": "@stream-frames", "detections": "@stream-detections"}
+DETECTION_KEYS = ("x_px", "y_px", "flux_adu", "peak_adu", "area_px", "hip_id", "star_index")
+STAR_KEYS = ("hip_id", "x_px", "y_px", "mag", "electrons")
+# draw ids of the detection stream (per sample); per-source ids live above SOURCE_BASE
+_D_ATT = 0            # 0..2
+_D_LEVEL = 8          # one per RANGED corruption
+_D_NFALSE = 16
+_D_SPUR = 1 << 40
+_D_CORR = 1 << 44     # detection-level corruptions: + 4 * source id
+_FALSE_ID = 1 << 30   # source ids of false stars: _FALSE_ID + k (catalog rows are below)
+SOURCE_BASE = 64
+
+
+def check_kind(kind: str) -> str:
+    if kind not in KINDS:
+        raise ConfigError(f"stream kind {kind!r} is unknown; choose one of: {', '.join(KINDS)}")
+    return kind
+
+
+def check_ranges(level_ranges: dict | None) -> dict[str, tuple[float, float]]:
+    out = {}
+    for name, rng in (level_ranges or {}).items():
+        corr.get(name)
+        if name not in RANGED:
+            raise ConfigError(f"stream level range for {name!r}: only {', '.join(RANGED)} can vary per sample "
+                              "(sensor-stage corruptions are fixed by the config)")
+        lo, hi = (float(v) for v in rng)
+        if not (0 <= lo <= hi) or (name == "dropout" and hi > 1):
+            raise ConfigError(f"stream level range for {name!r}: {[lo, hi]} must satisfy 0 <= lo <= hi"
+                              f"{' <= 1' if name == 'dropout' else ''}")
+        if hi > 0:
+            out[name] = (lo, hi)
+    return out
+
+
+@dataclass
+class DetectionBatch:
+    """Detection sets of several samples, stored flat like a shard's tables.
+
+    ``index`` (B,) sample indices; ``offsets`` (B+1,): detections of sample j are rows
+    ``offsets[j]:offsets[j+1]`` of every array in ``detections`` (brightest first);
+    ``stars`` likewise with ``star_offsets``; ``labels`` hold per-sample ``ra_deg``,
+    ``dec_deg``, ``roll_deg``, ``unit_vector`` (B, 3), ``quaternion`` (B, 4); ``levels``
+    the per-sample severity of every ranged corruption.
+    """
+    index: np.ndarray
+    offsets: np.ndarray
+    detections: dict
+    star_offsets: np.ndarray
+    stars: dict
+    labels: dict
+    levels: dict
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def sample(self, j: int) -> dict:
+        lo, hi = self.offsets[j], self.offsets[j + 1]
+        slo, shi = self.star_offsets[j], self.star_offsets[j + 1]
+        return {"index": int(self.index[j]),
+                **{k: (v[j] if np.ndim(v) == 1 else v[j].copy()) for k, v in self.labels.items()},
+                "detections": {k: v[lo:hi] for k, v in self.detections.items()},
+                "stars": {k: v[slo:shi] for k, v in self.stars.items()},
+                "levels": {k: float(v[j]) for k, v in self.levels.items()}}
+
+
+def partition(start: int, rank: int = 0, world: int = 1) -> Iterator[int]:
+    """Sample indices ``start + rank, start + rank + world, ...``: disjoint for distinct ranks."""
+    if start < 0:
+        raise ConfigError(f"stream start index {start} must be >= 0")
+    if not 0 <= rank < world:
+        raise ConfigError(f"stream partition {rank} of {world}: need 0 <= rank < world")
+    i = start + rank
+    while True:
+        yield i
+        i += world
+
+
+class SampleStream:
+    """Samples of one render configuration (see the module docstring)."""
+
+    def __init__(self, cfg, kind: str = "detections", *, calibration=None, level_ranges: dict | None = None,
+                 catalog=None):
+        from .render import Renderer
+        self.kind = check_kind(kind)
+        self.level_ranges = check_ranges(level_ranges)
+        self.cfg = cfg
+        self.renderer = Renderer(cfg, catalog=catalog, rng_tag=TAGS[kind])
+        self.key = hashrng.stream_key(cfg.seed, TAGS[kind])
+        self._check_detectable()
+        self.model = None
+        if kind == "detections":
+            from .config import config_dict
+            if calibration is None:
+                calibration = emu.default_calibration_path()
+            self.model = calibration if isinstance(calibration, emu.DetectorModel) else emu.load(calibration)
+            emu.check_compatible(self.model, config_dict(cfg),
+                                 f"detector calibration {calibration if not isinstance(calibration, emu.DetectorModel) else ''}".strip())
+            r = self.renderer
+            sky = r.sky
+            e_star = (r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
+                      * cfg.sensor.exposure_s)
+            # only stars the emulator can detect (p > 0 somewhere on the sensor) take part;
+            # fainter ones never change a detection set, and skipping them halves the cost
+            visible = self.model.p_detect(e_star) > 0
+            self._rows = np.flatnonzero(visible)
+            self._e_star = e_star[visible]
+            self._vectors = sky.vectors[visible]
+            self._hip = sky.table.hip[visible].astype(np.int64)
+            self._mag = sky.table.mag[visible].astype(np.float32)
+            self._tree = cKDTree(self._vectors)
+            self._cone = r._corner + 2.0 / r.camera.f_px
+
+    def _check_detectable(self) -> None:
+        r = self.renderer
+        brightest = float(np.nanmin(r.sky.table.mag)) if len(r.sky) else np.inf
+        if not np.isfinite(r.detection_limit_mag) or r.detection_limit_mag < brightest + r.mag_offset_to_hp:
+            raise ConfigError(f"this config detects no star: its detection limit (Hp {r.detection_limit_mag:.2f}) is "
+                              f"brighter than the brightest catalog star (Hp {brightest:.2f}); lengthen "
+                              "sensor.exposure_s, enlarge optics.aperture_mm or lower detection.threshold_sigma")
+
+    # ------------------------------------------------------------------ levels
+    def levels_of(self, index: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-sample severities of the ranged corruptions (others: the config's)."""
+        index = np.asarray(index, np.int64)
+        out = {}
+        for k, name in enumerate(RANGED):
+            if name in self.level_ranges:
+                lo, hi = self.level_ranges[name]
+                out[name] = lo + (hi - lo) * hashrng.uniform(self.key, index, _D_LEVEL + k)
+            else:
+                out[name] = np.full(len(index), self.renderer.levels[name])
+        return out
+
+    # ------------------------------------------------------------------ frames
+    def frame(self, i: int):
+        """Sample ``i`` of a ``frames`` stream: a :class:`skygen.render.Frame` (split set to -1)."""
+        if i < 0:
+            raise ConfigError(f"stream index {i} must be >= 0")
+        if self.kind != "frames":
+            raise ConfigError("frame() needs a stream of kind 'frames'")
+        levels = {k: float(v[0]) for k, v in self.levels_of(np.array([i])).items()} if self.level_ranges else None
+        fr = self.renderer.render(i, levels)
+        fr.split = -1
+        return fr
+
+    # ------------------------------------------------------------------ detections
+    def batch(self, indices) -> DetectionBatch:
+        """Samples ``indices`` of a ``detections`` stream (any order, any count)."""
+        if self.kind != "detections":
+            raise ConfigError("batch() needs a stream of kind 'detections'; use frame(i) for 'frames'")
+        idx = np.asarray(indices, np.int64).ravel()
+        if len(idx) and idx.min() < 0:
+            raise ConfigError(f"stream index {int(idx.min())} must be >= 0")
+        B = len(idx)
+        r, cam, key = self.renderer, self.renderer.camera, self.key
+        levels = self.levels_of(idx)
+        # attitude (the renderer's distribution, counter-based draws)
+        u = hashrng.uniform(key, idx[:, None], _D_ATT + np.arange(3)[None, :])
+        ra, dec, roll = _boresights(self.cfg.attitude, idx, u)
+        R = attitude_matrices(ra, dec, roll)                                  # (B, 3, 3)
+        bore = R[:, :, 2]
+        # catalog stars: cone search, projection, photometry
+        chord = 2.0 * np.sin(self._cone / 2.0)
+        pairs = cKDTree(bore).sparse_distance_matrix(self._tree, chord + 1e-12, output_type="ndarray")
+        fr, star = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        v_cam = np.einsum("nji,nj->ni", R[fr], self._vectors[star])
+        x, y, front = cam.project(v_cam)
+        ok = front & cam.inside(x, y)
+        star, fr, x, y = star[ok], fr[ok], x[ok], y[ok]
+        e = self._e_star[star] * r.vignetting(x, y)
+        src_id = self._rows[star]        # the catalog row: a star's draws do not depend on the field
+        hip = self._hip[star]
+        mag = self._mag[star]
+        # false stars (scene): Poisson count per sample, uniform positions, magnitudes as the renderer's
+        nf = hashrng.poisson(levels["false_stars"], hashrng.uniform(key, idx, _D_NFALSE))
+        if nf.sum():
+            ffr = np.repeat(np.arange(B), nf)
+            k = np.arange(len(ffr)) - np.repeat(np.cumsum(nf) - nf, nf)
+            fid = _FALSE_ID + k
+            d = (SOURCE_BASE + fid) * emu.DRAWS_PER_SOURCE
+            fx = -0.5 + cam.width_px * hashrng.uniform(key, idx[ffr], d + 3)
+            fy = -0.5 + cam.height_px * hashrng.uniform(key, idx[ffr], d + 4)
+            lim = r.detection_limit_mag
+            fmag = (lim - 4.0 + 4.0 * hashrng.uniform(key, idx[ffr], d + 5)).astype(np.float32)
+            fe = r.photometry.electrons_per_s(fmag, None) * self.cfg.sensor.exposure_s * r.vignetting(fx, fy)
+            star = np.concatenate([star, np.full(len(ffr), -1)])
+            fr, x, y = np.concatenate([fr, ffr]), np.concatenate([x, fx]), np.concatenate([y, fy])
+            e, src_id = np.concatenate([e, fe]), np.concatenate([src_id, fid])
+            hip, mag = np.concatenate([hip, np.full(len(ffr), -1)]), np.concatenate([mag, fmag])
+        # true-star table per sample (order: frame, then brightness)
+        order = np.lexsort((-e, fr))
+        fr, x, y, e, src_id, hip, mag = (a[order] for a in (fr, x, y, e, src_id, hip, mag))
+        n_src = np.bincount(fr, minlength=B)
+        star_offsets = np.concatenate([[0], np.cumsum(n_src)])
+        row_in_frame = np.arange(len(fr)) - star_offsets[fr]
+        # the emulated detector
+        em = self.model.emulate(key, idx[fr], SOURCE_BASE + src_id, fr, x, y, e)
+        sp = self.model.spurious_detections(key, idx, _D_SPUR, cam.width_px, cam.height_px)
+        det_fr = np.concatenate([em["frame"], sp["frame"]])
+        det = {k: np.concatenate([em[k], sp[k]]) for k in ("x_px", "y_px", "flux_adu", "peak_adu", "area_px")}
+        det["star_index"] = np.concatenate([row_in_frame[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int32)
+        det["hip_id"] = np.concatenate([hip[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int64)
+        n_sp = np.bincount(sp["frame"], minlength=B)
+        k_sp = np.arange(len(sp["frame"])) - np.repeat(np.cumsum(n_sp) - n_sp, n_sp)
+        det_id = np.concatenate([src_id[em["src"]], (1 << 31) + k_sp])
+        # the detector's own cap: brightest max_detections per frame
+        det_fr, det, det_id = _cap(det_fr, det, det_id, B, self.cfg.detection.max_detections)
+        det_fr, det = _detection_corruptions(det_fr, det, det_id, idx, levels, key)
+        n_det = np.bincount(det_fr, minlength=B)
+        labels = {"ra_deg": ra, "dec_deg": dec, "roll_deg": roll,
+                  "unit_vector": radec_to_vec(np.radians(ra), np.radians(dec)), "quaternion": quaternions(R)}
+        stars = {"hip_id": hip, "x_px": x, "y_px": y, "mag": mag, "electrons": e.astype(np.float32)}
+        return DetectionBatch(idx, np.concatenate([[0], np.cumsum(n_det)]), det, star_offsets, stars, labels, levels)
+
+    def sample(self, i: int) -> dict:
+        """Sample ``i`` as a dict (labels, ``detections``, ``stars``; ``image`` for frames)."""
+        if self.kind == "detections":
+            return self.batch([i]).sample(0)
+        f = self.frame(i)
+        return {"index": i, "ra_deg": f.ra_deg, "dec_deg": f.dec_deg, "roll_deg": f.roll_deg,
+                "unit_vector": f.unit_vector, "quaternion": f.quaternion, "image": f.image,
+                "detections": {k: f.detections[k] for k in DETECTION_KEYS},
+                "stars": {k: f.stars[k] for k in STAR_KEYS}, "levels": {k: f.applied[k] for k in RANGED}}
+
+    def __iter__(self):
+        return (self.sample(i) for i in partition(0))
+
+
+# ---------------------------------------------------------------------------------- helpers
+def _cap(fr, det, det_id, B, cap):
+    order = np.lexsort((-det["flux_adu"].astype(np.float64), fr))
+    fr, det_id = fr[order], det_id[order]
+    det = {k: v[order] for k, v in det.items()}
+    start = np.concatenate([[0], np.cumsum(np.bincount(fr, minlength=B))])
+    keep = (np.arange(len(fr)) - start[fr]) < cap
+    return fr[keep], {k: v[keep] for k, v in det.items()}, det_id[keep]
+
+
+def _detection_corruptions(fr, det, det_id, idx, levels, key):
+    """Dropout, centroid noise and magnitude noise with per-sample severities (the registry's
+    :func:`skygen.corruptions.apply_detection_corruptions`, vectorised with counter draws)."""
+    s = idx[fr]
+    d = _D_CORR + 4 * det_id
+    p = levels["dropout"][fr]
+    if (p > 0).any():
+        keep = hashrng.uniform(key, s, d) >= p
+        fr, det, det_id, s, d = fr[keep], {k: v[keep] for k, v in det.items()}, det_id[keep], s[keep], d[keep]
+    c = levels["centroid_noise"][fr]
+    if (c > 0).any():
+        det["x_px"] = det["x_px"] + c * hashrng.normal(key, s, d + 1)
+        det["y_px"] = det["y_px"] + c * hashrng.normal(key, s, d + 2)
+    m = levels["magnitude_noise"][fr]
+    if (m > 0).any():
+        f = (10 ** (-0.4 * m * hashrng.normal(key, s, d + 3))).astype(np.float32)
+        det["flux_adu"] = det["flux_adu"] * f
+        det["peak_adu"] = det["peak_adu"] * f
+        order = np.lexsort((-det["flux_adu"].astype(np.float64), fr))
+        fr, det = fr[order], {k: v[order] for k, v in det.items()}
+    return fr, det
+
+
+def _boresights(acfg, idx: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ra, dec, roll) in degrees from three uniforms per sample, distributed as
+    :func:`skygen.attitude.sample_boresight` draws them."""
+    lo, hi = acfg.roll_range_deg
+    roll = (lo + (hi - lo) * u[:, 2]) % 360.0
+    if acfg.mode == "list":
+        k = idx % len(acfg.ra_deg)
+        ra = np.asarray(acfg.ra_deg, np.float64)[k] % 360.0
+        dec = np.asarray(acfg.dec_deg, np.float64)[k]
+        if acfg.roll_deg:
+            roll = np.asarray(acfg.roll_deg, np.float64)[k] % 360.0
+        return ra, dec, roll
+    if acfg.mode == "uniform":
+        return (360.0 * u[:, 0]) % 360.0, np.degrees(np.arcsin(2.0 * u[:, 1] - 1.0)), roll
+    cos_r = np.cos(np.radians(acfg.region_radius_deg))
+    cos_t = 1.0 - u[:, 1] * (1.0 - cos_r)
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    phi = 2 * np.pi * u[:, 0]
+    local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+    v = local @ attitude_matrix(acfg.region_ra_deg, acfg.region_dec_deg, 0.0).T
+    return (np.degrees(np.arctan2(v[:, 1], v[:, 0])) % 360.0, np.degrees(np.arcsin(np.clip(v[:, 2], -1, 1))), roll)
+
+
+def attitude_matrices(ra_deg, dec_deg, roll_deg) -> np.ndarray:
+    """:func:`skygen.attitude.attitude_matrix` for arrays: (B, 3, 3)."""
+    a, d, r = (np.radians(np.asarray(v, np.float64)) for v in (ra_deg, dec_deg, roll_deg))
+    b = radec_to_vec(a, d)
+    z = np.zeros_like(a)
+    east = np.stack([-np.sin(a), np.cos(a), z], -1)
+    north = np.stack([-np.sin(d) * np.cos(a), -np.sin(d) * np.sin(a), np.cos(d)], -1)
+    y = -(np.cos(r)[:, None] * north + np.sin(r)[:, None] * east)
+    x = np.cross(y, b)
+    return np.stack([x, y, b], axis=-1)
+
+
+def quaternions(R: np.ndarray) -> np.ndarray:
+    """:func:`skygen.attitude.matrix_to_quaternion` for (B, 3, 3): (B, 4), w >= 0 (same method)."""
+    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    tr = np.trace(R, axis1=1, axis2=2)
+    k = np.argmax(np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], -1), axis=-1)
+    q = np.empty((len(R), 4))
+    for case in range(4):
+        m = R[k == case]
+        t = tr[k == case]
+        if case == 0:
+            w = np.sqrt(1.0 + t) / 2
+            c = [w, (m[:, 2, 1] - m[:, 1, 2]) / (4 * w), (m[:, 0, 2] - m[:, 2, 0]) / (4 * w), (m[:, 1, 0] - m[:, 0, 1]) / (4 * w)]
+        elif case == 1:
+            x = np.sqrt(1.0 + 2 * m[:, 0, 0] - t) / 2
+            c = [(m[:, 2, 1] - m[:, 1, 2]) / (4 * x), x, (m[:, 0, 1] + m[:, 1, 0]) / (4 * x), (m[:, 0, 2] + m[:, 2, 0]) / (4 * x)]
+        elif case == 2:
+            y = np.sqrt(1.0 + 2 * m[:, 1, 1] - t) / 2
+            c = [(m[:, 0, 2] - m[:, 2, 0]) / (4 * y), (m[:, 0, 1] + m[:, 1, 0]) / (4 * y), y, (m[:, 1, 2] + m[:, 2, 1]) / (4 * y)]
+        else:
+            z = np.sqrt(1.0 + 2 * m[:, 2, 2] - t) / 2
+            c = [(m[:, 1, 0] - m[:, 0, 1]) / (4 * z), (m[:, 0, 2] + m[:, 2, 0]) / (4 * z), (m[:, 1, 2] + m[:, 2, 1]) / (4 * z), z]
+        q[k == case] = np.stack(c, -1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(q[:, :1] < 0, -q, q)
+
+
+def frames_as_batch(frames) -> DetectionBatch:
+    """Rendered frames (``frames`` stream samples) in the :class:`DetectionBatch` layout."""
+    det = {k: np.concatenate([f.detections[k] for f in frames]) for k in DETECTION_KEYS}
+    stars = {k: np.concatenate([f.stars[k] for f in frames]) for k in STAR_KEYS}
+    off = lambda rows: np.concatenate([[0], np.cumsum([len(r["x_px"]) for r in rows])]).astype(np.int64)
+    labels = {k: np.array([getattr(f, k) for f in frames]) for k in ("ra_deg", "dec_deg", "roll_deg", "unit_vector",
+                                                                      "quaternion")}
+    levels = {k: np.array([f.applied[k] for f in frames]) for k in RANGED}
+    return DetectionBatch(np.array([f.index for f in frames]), off([f.detections for f in frames]), det,
+                          off([f.stars for f in frames]), stars, labels, levels)
+
+
+def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
+    """Write detection-stream samples to one HDF5 file in the shard table layout
+    (``detections``/``stars`` flat tables with ``offsets``, ``boresight`` per sample)."""
+    import json
+    import os
+
+    import h5py
+
+    from .io import BORESIGHT_FIELDS, DETECTION_FIELDS, LIBVER, STAR_FIELDS
+    path = Path(path)
+    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
+    parts = list(batches)
+    try:
+        with h5py.File(tmp, "w", libver=LIBVER) as f:
+            f.attrs["format"] = "skygen-detection-stream"
+            f.attrs["config"] = json.dumps(config, sort_keys=True)
+            f.attrs["description"] = ("detection sets of skygen's detections stream (emulated detector); "
+                                      "tables as in skygen shards: rows of sample j are offsets[j]:offsets[j+1]")
+            idx = np.concatenate([b.index for b in parts])
+            f.create_dataset("index", data=idx)
+            g = f.create_group("boresight")
+            g.attrs["frame"] = "ICRS"
+            for name, (dtype, _, units, desc) in BORESIGHT_FIELDS.items():
+                d = g.create_dataset(name, data=np.concatenate([b.labels[name] for b in parts]).astype(dtype))
+                d.attrs["units"], d.attrs["description"] = units, desc
+            for group, fields, offs, attr in (("detections", DETECTION_FIELDS, "offsets", "detections"),
+                                              ("stars", STAR_FIELDS, "star_offsets", "stars")):
+                g = f.create_group(group)
+                counts = np.concatenate([np.diff(getattr(b, offs)) for b in parts])
+                g.create_dataset("offsets", data=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+                for name, (dtype, units, desc) in fields.items():
+                    cols = [getattr(b, attr).get(name) for b in parts]
+                    if any(c is None for c in cols):
+                        continue
+                    d = g.create_dataset(name, data=np.concatenate(cols).astype(dtype))
+                    d.attrs["units"], d.attrs["description"] = units, desc
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def stream_summary(batches) -> dict:
+    """Detections per sample, magnitudes of detected catalog stars, spurious share."""
+    n_det = np.concatenate([np.diff(b.offsets) for b in batches])
+    mags, spur, total = [], 0, 0
+    for b in batches:
+        hip = b.detections["hip_id"]
+        sidx = b.detections["star_index"]
+        spur += int((sidx < 0).sum())
+        total += len(sidx)
+        fr = np.repeat(np.arange(len(b)), np.diff(b.offsets))
+        ok = sidx >= 0
+        mags.append(b.stars["mag"][b.star_offsets[fr[ok]] + sidx[ok]])
+        del hip
+    mags = np.concatenate(mags) if mags else np.zeros(0)
+    q = lambda a, p: float(np.percentile(a, p)) if len(a) else float("nan")
+    return {"samples": int(len(n_det)), "detections_per_sample": {"mean": float(n_det.mean()), "p10": q(n_det, 10),
+                                                                 "median": q(n_det, 50), "p90": q(n_det, 90),
+                                                                 "min": int(n_det.min()), "max": int(n_det.max())},
+            "fewer_than_3": float((n_det < 3).mean()),
+            "detected_mag": {"p10": q(mags, 10), "median": q(mags, 50), "p90": q(mags, 90)},
+            "spurious_share": spur / max(total, 1)}
+
+
+__all__ = ["KINDS", "SampleStream", "DetectionBatch", "partition", "write_detection_sets", "stream_summary"]
