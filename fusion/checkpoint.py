@@ -112,6 +112,23 @@ def load_model_state(model: torch.nn.Module, ckpt: dict, source: str = "checkpoi
                               f"({first[1].strip() if len(first) > 1 else first[0]})") from None
 
 
+def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
+    """Warm start: copy every parameter/buffer of checkpoint ``path`` whose name and shape match.
+
+    Returns ``{"loaded": [...], "skipped": [...]}`` (names). Refuses a checkpoint that
+    matches nothing (wrong file), and one whose class count or centroids would make the
+    head meaningless is the caller's business (the head is simply skipped when K differs).
+    """
+    ckpt = load_checkpoint(path)
+    own = model.state_dict()
+    take = {k: v for k, v in ckpt["model"].items() if k in own and own[k].shape == v.shape}
+    if not take:
+        raise CheckpointError(f"model.init_from={path}: no parameter of that checkpoint fits this model "
+                              f"(it holds {ckpt.get('model_name')!r} with branches {ckpt.get('branches')})")
+    model.load_state_dict(take, strict=False)
+    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take)}
+
+
 def rng_state() -> dict:
     np_state = np.random.get_state()
     state = {"torch": torch.get_rng_state(), "numpy_keys": torch.from_numpy(np_state[1].astype(np.int64)),

@@ -1,7 +1,7 @@
 """``fusion`` command line: thin wrappers over the library functions.
 
-    fusion train --data DIR --out RUNDIR [--config FILE.yaml] [--resume] [--force]
-                 [--pretrained PATH_OR_HUB] [key=value ...]
+    fusion train --data DIR --out RUNDIR [--config FILE.yaml] [--stream detections|frames] [--resume]
+                 [--force] [--pretrained PATH_OR_HUB] [key=value ...]
     fusion evaluate --checkpoint RUNDIR/best.pt --data DIR [--split test] [--out DIR]
 
     fusion robustness --corruption hotpixels --checkpoint CKPT [CKPT ...] --data DIR --out DIR
@@ -37,6 +37,9 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pretrained", metavar="PATH_OR_HUB",
                    help="ImageNet weights for the image backbone: a file, 'hf-hub:ORG/REPO' or 'timm' "
                         "(default: train from scratch)")
+    p.add_argument("--stream", choices=("none", "detections", "frames"),
+                   help="train on samples synthesised on the fly from the render config of --data (sets "
+                        "stream.kind); validation and test stay on --data's rendered frames")
     p.add_argument("--help-config", action="store_true", help="list every config key with its range and exit")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. train.epochs=5 labels.k=15")
 
@@ -56,6 +59,8 @@ def _run_train(args: argparse.Namespace) -> int:
         overrides.append(f"data.path={args.data}")
     if args.pretrained:
         overrides.append(f"model.pretrained={args.pretrained}")
+    if args.stream:
+        overrides.append(f"stream.kind={args.stream}")
     if args.resume and not args.force and not args.config and (Path(args.out) / "config.yaml").exists():
         base = read_yaml(Path(args.out) / "config.yaml")    # resume: the run's own resolved config
     else:

@@ -62,16 +62,37 @@ class HeatmapConfig:
 
 
 @dataclass(frozen=True)
+class CanonicalConfig:
+    """Roll handling (see :mod:`fusion.canonical`)."""
+    mode: str = param("none", choices=("none", "brightest", "multi"), doc="rotate the detections about the centre so a reference star lies on +x: none (raw rows), brightest, or multi (n_refs references, probabilities averaged)")
+    n_refs: int = param(3, lo=1, hi=64, doc="mode=multi: number of candidate reference stars (brightest first)")
+    min_radius: float = param(0.05, lo=0, hi=1, doc="a reference must lie at least this far from the centre (normalised units, 1 = half the sensor)")
+    image: bool = param(False, doc="also rotate the image into the canonical orientation (bilinear resampling)")
+
+
+@dataclass(frozen=True)
+class TransformerConfig:
+    """The transformer set encoder (``model.coord_encoder: transformer``)."""
+    dim: int = param(96, lo=8, hi=4096, doc="token width d_model")
+    layers: int = param(3, lo=1, hi=48, doc="encoder layers")
+    heads: int = param(4, lo=1, hi=64, doc="attention heads (must divide dim)")
+    ff_mult: int = param(2, lo=1, hi=16, doc="feed-forward width = ff_mult x dim")
+
+
+@dataclass(frozen=True)
 class ModelConfig:
     name: str = param("star_fusion", doc="registered model (fusion.models.MODELS): star_fusion, swinv2_tiny, resnet50")
     image_backbone: Optional[str] = param(None, doc="image backbone override: a timm model name or 'tiny_cnn' (None: the model's own)")
     in_chans: Optional[int] = param(None, choices=(None, 1, 3), doc="image channels (None: 1 from scratch, 3 replicated with ImageNet weights)")
     pretrained: Optional[str] = param(None, doc="ImageNet weights for the image backbone: a file or a hub name (None: from scratch)")
-    coord_encoder: str = param("mlp", choices=("mlp", "set"), doc="coordinate branch: 3-layer MLP over the ordered list, or permutation-invariant set encoder")
+    init_from: Optional[str] = param(None, doc="warm start: a fusion checkpoint whose parameters of the same name and shape initialise this model (e.g. geometry branches trained on the detections stream, then fine-tuned on frames)")
+    coord_encoder: str = param("mlp", choices=("mlp", "set", "transformer"), doc="coordinate branch: 3-layer MLP over the ordered list, permutation-invariant set encoder (deep sets), or transformer set encoder")
     coord_hidden: int = param(256, lo=1, hi=65536, doc="hidden and output width of the coordinate encoder")
     dropout: float = param(0.0, lo=0, hi=0.9, doc="dropout before the fusion classifier")
     branches: BranchesConfig = section(BranchesConfig)
     heatmap: HeatmapConfig = section(HeatmapConfig)
+    canonical: CanonicalConfig = section(CanonicalConfig)
+    transformer: TransformerConfig = section(TransformerConfig)
 
 
 @dataclass(frozen=True)
@@ -100,6 +121,7 @@ class TrainConfig:
     seed: int = param(0, lo=0, doc="seed of weights, shuffling and augmentation")
     workers: int = param(4, lo=0, hi=256, doc="DataLoader worker processes per training process")
     device: str = param("auto", choices=("auto", "cpu", "cuda"), doc="auto: cuda if available")
+    threads: Optional[int] = param(None, lo=1, hi=1024, doc="torch CPU threads of each training process (None: torch's default, all cores); on a shared or small machine fewer threads than cores avoids oversubscription")
     progress: bool = param(True, doc="tqdm progress bars (only on a terminal, rank 0)")
     deterministic: bool = param(True, doc="torch deterministic algorithms (exact repeats on CPU; may cost speed on GPU)")
 
@@ -128,6 +150,19 @@ class AugConfig:
 
 
 @dataclass(frozen=True)
+class StreamConfig:
+    """Training on samples synthesised on the fly (:mod:`fusion.stream`, skygen's streams)."""
+    kind: str = param("none", choices=("none", "detections", "frames"), doc="none: train on the dataset's train split; detections: emulated detection sets (no image, ~0.1 ms each); frames: full renders")
+    samples_per_epoch: int = param(200000, lo=1, hi=10**10, doc="samples per epoch (whole batches); the cosine schedule spans train.epochs of them")
+    seed: Optional[int] = param(None, lo=0, doc="stream seed (None: train.seed); the stream's seed space never meets a dataset's frames")
+    calibration: Optional[str] = param(None, doc="detector-emulator calibration JSON (None: the one shipped for skygen's default camera)")
+    dropout: tuple[float, float] = param((0.0, 0.0), lo=0, hi=1, doc="per-sample detection dropout probability drawn uniformly in [lo, hi]")
+    false_stars: tuple[float, float] = param((0.0, 0.0), lo=0, hi=100, doc="per-sample mean number of false stars (Poisson) drawn in [lo, hi]")
+    centroid_noise: tuple[float, float] = param((0.0, 0.0), lo=0, hi=50, doc="per-sample centroid noise, px rms per axis, drawn in [lo, hi]")
+    magnitude_noise: tuple[float, float] = param((0.0, 0.0), lo=0, hi=5, doc="per-sample magnitude noise, mag rms, drawn in [lo, hi]")
+
+
+@dataclass(frozen=True)
 class FusionConfig:
     data: DataConfig = section(DataConfig)
     labels: LabelsConfig = section(LabelsConfig)
@@ -136,6 +171,7 @@ class FusionConfig:
     optim: OptimConfig = section(OptimConfig)
     train: TrainConfig = section(TrainConfig)
     aug: AugConfig = section(AugConfig)
+    stream: StreamConfig = section(StreamConfig)
 
 
 def check_consistency(cfg: FusionConfig) -> None:
@@ -149,6 +185,16 @@ def check_consistency(cfg: FusionConfig) -> None:
     lo, hi = cfg.aug.false_star_snr
     if hi < lo:
         raise ConfigError(f"aug.false_star_snr: {[lo, hi]} must be [lo, hi] with lo <= hi")
+    for name in ("dropout", "false_stars", "centroid_noise", "magnitude_noise"):
+        lo, hi = getattr(cfg.stream, name)
+        if hi < lo:
+            raise ConfigError(f"stream.{name}: {[lo, hi]} must be [lo, hi] with lo <= hi")
+    if cfg.stream.kind == "detections" and cfg.model.branches.image and cfg.model.name == "star_fusion":
+        raise ConfigError("stream.kind=detections makes no images, but model.branches.image is on; use "
+                          "--stream frames, or switch the image branch off (model.branches.image=false)")
+    t = cfg.model.transformer
+    if t.dim % t.heads:
+        raise ConfigError(f"model.transformer.heads ({t.heads}) must divide model.transformer.dim ({t.dim})")
     if cfg.data.train_split == cfg.data.val_split:
         raise ConfigError(f"data.val_split must differ from data.train_split (both {cfg.data.train_split!r})")
 

@@ -11,7 +11,12 @@ Every model maps ``(image, coords, mask)`` to K logits through three optional br
   small grid, flattened and projected linearly;
 * coordinates — a 3-layer MLP over the ordered, padded rows and their mask, or a
   permutation-invariant set encoder (a shared per-star MLP, masked mean and max pooling,
-  an MLP on the pooled vector).
+  an MLP on the pooled vector), or a small transformer set encoder
+  (:class:`TransformerSetEncoder`).
+
+Roll: with ``model.canonical.mode`` other than ``none`` the detections (and optionally
+the image) are first rotated about the sensor centre into a canonical orientation
+(:mod:`fusion.canonical`), which makes the model invariant to roll by construction.
 
 The branch features are concatenated, layer-normalised and mapped by one linear layer to
 the logits (softmax is in the loss). Like timm models: ``forward_features`` (the fused,
@@ -38,6 +43,7 @@ from torch import nn
 
 from .config import ModelConfig
 from .errors import CheckpointError, ConfigError
+from .canonical import canonical_views, rotate_image, view_weights
 from .heatmap import HeatmapRasteriser
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -239,13 +245,44 @@ class SetEncoder(nn.Module):
         return self.rho(torch.cat([mean, mx], dim=-1))
 
 
+class TransformerSetEncoder(nn.Module):
+    """Transformer over the detections: per-star tokens ``[x, y, log_flux, r]`` (r = distance
+    from the centre, derived), a learned summary token, pre-norm encoder layers with the
+    padding masked out, output = the summary token concatenated with the masked mean,
+    projected to ``out_dim``. Permutation-invariant; an empty set gives the summary token alone.
+    """
+
+    def __init__(self, n_features: int = N_COORD_FEATURES, dim: int = 96, layers: int = 3, heads: int = 4,
+                 ff_mult: int = 2, out_dim: int = 256):
+        super().__init__()
+        self.embed = nn.Sequential(nn.Linear(n_features + 1, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.summary = nn.Parameter(torch.zeros(1, 1, dim))
+        layer = nn.TransformerEncoderLayer(dim, heads, ff_mult * dim, dropout=0.0, activation="gelu",
+                                           batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(dim)
+        self.proj = nn.Linear(2 * dim, out_dim)
+        self.out_dim = out_dim
+
+    def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        r = torch.linalg.vector_norm(coords[..., :2], dim=-1, keepdim=True)
+        tok = self.embed(torch.cat([coords, r], dim=-1))                 # (B, M, D)
+        tok = torch.cat([self.summary.expand(tok.shape[0], -1, -1), tok], dim=1)
+        pad = torch.cat([torch.zeros_like(mask[:, :1]), ~mask], dim=1)  # True = ignore
+        h = self.norm(self.encoder(tok, src_key_padding_mask=pad))
+        m = mask[..., None].to(h.dtype)
+        mean = (h[:, 1:] * m).sum(dim=1) / m.sum(dim=1).clamp(min=1)
+        return self.proj(torch.cat([h[:, 0], mean], dim=-1))
+
+
 # --------------------------------------------------------------------------- the fused model
 class StarFusion(nn.Module):
     """Any non-empty subset of {image, heatmap, coords} branches -> concat -> LayerNorm -> Linear(K)."""
 
     def __init__(self, num_classes: int, image: nn.Module | None = None, heatmap: nn.Module | None = None,
-                 coords: nn.Module | None = None, dropout: float = 0.0):
+                 coords: nn.Module | None = None, dropout: float = 0.0, canonical=None):
         super().__init__()
+        self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
         if image is None and heatmap is None and coords is None:
             raise ConfigError("model.branches: at least one branch must be on")
         self.image, self.heatmap, self.coords = image, heatmap, coords
@@ -275,7 +312,24 @@ class StarFusion(nn.Module):
 
     def forward(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
                 mask: torch.Tensor | None = None) -> torch.Tensor:
-        return self.forward_head(self.forward_features(image, coords, mask))
+        """Logits (B, K). With a canonical orientation (:mod:`fusion.canonical`) the inputs are
+        rotated first; with several reference views the output is the log of the mean of the
+        views' class probabilities (a valid logit vector: softmax gives that mean back)."""
+        c = self.canonical
+        if c is None:
+            return self.forward_head(self.forward_features(image, coords, mask))
+        cv, mv, theta, views = canonical_views(coords, mask, c.mode, c.n_refs, c.min_radius, self.training)
+        if image is not None and self.image is not None:
+            image = image.repeat_interleave(views, dim=0)
+            if c.image:
+                image = rotate_image(image, theta)
+        logits = self.forward_head(self.forward_features(image, cv, mv))
+        if views == 1:
+            return logits
+        w = view_weights(coords, mask, c.n_refs, c.min_radius)            # (B, V)
+        logp = torch.log_softmax(logits.float(), dim=-1).view(coords.shape[0], views, -1)
+        logw = torch.log(w / w.sum(dim=1, keepdim=True))
+        return torch.logsumexp(logp + logw[..., None], dim=1).to(logits.dtype)
 
 
 def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *, image_size: int = 256,
@@ -295,9 +349,15 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
     if b.heatmap:
         heat = HeatmapBranch(h.canvas_px, h.sigma_px, h.channels, h.pool_grid, h.out_dim)
     if b.coords:
-        coords = (CoordMLP(max_stars, hidden=cfg.coord_hidden) if cfg.coord_encoder == "mlp"
-                  else SetEncoder(hidden=cfg.coord_hidden))
-    return StarFusion(num_classes, image, heat, coords, cfg.dropout)
+        if cfg.coord_encoder == "mlp":
+            coords = CoordMLP(max_stars, hidden=cfg.coord_hidden)
+        elif cfg.coord_encoder == "set":
+            coords = SetEncoder(hidden=cfg.coord_hidden)
+        else:
+            t = cfg.transformer
+            coords = TransformerSetEncoder(dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult,
+                                           out_dim=cfg.coord_hidden)
+    return StarFusion(num_classes, image, heat, coords, cfg.dropout, cfg.canonical)
 
 
 def parameter_counts(model: StarFusion) -> dict[str, int]:

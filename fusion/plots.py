@@ -27,21 +27,33 @@ def _save(fig, path: str | Path) -> None:
 
 
 def plot_loss_curves(history: list[dict], path: str | Path) -> None:
-    """Train and validation loss (and val top-1) per epoch (Figure 4a)."""
+    """Loss per epoch (left) and accuracy in percent (right, its own readable axis), with the
+    epoch kept as ``best.pt`` (lowest validation loss) marked in both (Figure 4a)."""
     plt = _figure()
     ep = [h["epoch"] for h in history]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    best = [h["epoch"] for h in history if h.get("best")]
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     ax.plot(ep, [h["train_loss"] for h in history], "o-", label="train loss")
     ax.plot(ep, [h["val_loss"] for h in history], "s-", label="val loss")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("focal loss")
-    ax2 = ax.twinx()
-    ax2.plot(ep, [h["val_top1"] for h in history], "g:", label="val top-1")
-    ax2.set_ylabel("val top-1")
-    ax2.set_ylim(0, 1)
-    lines = ax.get_lines() + ax2.get_lines()
-    ax.legend(lines, [ln.get_label() for ln in lines], loc="center right")
-    ax.set_title("loss curves")
+    ax.set_ylabel("loss")
+    ax.set_title("loss")
+    top1 = [100 * h["val_top1"] for h in history]
+    ax2.plot(ep, [100 * h["train_top1"] for h in history], "o-", label="train top-1")
+    ax2.plot(ep, top1, "s-", label="val top-1")
+    ax2.plot(ep, [100 * h["val_top3"] for h in history], "^:", label="val top-3")
+    lo = min(top1 + [100 * h["train_top1"] for h in history])
+    ax2.set_ylim(max(0.0, lo - 5), 100)
+    ax2.set_xlabel("epoch")
+    ax2.set_ylabel("accuracy (%)")
+    ax2.set_title("accuracy")
+    if best:
+        b = best[-1]
+        for a in (ax, ax2):
+            a.axvline(b, color="0.5", ls="--", lw=1, label=f"best.pt (epoch {b}, lowest val loss)")
+    for a in (ax, ax2):
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
     _save(fig, path)
     plt.close(fig)
 

@@ -44,8 +44,8 @@ from skygen.io import open_dataset
 from skygen.configlib import flatten
 
 from . import distributed as D
-from .checkpoint import (atomic_save_numpy, atomic_write_text, load_checkpoint, load_model_state, prepare_run_folder,
-                         rng_state, save_checkpoint, set_rng_state, versions, write_json)
+from .checkpoint import (atomic_save_numpy, atomic_write_text, load_checkpoint, load_matching_state, load_model_state,
+                         prepare_run_folder, rng_state, save_checkpoint, set_rng_state, versions, write_json)
 from .config import FusionConfig, build_config, config_dict
 from .data import (FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions)
 from .errors import CheckpointError, ConfigError, FusionError
@@ -57,7 +57,7 @@ from .plots import plot_loss_curves, plot_lr_schedule
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_top1", "val_loss", "val_top1", "val_top3", "val_top5", "lr",
                   "epoch_time_s", "best")
-RESUMABLE_KEYS = ("data.path", "train.workers", "train.progress", "train.device")
+RESUMABLE_KEYS = ("data.path", "train.workers", "train.progress", "train.device", "train.threads")
 
 
 # --------------------------------------------------------------------------- data and labels
@@ -139,9 +139,10 @@ def _autocast(device: torch.device, dtype: torch.dtype | None):
     return torch.autocast(device_type=device.type, dtype=dtype)
 
 
-def _inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     nb = device.type == "cuda"
-    return (batch["image"].to(device, non_blocking=nb), batch["coords"].to(device, non_blocking=nb),
+    image = batch.get("image")     # the detections stream has none (geometry-only models)
+    return (None if image is None else image.to(device, non_blocking=nb), batch["coords"].to(device, non_blocking=nb),
             batch["mask"].to(device, non_blocking=nb))
 
 
@@ -165,7 +166,8 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
     model.train()
     t0 = time.perf_counter()
     total_loss, n, hits = 0.0, 0, 0
-    for batch in _bar(loader, progress, desc, len(loader)):
+    bar = _bar(loader, progress, desc, len(loader))
+    for step, batch in enumerate(bar):
         image, coords, mask = _inputs(batch, device)
         target = _target(batch, device, soft)
         with _autocast(device, amp_dtype):
@@ -185,6 +187,9 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         total_loss += float(loss.detach()) * b   # .item()-like sync once per step: cheap next to the step
         hits += int((logits.detach().argmax(1).cpu() == batch["label"]).sum())
         n += b
+        if step % 10 == 0 and hasattr(bar, "set_postfix"):
+            bar.set_postfix(loss=f"{total_loss / n:.3f}", top1=f"{hits / n:.3f}",
+                            samples_s=f"{n / (time.perf_counter() - t0):.0f}")
     return {"loss": total_loss / max(n, 1), "top1": hits / max(n, 1), "n": n,
             "lr": scheduler.get_last_lr()[0], "time_s": time.perf_counter() - t0}
 
@@ -264,6 +269,12 @@ def check_resume_config(cfg: FusionConfig, ckpt: dict) -> FusionConfig:
 
 
 # --------------------------------------------------------------------------- the whole run
+def _set_epoch(loader, epoch: int) -> None:
+    """The epoch of a shard loader's sampler, or of a stream's batches."""
+    target = loader.dataset if hasattr(loader.dataset, "set_epoch") else loader.sampler
+    target.set_epoch(epoch)
+
+
 def _seed_epoch(seed: int, epoch: int) -> None:
     torch.manual_seed(seed * 1_000_003 + epoch)
 
@@ -311,6 +322,8 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
             os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
+    if tc.threads:
+        torch.set_num_threads(tc.threads)
     torch.manual_seed(tc.seed)
     np.random.seed(tc.seed)
 
@@ -319,13 +332,31 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     k, image_size = cfg.labels.k, data.ds.image_shape[0]
     model = create_model(cfg.model.name, k, cfg.model, image_size=image_size, max_stars=cfg.data.max_stars)
     counts = parameter_counts(model)
+    if cfg.model.init_from and ckpt is None:
+        warm = load_matching_state(model, cfg.model.init_from)
+        if info.is_main:
+            groups = sorted({k.split(".")[0] for k in warm["loaded"]})
+            say(f"warm start from {cfg.model.init_from}: {len(warm['loaded'])} tensors ({', '.join(groups)}); "
+                f"{len(warm['skipped'])} trained from scratch")
     model.to(device)
     loss_fn = FocalLoss(torch.as_tensor(data.alpha, dtype=torch.float32), cfg.loss.gamma).to(device)
 
     per_rank = tc.batch_size // info.world
     pin = device.type == "cuda"
-    train_loader = make_loader(data.train, per_rank, shuffle=True, seed=tc.seed, workers=tc.workers,
-                               rank=info.rank, world=info.world, pad=True, pin_memory=pin)
+    sc = cfg.stream
+    if sc.kind == "none":
+        train_loader = make_loader(data.train, per_rank, shuffle=True, seed=tc.seed, workers=tc.workers,
+                                   rank=info.rank, world=info.world, pad=True, pin_memory=pin)
+    else:
+        from .stream import StreamBatches, level_ranges, make_stream_loader
+        batches = StreamBatches(data.ds.config, sc.kind, data.centroids,
+                                seed=tc.seed if sc.seed is None else sc.seed, batch=per_rank,
+                                steps=sc.samples_per_epoch // tc.batch_size, rank=info.rank, world=info.world,
+                                max_stars=cfg.data.max_stars, log_flux_offset=cfg.data.log_flux_offset,
+                                norm_scale_adu=cfg.data.norm_scale_adu,
+                                soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None,
+                                ranges=level_ranges(sc), calibration=sc.calibration)
+        train_loader = make_stream_loader(batches, tc.workers)
     val_loader = make_loader(data.val, tc.eval_batch_size or 2 * per_rank, shuffle=False, workers=tc.workers,
                              rank=info.rank, world=info.world, pad=False, pin_memory=pin)
     steps = len(train_loader)
@@ -359,8 +390,12 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     if info.is_main:
         write_config_yaml(out / "config.yaml", cfg)
         atomic_save_numpy(out / "centroids.npy", data.centroids)
-        say(f"data: {len(data.train)} train / {len(data.val)} val frames, K={k}, "
-            f"frames with <2 detections: {data.sparse_frames}")
+        if sc.kind == "none":
+            say(f"data: {len(data.train)} train / {len(data.val)} val frames, K={k}, "
+                f"frames with <2 detections: {data.sparse_frames}")
+        else:
+            say(f"data: {sc.kind} stream, {steps * tc.batch_size} samples per epoch (never repeated), "
+                f"validation on {len(data.val)} rendered {cfg.data.val_split} frames of {data.ds.root}, K={k}")
         if data.kmeans is not None:
             say(f"labels: spherical K-means {'converged' if data.kmeans.converged else 'NOT converged'} "
                 f"in {data.kmeans.n_iter} iterations; train class counts "
@@ -372,7 +407,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     stopped_early = False
     for epoch in range(start_epoch, tc.epochs):
         _seed_epoch(tc.seed, epoch)
-        train_loader.sampler.set_epoch(epoch)
+        _set_epoch(train_loader, epoch)
         t0 = time.perf_counter()
         tr = train_one_epoch(net, train_loader, loss_fn, optimizer, scheduler, scaler, device, amp_dtype=amp_dtype,
                              grad_clip_norm=oc.grad_clip_norm, soft=soft, progress=tc.progress and info.is_main,
@@ -404,7 +439,9 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
             plot_lr_schedule(planned_lr(schedule, oc.lr), steps, history, out / "lr_schedule.png")
             say(f"epoch {epoch + 1}/{tc.epochs}  train loss {tr['loss']:.4f} top1 {tr['top1']:.3f} | val loss "
                 f"{va['loss']:.4f} top1 {va['top1']:.3f} top3 {va['top3']:.3f} top5 {va['top5']:.3f} | "
-                f"lr {tr['lr']:.3g} | {row['epoch_time_s']:.1f} s{'  *best*' if improved else ''}")
+                f"lr {tr['lr']:.3g} | {row['epoch_time_s']:.1f} s, {tr['n'] / max(tr['time_s'], 1e-9):.0f} samples/s | "
+                f"best.pt: epoch {best['epoch']} (lowest val loss {best['val_loss']:.4f})"
+                f"{'  <- new best' if improved else ''}")
         D.barrier(info)
         if stopped_early:
             say(f"early stopping: no better val loss for {tc.patience} epochs (best: epoch {best['epoch']})")

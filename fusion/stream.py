@@ -1,0 +1,154 @@
+"""Training on skygen's sample streams: a torch ``IterableDataset`` of ready batches.
+
+``fusion train --data DIR --stream detections|frames`` trains on samples synthesised on
+the fly from the render configuration of dataset ``DIR`` (same camera, sensor and
+detector; the stream's own seed space, so no sample is ever a frame of ``DIR``), and
+validates and tests on ``DIR``'s rendered splits: every reported figure is on frames the
+real renderer and detector made.
+
+Determinism and resume
+    An epoch is ``stream.samples_per_epoch`` samples (rounded down to whole batches). Step
+    ``s`` of epoch ``e`` takes stream indices
+    ``(e * steps + s) * batch + rank * per_rank + [0, per_rank)``: a pure function of the
+    step, so a run resumed at an epoch boundary continues exactly, DDP ranks never share a
+    sample, and DataLoader workers (worker ``w`` makes steps ``s = w mod workers``, which
+    the DataLoader returns round-robin, i.e. in step order) change nothing.
+
+Batches are the same dicts :class:`fusion.data.FrameDataset` items collate to
+(``coords``, ``mask``, ``label``, ``index``, ``n_detections``, ``soft``; ``image`` for
+the ``frames`` kind), made with the same encoders (:func:`fusion.data.encode_detections`,
+:func:`fusion.data.normalise_image`), so the model and the training step do not know
+where a batch came from.
+
+Corruption-aware training: ``stream.dropout``, ``stream.false_stars``,
+``stream.centroid_noise`` and ``stream.magnitude_noise`` are ``[lo, hi]`` ranges; each
+sample draws its severities uniformly in them (skygen's registry code and units).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from skygen.config import build_config as build_render_config
+from skygen.stream import RANGED, SampleStream
+
+from .augment import FrameGeometry
+from .data import COORD_FEATURES, normalise_image
+from .errors import ConfigError
+from .labels import assign, soft_targets
+
+
+def stream_render_config(dataset_config: dict, seed: int):
+    """The dataset's render config with the stream's seed (a different seed space than the dataset's)."""
+    data = dict(dataset_config)
+    data["seed"] = int(seed)
+    return build_render_config(data)
+
+
+def level_ranges(scfg) -> dict:
+    return {name: tuple(getattr(scfg, name)) for name in RANGED}
+
+
+def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: int,
+                 log_flux_offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat detection tables (brightest first per sample) -> coords (B, M, 3), mask (B, M), counts (B,).
+
+    The same rows as :func:`fusion.data.encode_detections`, vectorised over samples.
+    """
+    b = len(offsets) - 1
+    counts = np.diff(offsets)
+    fr = np.repeat(np.arange(b), counts)
+    rank = np.arange(len(fr)) - offsets[:-1][fr]
+    keep = rank < max_stars
+    fr, rank = fr[keep], rank[keep]
+    half = geo.sensor_px / 2.0
+    coords = np.zeros((b, max_stars, len(COORD_FEATURES)), np.float32)
+    mask = np.zeros((b, max_stars), bool)
+    coords[fr, rank, 0] = (np.asarray(det["x_px"])[keep] + 0.5) / half - 1.0
+    coords[fr, rank, 1] = (np.asarray(det["y_px"])[keep] + 0.5) / half - 1.0
+    coords[fr, rank, 2] = np.log10(1.0 + np.maximum(np.asarray(det["flux_adu"], np.float64)[keep], 0.0)) - log_flux_offset
+    mask[fr, rank] = True
+    return coords, mask, counts
+
+
+class StreamBatches(torch.utils.data.IterableDataset):
+    """One epoch of ready batches from a skygen stream (see the module docstring)."""
+
+    def __init__(self, dataset_config: dict, kind: str, centroids: np.ndarray, *, seed: int, batch: int,
+                 steps: int, rank: int = 0, world: int = 1, max_stars: int = 6, log_flux_offset: float = 3.0,
+                 norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
+                 calibration: str | None = None, sort_by_flux: bool = True):
+        if steps < 1:
+            raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
+                              "to at least one global batch")
+        self.config, self.kind = dataset_config, kind
+        self.centroids = np.asarray(centroids, np.float64)
+        self.seed, self.batch, self.steps, self.rank, self.world = seed, batch, steps, rank, world
+        self.max_stars, self.log_flux_offset, self.norm_scale_adu = max_stars, log_flux_offset, norm_scale_adu
+        self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
+        self.geo = FrameGeometry.from_render_config(dataset_config)
+        self.epoch = 0
+        self._stream = None
+        # fail early (config, calibration, detectability) in the main process, not in a worker
+        self.stream()
+
+    def stream(self) -> SampleStream:
+        if self._stream is None:
+            self._stream = SampleStream(stream_render_config(self.config, self.seed), self.kind,
+                                        calibration=self.calibration, level_ranges=self.ranges)
+        return self._stream
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_stream"] = None          # rebuilt lazily in each worker (catalog index, sensor maps)
+        return state
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def indices(self, step: int) -> np.ndarray:
+        base = ((self.epoch * self.steps + step) * self.world + self.rank) * self.batch
+        return base + np.arange(self.batch)
+
+    def make_batch(self, step: int) -> dict:
+        idx = self.indices(step)
+        s = self.stream()
+        if self.kind == "detections":
+            b = s.batch(idx)
+            offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
+            image = None
+        else:
+            from skygen.stream import frames_as_batch
+            frames = [s.frame(int(i)) for i in idx]
+            b = frames_as_batch(frames)
+            offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
+            geo = self.geo
+            image = np.stack([normalise_image(f.image, geo, self.norm_scale_adu)[None] for f in frames])
+        coords, mask, counts = encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset)
+        out = {"coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
+               "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
+               "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
+        if image is not None:
+            out["image"] = torch.from_numpy(image)
+        if self.soft_kappa is not None:
+            out["soft"] = torch.from_numpy(soft_targets(unit, self.centroids, self.soft_kappa).astype(np.float32))
+        return out
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        w, n = (0, 1) if info is None else (info.id, info.num_workers)
+        for step in range(w, self.steps, n):
+            yield self.make_batch(step)
+
+
+def make_stream_loader(ds: StreamBatches, workers: int) -> torch.utils.data.DataLoader:
+    """A DataLoader over ready batches (``batch_size=None``); call ``loader.dataset.set_epoch(e)``."""
+    kw = {}
+    if workers > 0:
+        from .data import worker_init
+        kw = {"worker_init_fn": worker_init, "prefetch_factor": 4, "persistent_workers": False}
+    return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, **kw)

@@ -1,0 +1,104 @@
+"""Roll handling: canonical orientation and the rotation-invariance property of the models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fusion.canonical import canonical_views, reference_rows, rotate_image, rotate_rows
+from fusion.config import build_config
+from fusion.models import create_model
+
+
+def _rotate(coords: torch.Tensor, ang: float) -> torch.Tensor:
+    c, s = math.cos(ang), math.sin(ang)
+    x, y = coords[..., 0], coords[..., 1]
+    return torch.stack([c * x - s * y, s * x + c * y, coords[..., 2]], -1)
+
+
+def _inputs(b=6, m=20, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    coords = torch.rand(b, m, 3, generator=g) * 1.2 - 0.6
+    coords[..., 2] = torch.sort(torch.rand(b, m, generator=g), dim=1, descending=True).values  # brightest first
+    n = torch.tensor([m, 12, 5, 2, 1, 0])[:b]
+    mask = torch.arange(m)[None, :] < n[:, None]
+    return coords * mask[..., None], mask
+
+
+def test_reference_skips_the_centre_and_padding():
+    coords = torch.tensor([[[0.01, 0.0, 3.0], [0.5, 0.5, 2.0], [-0.3, 0.2, 1.0], [0.9, 0.9, 0.5]]])
+    mask = torch.tensor([[True, True, True, False]])
+    rows, valid = reference_rows(coords, mask, 3, min_radius=0.05)
+    assert rows.tolist() == [[1, 2, 1]] and valid.tolist() == [[True, True, False]]
+    cv, _, theta, views = canonical_views(coords, mask, "brightest", 3, 0.05, training=False)
+    assert views == 1
+    np.testing.assert_allclose(cv[0, 1, :2].numpy(), [math.sqrt(0.5), 0.0], atol=1e-6)   # reference on +x
+
+
+def test_rotate_rows_and_image_agree():
+    theta = torch.tensor([0.7])
+    img = torch.zeros(1, 1, 65, 65)
+    # a bright pixel at normalised (x, y) = (0.5 cos 0.7, 0.5 sin 0.7)
+    px = (0.5 * math.cos(0.7) + 1) * 65 / 2 - 0.5
+    py = (0.5 * math.sin(0.7) + 1) * 65 / 2 - 0.5
+    img[0, 0, round(py), round(px)] = 1.0
+    out = rotate_image(img, theta)
+    yy, xx = np.unravel_index(out[0, 0].argmax().item(), (65, 65))
+    xn, yn = (xx + 0.5) * 2 / 65 - 1, (yy + 0.5) * 2 / 65 - 1
+    row = rotate_rows(torch.tensor([[[0.5 * math.cos(0.7), 0.5 * math.sin(0.7), 0.0]]]), theta)
+    assert abs(xn - row[0, 0, 0].item()) < 0.05 and abs(yn - row[0, 0, 1].item()) < 0.05
+
+
+@pytest.mark.parametrize("encoder", ["mlp", "set", "transformer"])
+@pytest.mark.parametrize("mode", ["brightest", "multi"])
+def test_canonical_models_are_rotation_invariant(encoder, mode):
+    cfg = build_config({"model": {"coord_encoder": encoder, "branches": {"image": False},
+                                  "canonical": {"mode": mode, "n_refs": 3},
+                                  "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+    torch.manual_seed(0)
+    model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
+    coords, mask = _inputs()
+    with torch.no_grad():
+        ref = model(None, coords, mask)
+        assert torch.isfinite(ref).all()
+        for ang in (0.4, 1.9, math.pi, -2.5, 5.0):
+            out = model(None, _rotate(coords, ang) * mask[..., None], mask)
+            # rows with a usable reference are exactly invariant (float rounding only)
+            ok = mask.sum(1) >= 1
+            torch.testing.assert_close(out[ok], ref[ok], atol=2e-5, rtol=1e-5)
+
+
+def test_raw_inputs_are_not_invariant():
+    cfg = build_config({"model": {"coord_encoder": "transformer", "branches": {"image": False, "heatmap": False}}})
+    torch.manual_seed(0)
+    model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
+    coords, mask = _inputs()
+    with torch.no_grad():
+        assert (model(None, _rotate(coords, 1.0) * mask[..., None], mask) - model(None, coords, mask)).abs().max() > 1e-3
+
+
+def test_multi_view_output_is_a_probability_average():
+    cfg = build_config({"model": {"coord_encoder": "set", "branches": {"image": False, "heatmap": False},
+                                  "canonical": {"mode": "multi", "n_refs": 3}}})
+    model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
+    coords, mask = _inputs()
+    with torch.no_grad():
+        p = torch.softmax(model(None, coords, mask), -1)
+    torch.testing.assert_close(p.sum(-1), torch.ones(len(p)), atol=1e-5, rtol=0)
+    # training mode draws one reference per sample: one view, same batch size
+    model.train()
+    assert model(None, coords, mask).shape == (len(coords), 15)
+
+
+def test_canonical_image_branch_runs():
+    cfg = build_config({"model": {"image_backbone": "tiny_cnn", "coord_encoder": "transformer",
+                                  "canonical": {"mode": "multi", "image": True},
+                                  "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+    model = create_model("star_fusion", 15, cfg.model, image_size=64, max_stars=20).eval()
+    coords, mask = _inputs()
+    with torch.no_grad():
+        out = model(torch.rand(len(coords), 1, 64, 64), coords, mask)
+    assert out.shape == (len(coords), 15) and torch.isfinite(out).all()

@@ -1,0 +1,143 @@
+"""Training on skygen's streams: batch identity, encoding, exact resume, bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fusion.augment import FrameGeometry, Sample
+from fusion.checkpoint import load_checkpoint
+from fusion.config import load_config
+from fusion.data import encode_detections
+from fusion.errors import ConfigError
+from fusion.stream import StreamBatches, encode_batch, make_stream_loader
+from fusion.testing import small_dataset
+from fusion.train import train
+from skygen import emulator as emu
+from skygen.config import build_config as build_render_config
+from skygen.errors import SkygenError
+from skygen.io import open_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+quiet = lambda *a, **k: None  # noqa: E731
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    """The smoke dataset and a detector calibration for its (small) camera."""
+    path = small_dataset("smoke")
+    with open_dataset(path) as ds:
+        config = ds.config
+    cal = tmp_path_factory.mktemp("cal") / "smoke-detector.json"
+    emu.save(emu.calibrate_from_renders(build_render_config(config), 150), cal)
+    return path, config, cal
+
+
+def _batches(smoke, **kw):
+    path, config, cal = smoke
+    args = dict(seed=3, batch=16, steps=6, max_stars=8, calibration=str(cal))
+    args.update(kw)
+    return StreamBatches(config, "detections", np.eye(3), **args)
+
+
+def test_stream_batches_are_disjoint_and_worker_independent(smoke):
+    seen = set()
+    for epoch in (0, 1):
+        for rank in (0, 1):
+            b = _batches(smoke, rank=rank, world=2)
+            b.set_epoch(epoch)
+            for step in range(b.steps):
+                idx = b.indices(step)
+                assert not seen & set(idx.tolist())
+                seen |= set(idx.tolist())
+    assert len(seen) == 2 * 2 * 6 * 16
+    b0 = _batches(smoke)
+    direct = [b0.make_batch(s) for s in range(b0.steps)]
+    for workers in (0, 2):
+        got = list(make_stream_loader(_batches(smoke), workers))
+        assert len(got) == len(direct)
+        for a, b in zip(direct, got):
+            assert torch.equal(a["coords"], b["coords"]) and torch.equal(a["index"], b["index"])
+
+
+def test_encode_batch_matches_the_shard_encoder(smoke):
+    path, config, cal = smoke
+    geo = FrameGeometry.from_render_config(config)
+    b = _batches(smoke).stream().batch(np.arange(20))
+    coords, mask, counts = encode_batch(b.offsets, b.detections, geo, 8, 3.0)
+    for j in range(20):
+        d = b.sample(j)["detections"]
+        s = Sample(np.zeros((2, 2), np.float32), d["x_px"], d["y_px"], d["flux_adu"], d["area_px"], 0.0, 1.0)
+        c, m = encode_detections(s, geo, 8, 3.0)
+        np.testing.assert_allclose(coords[j], c, atol=1e-6)
+        assert np.array_equal(mask[j], m) and counts[j] == len(d["x_px"])
+
+
+def _cfg(smoke, *extra):
+    path, config, cal = smoke
+    return load_config(ROOT / "configs" / "smoke.yaml", [
+        f"data.path={path}", "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=256",
+        "stream.dropout=[0, 0.2]", "stream.false_stars=[0, 1]", "model.branches.image=false",
+        "model.coord_encoder=transformer", "model.transformer.dim=16", "model.transformer.layers=1",
+        "model.transformer.heads=2", "model.coord_hidden=32", "model.canonical.mode=multi", "train.batch_size=64",
+        "train.epochs=3", "data.max_stars=8", *extra])
+
+
+def test_stream_training_learns_and_resumes_exactly(smoke, tmp_path):
+    cfg = _cfg(smoke)
+    full = tmp_path / "full"
+    summary = train(cfg, full, log=quiet)
+    assert summary["epochs_run"] == 3 and np.isfinite(summary["best"]["val_loss"])
+
+    class Killed(Exception):
+        pass
+
+    def die(msg, *a, **k):
+        if msg.startswith("epoch 2/3"):
+            raise Killed
+
+    killed = tmp_path / "killed"
+    with pytest.raises(Killed):
+        train(cfg, killed, log=die)
+    train(cfg, killed, resume=True, log=quiet)
+    a, b = load_checkpoint(full / "last.pt"), load_checkpoint(killed / "last.pt")
+    for name, tensor in a["model"].items():
+        assert torch.equal(tensor, b["model"][name]), name
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
+    assert strip(a["history"]) == strip(b["history"])
+
+
+def test_stream_bad_input(smoke, tmp_path):
+    with pytest.raises(ConfigError, match="model.branches.image"):
+        _cfg(smoke, "model.branches.image=true")
+    with pytest.raises(SkygenError, match="another camera"):
+        train(_cfg(smoke, f"stream.calibration={emu.default_calibration_path()}"), tmp_path / "a", log=quiet)
+    with pytest.raises(SkygenError, match="not found"):
+        train(_cfg(smoke, f"stream.calibration={tmp_path / 'missing.json'}"), tmp_path / "b", log=quiet)
+    with pytest.raises(ConfigError, match=r"stream.dropout"):
+        _cfg(smoke, "stream.dropout=[0.5, 0.1]")
+    with pytest.raises(ConfigError, match="samples_per_epoch"):
+        train(_cfg(smoke, "stream.samples_per_epoch=10"), tmp_path / "c", log=quiet)
+
+
+def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
+    """The recipe of configs/cpu-fusion.yaml in miniature: geometry on the detections stream,
+    then the three-branch model fine-tuned on the frames stream from that checkpoint."""
+    geo = tmp_path / "geo"
+    train(_cfg(smoke, "train.epochs=1", "model.branches.heatmap=true", "model.heatmap.channels=[4,8]",
+               "model.heatmap.out_dim=16", "model.heatmap.canvas_px=32"), geo, log=quiet)
+    lines = []
+    full = _cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
+                "model.branches.image=true", "model.image_backbone=tiny_cnn", "model.canonical.image=true",
+                "model.branches.heatmap=true", "model.heatmap.channels=[4,8]", "model.heatmap.out_dim=16",
+                "model.heatmap.canvas_px=32", f"model.init_from={geo / 'best.pt'}")
+    summary = train(full, tmp_path / "full", log=lambda m, *a, **k: lines.append(m))
+    assert summary["epochs_run"] == 1 and np.isfinite(summary["best"]["val_loss"])
+    warm = next(m for m in lines if m.startswith("warm start"))
+    assert "coords" in warm and "heatmap" in warm
+    a = load_checkpoint(geo / "best.pt")["model"]
+    assert any(k.startswith("image.") for k in load_checkpoint(tmp_path / "full" / "best.pt")["model"])
+    assert "coords.embed.0.weight" in a
