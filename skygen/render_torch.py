@@ -227,8 +227,8 @@ class TorchRenderer:
         values) and the number of bloomed columns per frame.
 
         ``sensor.sampler=fast`` with a uniform background: every pixel is first drawn from
-        the exact distribution of ``floor((Poisson(bg) + N(0, sigma)) / gain)`` (the NumPy
-        :class:`~skygen.sensor.BackgroundSampler`'s CDF, one float64 uniform per pixel);
+        the exact distribution of ``floor((Poisson(bg) + N(0, sigma)) / gain)``
+        (:meth:`_dense_background`);
         pixels that receive star light, cosmic-ray charge or a defect, and whole columns
         under a star that may saturate, are drawn again with the exact model. Otherwise
         every pixel is drawn with the exact model.
@@ -251,17 +251,30 @@ class TorchRenderer:
         return out, bloomed
 
     def _dense_background(self, background_e: float, shape, generator: torch.Generator) -> torch.Tensor:
-        """Every pixel from the uniform-background ADU distribution, offsets added (float32 ADU)."""
+        """Every pixel from the uniform-background ADU distribution, offsets added (float32 ADU).
+
+        The NumPy :class:`~skygen.sensor.BackgroundSampler`'s tables: a random 16-bit
+        prefix picks the answer from a 65,536-entry table wherever the prefix alone decides
+        it; elsewhere 16 more random bits are drawn and the exact 32-bit CDF thresholds
+        searched, so probabilities are resolved to 2^-32.
+        """
         s = self.cfg.sensor
         key = (round(background_e, 9), round(self.read_sigma_e, 9))
         if key not in self._lut:
             smp = background_sampler(key[0], key[1], float(s.gain_e_per_adu))
-            cdf = torch.as_tensor(smp.thresholds.astype(np.float64) / 2.0 ** 32, device=self.device)
-            self._lut = {key: (cdf, float(smp.kmin))}
-        cdf, kmin = self._lut[key]
-        u = torch.rand(shape, generator=generator, dtype=torch.float64, device=self.device)
-        j = torch.searchsorted(cdf, u, right=True)
-        return (j.to(torch.float32) + kmin + self.offset).clamp_(0, 2 ** s.bit_depth - 1)
+            lut = smp.lut16.astype(np.float32)
+            lut[smp.lut16 == 65535] = -1.0                  # ambiguous prefix: search the thresholds
+            self._lut = {key: (torch.as_tensor(lut, device=self.device),
+                               torch.as_tensor(smp.thresholds.astype(np.int64), device=self.device), float(smp.kmin))}
+        lut, thresholds, kmin = self._lut[key]
+        top = torch.randint(0, 65536, shape, generator=generator, dtype=torch.int32, device=self.device).view(-1)
+        j = lut.index_select(0, top)
+        amb = (j < 0).nonzero().squeeze(1)
+        if amb.numel():
+            low = torch.randint(0, 65536, (amb.numel(),), generator=generator, dtype=torch.int64, device=self.device)
+            u = top[amb].to(torch.int64) * 65536 + low
+            j[amb] = torch.searchsorted(thresholds, u, right=True).to(torch.float32)
+        return (j.view(shape) + kmin + self.offset).clamp_(0, 2 ** s.bit_depth - 1)
 
     def _exact(self, star_e: torch.Tensor, charge_e: torch.Tensor | None, background_e: torch.Tensor,
                idx: torch.Tensor | None, generator: torch.Generator) -> tuple[torch.Tensor, list[int]]:

@@ -86,6 +86,21 @@ def test_background_noise_matches_formula(small, sampler, lam):
     assert abs(x.var() / var - 1) < 5 * np.sqrt(2 / x.size) + 0.01
 
 
+def test_fast_background_probabilities_are_exact(small):
+    """The LUT draw of the uniform background against the exact ADU distribution (chi^2)."""
+    from scipy import stats
+    from skygen.sensor import background_sampler
+    tr = TorchRenderer(load_config(overrides=quiet(small)))
+    smp = background_sampler(12.0, 3.0, 1.7)
+    adu = tr._dense_background(12.0, (8, H * W), torch.Generator().manual_seed(3))
+    j = adu.numpy().ravel().astype(np.int64) - tr.cfg.sensor.bias_adu - smp.kmin
+    counts = np.bincount(j, minlength=len(smp.pmf))
+    expected = smp.pmf * j.size
+    ok = expected > 50
+    chi2 = ((counts[ok] - expected[ok]) ** 2 / expected[ok]).sum()
+    assert chi2 < stats.chi2.ppf(0.999, ok.sum() - 1)
+
+
 @pytest.mark.parametrize("sampler", ["fast", "exact"])
 def test_shot_noise_of_star_light_and_prnu(small, sampler):
     """Illuminated pixels: variance = signal * prnu + background + read^2 (in e-, gain 1) + 1/12."""
