@@ -57,7 +57,9 @@ def next_command(a: argparse.Namespace) -> list[str] | None:
 
 def run_chunk(cmd: list[str], seconds: float) -> int:
     """Run ``cmd``; SIGINT after ``seconds``, SIGKILL 30 s later. Returns its exit code."""
-    proc = subprocess.Popen(cmd)
+    # SIGINT back to its default in the child: a shell starts background jobs with SIGINT
+    # ignored, and Python would then never raise KeyboardInterrupt on our signal
+    proc = subprocess.Popen(cmd, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         return proc.wait(timeout=seconds)
     except subprocess.TimeoutExpired:
