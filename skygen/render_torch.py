@@ -52,11 +52,12 @@ import numpy as np
 import torch
 
 from .errors import ConfigError
-from .psf import stamp, stamp_radius_px, streak
+from .psf import peak_fraction, stamp, stamp_radius_px, streak
 from .render import Frame, Renderer, Scene
 from .sensor import background_sampler, bloom
 
 _SQRT2 = math.sqrt(2.0)
+_AMBIGUOUS = -1e9   # marks a 16-bit prefix whose ADU value needs the full 32-bit search
 
 
 def resolve_device(name: str) -> torch.device:
@@ -129,6 +130,11 @@ class TorchRenderer:
         self.static_touched = self.hot_e > 0
         if self.has_dead:
             self.static_touched |= self.dead
+        self.static_index = self.static_touched.nonzero().squeeze(1)
+        self.offset_range = (int(m.offset_adu.min()), int(m.offset_adu.max()))
+        self.psf_radius = self.base.psf_radius
+        self.peak_fraction = peak_fraction(cfg.optics.psf, cfg.optics.psf_sigma_px, cfg.optics.moffat_beta) \
+            * (1.0 + 6.0 * s.prnu_frac)                          # conservative: the brightest PRNU pixel
         self._lut: dict = {}
         h, w = self.shape
         if cfg.optics.vignetting > 0:
@@ -148,18 +154,23 @@ class TorchRenderer:
     # ------------------------------------------------------------------ light (device)
     def star_light(self, scenes: list[Scene]) -> torch.Tensor:
         """Expected star photo-electrons per pixel, (B, H*W) float32 on the device, before PRNU."""
+        return self._star_light(scenes)[0]
+
+    def _star_light(self, scenes: list[Scene]) -> tuple[torch.Tensor, list]:
+        """:meth:`star_light` and the flat batch indices of the pixels its stamps cover."""
         h, w = self.shape
         out = torch.zeros(len(scenes), h * w, dtype=torch.float32, device=self.device)
         o = self.cfg.optics
         if o.psf != "gaussian":
+            touched = []
             for b, sc in enumerate(scenes):
                 for y0, x0, patch in _host_stamps(sc.stars, o.psf, o.psf_sigma_px, o.moffat_beta):
-                    self._scatter(out, np.full(1, b), np.array([y0]), np.array([x0]),
-                                  torch.as_tensor(patch[None], dtype=torch.float32, device=self.device))
-            return out
+                    touched.append(self._scatter(out, np.full(1, b), np.array([y0]), np.array([x0]),
+                                                 torch.as_tensor(patch[None], dtype=torch.float32, device=self.device)))
+            return out, touched
         b, x, y, f = _point_sources(scenes)
         if len(b) == 0:
-            return out
+            return out, []
         x0 = np.floor(x + 0.5)
         y0 = np.floor(y + 0.5)
         dev = self.device
@@ -171,11 +182,13 @@ class TorchRenderer:
         gy = torch.erf((k + 0.5 - dy) * scale) - torch.erf((k - 0.5 - dy) * scale)
         norm = torch.as_tensor(f.astype(np.float32), device=dev) / (gx.sum(1) * gy.sum(1))
         patches = gy[:, :, None] * gx[:, None, :] * norm[:, None, None]
-        self._scatter(out, b, y0.astype(np.int64) - self.radius, x0.astype(np.int64) - self.radius, patches)
-        return out
+        flat = self._scatter(out, b, y0.astype(np.int64) - self.radius, x0.astype(np.int64) - self.radius, patches)
+        return out, [flat]
 
-    def _scatter(self, out: torch.Tensor, b: np.ndarray, y0: np.ndarray, x0: np.ndarray, patches: torch.Tensor) -> None:
-        """Add (N, n, m) ``patches`` whose top-left pixels are (y0, x0) into frames ``b`` of ``out``, clipped."""
+    def _scatter(self, out: torch.Tensor, b: np.ndarray, y0: np.ndarray, x0: np.ndarray,
+                 patches: torch.Tensor) -> torch.Tensor:
+        """Add (N, n, m) ``patches`` whose top-left pixels are (y0, x0) into frames ``b`` of ``out``,
+        clipped; returns the flat batch indices written."""
         h, w = self.shape
         dev = self.device
         n, m = patches.shape[1:]
@@ -183,10 +196,33 @@ class TorchRenderer:
         cols = torch.as_tensor(x0, device=dev)[:, None] + torch.arange(m, device=dev)     # (N, m)
         ok = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
         flat = (torch.as_tensor(b, device=dev)[:, None, None] * (h * w) + rows[:, :, None] * w + cols[:, None, :])
-        out.view(-1).index_add_(0, flat[ok], patches[ok])
+        flat = flat[ok]
+        out.view(-1).index_add_(0, flat, patches[ok])
+        return flat
+
+    def saturating_columns(self, scenes: list[Scene]) -> torch.Tensor | None:
+        """Flat batch indices of whole columns under sources that may saturate (expected
+        peak above half the full well, as the NumPy renderer's rule), or None."""
+        if not self.cfg.sensor.blooming:
+            return None
+        h, w = self.shape
+        limit = 0.5 * self.cfg.sensor.full_well_e / self.peak_fraction
+        cols = []
+        for b, sc in enumerate(scenes):
+            st = sc.stars
+            for s in np.flatnonzero(np.asarray(st["electrons"]) > limit):
+                xs = st["x_px"][s:s + 1] if st["paths"] is None else st["paths"][0][s]
+                lo = max(int(np.floor(xs.min() + 0.5)) - self.psf_radius, 0)
+                hi = min(int(np.floor(xs.max() + 0.5)) + self.psf_radius + 1, w)
+                c = np.arange(lo, hi)
+                cols.append((b * h * w + np.arange(h)[:, None] * w + c[None, :]).ravel())
+        return torch.as_tensor(np.concatenate(cols), device=self.device) if cols else None
 
     def cosmic_charge(self, scenes: list[Scene]) -> torch.Tensor | None:
         """Cosmic-ray charge, e- (B, H*W) on the device, or None when no frame has any."""
+        return self._cosmic(scenes)[0]
+
+    def _cosmic(self, scenes: list[Scene]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         idx, val = [], []
         h, w = self.shape
         for b, sc in enumerate(scenes):
@@ -197,11 +233,11 @@ class TorchRenderer:
                 idx.append(b * h * w + y[ok] * w + x[ok])
                 val.append(p[j[ok], i[ok]])
         if not idx:
-            return None
+            return None, None
         out = torch.zeros(len(scenes), h * w, dtype=torch.float32, device=self.device)
-        out.view(-1).index_add_(0, torch.as_tensor(np.concatenate(idx), device=self.device),
-                                torch.as_tensor(np.concatenate(val).astype(np.float32), device=self.device))
-        return out
+        flat = torch.as_tensor(np.concatenate(idx), device=self.device)
+        out.view(-1).index_add_(0, flat, torch.as_tensor(np.concatenate(val).astype(np.float32), device=self.device))
+        return out, flat
 
     def background_e(self, scenes: list[Scene]) -> torch.Tensor:
         """Expected dark + sky (+ stray light) e- per pixel: (B, H*W), or (H*W,)/scalar when shared."""
@@ -220,7 +256,7 @@ class TorchRenderer:
 
     # ------------------------------------------------------------------ sensor (device)
     def read_out(self, star_e: torch.Tensor, charge_e: torch.Tensor | None, background_e: torch.Tensor,
-                 generator: torch.Generator) -> tuple[torch.Tensor, list[int]]:
+                 generator: torch.Generator, touched: torch.Tensor | None = None) -> tuple[torch.Tensor, list[int]]:
         """Electrons -> ADU for a batch. ``star_e``: (B, H*W) e- before PRNU; ``charge_e``:
         (B, H*W) cosmic-ray e- or None; ``background_e``: expected dark + sky e- per pixel
         (scalar tensor when uniform). Returns the (B, H*W) float32 ADU frames (integer
@@ -231,21 +267,28 @@ class TorchRenderer:
         (:meth:`_dense_background`);
         pixels that receive star light, cosmic-ray charge or a defect, and whole columns
         under a star that may saturate, are drawn again with the exact model. Otherwise
-        every pixel is drawn with the exact model.
+        every pixel is drawn with the exact model. ``touched`` (flat batch indices of those
+        pixels, duplicates allowed) spares the full-frame search for them when the caller
+        knows them (:meth:`rasterise` does).
         """
         s = self.cfg.sensor
         if s.sampler == "exact" or background_e.dim() > 0:
             adu, bloomed = self._exact(star_e, charge_e, background_e, None, generator)
             return adu, bloomed
         out = self._dense_background(float(background_e), star_e.shape, generator)
-        touched = (star_e > 0) | self.static_touched
-        if charge_e is not None:
-            touched |= charge_e > 0
-        if s.blooming:
-            h, w = self.shape
-            may_bloom = (star_e.view(-1, h, w) > 0.5 * s.full_well_e).any(dim=1, keepdim=True)   # (B, 1, W)
-            touched |= may_bloom.expand(-1, h, -1).reshape(touched.shape)
-        idx = touched.view(-1).nonzero().squeeze(1)
+        if touched is None:
+            mask = (star_e > 0) | self.static_touched
+            if charge_e is not None:
+                mask |= charge_e > 0
+            if s.blooming:
+                h, w = self.shape
+                may_bloom = (star_e.view(-1, h, w) > 0.5 * s.full_well_e).any(dim=1, keepdim=True)   # (B, 1, W)
+                mask |= may_bloom.expand(-1, h, -1).reshape(mask.shape)
+            idx = mask.view(-1).nonzero().squeeze(1)
+        else:
+            hw = star_e.shape[1]
+            static = (self.static_index[None, :] + hw * torch.arange(len(star_e), device=self.device)[:, None]).view(-1)
+            idx = torch.unique(torch.cat([touched, static]))
         adu, bloomed = self._exact(star_e, charge_e, background_e, idx, generator)
         out.view(-1)[idx] = adu
         return out, bloomed
@@ -262,19 +305,23 @@ class TorchRenderer:
         key = (round(background_e, 9), round(self.read_sigma_e, 9))
         if key not in self._lut:
             smp = background_sampler(key[0], key[1], float(s.gain_e_per_adu))
-            lut = smp.lut16.astype(np.float32)
-            lut[smp.lut16 == 65535] = -1.0                  # ambiguous prefix: search the thresholds
+            lut = smp.lut16.astype(np.float32) + smp.kmin        # the ADU value (before offsets) of each prefix
+            lut[smp.lut16 == 65535] = _AMBIGUOUS                 # ambiguous prefix: search the thresholds
+            off = self.offset_range
+            may_clip = off[0] + smp.kmin < 0 or off[1] + smp.kmin + len(smp.k) - 1 > 2 ** s.bit_depth - 1
             self._lut = {key: (torch.as_tensor(lut, device=self.device),
-                               torch.as_tensor(smp.thresholds.astype(np.int64), device=self.device), float(smp.kmin))}
-        lut, thresholds, kmin = self._lut[key]
+                               torch.as_tensor(smp.thresholds.astype(np.int64), device=self.device),
+                               float(smp.kmin), may_clip)}
+        lut, thresholds, kmin, may_clip = self._lut[key]
         top = torch.randint(0, 65536, shape, generator=generator, dtype=torch.int32, device=self.device).view(-1)
-        j = lut.index_select(0, top)
-        amb = (j < 0).nonzero().squeeze(1)
+        k = lut.index_select(0, top)
+        amb = (k == _AMBIGUOUS).nonzero().squeeze(1)
         if amb.numel():
             low = torch.randint(0, 65536, (amb.numel(),), generator=generator, dtype=torch.int64, device=self.device)
             u = top[amb].to(torch.int64) * 65536 + low
-            j[amb] = torch.searchsorted(thresholds, u, right=True).to(torch.float32)
-        return (j.view(shape) + kmin + self.offset).clamp_(0, 2 ** s.bit_depth - 1)
+            k[amb] = torch.searchsorted(thresholds, u, right=True).to(torch.float32) + kmin
+        out = k.view(shape).add_(self.offset)
+        return out.clamp_(0, 2 ** s.bit_depth - 1) if may_clip else out
 
     def _exact(self, star_e: torch.Tensor, charge_e: torch.Tensor | None, background_e: torch.Tensor,
                idx: torch.Tensor | None, generator: torch.Generator) -> tuple[torch.Tensor, list[int]]:
@@ -336,8 +383,12 @@ class TorchRenderer:
         if generator is None:
             generator = default_generator(self.cfg.seed, scenes[0].index, self.device)
         h, w = self.shape
-        adu, bloomed = self.read_out(self.star_light(scenes), self.cosmic_charge(scenes), self.background_e(scenes),
-                                     generator)
+        star_e, touched = self._star_light(scenes)
+        charge_e, cosmic_idx = self._cosmic(scenes)
+        sat = self.saturating_columns(scenes)
+        touched = [t for t in touched + [cosmic_idx, sat] if t is not None]
+        touched = torch.cat(touched) if touched else torch.zeros(0, dtype=torch.int64, device=self.device)
+        adu, bloomed = self.read_out(star_e, charge_e, self.background_e(scenes), generator, touched)
         full = adu.view(len(scenes), h, w)
         images = full if self.factor == 1 else torch.nn.functional.avg_pool2d(full[:, None], self.factor)[:, 0]
         if dtype == torch.uint16:

@@ -142,6 +142,26 @@ def test_hot_pixels_cosmic_rays_and_saturation(small):
         assert (img[:, 99] - np.median(img)).max() < 1000     # but not into the next column
 
 
+@pytest.mark.parametrize("sampler", ["fast", "exact"])
+def test_a_saturating_star_blooms_and_keeps_its_charge(small, sampler):
+    tr = TorchRenderer(load_config(overrides=small + CLEAN + [f"sensor.sampler={sampler}"]))
+    sc = tr.scenes([2])[0]
+    st = sc.stars
+    s = int(np.argmin((st["x_px"] - W / 2) ** 2 + (st["y_px"] - H / 2) ** 2))
+    flux = 2e6       # the central column alone fills ~47 pixels: the spill runs far beyond the star's stamp
+    st["electrons"] = np.where(np.arange(len(st["electrons"])) == s, flux, st["electrons"])
+    b = tr.rasterise([sc], torch.Generator().manual_seed(4), full_res=True)
+    assert b.logs[0]["blooming"]["columns"] >= 1
+    img = b.full[0].double().numpy()
+    x, y = int(round(st["x_px"][s])), int(round(st["y_px"][s]))
+    box = img[:, x - 6:x + 7] - np.median(img)
+    assert (box[:, 6] >= 2 ** 12 - 1 - 200).sum() >= flux / 13500 / 5         # a saturated run along the column
+    assert (box[:, 0] < 200).all() and (box[:, -1] < 200).all()                # not spread sideways
+    # charge spilled along the columns, not lost (the ADC clips a full pixel at 4095 ADU = 13,184 e-, 2 % low)
+    got = box.sum() * tr.cfg.sensor.gain_e_per_adu
+    assert 0.9 * flux < got < 1.05 * flux
+
+
 def test_stored_image_is_the_area_average(small):
     tr = TorchRenderer(load_config(overrides=small))
     b = tr.render_batch([0, 1], full_res=True)
