@@ -146,6 +146,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     from .render import Renderer
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
+    if cfg.render.backend == "torch":           # fail before any work if the device is not usable
+        from .render_torch import resolve_device
+        resolve_device(cfg.render.device)
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -174,9 +177,6 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
                 and sha256_file(p) == e["sha256"]:
             done[e["index"]] = e
     todo = [k for k in mine if k not in done]
-    if cfg.render.backend == "torch":           # fail before any work if the device is not usable
-        from .render_torch import resolve_device
-        resolve_device(cfg.render.device)
     probe_renderer = Renderer(cfg)
     extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
              "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),

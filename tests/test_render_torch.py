@@ -225,7 +225,7 @@ def test_detector_sees_the_same_on_both_backends_full_size():
     compare_detections([], 40)
 
 
-def test_device_errors_are_config_errors(small):
+def test_device_errors_are_config_errors(small, tmp_path):
     with pytest.raises(ConfigError, match="needs render.backend=torch"):
         load_config(overrides=["render.device=cuda"])
     with pytest.raises(ConfigError, match="render.device"):
@@ -233,8 +233,13 @@ def test_device_errors_are_config_errors(small):
     with pytest.raises(ConfigError, match="render.backend"):
         load_config(overrides=["render.backend=jax"])
     if not torch.cuda.is_available():
+        from skygen.dataset import render_dataset
+        cfg = load_config(overrides=small + ["render.device=cuda"])
         with pytest.raises(ConfigError, match="CUDA is not available"):
-            TorchRenderer(load_config(overrides=small + ["render.device=cuda"]))
+            TorchRenderer(cfg)
+        with pytest.raises(ConfigError, match="CUDA is not available"):
+            render_dataset(cfg, tmp_path / "never", progress=False)
+        assert not (tmp_path / "never").exists()
 
 
 def test_dataset_with_torch_backend_is_deterministic_and_keeps_numpy_ids(small, tmp_path):
