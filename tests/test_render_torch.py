@@ -201,9 +201,9 @@ def detector_stats(frames, limit: float) -> dict:
             "false": false, "n_bright": total}
 
 
-def compare_detections(overrides, n: int) -> tuple[dict, dict]:
+def compare_detections(overrides, n: int, device: str = "cpu") -> tuple[dict, dict]:
     ref = Renderer(load_config(overrides=overrides))
-    tr = TorchRenderer(load_config(overrides=overrides + ["render.backend=torch"]), renderer=ref)
+    tr = TorchRenderer(load_config(overrides=overrides + ["render.backend=torch"]), device, renderer=ref)
     a = detector_stats([ref.render(i) for i in range(n)], ref.detection_limit_mag)
     frames = []
     for s in range(0, n, 8):
@@ -270,4 +270,4 @@ def test_cuda_frames_match_cpu_frames_in_distribution(small_overrides):
     b = gpu.rasterise(scenes).images.cpu()
     assert abs(a.mean().item() - b.mean().item()) < 0.01
     assert abs(a.std().item() / b.std().item() - 1) < 0.02
-    compare_detections(small_overrides, 24)
+    compare_detections(small_overrides, 24, "cuda")
