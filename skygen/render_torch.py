@@ -57,6 +57,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from .catalog import radec_to_vec
 from .errors import ConfigError
 from .psf import peak_fraction, stamp, stamp_radius_px, streak
 from .render import Frame, Renderer, Scene
@@ -104,6 +105,13 @@ class Batch:
     scenes: list
     logs: list
     full_shape: tuple[int, int]
+
+    @property
+    def unit_vectors(self) -> np.ndarray:
+        """(B, 3) boresight unit vectors in ICRS, [cos d cos a, cos d sin a, sin d] (the training labels' input)."""
+        ra = np.radians([sc.ra_deg for sc in self.scenes])
+        dec = np.radians([sc.dec_deg for sc in self.scenes])
+        return radec_to_vec(ra, dec)
 
     def true_stars(self, b: int) -> dict:
         """Light sources of frame ``b`` whose centre lies on the sensor (as ``Frame.stars``)."""

@@ -181,6 +181,10 @@ def test_generator_makes_batches_repeatable(small):
     c = render_batch(cfg, [3, 4], "cpu", torch.Generator().manual_seed(8)).images
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert torch.equal(render_batch(cfg, [3, 4]).images, render_batch(cfg, [3, 4]).images)   # derived from (seed, 3)
+    batch = render_batch(cfg, [3, 4])
+    frame = Renderer(cfg).render(4)
+    assert np.allclose(batch.unit_vectors[1], frame.unit_vector)
+    assert np.array_equal(batch.true_stars(1)["x_px"], frame.stars["x_px"])
 
 
 def detector_stats(frames, limit: float) -> dict:
