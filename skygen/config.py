@@ -7,6 +7,7 @@ exposure); ``README.md`` shows the stars-per-frame histogram they give.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -127,6 +128,14 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class BackendConfig:
+    """Which code rasterises the frames (see :mod:`skygen.render_torch`). The scene is the same."""
+    backend: str = param("numpy", choices=("numpy", "torch"), doc="numpy: per-frame CPU renderer; torch: batches on render.device, noise equal in distribution")
+    device: str = param("cpu", doc="render.backend=torch only: cpu, cuda or cuda:N")
+    batch_size: int = param(16, lo=1, hi=4096, doc="render.backend=torch: frames rendered together on the device")
+
+
+@dataclass(frozen=True)
 class RenderConfig:
     seed: int = param(0, lo=0, doc="dataset seed; frame i uses a generator derived from (seed, i)")
     n_frames: int = param(1000, lo=1, hi=100_000_000, doc="number of frames (--n)")
@@ -140,6 +149,7 @@ class RenderConfig:
     corruptions: CorruptionsConfig = section(CorruptionsConfig)
     detection: DetectionConfig = section(DetectionConfig)
     output: OutputConfig = section(OutputConfig)
+    render: BackendConfig = section(BackendConfig)
 
 
 def check_consistency(cfg: RenderConfig) -> None:
@@ -165,6 +175,11 @@ def check_consistency(cfg: RenderConfig) -> None:
     if cfg.sensor.bias_adu >= 2 ** cfg.sensor.bit_depth:
         raise ConfigError(f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
                           f"2**sensor.bit_depth = {2 ** cfg.sensor.bit_depth}")
+    r = cfg.render
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", r.device):
+        raise ConfigError(f"render.device: {r.device!r} is not allowed; expected cpu, cuda or cuda:N")
+    if r.backend == "numpy" and r.device != "cpu":
+        raise ConfigError(f"render.device={r.device} needs render.backend=torch (the numpy backend runs on the CPU)")
     for key in ("principal_x_px", "principal_y_px"):
         v = getattr(cam, key)
         size = cam.width_px if key == "principal_x_px" else cam.height_px

@@ -177,12 +177,23 @@ def cosmic_ray_charge(shape: tuple[int, int], pitch_um: float, exposure_s: float
     return patches, boxes, n
 
 
+def stray_light_angle(rng: np.random.Generator) -> float:
+    """Direction (radians, from +x towards +y) of a frame's stray-light ramp."""
+    return float(rng.uniform(0, 2 * np.pi))
+
+
+def stray_light_ramp(shape: tuple[int, int], level_e_px_s: float, exposure_s: float, angle_rad: float) -> np.ndarray:
+    """A linear ramp of stray light, e- over the exposure, float32 (H, W): 0 at the dark edge,
+    ``level_e_px_s * exposure_s`` at the bright edge, rising along ``angle_rad``."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    ramp = (xx - (w - 1) / 2) * np.cos(angle_rad) + (yy - (h - 1) / 2) * np.sin(angle_rad)
+    ramp = (ramp - ramp.min()) / (ramp.max() - ramp.min())
+    return (level_e_px_s * exposure_s * ramp).astype(np.float32)
+
+
 def stray_light_map(shape: tuple[int, int], level_e_px_s: float, exposure_s: float,
                     rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """A linear ramp of stray light (e- over the exposure) from a random direction."""
-    h, w = shape
-    ang = rng.uniform(0, 2 * np.pi)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    ramp = (xx - (w - 1) / 2) * np.cos(ang) + (yy - (h - 1) / 2) * np.sin(ang)
-    ramp = (ramp - ramp.min()) / (ramp.max() - ramp.min())
-    return (level_e_px_s * exposure_s * ramp).astype(np.float32), float(np.degrees(ang))
+    """A linear ramp of stray light (e- over the exposure) from a random direction; (map, degrees)."""
+    ang = stray_light_angle(rng)
+    return stray_light_ramp(shape, level_e_px_s, exposure_s, ang), float(np.degrees(ang))

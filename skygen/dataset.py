@@ -1,7 +1,10 @@
 """Render a whole dataset: shards, manifest, parallel workers, resume and slices.
 
 Frame i always comes from ``Renderer(cfg).render(i)``, so a dataset is identical
-whatever the number of workers, the slicing, or how often it was interrupted.
+whatever the number of workers, the slicing, or how often it was interrupted. With
+``render.backend=torch`` frames are rasterised in device batches of ``render.batch_size``
+that start at fixed indices within each shard (:mod:`skygen.render_torch`), so the same
+holds on one device type; detection runs on the host as for the NumPy backend.
 
 Progress is recorded in the manifest after every finished shard. A re-run with the same
 config skips shards whose file matches the recorded sha256 and renders the rest. A
@@ -84,12 +87,34 @@ def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool
 _WORKER: dict = {}
 
 
-def _init_worker(cfg: RenderConfig, counter) -> None:
+def _init_worker(cfg: RenderConfig, counter, threads: int | None = 1) -> None:
     import cv2
     cv2.setNumThreads(1)
     from .render import Renderer
     _WORKER["renderer"] = Renderer(cfg)
     _WORKER["counter"] = counter
+    _WORKER.pop("torch", None)
+    if cfg.render.backend == "torch":
+        import torch
+        from .render_torch import TorchRenderer
+        if threads:                      # pool workers: one thread each, as cv2
+            torch.set_num_threads(threads)
+        _WORKER["torch"] = TorchRenderer(cfg, renderer=_WORKER["renderer"])
+
+
+def _frames(start: int, stop: int):
+    """Frames start..stop-1: one by one (NumPy) or in device batches of render.batch_size
+    (torch; batches start at multiples of the batch size within the shard, so a frame's
+    noise depends only on (config, index))."""
+    r = _WORKER["renderer"]
+    tr = _WORKER.get("torch")
+    if tr is None:
+        for i in range(start, stop):
+            yield r.render(i)
+        return
+    bs = r.cfg.render.batch_size
+    for a in range(start, stop, bs):
+        yield from tr.frames(tr.render_batch(range(a, min(a + bs, stop)), full_res=True))
 
 
 def _render_shard(args: tuple[int, int, int, str]) -> dict:
@@ -97,8 +122,8 @@ def _render_shard(args: tuple[int, int, int, str]) -> dict:
     r = _WORKER["renderer"]
     counter = _WORKER.get("counter")
     frames = []
-    for i in range(start, stop):
-        frames.append(r.render(i))
+    for frame in _frames(start, stop):
+        frames.append(frame)
         if counter is not None:
             with counter.get_lock():
                 counter.value += 1
@@ -121,6 +146,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     from .render import Renderer
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
+    if cfg.render.backend == "torch":           # fail before any work if the device is not usable
+        from .render_torch import resolve_device
+        resolve_device(cfg.render.device)
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -170,7 +198,7 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     tasks = [(k, ranges[k][0], ranges[k][1], str(out)) for k in todo]
     try:
         if workers <= 1 or len(tasks) <= 1:
-            _init_worker(cfg, None)
+            _init_worker(cfg, None, threads=None)
             for t in tasks:
                 done[t[0]] = _render_shard(t)
                 save(False)

@@ -89,7 +89,13 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
 
 
 def config_id(config: dict) -> str:
-    """Stable identity of a dataset's frames: sha256 of its canonical config JSON."""
+    """Stable identity of a dataset's frames: sha256 of its canonical config JSON.
+
+    The ``render`` section (backend choice) counts only when it selects the torch
+    backend, so datasets of the NumPy renderer keep the identity they had before the
+    section existed."""
+    if config.get("render", {}).get("backend", "numpy") == "numpy":
+        config = {k: v for k, v in config.items() if k != "render"}
     text = json.dumps(config, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 

@@ -54,6 +54,35 @@ class Frame:
         return len(self.detections["x_px"])
 
 
+@dataclass(frozen=True)
+class Scene:
+    """What frame ``index`` shows, before any pixel noise (see :meth:`Renderer.scene`).
+
+    ``stars``: every light source that can reach the sensor, catalog stars then false
+    stars, as arrays: ``hip_id`` (-1: false star), ``x_px``/``y_px`` (full-resolution
+    pixels at mid-exposure, (0, 0) = centre of the top-left pixel), ``mag`` (Hp), ``bv``,
+    ``electrons`` (expected photo-electrons over the exposure, vignetting applied, before
+    PRNU) and ``paths`` (None, or (xs, ys) of shape (n_sources, n_substeps): sub-exposure
+    positions of a motion-blurred frame, each carrying an equal share of the flux).
+    ``cosmic_rays``: [(y0, x0, patch)] of deposited charge in electrons (not Poisson
+    sampled again), ``cosmic_boxes`` their half-open (y0, y1, x0, x1) boxes.
+    ``stray_light_rad``: direction of the stray-light ramp, or None. ``rotation``: the
+    3 x 3 matrix taking camera-frame vectors to ICRS.
+    """
+
+    index: int
+    split: int
+    ra_deg: float
+    dec_deg: float
+    roll_deg: float
+    rotation: np.ndarray
+    stars: dict
+    cosmic_rays: list
+    cosmic_boxes: list
+    stray_light_rad: float | None
+    log: dict
+
+
 def split_bounds(n_frames: int, fractions: tuple[float, float, float]) -> tuple[int, int]:
     """Frames [0, a) are train, [a, b) val, [b, n) test."""
     a = int(round(n_frames * fractions[0]))
@@ -199,7 +228,73 @@ class Renderer:
             boxes.append(box)
         return boxes
 
+    # ------------------------------------------------------------------ scene
+    def scene(self, i: int) -> "Scene":
+        """Everything about frame ``i`` except the pixel noise: attitude, light sources,
+        cosmic-ray charge, stray-light direction. A pure function of (config, i); both
+        backends (this NumPy renderer and :mod:`skygen.render_torch`) rasterise it."""
+        cfg = self.cfg
+        seed = cfg.seed
+        sh = (cfg.camera.height_px, cfg.camera.width_px)
+        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude" + self.rng_tag))
+        R = attitude_matrix(ra, dec, roll)
+        log: dict = {}
+        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur" + self.rng_tag))
+        if len(taus) > 1:
+            log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
+        stars = self._stars(R, omega, taus)
+        if self.levels["false_stars"] > 0:
+            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars" + self.rng_tag))
+            log["false_stars"] = {"n": len(fake["x_px"])}
+            stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
+            if stars["paths"] is not None and len(fake["x_px"]):
+                stars["paths"] = (np.concatenate([stars["paths"][0], np.repeat(fake["x_px"][:, None], len(taus), 1)]),
+                                  np.concatenate([stars["paths"][1], np.repeat(fake["y_px"][:, None], len(taus), 1)]))
+        cosmic, cboxes = [], []
+        if self.levels["cosmic_rays"] > 0:
+            cosmic, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
+                                                            self.levels["cosmic_rays"],
+                                                            corr.stage_rng(seed, i, "cosmic_rays" + self.rng_tag))
+            log["cosmic_rays"] = {"n_hits": n_hits}
+        stray = None
+        if self.levels["stray_light"] > 0:
+            stray = corr.stray_light_angle(corr.stage_rng(seed, i, "stray_light" + self.rng_tag))
+            log["stray_light"] = {"direction_deg": round(float(np.degrees(stray)), 4)}
+        return Scene(i, self.split_of(i), ra, dec, roll, R, stars, cosmic, cboxes, stray, log)
+
+    def background_map(self, scene: "Scene") -> np.ndarray | None:
+        """Expected dark + sky (+ stray light) charge per pixel, e-, float32 (H, W); None when uniform."""
+        cfg = self.cfg
+        if self.levels["stray_light"] == 0 and cfg.optics.vignetting == 0:
+            return None
+        sh = (cfg.camera.height_px, cfg.camera.width_px)
+        yy, xx = np.mgrid[0:sh[0], 0:sh[1]]
+        bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
+        if scene.stray_light_rad is not None:
+            bg_map += corr.stray_light_ramp(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
+                                            scene.stray_light_rad)
+        return bg_map
+
     # ------------------------------------------------------------------ frame
+    def rasterise(self, scene: "Scene") -> tuple[np.ndarray, dict]:
+        """The NumPy backend: full-resolution uint16 ADU frame (H, W) of ``scene`` and a log."""
+        cfg = self.cfg
+        sh = (cfg.camera.height_px, cfg.camera.width_px)
+        star_e = np.zeros(sh, np.float32)
+        boxes = self._deposit(scene.stars, star_e)
+        charge = None
+        if scene.cosmic_rays:
+            charge = np.zeros(sh, np.float32)
+            for y0, x0, p in scene.cosmic_rays:
+                add_patch(charge, y0, x0, p)
+            boxes += scene.cosmic_boxes
+        exposure = Exposure(star_e, charge, boxes, self.background_e, self.background_map(scene))
+        full, info = read_out(exposure, cfg.sensor, self.maps,
+                              corr.stage_rng(cfg.seed, scene.index, "noise" + self.rng_tag),
+                              self.levels["read_noise"])
+        log = {"blooming": {"columns": info["bloomed_columns"]}} if info["bloomed_columns"] else {}
+        return full, log
+
     def render(self, i: int, levels: dict | None = None) -> Frame:
         """Frame ``i``; ``levels`` overrides corruption severities of scene and detection stages
         for this frame only (the streams draw them per sample)."""
@@ -210,51 +305,26 @@ class Renderer:
                 return self.render(i)
             finally:
                 self.levels = saved
+        scene = self.scene(i)
+        full, log = self.rasterise(scene)
+        return self.finish(scene, full, log=log)
+
+    def downsample(self, full: np.ndarray) -> np.ndarray:
+        """Area-average a full-resolution frame to the stored size (uint16 in, uint16 out)."""
+        if self.factor == 1:
+            return full
+        h, w = full.shape
+        return cv2.resize(full, (w // self.factor, h // self.factor), interpolation=cv2.INTER_AREA)
+
+    def finish(self, scene: "Scene", full: np.ndarray, image: np.ndarray | None = None,
+               log: dict | None = None) -> Frame:
+        """Detect, match and store: the :class:`Frame` of ``scene`` from its full-resolution
+        uint16 ADU frame ``full`` (H, W) (and its stored-size ``image``, area-averaged here
+        when None). Shared by both backends."""
         cfg = self.cfg
-        seed = cfg.seed
-        tag = self.rng_tag
-        sh = (cfg.camera.height_px, cfg.camera.width_px)
-        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude" + tag))
-        R = attitude_matrix(ra, dec, roll)
-        log: dict = {}
-        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur" + tag))
-        if len(taus) > 1:
-            log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
-        stars = self._stars(R, omega, taus)
-        if self.levels["false_stars"] > 0:
-            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars" + tag))
-            log["false_stars"] = {"n": len(fake["x_px"])}
-            stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
-            if stars["paths"] is not None and len(fake["x_px"]):
-                stars["paths"] = (np.concatenate([stars["paths"][0], np.repeat(fake["x_px"][:, None], len(taus), 1)]),
-                                  np.concatenate([stars["paths"][1], np.repeat(fake["y_px"][:, None], len(taus), 1)]))
-        star_e = np.zeros(sh, np.float32)
-        boxes = self._deposit(stars, star_e)
-        charge = None
-        if self.levels["cosmic_rays"] > 0:
-            patches, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
-                                                             self.levels["cosmic_rays"],
-                                                             corr.stage_rng(seed, i, "cosmic_rays" + tag))
-            log["cosmic_rays"] = {"n_hits": n_hits}
-            if patches:
-                charge = np.zeros(sh, np.float32)
-                for y0, x0, p in patches:
-                    add_patch(charge, y0, x0, p)
-                boxes += cboxes
-        bg_map = None
-        if self.levels["stray_light"] > 0 or cfg.optics.vignetting > 0:
-            yy, xx = np.mgrid[0:sh[0], 0:sh[1]]
-            bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
-            if self.levels["stray_light"] > 0:
-                ramp, ang = corr.stray_light_map(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
-                                                 corr.stage_rng(seed, i, "stray_light" + tag))
-                bg_map += ramp
-                log["stray_light"] = {"direction_deg": round(ang, 4)}
-        exposure = Exposure(star_e, charge, boxes, self.background_e, bg_map)
-        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, i, "noise" + tag),
-                              self.levels["read_noise"])
-        if info["bloomed_columns"]:
-            log["blooming"] = {"columns": info["bloomed_columns"]}
+        i = scene.index
+        log = {**scene.log, **(log or {})}
+        stars = scene.stars
         d = cfg.detection
         det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections)
         inside = self.camera.inside(stars["x_px"], stars["y_px"])
@@ -262,11 +332,12 @@ class Renderer:
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
         det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
-        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, i, stream=tag)
+        det, dlog = corr.apply_detection_corruptions(det, self.levels, cfg.seed, i, stream=self.rng_tag)
         log.update(dlog)
-        image = full if self.factor == 1 else cv2.resize(full, (sh[1] // self.factor, sh[0] // self.factor),
-                                                          interpolation=cv2.INTER_AREA)
-        q = matrix_to_quaternion(R)
-        return Frame(i, self.split_of(i), ra, dec, roll, radec_to_vec(np.radians(ra), np.radians(dec)), q,
+        if image is None:
+            image = self.downsample(full)
+        q = matrix_to_quaternion(scene.rotation)
+        ra, dec = scene.ra_deg, scene.dec_deg
+        return Frame(i, scene.split, ra, dec, scene.roll_deg, radec_to_vec(np.radians(ra), np.radians(dec)), q,
                      image, full if cfg.output.full_res else None, self.factor, true, det, bg, sigma,
                      dict(self.levels), log)
