@@ -39,10 +39,17 @@ from .errors import ConfigError
 from .labels import assign, soft_targets
 
 
-def stream_render_config(dataset_config: dict, seed: int):
-    """The dataset's render config with the stream's seed (a different seed space than the dataset's)."""
-    data = dict(dataset_config)
+def stream_render_config(dataset_config: dict, seed: int, render_backend: str | None = None,
+                         device: str | None = None):
+    """The dataset's render config with the stream's seed (a different seed space than the
+    dataset's) and, optionally, the torch renderer on ``device`` for the frames."""
+    data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in dataset_config.items()}
     data["seed"] = int(seed)
+    if render_backend:
+        data.setdefault("render", {})
+        data["render"] = {**data["render"], "backend": render_backend}
+        if render_backend == "torch" and device:
+            data["render"]["device"] = device
     return build_render_config(data)
 
 
@@ -78,7 +85,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
     def __init__(self, dataset_config: dict, kind: str, centroids: np.ndarray, *, seed: int, batch: int,
                  steps: int, rank: int = 0, world: int = 1, max_stars: int = 6, log_flux_offset: float = 3.0,
                  norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
-                 calibration: str | None = None, sort_by_flux: bool = True):
+                 calibration: str | None = None, device: str | None = None, render_backend: str | None = None):
         if steps < 1:
             raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
                               "to at least one global batch")
@@ -88,6 +95,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.max_stars, self.log_flux_offset, self.norm_scale_adu = max_stars, log_flux_offset, norm_scale_adu
         self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
         self.geo = FrameGeometry.from_render_config(dataset_config)
+        self.device, self.render_backend = device, render_backend
         self.epoch = 0
         self._stream = None
         # fail early (config, calibration, detectability) in the main process, not in a worker
@@ -95,7 +103,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
 
     def stream(self) -> SampleStream:
         if self._stream is None:
-            self._stream = SampleStream(stream_render_config(self.config, self.seed), self.kind,
+            self._stream = SampleStream(stream_render_config(self.config, self.seed, self.render_backend, self.device),
+                                        self.kind,
                                         calibration=self.calibration, level_ranges=self.ranges)
         return self._stream
 
@@ -123,17 +132,21 @@ class StreamBatches(torch.utils.data.IterableDataset):
             image = None
         else:
             from skygen.stream import frames_as_batch
-            frames = [s.frame(int(i)) for i in idx]
+            frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
             geo = self.geo
-            image = np.stack([normalise_image(f.image, geo, self.norm_scale_adu)[None] for f in frames])
+            if dev_images is None:
+                image = np.stack([normalise_image(f.image, geo, self.norm_scale_adu)[None] for f in frames])
+            else:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
+                top = float(np.log1p((geo.max_adu - geo.bias_adu) / self.norm_scale_adu))
+                image = (torch.log1p(torch.clamp(dev_images - geo.bias_adu, min=0) / self.norm_scale_adu) / top)[:, None]
         coords, mask, counts = encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset)
         out = {"coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
                "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
                "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
         if image is not None:
-            out["image"] = torch.from_numpy(image)
+            out["image"] = image if isinstance(image, torch.Tensor) else torch.from_numpy(image)
         if self.soft_kappa is not None:
             out["soft"] = torch.from_numpy(soft_targets(unit, self.centroids, self.soft_kappa).astype(np.float32))
         return out

@@ -355,8 +355,14 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
                                 max_stars=cfg.data.max_stars, log_flux_offset=cfg.data.log_flux_offset,
                                 norm_scale_adu=cfg.data.norm_scale_adu,
                                 soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None,
-                                ranges=level_ranges(sc), calibration=sc.calibration)
-        train_loader = make_stream_loader(batches, tc.workers)
+                                ranges=level_ranges(sc), calibration=sc.calibration,
+                                device=str(device) if sc.render_backend == "torch" else None,
+                                render_backend=sc.render_backend)
+        workers = tc.workers
+        if sc.render_backend == "torch" and device.type == "cuda" and workers:
+            say("stream.render_backend=torch renders on the GPU in the training process: train.workers set to 0")
+            workers = 0
+        train_loader = make_stream_loader(batches, workers)
     val_loader = make_loader(data.val, tc.eval_batch_size or 2 * per_rank, shuffle=False, workers=tc.workers,
                              rank=info.rank, world=info.world, pad=False, pin_memory=pin)
     steps = len(train_loader)

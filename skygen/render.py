@@ -8,6 +8,8 @@ worker pool, or after a resume.
 
 from __future__ import annotations
 
+import contextlib
+
 from dataclasses import dataclass, field
 
 import cv2
@@ -295,16 +297,23 @@ class Renderer:
         log = {"blooming": {"columns": info["bloomed_columns"]}} if info["bloomed_columns"] else {}
         return full, log
 
-    def render(self, i: int, levels: dict | None = None) -> Frame:
-        """Frame ``i``; ``levels`` overrides corruption severities of scene and detection stages
-        for this frame only (the streams draw them per sample)."""
-        if levels is not None:
-            saved = self.levels
+    @contextlib.contextmanager
+    def with_levels(self, levels: dict | None):
+        """Within the block, ``levels`` override the config's corruption severities (scene
+        and detection stages; the streams draw them per sample)."""
+        saved = self.levels
+        if levels:
             self.levels = {**saved, **levels}
-            try:
+        try:
+            yield self
+        finally:
+            self.levels = saved
+
+    def render(self, i: int, levels: dict | None = None) -> Frame:
+        """Frame ``i``; ``levels`` overrides corruption severities for this frame only."""
+        if levels is not None:
+            with self.with_levels(levels):
                 return self.render(i)
-            finally:
-                self.levels = saved
         scene = self.scene(i)
         full, log = self.rasterise(scene)
         return self.finish(scene, full, log=log)

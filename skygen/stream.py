@@ -195,6 +195,46 @@ class SampleStream:
         fr.split = -1
         return fr
 
+    def frames_batch(self, indices, device=None):
+        """Samples ``indices`` of a ``frames`` stream: ``(frames, images)``.
+
+        With the NumPy backend ``images`` is None (each frame holds its stored image). With
+        ``render.backend=torch`` the batch is rasterised in one go on ``device`` (default
+        ``render.device``): ``images`` is a (B, h, w) float32 tensor of stored-size ADU on
+        that device, and the frames' detections come from the real detector on the host.
+        The torch path's noise is drawn by a generator seeded from (seed, first index):
+        equal in distribution to the NumPy frames, not bit for bit, and it depends on the
+        batch composition (the stars, scenes and corruption draws do not).
+        """
+        idx = [int(i) for i in np.asarray(indices, np.int64).ravel()]
+        if self.kind != "frames":
+            raise ConfigError("frames_batch() needs a stream of kind 'frames'")
+        if idx and min(idx) < 0:
+            raise ConfigError(f"stream index {min(idx)} must be >= 0")
+        if getattr(self.cfg, "render", None) is None or self.cfg.render.backend != "torch":
+            return [self.frame(i) for i in idx], None
+        import torch
+
+        from .render_torch import TorchRenderer
+        if getattr(self, "_torch", None) is None or (device is not None and str(self._torch.device) != str(device)):
+            self._torch = TorchRenderer(self.cfg, device, renderer=self.renderer)
+        levels = self.levels_of(np.array(idx))
+        per = [{k: float(v[j]) for k, v in levels.items()} for j in range(len(idx))] if self.level_ranges else [None] * len(idx)
+        scenes = []
+        for i, lv in zip(idx, per):
+            with self.renderer.with_levels(lv):
+                scenes.append(self.renderer.scene(i))
+        gen = torch.Generator(device=self._torch.device)
+        gen.manual_seed(int(hashrng.bits(self.key, idx[0], 7) >> np.uint64(1)))
+        batch = self._torch.rasterise(scenes, gen, full_res=True)
+        frames = []
+        for b, (sc, lv) in enumerate(zip(scenes, per)):
+            with self.renderer.with_levels(lv):
+                frames.extend(self._torch.frames(_one(batch, b)))
+        for f in frames:
+            f.split = -1
+        return frames, batch.images
+
     # ------------------------------------------------------------------ detections
     def batch(self, indices) -> DetectionBatch:
         """Samples ``indices`` of a ``detections`` stream (any order, any count)."""
@@ -279,6 +319,13 @@ class SampleStream:
 
 
 # ---------------------------------------------------------------------------------- helpers
+def _one(batch, b: int):
+    """Frame ``b`` of a torch-renderer batch as a batch of one (for per-frame detection levels)."""
+    from dataclasses import replace as _replace
+    return _replace(batch, images=batch.images[b:b + 1], full=batch.full[b:b + 1], scenes=[batch.scenes[b]],
+                    logs=[batch.logs[b]])
+
+
 def _cap(fr, det, det_id, B, cap):
     order = np.lexsort((-det["flux_adu"].astype(np.float64), fr))
     fr, det_id = fr[order], det_id[order]

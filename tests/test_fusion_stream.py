@@ -141,3 +141,23 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
     a = load_checkpoint(geo / "best.pt")["model"]
     assert any(k.startswith("image.") for k in load_checkpoint(tmp_path / "full" / "best.pt")["model"])
     assert "coords.embed.0.weight" in a
+
+
+def test_frames_stream_on_the_torch_renderer(smoke, tmp_path):
+    """stream.render_backend=torch: each batch rasterised by skygen.render_torch (here on the
+    CPU device), detections from the real detector; the same training step."""
+    b = _batches(smoke)
+    path, config, cal = smoke
+    tb = StreamBatches(config, "frames", np.eye(3), seed=3, batch=4, steps=2, max_stars=8, render_backend="torch",
+                       device="cpu")
+    nb = StreamBatches(config, "frames", np.eye(3), seed=3, batch=4, steps=2, max_stars=8)
+    t, n = tb.make_batch(0), nb.make_batch(0)
+    assert torch.equal(t["index"], n["index"]) and torch.equal(t["label"], n["label"])   # same scenes
+    assert t["image"].shape == n["image"].shape and t["image"].dtype == torch.float32
+    # same stars, independent noise: the images agree closely but not exactly
+    assert 0 < (t["image"] - n["image"]).abs().mean() < 0.05
+    del b
+    summary = train(_cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
+                         "stream.render_backend=torch", "model.branches.image=true",
+                         "model.image_backbone=tiny_cnn"), tmp_path / "t", log=quiet)
+    assert summary["epochs_run"] == 1
