@@ -3,7 +3,9 @@
 :class:`Renderer` holds everything that is the same for every frame of a dataset (the
 catalog index, camera, photometry, static sensor maps). ``Renderer(cfg).render(i)``
 is a pure function of (config, i): frame i is identical whether rendered alone, in a
-worker pool, or after a resume.
+worker pool, or after a resume. Its random streams are keyed by (seed, split, index
+within the split), not by i (see :mod:`skygen.identity`): the j-th test frame of a seed
+is the same whatever the number of frames or the split fractions.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from .attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sam
 from .camera import Camera
 from .catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
 from .detect import detect, match
+from .identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
 from .photometry import Photometry, dark_current_e_s
 from .psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
 from .sensor import Exposure, read_out, sensor_maps
@@ -44,6 +47,8 @@ class Frame:
     noise_adu: float
     applied: dict
     log: dict = field(default_factory=dict)
+    index_in_split: int = 0
+    frame_id: int = 0
 
     @property
     def n_stars(self) -> int:
@@ -54,18 +59,16 @@ class Frame:
         return len(self.detections["x_px"])
 
 
-def split_bounds(n_frames: int, fractions: tuple[float, float, float]) -> tuple[int, int]:
-    """Frames [0, a) are train, [a, b) val, [b, n) test."""
-    a = int(round(n_frames * fractions[0]))
-    b = int(round(n_frames * (fractions[0] + fractions[1])))
-    return a, b
-
-
 class Renderer:
     """Renders frames of one configuration. Construct once per process."""
 
-    def __init__(self, cfg, catalog: StarTable | None = None):
+    def __init__(self, cfg, catalog: StarTable | None = None, legacy_streams: bool = False):
+        """``legacy_streams``: key random streams by the global frame index, as schema 1.x
+        datasets were rendered (to re-render frames of such a dataset exactly)."""
+        from .config import config_dict
         self.cfg = cfg
+        self.legacy_streams = legacy_streams
+        self._config_dict = config_dict(cfg)
         s, o = cfg.sensor, cfg.optics
         self.camera = Camera.from_config(cfg.camera)
         self.photometry = Photometry.from_config(o, cfg.photometry, s)
@@ -99,6 +102,18 @@ class Renderer:
         return float(np.sqrt(self.background_e + s.read_noise_e ** 2 + self.levels["read_noise"] ** 2
                              + g * g / 12.0 + (g * s.fpn_adu) ** 2))
 
+    def saturation_warning(self) -> str | None:
+        """A sentence when the background alone (dark current + sky) fills the full well or the ADC
+        in every pixel, so no star can be seen; None otherwise."""
+        s = self.cfg.sensor
+        adu = s.bias_adu + self.background_e / s.gain_e_per_adu
+        top = 2 ** s.bit_depth - 1
+        if self.background_e >= s.full_well_e or adu >= top:
+            return (f"every pixel saturates: the background alone is {self.background_e:.3g} e-/px over the "
+                    f"{s.exposure_s:g} s exposure (full well {s.full_well_e:g} e-, ADC top {top} ADU); "
+                    "frames will hold no detectable star. Shorten sensor.exposure_s")
+        return None
+
     def _detection_limit(self) -> float:
         """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold."""
         o = self.cfg.optics
@@ -109,6 +124,12 @@ class Renderer:
     def split_of(self, i: int) -> int:
         a, b = self.split_bounds
         return 0 if i < a else (1 if i < b else 2)
+
+    def stream_key(self, i: int) -> tuple[int, int, int]:
+        """(split, index within the split, random-stream key) of global frame ``i``."""
+        split = self.split_of(i)
+        j = i - (0, *self.split_bounds)[split]
+        return split, j, (i if self.legacy_streams else frame_key(split, j))
 
     def vignetting(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         v = self.cfg.optics.vignetting
@@ -200,16 +221,17 @@ class Renderer:
     def render(self, i: int) -> Frame:
         cfg = self.cfg
         seed = cfg.seed
+        split, j, key = self.stream_key(i)
         sh = (cfg.camera.height_px, cfg.camera.width_px)
-        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude"))
+        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, key, "attitude"))
         R = attitude_matrix(ra, dec, roll)
         log: dict = {}
-        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur"))
+        omega, _, taus = self._motion(corr.stage_rng(seed, key, "motion_blur"))
         if len(taus) > 1:
             log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
         stars = self._stars(R, omega, taus)
         if self.levels["false_stars"] > 0:
-            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars"))
+            fake = self._false_stars(corr.stage_rng(seed, key, "false_stars"))
             log["false_stars"] = {"n": len(fake["x_px"])}
             stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
             if stars["paths"] is not None and len(fake["x_px"]):
@@ -221,7 +243,7 @@ class Renderer:
         if self.levels["cosmic_rays"] > 0:
             patches, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
                                                              self.levels["cosmic_rays"],
-                                                             corr.stage_rng(seed, i, "cosmic_rays"))
+                                                             corr.stage_rng(seed, key, "cosmic_rays"))
             log["cosmic_rays"] = {"n_hits": n_hits}
             if patches:
                 charge = np.zeros(sh, np.float32)
@@ -234,11 +256,11 @@ class Renderer:
             bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
             if self.levels["stray_light"] > 0:
                 ramp, ang = corr.stray_light_map(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
-                                                 corr.stage_rng(seed, i, "stray_light"))
+                                                 corr.stage_rng(seed, key, "stray_light"))
                 bg_map += ramp
                 log["stray_light"] = {"direction_deg": round(ang, 4)}
         exposure = Exposure(star_e, charge, boxes, self.background_e, bg_map)
-        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, i, "noise"),
+        full, info = read_out(exposure, cfg.sensor, self.maps, corr.stage_rng(seed, key, "noise"),
                               self.levels["read_noise"])
         if info["bloomed_columns"]:
             log["blooming"] = {"columns": info["bloomed_columns"]}
@@ -249,11 +271,13 @@ class Renderer:
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
         det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
-        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, i)
+        det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, key)
         log.update(dlog)
         image = full if self.factor == 1 else cv2.resize(full, (sh[1] // self.factor, sh[0] // self.factor),
                                                           interpolation=cv2.INTER_AREA)
         q = matrix_to_quaternion(R)
-        return Frame(i, self.split_of(i), ra, dec, roll, radec_to_vec(np.radians(ra), np.radians(dec)), q,
+        fid = (legacy_frame_ids(self._config_dict, [i]) if self.legacy_streams
+               else frame_ids(self._config_dict, [split], [j], [i]))[0]
+        return Frame(i, split, ra, dec, roll, radec_to_vec(np.radians(ra), np.radians(dec)), q,
                      image, full if cfg.output.full_res else None, self.factor, true, det, bg, sigma,
-                     dict(self.levels), log)
+                     dict(self.levels), log, j, int(fid))
