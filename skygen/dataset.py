@@ -20,6 +20,7 @@ from pathlib import Path
 
 from . import corruptions as corr
 from .config import RenderConfig, config_dict
+from .card import write_card
 from .configlib import flatten
 from .errors import ConfigError, DatasetError
 from .identity import content_id
@@ -221,6 +222,8 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     man = save(True)
     if num_slices > 1:
         man = _maybe_combine_slices(out, cfg_dict, len(ranges), extra) or man
+    if man.get("complete") and (out / MANIFEST_NAME).exists():
+        write_card(out, json.loads((out / MANIFEST_NAME).read_text()))
     return man
 
 
