@@ -152,3 +152,24 @@ def test_schema1_dataset_still_reads_through_the_one_reader():
         assert ds.frames["frame_id"].dtype == np.uint64 and len(set(ds.frames["frame_id"])) == 10
         assert list(ds.frames["index_in_split"]) == [0, 1, 2, 3, 4, 5, 6, 7, 0, 0]
     assert validate(SCHEMA1).ok, validate(SCHEMA1).text()
+
+
+@pytest.mark.parametrize("counts", [(0, 0), (3, 3), (2, 0, 5)])
+def test_tables_of_empty_or_equal_length_rows_round_trip(tmp_path, counts):
+    """Per-frame variable-length rows survive frames without detections and frames of equal counts."""
+    from types import SimpleNamespace
+    from skygen.io import DETECTION_FIELDS, STAR_FIELDS, write_shard
+    from skygen.config import config_dict, load_config
+    cfg = config_dict(load_config(overrides=["n_frames=3"]))
+    table = lambda fields, k: {n: np.arange(k).astype(v[0]) for n, v in fields.items()}  # noqa: E731
+    frames = [SimpleNamespace(index=i, split=0, index_in_split=i, frame_id=i, n_stars=k, n_detections=k,
+                              background_adu=0.0, noise_adu=1.0, ra_deg=0.0, dec_deg=0.0, roll_deg=0.0,
+                              unit_vector=np.array([1.0, 0, 0]), quaternion=np.array([1.0, 0, 0, 0]),
+                              image=np.zeros((4, 4), np.uint16), image_full=None, downsample_factor=1,
+                              stars=table(STAR_FIELDS, k), detections=table(DETECTION_FIELDS, k), applied={}, log={})
+              for i, k in enumerate(counts)]
+    write_shard(tmp_path / "s.h5", frames, config=cfg, shard_index=0, frame_start=0)
+    with h5py.File(tmp_path / "s.h5") as f:
+        assert f["detections/x_px"].shape == (len(counts),)
+        assert [len(r) for r in f["detections/x_px"][...]] == list(counts)
+        assert [len(r) for r in f["stars/mag"][...]] == list(counts)
