@@ -126,9 +126,8 @@ def _write_table(group: h5py.Group, rows: list[dict], fields: dict) -> None:
     """One variable-length array per frame and column: ``group/col[i]`` holds frame i's rows."""
     for name, (dtype, units, desc) in fields.items():
         data = np.empty(len(rows), dtype=object)
-        for i, r in enumerate(rows):     # one by one: rows of equal length must not become a 2-D array
-            data[i] = np.asarray(r[name], dtype=dtype)
-        # passed at creation: h5py would broadcast rows of equal length as a 2-D array in d[...] = data
+        for i, r in enumerate(rows):     # one by one, and passed at creation: rows of equal length
+            data[i] = np.asarray(r[name], dtype=dtype)   # must not become a 2-D array
         d = group.create_dataset(name, data=data, shape=(len(rows),), dtype=h5py.vlen_dtype(np.dtype(dtype)))
         d.attrs["units"] = units
         d.attrs["description"] = desc + " (one variable-length array per frame)"

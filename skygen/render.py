@@ -270,7 +270,8 @@ class Renderer:
         true = {k: v[inside] for k, v in stars.items() if k != "paths"}
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
-        det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
+        hip = true["hip_id"][np.maximum(sidx, 0)] if len(true["hip_id"]) else np.full(len(sidx), -1)
+        det["hip_id"] = np.where(sidx >= 0, hip, -1).astype(np.int64)   # (a frame may hold no true star)
         det, dlog = corr.apply_detection_corruptions(det, self.levels, seed, key)
         log.update(dlog)
         image = full if self.factor == 1 else cv2.resize(full, (sh[1] // self.factor, sh[0] // self.factor),
