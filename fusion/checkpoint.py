@@ -176,7 +176,7 @@ def prepare_run_folder(out: str | Path, *, resume: bool, force: bool, epochs: in
     elif status == "finished" and resume and (out / "last.pt").exists():
         last = load_checkpoint(out / "last.pt")
         if epochs is None or epochs <= int(last["epoch"]):
-            raise RunFolderError(f"{out} holds a run finished after {last['epoch']} epochs; to train it further pass "
+            raise RunFolderError(f"{out} holds a finished run ({last['epoch']} epochs); to train it further pass "
                                  f"--resume --set train.epochs=N with N > {last['epoch']} (or --force to start over)")
         (out / "summary.json").unlink()
         status = "unfinished"

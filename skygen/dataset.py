@@ -20,7 +20,7 @@ from pathlib import Path
 
 from . import corruptions as corr
 from .config import RenderConfig, config_dict
-from .card import write_card
+from .card import CARD_NAME, CROISSANT_NAME, write_card
 from .configlib import flatten
 from .errors import ConfigError, DatasetError
 from .identity import content_id
@@ -171,6 +171,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
         for p in out.glob("shard-*.h5"):
             if p.name not in keep:
                 p.unlink()
+        if not recorded:    # the card described the replaced dataset; a new one comes with completion
+            for name in (CARD_NAME, CROISSANT_NAME):
+                (out / name).unlink(missing_ok=True)
     _clean_temporaries(out)
     ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
     mine = [k for k in range(len(ranges)) if k % num_slices == slice_index]
