@@ -1,8 +1,18 @@
 """The command line, as users type it."""
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
 
 from skygen.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_render_inspect_preview_validate(tmp_path, small_overrides, capsys):
@@ -46,18 +56,6 @@ def test_config_and_catalog_commands(capsys, tmp_path):
 
 
 # ------------------------------------------------------------------ rough edges a new user hit
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
-
-import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
 @pytest.mark.parametrize("args,needle", [
     (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not allowed"),
     (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
