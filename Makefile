@@ -24,7 +24,7 @@ demo: $(STAMP)
 	$(BIN)/skygen render --n 4000 --workers $(WORKERS) --out $(DEMO)
 	$(BIN)/skygen inspect $(DEMO)
 	$(BIN)/skygen preview $(DEMO) --out $(DEMO)/preview.png
-	$(BIN)/skygen validate $(DEMO) --no-checksums
+	$(BIN)/skygen validate $(DEMO)
 	$(BIN)/fusion train --data $(DEMO) --out $(RUN) --config configs/cpu.yaml --force
 	$(BIN)/fusion evaluate --checkpoint $(RUN)/best.pt --data $(DEMO) --split test --out $(RUN)/eval-test
 	@echo "dataset: $(DEMO) (preview: $(DEMO)/preview.png)  run: $(RUN)  report: $(RUN)/eval-test/eval-test.md"

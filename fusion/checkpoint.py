@@ -16,7 +16,9 @@ A checkpoint (``best.pt``, ``last.pt``) is a ``torch.save`` dict that loads with
     metrics rows so far, the best-epoch record, whether the run ended.
 ``rng``
     torch / CUDA / NumPy / Python generator states; ``versions`` of the libraries; ``dataset``
-    (root, dataset_id, schema_version) the run was trained on.
+    (root, dataset_id, schema_version, camera config) the run was trained on;
+    ``train_frame_ids`` (int64 tensor, the uint64 frame identities of the training frames,
+    see :mod:`skygen.identity`) so that evaluation can refuse frames the model has seen.
 
 Every file is written to a hidden temporary name in the same folder and ``os.replace``d,
 so a crash never leaves a half-written ``best.pt`` that looks whole.
@@ -81,9 +83,20 @@ def save_checkpoint(path: str | Path, state: dict) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Load and check a fusion checkpoint; CheckpointError with the reason otherwise."""
+def resolve_checkpoint(path: str | Path) -> Path:
+    """``path`` itself, or ``path/best.pt`` when ``path`` is a run folder."""
     path = Path(path)
+    if path.is_dir():
+        if (path / "best.pt").is_file():
+            return path / "best.pt"
+        raise CheckpointError(f"{path} is a folder without best.pt; give a run folder written by `fusion train` "
+                              "or a checkpoint file (best.pt, last.pt)")
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Load and check a fusion checkpoint (a file, or a run folder: its best.pt); CheckpointError otherwise."""
+    path = resolve_checkpoint(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
     try:
@@ -161,12 +174,13 @@ def run_status(out: Path) -> tuple[str, dict | None]:
     return "empty", None
 
 
-def prepare_run_folder(out: str | Path, *, resume: bool, force: bool) -> dict | None:
+def prepare_run_folder(out: str | Path, *, resume: bool, force: bool, epochs: int | None = None) -> dict | None:
     """Create or check ``out``; returns the checkpoint to resume from (or None for a fresh run).
 
     A finished run is never overwritten without ``force``; an unfinished one needs
-    ``resume`` (continue) or ``force`` (start over). ``force`` deletes only the files a run
-    writes (:data:`RUN_FILES`), nothing else in the folder.
+    ``resume`` (continue) or ``force`` (start over). A finished run is *extended* by
+    ``resume`` with more ``epochs`` than it ran (its summary.json is then removed).
+    ``force`` deletes only the files a run writes (:data:`RUN_FILES`), nothing else in the folder.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -176,10 +190,18 @@ def prepare_run_folder(out: str | Path, *, resume: bool, force: bool) -> dict | 
         for name in RUN_FILES:
             (out / name).unlink(missing_ok=True)
         status, last = "empty", None
+    elif status == "finished" and resume and (out / "last.pt").exists():
+        last = load_checkpoint(out / "last.pt")
+        if epochs is None or epochs <= int(last["epoch"]):
+            raise RunFolderError(f"{out} holds a finished run ({last['epoch']} epochs); to train it further pass "
+                                 f"--resume --set train.epochs=N with N > {last['epoch']} (or --force to start over)")
+        (out / "summary.json").unlink()
+        status = "unfinished"
     elif status == "finished":
         verb = "resume" if resume else "overwrite"
         raise RunFolderError(f"{out} holds a finished run (summary.json); refusing to {verb} it. "
-                             "Choose another --out, or pass --force to delete it and train again")
+                             "Choose another --out, --resume --set train.epochs=N to extend it, or --force to "
+                             "delete it and train again")
     elif status == "unfinished" and not resume:
         raise RunFolderError(f"{out} holds an unfinished run (last.pt at epoch {last['epoch']}); pass --resume to "
                              "continue it, or --force to start over")

@@ -1,8 +1,8 @@
 """``fusion`` command line: thin wrappers over the library functions.
 
     fusion train --data DIR --out RUNDIR [--config FILE.yaml] [--stream detections|frames] [--resume]
-                 [--force] [--pretrained PATH_OR_HUB] [key=value ...]
-    fusion evaluate --checkpoint RUNDIR/best.pt --data DIR [--split test] [--out DIR]
+                 [--force] [--pretrained PATH_OR_HUB] [--set key=value ...] [key=value ...]
+    fusion evaluate --checkpoint RUNDIR[/best.pt] --data DIR [--split test] [--out DIR] [--allow-overlap]
 
     fusion robustness --corruption hotpixels --checkpoint CKPT [CKPT ...] --data DIR --out DIR
     fusion timing --checkpoint CKPT --mode both --out FILE.json
@@ -10,7 +10,9 @@
     fusion experiment --preset cpu|gpu|smoke [--out results/PRESET]
 
 Each subcommand is registered in :data:`SUBCOMMANDS` (name -> (help, add_arguments, run)). Errors the project raises
-on purpose (:class:`skygen.errors.SkygenError` and subclasses) print one line and return 2.
+on purpose (:class:`skygen.errors.SkygenError` and subclasses) print one line and return 2, also when raised
+inside a DataLoader worker (torch re-raises them with the worker's traceback in the message; only its last
+line is printed).
 
 Multi-GPU: ``torchrun --nproc_per_node N -m fusion.cli train ...``.
 """
@@ -29,10 +31,12 @@ from . import __version__
 
 # --------------------------------------------------------------------------- train
 def _add_train(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", help="skygen dataset folder (sets data.path)")
-    p.add_argument("--out", required=False, help="run folder (created; must not hold a finished run unless --force)")
+    p.add_argument("--data", help="(required unless the config sets data.path) skygen dataset folder (sets data.path)")
+    p.add_argument("--out", required=False, help="(required) run folder (created; must not hold a finished run "
+                   "unless --force, or --resume with more train.epochs to extend it)")
     p.add_argument("--config", help="YAML preset, e.g. configs/paper.yaml, configs/cpu.yaml")
-    p.add_argument("--resume", action="store_true", help="continue the unfinished run in --out from last.pt")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from last.pt; a finished run "
+                   "is extended with --resume --set train.epochs=N (N more than it ran)")
     p.add_argument("--force", action="store_true", help="delete the run files in --out and start over")
     p.add_argument("--pretrained", metavar="PATH_OR_HUB",
                    help="ImageNet weights for the image backbone: a file, 'hf-hub:ORG/REPO' or 'timm' "
@@ -41,7 +45,10 @@ def _add_train(p: argparse.ArgumentParser) -> None:
                    help="train on samples synthesised on the fly from the render config of --data (sets "
                         "stream.kind); validation and test stay on --data's rendered frames")
     p.add_argument("--help-config", action="store_true", help="list every config key with its range and exit")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. train.epochs=5 labels.k=15")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set_overrides",
+                   help="override one config key, e.g. --set train.epochs=5 (repeatable; as in skygen)")
+    p.add_argument("overrides", nargs="*", metavar="key=value",
+                   help="more config overrides without --set, e.g. train.epochs=5 labels.k=15")
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -54,7 +61,7 @@ def _run_train(args: argparse.Namespace) -> int:
     if not args.out:
         print("fusion train: error: --out RUNDIR is required", file=sys.stderr)
         return 2
-    overrides = list(args.overrides)
+    overrides = list(args.set_overrides) + list(args.overrides)
     if args.data:
         overrides.append(f"data.path={args.data}")
     if args.pretrained:
@@ -72,20 +79,24 @@ def _run_train(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- evaluate
 def _add_evaluate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="best.pt or last.pt of a run")
-    p.add_argument("--data", required=True, help="skygen dataset folder")
+    p.add_argument("--checkpoint", required=True, help="(required) best.pt or last.pt of a run, or the run folder "
+                   "(its best.pt)")
+    p.add_argument("--data", required=True, help="(required) skygen dataset folder")
     p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to evaluate (default test)")
     p.add_argument("--out", help="folder for eval-<split>.json/.md and confusion-<split>.png (default: the checkpoint's)")
     p.add_argument("--batch-size", type=int, default=64)
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0: in-process)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
-    p.add_argument("--max-frames", type=int, help="evaluate only the first N frames of the split")
+    p.add_argument("--max-frames", type=int, help="evaluate only the first N frames of the split (N >= 1)")
+    p.add_argument("--allow-overlap", action="store_true",
+                   help="score frames the checkpoint was trained on (refused by default) with a loud warning")
 
 
 def _run_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_checkpoint
     evaluate_checkpoint(args.checkpoint, args.data, args.split, args.out, batch_size=args.batch_size,
-                        workers=args.workers, device=args.device, max_frames=args.max_frames)
+                        workers=args.workers, device=args.device, max_frames=args.max_frames,
+                        allow_overlap=args.allow_overlap)
     return 0
 
 
@@ -114,6 +125,15 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
 }
 
 
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc``; for an error re-raised from a DataLoader worker, its original last line."""
+    text = str(exc).strip()
+    if "Original Traceback" in text:
+        last = text.splitlines()[-1]
+        return last.split(": ", 1)[1] if ": " in last and last.split(": ", 1)[0].endswith("Error") else last
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fusion", description="Star-Fusion: coarse lost-in-space boresight classification on skygen shards.",
@@ -135,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return SUBCOMMANDS[args.command][2](args)
     except SkygenError as exc:
-        print(f"fusion {args.command}: error: {exc}", file=sys.stderr)
+        print(f"fusion {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fusion {args.command}: interrupted", file=sys.stderr)

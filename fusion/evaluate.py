@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.io import open_dataset
+from skygen.io import open_dataset, verify_checksums
 
-from .checkpoint import atomic_write_text, load_checkpoint, write_json
+from .checkpoint import atomic_write_text, load_checkpoint, resolve_checkpoint, write_json
 from .data import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
 from .distributed import pick_device
-from .errors import DatasetError
+from .errors import ConfigError, DatasetError
 from .labels import assign
 from .metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share, per_class_accuracy,
                       topk_accuracy, voronoi_neighbours)
@@ -58,23 +58,65 @@ def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarra
     }
 
 
+def check_no_training_frames(ckpt: dict, ds, pos: np.ndarray, split: str, allow_overlap: bool, warn) -> int:
+    """Frames of ``pos`` the checkpoint was trained on (by frame identity); refuses them unless ``allow_overlap``."""
+    if "train_frame_ids" not in ckpt:
+        warn("warning: this checkpoint predates training-frame records; cannot check that the evaluated frames "
+             "were not among its training frames")
+        return 0
+    ids = ds.frames["frame_id"][pos].view(np.int64)
+    seen = np.isin(ids, ckpt["train_frame_ids"].numpy())
+    n = int(seen.sum())
+    if n and not allow_overlap:
+        first = int(ds.frames["index"][pos[np.argmax(seen)]])
+        raise DatasetError(f"{n} of the {len(pos)} frames of split {split!r} of {ds.root} are frames the checkpoint "
+                           f"was trained on (equal frame identities, e.g. frame {first}); the score would be "
+                           "optimistic. Evaluate on frames rendered with another --seed, or pass --allow-overlap "
+                           "to score them anyway")
+    if n:
+        warn(f"WARNING: {n} of the {len(pos)} evaluated frames were TRAINING frames of this checkpoint; "
+             "the result is optimistic (--allow-overlap)")
+    return n
+
+
+def _camera_warning(ckpt: dict, ds, warn) -> None:
+    trained = (ckpt.get("dataset") or {}).get("camera")
+    if trained is not None and trained != ds.config["camera"]:
+        keys = sorted(k for k in set(trained) | set(ds.config["camera"]) if trained.get(k) != ds.config["camera"].get(k))
+        warn(f"warning: {ds.root} was rendered with another camera than the checkpoint's training data "
+             f"(camera.{', camera.'.join(keys)} differ); accuracy may not carry over")
+
+
 def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "test", out: str | Path | None = None,
                         *, batch_size: int = 64, workers: int = 0, device: str = "auto",
-                        max_frames: int | None = None, log=print) -> dict:
-    """Evaluate ``checkpoint`` on ``split`` of dataset ``data``; write and return the report."""
+                        max_frames: int | None = None, allow_overlap: bool = False, log=print,
+                        warn=None) -> dict:
+    """Evaluate ``checkpoint`` (a file or a run folder) on ``split`` of dataset ``data``; write and return the report.
+
+    Refuses (DatasetError) frames the checkpoint was trained on unless ``allow_overlap``;
+    ``warn`` (default: print to stderr) receives the warnings.
+    """
+    import sys
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
+    for name, value, lo in (("--batch-size", batch_size, 1), ("--workers", workers, 0), ("--max-frames", max_frames, 1)):
+        if value is not None and value < lo:
+            raise ConfigError(f"{name} {value}: must be at least {lo}")
     t0 = time.perf_counter()
-    checkpoint = Path(checkpoint)
+    checkpoint = resolve_checkpoint(checkpoint)
     ckpt = load_checkpoint(checkpoint)
     model, cfg = load_trained_model(ckpt, str(checkpoint))
     centroids = ckpt["centroids"].numpy()
     dev = pick_device(device)
     model.to(dev)
     with open_dataset(data) as ds:
+        verify_checksums(ds, log=log)
+        _camera_warning(ckpt, ds, warn)
         if ds.image_shape[0] != int(ckpt["image_size"]):
             raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {checkpoint} was trained on "
                                f"{ckpt['image_size']} px images; render with output.image_size_px="
                                f"{ckpt['image_size']} or train on this dataset")
         pos = split_positions(ds, split, max_frames)
+        overlap = check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
         v = boresight_vectors(ds, pos)
         labels = assign(v, centroids)
         d = cfg.data
@@ -83,7 +125,8 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
         loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
         pred = predict(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
         sparse = count_sparse_frames(ds, pos)
-        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split}
+        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
+                        "frames_seen_in_training": overlap}
     if not np.array_equal(pred["index"], pos):
         raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
     report = report_from_predictions(pred["logits"], labels, v, centroids)

@@ -39,7 +39,7 @@ import torch
 import yaml
 
 from skygen.io import Dataset as SkyDataset
-from skygen.io import open_dataset
+from skygen.io import open_dataset, verify_checksums
 
 from skygen.configlib import flatten
 
@@ -57,7 +57,7 @@ from .plots import plot_loss_curves, plot_lr_schedule
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_top1", "val_loss", "val_top1", "val_top3", "val_top5", "lr",
                   "epoch_time_s", "best")
-RESUMABLE_KEYS = ("data.path", "train.workers", "train.progress", "train.device", "train.threads")
+RESUMABLE_KEYS = ("data.path", "train.workers", "train.progress", "train.device", "train.threads", "train.epochs")
 
 
 # --------------------------------------------------------------------------- data and labels
@@ -77,6 +77,7 @@ def prepare_data(cfg: FusionConfig, centroids: np.ndarray | None = None) -> Prep
     if not cfg.data.path:
         raise ConfigError("data.path: no dataset given; pass --data DIR (a folder written by `skygen render`)")
     ds = open_dataset(cfg.data.path)
+    verify_checksums(ds, log=print)
     d, lab = cfg.data, cfg.labels
     pos = {name: split_positions(ds, getattr(d, f"{name}_split"), d.max_frames) for name in ("train", "val")}
     vec = {name: boresight_vectors(ds, p) for name, p in pos.items()}
@@ -300,7 +301,7 @@ def train(cfg: FusionConfig, out: str | Path, *, resume: bool = False, force: bo
     say = log if info.is_main else (lambda *a, **k: None)
     try:
         cfg = replace(cfg, model=resolve_model_config(cfg.model))
-        _broadcast_error(lambda: prepare_run_folder(out, resume=resume, force=force), info)
+        _broadcast_error(lambda: prepare_run_folder(out, resume=resume, force=force, epochs=cfg.train.epochs), info)
         D.barrier(info)
         ckpt = None
         if resume:
@@ -378,6 +379,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
         load_model_state(model, ckpt, str(out / "last.pt"))
         optimizer.load_state_dict(ckpt["optimizer"])
         scheduler.load_state_dict(ckpt["scheduler"])
+        schedule.total = max(tc.epochs * steps, 1)   # an extended run stretches the cosine to the new length
         scaler.load_state_dict(ckpt["scaler"])
         start_epoch, history, best = int(ckpt["epoch"]), list(ckpt["history"]), dict(ckpt["best"])
         set_rng_state(ckpt["rng"])
@@ -392,7 +394,9 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
               "num_classes": k, "image_size": image_size, "max_stars": cfg.data.max_stars,
               "model_name": cfg.model.name, "branches": model.branches, "versions": versions(),
               "dataset": {"root": str(data.ds.root), "dataset_id": data.ds.manifest.get("dataset_id"),
-                          "schema_version": data.ds.schema_version}}
+                          "schema_version": data.ds.schema_version, "camera": data.ds.config["camera"]},
+              # identities of the frames trained on: `fusion evaluate` refuses to score them
+              "train_frame_ids": torch.from_numpy(data.ds.frames["frame_id"][data.train.positions].view(np.int64))}
     if info.is_main:
         write_config_yaml(out / "config.yaml", cfg)
         atomic_save_numpy(out / "centroids.npy", data.centroids)

@@ -2,7 +2,8 @@
 
 Each subcommand is a thin wrapper over a library function; ``main(argv) -> int``.
 Exit codes: 0 success, 1 validation found problems, 2 bad input (message on stderr),
-130 interrupted.
+130 interrupted (Ctrl-C), 143 terminated (SIGTERM). Output cut short by a closed pipe
+(``skygen inspect DIR | head``) ends quietly with 0.
 """
 
 from __future__ import annotations
@@ -58,12 +59,24 @@ def _load(args):
     return load_config(args.config, sets)
 
 
+class Terminated(Exception):
+    """Raised in the main process by SIGTERM so that cleanup runs and the resume hint is printed."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def cmd_render(args) -> int:
+    import signal
     from .dataset import render_dataset
     cfg = _load(args)
     out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
     i, k = _parse_slice(args.slice)
+    if args.workers < 0:
+        raise SkygenError(f"--workers {args.workers}: give a number of worker processes >= 1 (0 = all cores)")
     workers = args.workers or os.cpu_count() or 1
+    signal.signal(signal.SIGTERM, _raise_terminated)
     man = render_dataset(cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force,
                          progress=not args.quiet)
     print(f"{man['n_frames']} frames in {len(man['shards'])} shard(s) at {out}  "
@@ -86,7 +99,10 @@ def cmd_preview(args) -> int:
 
 
 def cmd_validate(args) -> int:
+    from .errors import DatasetError
     from .validate import validate
+    if not Path(args.path).exists():
+        raise DatasetError(f"{args.path}: no such dataset folder or shard file")
     report = validate(args.path, checksums=not args.no_checksums)
     print(report.text())
     return 0 if report.ok else 1
@@ -208,9 +224,12 @@ def cmd_stream(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+    from .io import SCHEMA_VERSION
     p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
                                 "writing shareable HDF5 shards.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"skygen {__version__} (writes schema {SCHEMA_VERSION})")
     sub = p.add_subparsers(dest="command", required=True)
 
     def config_args(sp, with_n=True):
@@ -226,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "command resumes; Ctrl-C never leaves a broken shard.")
     config_args(r)
     r.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED})")
-    r.add_argument("--workers", type=int, default=0, help="worker processes (default: all cores)")
+    r.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
     r.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
     r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays); the last "
                    "slice to finish writes manifest.json")
@@ -235,20 +254,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     i = sub.add_parser("inspect", help="counts, splits, star and detection histograms, config summary")
-    i.add_argument("path")
+    i.add_argument("path", help="dataset folder (or one shard file)")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_inspect)
 
     v = sub.add_parser("preview", help="PNG grid of frames with detections and true stars")
-    v.add_argument("path")
-    v.add_argument("--out", default="preview.png")
-    v.add_argument("--n", type=int, default=12, help="frames to show")
-    v.add_argument("--start", type=int, default=0, help="first frame (within the split)")
+    v.add_argument("path", help="dataset folder (or one shard file)")
+    v.add_argument("--out", default="preview.png", help="PNG file to write (its folder must exist)")
+    v.add_argument("--n", type=int, default=12, help="frames to show (>= 1)")
+    v.add_argument("--start", type=int, default=0, help="first frame, a position within the split (>= 0)")
     v.add_argument("--split", choices=("train", "val", "test"), default=None)
     v.set_defaults(func=cmd_preview)
 
     va = sub.add_parser("validate", help="check schema, shapes, value ranges and checksums")
-    va.add_argument("path")
+    va.add_argument("path", help="dataset folder (or one shard file); a missing path exits 2")
     va.add_argument("--no-checksums", action="store_true", help="skip sha256 verification (faster)")
     va.set_defaults(func=cmd_validate)
 
@@ -319,6 +338,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nskygen {args.command}: interrupted; finished shards are kept — run the same command "
               "again to resume.", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"\nskygen {args.command}: terminated (SIGTERM); finished shards are kept — run the same command "
+              "again to resume.", file=sys.stderr)
+        return 143
+    except BrokenPipeError:      # `skygen inspect DIR | head`: the reader has gone; stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

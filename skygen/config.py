@@ -124,7 +124,7 @@ class OutputConfig:
     compression: str = param("gzip", choices=("gzip", "lzf", "none", "blosc-zstd", "blosc-lz4"), doc="HDF5 image compression (blosc needs hdf5plugin)")
     compression_level: int = param(4, lo=0, hi=9, doc="gzip/blosc level")
     shard_size: int = param(1000, lo=1, hi=1000000, doc="frames per shard file")
-    split_fractions: tuple[float, float, float] = param((0.8, 0.1, 0.1), lo=0, hi=1, doc="train/val/test fractions (contiguous frame ranges)")
+    split_fractions: tuple[float, float, float] = param((0.8, 0.1, 0.1), lo=0, hi=1, doc="train/val/test fractions (contiguous frame ranges; a frame's content depends on its split and position in it, not on these)")
 
 
 @dataclass(frozen=True)
@@ -137,7 +137,8 @@ class BackendConfig:
 
 @dataclass(frozen=True)
 class RenderConfig:
-    seed: int = param(0, lo=0, doc="dataset seed; frame i uses a generator derived from (seed, i)")
+    seed: int = param(0, lo=0, hi=2**63 - 1, doc="dataset seed; frame j of a split uses generators derived from "
+                      "(seed, split, j)")
     n_frames: int = param(1000, lo=1, hi=100_000_000, doc="number of frames (--n)")
     epoch_yr: float = param(2024.0, lo=1000, hi=3000, doc="observation epoch, Julian year (proper motion applied)")
     catalog: CatalogConfig = section(CatalogConfig)

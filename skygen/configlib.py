@@ -100,6 +100,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         value = float(value)
         if value != value:
             raise ConfigError(f"{key}: NaN is not allowed")
+        if value in (float("inf"), float("-inf")):
+            raise ConfigError(f"{key}: {value} is not allowed; give a finite number")
         return value
     if tp is str:
         if not isinstance(value, str):

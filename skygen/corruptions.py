@@ -12,7 +12,7 @@ Stages:
 * ``detections`` — acts on the detector's output list.
 
 Every random draw of a corruption comes from its own generator derived from
-(dataset seed, frame index, corruption name), so switching one on never changes the
+(dataset seed, frame stream key, corruption name), so switching one on never changes the
 random numbers of another.
 """
 
@@ -101,9 +101,14 @@ def with_extra(cfg, name: str, extra: float):
     return with_level(cfg, name, c.stack(float(getattr(cfg.corruptions, name)), float(extra)))
 
 
-def stage_rng(seed: int, frame_index: int, stage: str) -> np.random.Generator:
-    """The generator of one stage of one frame: depends only on (seed, frame, stage name)."""
-    return np.random.default_rng([seed, frame_index, zlib.crc32(stage.encode())])
+def stage_rng(seed: int, frame: int | tuple[int, ...], stage: str) -> np.random.Generator:
+    """The generator of one stage of one frame: depends only on (seed, frame key, stage name).
+
+    ``frame`` is the frame's stream key: ``(split, index within split)`` for schema 2
+    (:func:`skygen.identity.frame_key`), the global index for schema 1.x datasets.
+    """
+    key = list(frame) if isinstance(frame, tuple) else [frame]
+    return np.random.default_rng([seed, *key, zlib.crc32(stage.encode())])
 
 
 def levels_of(cfg) -> dict[str, float]:
@@ -111,7 +116,7 @@ def levels_of(cfg) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------- detection level
-def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, frame_index: int,
+def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, frame_index: int | tuple,
                                 stream: str = "") -> tuple[dict, dict]:
     """Apply dropout, centroid noise and magnitude noise to a detection table.
 

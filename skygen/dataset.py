@@ -23,8 +23,10 @@ from pathlib import Path
 
 from . import corruptions as corr
 from .config import RenderConfig, config_dict
+from .card import CARD_NAME, CROISSANT_NAME, write_card
 from .configlib import flatten
-from .errors import DatasetError
+from .errors import ConfigError, DatasetError
+from .identity import content_id
 from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
 
@@ -78,6 +80,7 @@ def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool
     entries = sorted(entries, key=lambda e: e["index"])
     splits = {s: sum(e["splits"][s] for e in entries) for s in SPLIT_NAMES}
     return {"format": MANIFEST_FORMAT, "schema_version": SCHEMA_VERSION, "dataset_id": config_id(cfg_dict),
+            "content_id": content_id(cfg_dict),
             "complete": complete, "n_frames": sum(e["n_frames"] for e in entries), "n_shards": n_shards,
             "splits": splits, "shards": entries, "config": cfg_dict, "versions": library_versions(),
             "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
@@ -87,9 +90,31 @@ def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool
 _WORKER: dict = {}
 
 
-def _init_worker(cfg: RenderConfig, counter, threads: int | None = 1) -> None:
+def _exit_when_orphaned(parent_pid: int, interval_s: float = 0.2) -> None:
+    """In a pool worker: a daemon thread that ends the process once its parent is gone.
+
+    After a kill -9 of ``skygen render`` the pool's workers would otherwise live on
+    (re-parented to init) and keep writing shards. Exiting leaves at most a hidden
+    ``.shard-*.h5.tmp*`` file, which the next run removes.
+    """
+    import os
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(interval_s)
+        os._exit(1)
+    threading.Thread(target=watch, name="skygen-parent-watch", daemon=True).start()
+
+
+def _init_worker(cfg: RenderConfig, counter, parent_pid: int | None = None, threads: int | None = 1) -> None:
     import cv2
+    import signal
     cv2.setNumThreads(1)
+    if parent_pid is not None:      # a pool worker: the parent handles Ctrl-C and SIGTERM, and may die
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        _exit_when_orphaned(parent_pid)
     from .render import Renderer
     _WORKER["renderer"] = Renderer(cfg)
     _WORKER["counter"] = counter
@@ -137,13 +162,20 @@ def _render_shard(args: tuple[int, int, int, str]) -> dict:
 
 
 def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_index: int = 0,
-                   num_slices: int = 1, force: bool = False, progress: bool = True) -> dict:
+                   num_slices: int = 1, force: bool = False, progress: bool = True, warn=None) -> dict:
     """Render (or resume) the dataset of ``cfg`` into folder ``out``; returns the manifest.
 
     Raises DatasetError when ``out`` holds a different dataset (unless ``force``) or a
     shard cannot be written. Interrupting leaves only whole shards and a valid manifest.
+    ``warn`` (default: print to stderr) receives warnings about the physics, e.g. an
+    exposure that saturates every pixel. Also writes the dataset card (README.md and
+    croissant.json, :mod:`skygen.card`) once the dataset is complete.
     """
+    import sys
     from .render import Renderer
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
+    if workers < 1:
+        raise ConfigError(f"--workers {workers}: need at least 1 worker process")
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
@@ -167,6 +199,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
         for p in out.glob("shard-*.h5"):
             if p.name not in keep:
                 p.unlink()
+        if not recorded:    # the card described the replaced dataset; a new one comes with completion
+            for name in (CARD_NAME, CROISSANT_NAME):
+                (out / name).unlink(missing_ok=True)
     _clean_temporaries(out)
     ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
     mine = [k for k in range(len(ranges)) if k % num_slices == slice_index]
@@ -178,6 +213,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
             done[e["index"]] = e
     todo = [k for k in mine if k not in done]
     probe_renderer = Renderer(cfg)
+    message = probe_renderer.saturation_warning()
+    if message:
+        warn(f"warning: {message}")
     extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
              "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
              "shard_size": cfg.output.shard_size}
@@ -198,7 +236,7 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     tasks = [(k, ranges[k][0], ranges[k][1], str(out)) for k in todo]
     try:
         if workers <= 1 or len(tasks) <= 1:
-            _init_worker(cfg, None, threads=None)
+            _init_worker(cfg, None, None, threads=None)
             for t in tasks:
                 done[t[0]] = _render_shard(t)
                 save(False)
@@ -215,6 +253,8 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     man = save(True)
     if num_slices > 1:
         man = _maybe_combine_slices(out, cfg_dict, len(ranges), extra) or man
+    if man.get("complete") and (out / MANIFEST_NAME).exists():
+        write_card(out, json.loads((out / MANIFEST_NAME).read_text()))
     return man
 
 
@@ -222,7 +262,8 @@ def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
     ctx = mp.get_context("spawn")
     counter = ctx.Value("q", 0)
     seen = 0
-    with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(cfg, counter)) as pool:
+    import os
+    with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(cfg, counter, os.getpid())) as pool:
         pending = [pool.apply_async(_render_shard, (t,)) for t in tasks]
         try:
             while pending:

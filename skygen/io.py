@@ -1,9 +1,12 @@
 """The skygen dataset format: one writer, one reader.
 
 A *dataset* is a folder holding ``manifest.json`` and shards ``shard-00000.h5`` ... .
-Each shard is a self-describing HDF5 file (see ``docs/FORMAT.md``) that plain h5py can
-read. Variable-length per-frame tables (true stars, detections) are stored flat with an
-``offsets`` array of length N+1: rows of frame i are ``offsets[i]:offsets[i+1]``.
+Each shard is a self-describing HDF5 file (see ``docs/FORMAT.md``) that plain h5py and
+Hugging Face ``datasets`` (``load_dataset("hdf5", ...)``) can read: schema 2 stores only
+per-frame rows, every dataset with the frame count as its first dimension; the true
+stars and detections of a frame are variable-length arrays, one per column. Schema
+1.x shards stored those tables flat with an ``offsets`` array (rows of frame i are
+``offsets[i]:offsets[i+1]``); this reader still opens them.
 
 Shards are written to a hidden temporary name (``.shard-00000.h5.tmp``) and renamed
 only once complete and closed, so a file named ``shard-*.h5`` is always whole; the
@@ -27,11 +30,12 @@ import numpy as np
 
 from .conventions import CONVENTIONS
 from .errors import DatasetError
+from .identity import content_id, legacy_frame_ids, split_bounds
 
 FORMAT_NAME = "skygen-shard"
 MANIFEST_FORMAT = "skygen-dataset"
-SCHEMA_VERSION = "1.0.0"
-SUPPORTED_MAJOR = (1,)
+SCHEMA_VERSION = "2.0.0"
+SUPPORTED_MAJOR = (1, 2)
 MANIFEST_NAME = "manifest.json"
 SPLIT_NAMES = ("train", "val", "test")
 LIBVER = ("v110", "v114")
@@ -56,6 +60,8 @@ DETECTION_FIELDS = {
 FRAME_FIELDS = {
     "index": ("i8", "", "global frame index within the dataset"),
     "split": ("u1", "", "0 train, 1 val, 2 test (see attribute labels)"),
+    "index_in_split": ("i8", "", "position within its split; with the seed, keys the frame's random streams"),
+    "frame_id": ("u8", "", "identity of the frame: hash of the content config, split and index_in_split"),
     "n_stars": ("i4", "", "true stars projected inside the sensor"),
     "n_detections": ("i4", "", "detections after detection-level corruptions"),
     "background_adu": ("f4", "ADU", "detector's background estimate"),
@@ -123,16 +129,14 @@ def _compression(name: str, level: int) -> dict:
 
 
 def _write_table(group: h5py.Group, rows: list[dict], fields: dict) -> None:
-    counts = np.array([len(r[next(iter(fields))]) for r in rows], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    d = group.create_dataset("offsets", data=offsets)
-    d.attrs["description"] = "rows of frame i are offsets[i]:offsets[i+1]"
+    """One variable-length array per frame and column: ``group/col[i]`` holds frame i's rows."""
     for name, (dtype, units, desc) in fields.items():
-        parts = [np.asarray(r[name], dtype=dtype) for r in rows]
-        data = np.concatenate(parts) if parts else np.zeros(0, dtype)
-        d = group.create_dataset(name, data=data)
+        data = np.empty(len(rows), dtype=object)
+        for i, r in enumerate(rows):     # one by one, and passed at creation: rows of equal length
+            data[i] = np.asarray(r[name], dtype=dtype)   # must not become a 2-D array
+        d = group.create_dataset(name, data=data, shape=(len(rows),), dtype=h5py.vlen_dtype(np.dtype(dtype)))
         d.attrs["units"] = units
-        d.attrs["description"] = desc
+        d.attrs["description"] = desc + " (one variable-length array per frame)"
 
 
 def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: int,
@@ -160,6 +164,7 @@ def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: in
             a["n_frames"] = n
             a["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             a["conventions"] = json.dumps(CONVENTIONS, sort_keys=True)
+            a["content_id"] = content_id(config)
             comp = _compression(compression, compression_level)
             images = np.stack([fr.image for fr in frames]) if n else np.zeros((0, 1, 1), np.uint16)
             d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None,
@@ -267,6 +272,7 @@ class _Shard:
     path: Path
     frame_start: int
     n_frames: int
+    major: int = 2                    # schema major version: 1 = flat tables with offsets
     handle: h5py.File | None = None
 
 
@@ -346,8 +352,14 @@ class Dataset:
     def _table(self, group: str, i: int) -> dict:
         sh, j = self._locate(i)
         g = sh.handle[group]
-        lo, hi = g["offsets"][j:j + 2]
-        return {k: g[k][lo:hi] for k in g if k != "offsets"}
+        fields = STAR_FIELDS if group == "stars" else DETECTION_FIELDS
+        try:
+            if sh.major == 1:         # flat columns, rows of frame j at offsets[j]:offsets[j+1]
+                lo, hi = g["offsets"][j:j + 2]
+                return {k: g[k][lo:hi] for k in fields}
+            return {k: np.asarray(g[k][j], dtype=spec[0]) for k, spec in fields.items()}
+        except (OSError, KeyError) as exc:
+            raise DatasetError(f"{sh.path}: cannot read {group} of frame {j} (damaged shard?): {exc}") from None
 
     def detections(self, i: int) -> dict:
         """Detections of frame ``i`` (brightest first): x_px, y_px, flux_adu, peak_adu, area_px, hip_id, star_index."""
@@ -376,15 +388,24 @@ class Dataset:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["shards"] = [_Shard(s.path, s.frame_start, s.n_frames) for s in self.shards]
+        state["shards"] = [_Shard(s.path, s.frame_start, s.n_frames, s.major) for s in self.shards]
         return state
+
+
+V2_FRAME_FIELDS = ("index_in_split", "frame_id")     # absent from schema 1.x shards
+
+
+def _major(f: h5py.File) -> int:
+    return int(str(f.attrs["schema_version"]).split(".")[0])
 
 
 def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
     """Per-frame arrays (boresight labels, splits, counts), checked: dtype, shape, finite."""
     n = int(f.attrs["n_frames"])
     out = []
-    for group, fields in (("boresight", BORESIGHT_FIELDS), ("frames", FRAME_FIELDS)):
+    frame_fields = FRAME_FIELDS if _major(f) >= 2 else {k: v for k, v in FRAME_FIELDS.items()
+                                                       if k not in V2_FRAME_FIELDS}
+    for group, fields in (("boresight", BORESIGHT_FIELDS), ("frames", frame_fields)):
         arrays = {}
         for k, spec in fields.items():
             name = f"{group}/{k}"
@@ -404,6 +425,13 @@ def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
                                    "(re-render the shard)")
         out.append(arrays)
     return out[0], out[1]
+
+
+def _legacy_identity(fr: dict, config: dict) -> None:
+    """Fill ``index_in_split`` and ``frame_id`` of a schema 1.x shard (frames keyed by global index)."""
+    bounds = np.array((0, *split_bounds(int(config["n_frames"]), tuple(config["output"]["split_fractions"]))))
+    fr["index_in_split"] = (fr["index"] - bounds[fr["split"].astype(np.int64)]).astype(np.int64)
+    fr["frame_id"] = legacy_frame_ids(config, fr["index"])
 
 
 def open_dataset(path: str | Path) -> Dataset:
@@ -447,9 +475,12 @@ def open_dataset(path: str | Path) -> Dataset:
             if int(f.attrs["n_frames"]) != entry["n_frames"]:
                 raise DatasetError(f"{p}: holds {int(f.attrs['n_frames'])} frames, manifest says {entry['n_frames']}")
             b, fr = _read_small(f, p)
+            major = _major(f)
+            if major == 1:
+                _legacy_identity(fr, json.loads(f.attrs["config"]))
         bores.append(b)
         frames.append(fr)
-        shards.append(_Shard(p, -1, entry["n_frames"]))
+        shards.append(_Shard(p, -1, entry["n_frames"], major))
     start = 0
     for sh in shards:
         sh.frame_start = start
@@ -458,3 +489,48 @@ def open_dataset(path: str | Path) -> Dataset:
     bore = {k: cat(bores, k) for k in BORESIGHT_FIELDS}
     frm = {k: cat(frames, k) for k in FRAME_FIELDS}
     return Dataset(root, manifest, shards, bore, frm)
+
+
+# ----------------------------------------------------------------------- verified reads
+def checksum_cache_path() -> Path:
+    """Where verified shard checksums are remembered: ``$XDG_CACHE_HOME/skygen`` (default ~/.cache)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "skygen" / "verified-shards.json"
+
+
+def verify_checksums(ds: Dataset, log=None) -> int:
+    """Check every shard of ``ds`` against the sha256 in its manifest; returns how many were hashed.
+
+    A shard verified before is not hashed again while its path, size and modification
+    time are unchanged (remembered in :func:`checksum_cache_path`). Raises DatasetError
+    naming the first shard whose checksum differs.
+    """
+    cache_file = checksum_cache_path()
+    try:
+        cache = json.loads(cache_file.read_text())
+        cache = cache if isinstance(cache, dict) else {}
+    except (OSError, ValueError):
+        cache = {}
+    hashed = 0
+    for sh, entry in zip(ds.shards, ds.manifest["shards"]):
+        want = entry.get("sha256")
+        if want is None:           # a single shard opened without a manifest: nothing to compare with
+            continue
+        st = sh.path.stat()
+        key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        if cache.get(key) == want:
+            continue
+        if log and hashed == 0:
+            log(f"verifying sha256 of the shards of {ds.root} (once; remembered in {cache_file})")
+        hashed += 1
+        if sha256_file(sh.path) != want:
+            raise DatasetError(f"{sh.path}: sha256 differs from {ds.root / MANIFEST_NAME} (the file changed or is "
+                               "corrupted); delete it and re-run the same `skygen render` to restore it")
+        cache[key] = want
+    if hashed:
+        try:
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(cache_file, cache)
+        except OSError:
+            pass    # an unwritable cache only costs hashing again next time
+    return hashed

@@ -7,7 +7,9 @@ Two cases:
 * **Different datasets** (other seeds, other teams) whose configs differ only in keys
   that do not change what a frame means (:data:`MERGEABLE_KEYS`): their shards are
   listed one after the other; each entry keeps its own ``dataset_id`` and the manifest
-  lists every source config under ``sources``.
+  lists every source config under ``sources``. Datasets that share frames (equal frame
+  identities: same seed and render settings, e.g. ``--n 1000`` and ``--n 2000`` of seed 0)
+  are refused.
 
 The merged folder holds only ``manifest.json``, whose shard entries point at the
 original files by relative path (copy the folders together when sharing). Checksums and
@@ -20,8 +22,12 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
+
+from .card import write_card
 from .dataset import _manifests, config_differences
 from .errors import DatasetError
+from .identity import dataset_frame_ids
 from .io import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
 
 MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
@@ -53,6 +59,21 @@ def _load_inputs(inputs: list[Path]) -> list[tuple[Path, dict, list[dict]]]:
     return found
 
 
+def _refuse_shared_frames(datasets: list[tuple[Path, dict]]) -> None:
+    """Refuse datasets that hold the same frames (equal frame identities, see :mod:`skygen.identity`)."""
+    seen: list[tuple[Path, np.ndarray]] = []
+    for folder, cfg in datasets:
+        ids = dataset_frame_ids(cfg)
+        for other, other_ids in seen:
+            shared = np.intersect1d(ids, other_ids)
+            if len(shared):
+                raise DatasetError(f"cannot merge {other} and {folder}: {len(shared)} of their frames are the same "
+                                   "frames (same seed and render settings, so equal frame identities; a merged "
+                                   "dataset would repeat them, possibly across splits). Re-render one of them "
+                                   "with another --seed")
+        seen.append((folder, ids))
+
+
 def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
     """Write ``out/manifest.json`` combining ``inputs``; returns the manifest."""
     inputs = [Path(p) for p in inputs]
@@ -69,6 +90,7 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
         if bad:
             raise DatasetError(f"cannot merge {inputs[0]} and {folder}: their configs differ in {', '.join(bad)} "
                                "(frames would not mean the same thing)")
+    _refuse_shared_frames([(g[0][0], g[0][1]["config"]) for g in by_id.values()])
     sources, shards = [], []
     for dsid, group in by_id.items():
         cfg = group[0][1]["config"]
@@ -105,4 +127,5 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
            "splits": {s: sum(e["splits"][s] for e in shards) for s in SPLIT_NAMES},
            "shards": shards, "sources": sources if not single else [], "versions": library_versions()}
     write_json_atomic(out / MANIFEST_NAME, man)
+    write_card(out, man)
     return man

@@ -23,18 +23,18 @@ from .config import build_config
 _CACHE: dict = {}
 
 
-def _renderer(cfg_dict: dict, name: str, extra: float):
+def _renderer(cfg_dict: dict, name: str, extra: float, legacy: bool = False):
     from .render import Renderer
-    key = (json.dumps(cfg_dict, sort_keys=True), name, extra)
+    key = (json.dumps(cfg_dict, sort_keys=True), name, extra, legacy)
     if key not in _CACHE:
         _CACHE.clear()
-        _CACHE[key] = Renderer(corr.with_extra(build_config(cfg_dict), name, extra))
+        _CACHE[key] = Renderer(corr.with_extra(build_config(cfg_dict), name, extra), legacy_streams=legacy)
     return _CACHE[key]
 
 
 def _render_some(args) -> list[dict]:
-    cfg_dict, name, extra, frame_indices = args
-    r = _renderer(cfg_dict, name, extra)
+    cfg_dict, name, extra, frame_indices, legacy = args
+    r = _renderer(cfg_dict, name, extra, legacy)
     out = []
     for i in frame_indices:
         f = r.render(int(i))
@@ -66,7 +66,8 @@ def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers
         return out
     indices = ds.frames["index"][positions]
     chunks = [indices[i:i + 16] for i in range(0, len(indices), 16)]
-    tasks = [(ds.config, name, float(extra), ch) for ch in chunks]
+    legacy = str(ds.schema_version).startswith("1.")   # 1.x frames: streams keyed by global index
+    tasks = [(ds.config, name, float(extra), ch, legacy) for ch in chunks]
     results = []
     if workers <= 1 or len(chunks) == 1:
         for t in tasks:

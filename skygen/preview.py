@@ -13,16 +13,38 @@ from pathlib import Path
 import numpy as np
 
 from .conventions import full_to_stored
+from .errors import ConfigError, DatasetError
 from .io import open_dataset
 
 
+def check_preview_args(out: Path, n: int, start: int) -> None:
+    """Refuse what would write nothing useful or somewhere unexpected (ConfigError)."""
+    if n < 1:
+        raise ConfigError(f"--n {n}: show at least 1 frame")
+    if start < 0:
+        raise ConfigError(f"--start {start}: must be 0 or more (a position within the split)")
+    if out.suffix.lower() != ".png":
+        raise ConfigError(f"--out {out}: the preview is a PNG; give a file name ending in .png")
+    if not out.parent.is_dir():
+        raise ConfigError(f"--out {out}: folder {out.parent} does not exist; create it first or choose another path")
+
+
 def preview(path, out, n: int = 12, split: str | None = None, start: int = 0) -> Path:
+    """Write a PNG grid of ``n`` frames of ``split`` (all frames if None) from position ``start``."""
+    out = Path(out)
+    check_preview_args(out, n, start)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    out = Path(out)
     with open_dataset(path) as ds:
-        idx = ds.indices(split)[start:start + n]
+        all_idx = ds.indices(split)
+        if len(all_idx) == 0:
+            raise DatasetError(f"{path}: split {split!r} holds no frames (frames per split: "
+                               f"{ {s: len(ds.indices(s)) for s in ('train', 'val', 'test')} })")
+        if start >= len(all_idx):
+            raise ConfigError(f"--start {start}: the {split or 'whole dataset'} holds only {len(all_idx)} frames "
+                              f"(positions 0..{len(all_idx) - 1})")
+        idx = all_idx[start:start + n]
         cols = min(4, max(1, len(idx)))
         rows = int(np.ceil(len(idx) / cols)) or 1
         fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 4.0 * rows), squeeze=False)
@@ -52,7 +74,6 @@ def preview(path, out, n: int = 12, split: str | None = None, start: int = 0) ->
             ax.set_ylim(img.shape[0] - 0.5, -0.5)
         fig.suptitle(f"{path}: green = matched detection, red = false detection, + = true star (to 0.5 mag below the detection limit)", fontsize=8)
         fig.tight_layout()
-        out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=90)
         plt.close(fig)
     return out

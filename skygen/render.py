@@ -20,6 +20,7 @@ from .attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sam
 from .camera import Camera
 from .catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
 from .detect import detect, match
+from .identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
 from .photometry import Photometry, dark_current_e_s
 from .psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
 from .sensor import Exposure, read_out, sensor_maps
@@ -46,6 +47,8 @@ class Frame:
     noise_adu: float
     applied: dict
     log: dict = field(default_factory=dict)
+    index_in_split: int = 0
+    frame_id: int = 0
 
     @property
     def n_stars(self) -> int:
@@ -83,23 +86,24 @@ class Scene:
     cosmic_boxes: list
     stray_light_rad: float | None
     log: dict
-
-
-def split_bounds(n_frames: int, fractions: tuple[float, float, float]) -> tuple[int, int]:
-    """Frames [0, a) are train, [a, b) val, [b, n) test."""
-    a = int(round(n_frames * fractions[0]))
-    b = int(round(n_frames * (fractions[0] + fractions[1])))
-    return a, b
+    index_in_split: int = 0
+    rng_key: int | tuple = 0          # the random-stream key of the frame (Renderer.stream_key)
 
 
 class Renderer:
     """Renders frames of one configuration. Construct once per process."""
 
-    def __init__(self, cfg, catalog: StarTable | None = None, rng_tag: str = ""):
+    def __init__(self, cfg, catalog: StarTable | None = None, rng_tag: str = "", legacy_streams: bool = False):
+        """``rng_tag``: appended to every stage name of the per-frame generators: "" for
+        datasets; the streams of :mod:`skygen.stream` use their own tag (and key sample i by
+        i alone), so their frames never repeat a dataset's. ``legacy_streams``: key random
+        streams by the global frame index, as schema 1.x datasets were rendered (to
+        re-render frames of such a dataset exactly)."""
+        from .config import config_dict
         self.cfg = cfg
-        # appended to every stage name of the per-frame generators: "" for datasets; the
-        # streams of skygen.stream use their own tag so their frames never repeat a dataset's
         self.rng_tag = rng_tag
+        self.legacy_streams = legacy_streams
+        self._config_dict = config_dict(cfg)
         s, o = cfg.sensor, cfg.optics
         self.camera = Camera.from_config(cfg.camera)
         self.photometry = Photometry.from_config(o, cfg.photometry, s)
@@ -140,9 +144,32 @@ class Renderer:
         e_needed = self.cfg.detection.threshold_sigma * self.noise_e() / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
 
+    def saturation_warning(self) -> str | None:
+        """A sentence when the background alone (dark current + sky) fills the full well or the ADC
+        in every pixel, so no star can be seen; None otherwise."""
+        s = self.cfg.sensor
+        adu = s.bias_adu + self.background_e / s.gain_e_per_adu
+        top = 2 ** s.bit_depth - 1
+        if self.background_e >= s.full_well_e or adu >= top:
+            return (f"every pixel saturates: the background alone is {self.background_e:.3g} e-/px over the "
+                    f"{s.exposure_s:g} s exposure (full well {s.full_well_e:g} e-, ADC top {top} ADU); "
+                    "frames will hold no detectable star. Shorten sensor.exposure_s")
+        return None
+
     def split_of(self, i: int) -> int:
         a, b = self.split_bounds
         return 0 if i < a else (1 if i < b else 2)
+
+    def stream_key(self, i: int) -> tuple[int, int, int | tuple]:
+        """(split, index within the split, random-stream key) of global frame ``i``.
+
+        A stream's sample ``i`` (``rng_tag`` set) is keyed by ``i`` alone: its identity does
+        not depend on a frame count or split fractions."""
+        if self.rng_tag:
+            return -1, i, i
+        split = self.split_of(i)
+        j = i - (0, *self.split_bounds)[split]
+        return split, j, (i if self.legacy_streams else frame_key(split, j))
 
     def vignetting(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         v = self.cfg.optics.vignetting
@@ -237,16 +264,17 @@ class Renderer:
         backends (this NumPy renderer and :mod:`skygen.render_torch`) rasterise it."""
         cfg = self.cfg
         seed = cfg.seed
+        split, j, key = self.stream_key(i)
         sh = (cfg.camera.height_px, cfg.camera.width_px)
-        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, i, "attitude" + self.rng_tag))
+        ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, key, "attitude" + self.rng_tag))
         R = attitude_matrix(ra, dec, roll)
         log: dict = {}
-        omega, _, taus = self._motion(corr.stage_rng(seed, i, "motion_blur" + self.rng_tag))
+        omega, _, taus = self._motion(corr.stage_rng(seed, key, "motion_blur" + self.rng_tag))
         if len(taus) > 1:
             log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
         stars = self._stars(R, omega, taus)
         if self.levels["false_stars"] > 0:
-            fake = self._false_stars(corr.stage_rng(seed, i, "false_stars" + self.rng_tag))
+            fake = self._false_stars(corr.stage_rng(seed, key, "false_stars" + self.rng_tag))
             log["false_stars"] = {"n": len(fake["x_px"])}
             stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
             if stars["paths"] is not None and len(fake["x_px"]):
@@ -256,13 +284,13 @@ class Renderer:
         if self.levels["cosmic_rays"] > 0:
             cosmic, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
                                                             self.levels["cosmic_rays"],
-                                                            corr.stage_rng(seed, i, "cosmic_rays" + self.rng_tag))
+                                                            corr.stage_rng(seed, key, "cosmic_rays" + self.rng_tag))
             log["cosmic_rays"] = {"n_hits": n_hits}
         stray = None
         if self.levels["stray_light"] > 0:
-            stray = corr.stray_light_angle(corr.stage_rng(seed, i, "stray_light" + self.rng_tag))
+            stray = corr.stray_light_angle(corr.stage_rng(seed, key, "stray_light" + self.rng_tag))
             log["stray_light"] = {"direction_deg": round(float(np.degrees(stray)), 4)}
-        return Scene(i, self.split_of(i), ra, dec, roll, R, stars, cosmic, cboxes, stray, log)
+        return Scene(i, split, ra, dec, roll, R, stars, cosmic, cboxes, stray, log, j, key)
 
     def background_map(self, scene: "Scene") -> np.ndarray | None:
         """Expected dark + sky (+ stray light) charge per pixel, e-, float32 (H, W); None when uniform."""
@@ -292,7 +320,7 @@ class Renderer:
             boxes += scene.cosmic_boxes
         exposure = Exposure(star_e, charge, boxes, self.background_e, self.background_map(scene))
         full, info = read_out(exposure, cfg.sensor, self.maps,
-                              corr.stage_rng(cfg.seed, scene.index, "noise" + self.rng_tag),
+                              corr.stage_rng(cfg.seed, scene.rng_key, "noise" + self.rng_tag),
                               self.levels["read_noise"])
         log = {"blooming": {"columns": info["bloomed_columns"]}} if info["bloomed_columns"] else {}
         return full, log
@@ -340,13 +368,20 @@ class Renderer:
         true = {k: v[inside] for k, v in stars.items() if k != "paths"}
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
-        det["hip_id"] = np.where(sidx >= 0, true["hip_id"][np.maximum(sidx, 0)], -1).astype(np.int64)
-        det, dlog = corr.apply_detection_corruptions(det, self.levels, cfg.seed, i, stream=self.rng_tag)
+        hip = true["hip_id"][np.maximum(sidx, 0)] if len(true["hip_id"]) else np.full(len(sidx), -1)
+        det["hip_id"] = np.where(sidx >= 0, hip, -1).astype(np.int64)   # (a frame may hold no true star)
+        det, dlog = corr.apply_detection_corruptions(det, self.levels, cfg.seed, scene.rng_key, stream=self.rng_tag)
         log.update(dlog)
         if image is None:
             image = self.downsample(full)
         q = matrix_to_quaternion(scene.rotation)
         ra, dec = scene.ra_deg, scene.dec_deg
+        if self.rng_tag:            # a stream's sample: no dataset identity
+            fid = 0
+        elif self.legacy_streams:
+            fid = legacy_frame_ids(self._config_dict, [i])[0]
+        else:
+            fid = frame_ids(self._config_dict, [scene.split], [scene.index_in_split], [i])[0]
         return Frame(i, scene.split, ra, dec, scene.roll_deg, radec_to_vec(np.radians(ra), np.radians(dec)), q,
                      image, full if cfg.output.full_res else None, self.factor, true, det, bg, sigma,
-                     dict(self.levels), log)
+                     dict(self.levels), log, scene.index_in_split, int(fid))

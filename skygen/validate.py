@@ -3,8 +3,9 @@
 Checks the manifest (format, version, completeness, frame counts), that every listed
 shard exists with the recorded size and sha256, that no unlisted shard lies beside
 them, and inside each shard: format name, schema version, dataset id and config equal to
-the manifest's, every documented dataset present with its dtype and shape, offsets
-consistent, and value ranges (unit vectors of norm 1, RA in [0, 360), Dec in [-90, 90],
+the manifest's, every documented dataset present with its dtype and shape, per-frame
+row counts consistent (offsets, for 1.x shards), frame identities matching the config,
+and value ranges (unit vectors of norm 1, RA in [0, 360), Dec in [-90, 90],
 quaternions of norm 1, detections and stars inside the sensor, finite numbers, splits
 0/1/2, frame indices contiguous).
 """
@@ -19,8 +20,9 @@ import h5py
 import numpy as np
 
 from .errors import DatasetError
+from .identity import frame_ids, split_bounds
 from .io import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
-                 config_id, open_shard_file, read_manifest, sha256_file)
+                 V2_FRAME_FIELDS, config_id, open_shard_file, read_manifest, sha256_file)
 
 
 @dataclass
@@ -38,26 +40,49 @@ class Report:
         return "\n".join([head] + [f"  problem: {p}" for p in self.problems])
 
 
-def _check_table(f: h5py.File, name: str, fields: dict, n: int, rep: Report, where: str) -> np.ndarray | None:
+def _check_table(f: h5py.File, name: str, fields: dict, n: int, rep: Report, where: str,
+                 major: int) -> tuple[np.ndarray, dict] | None:
+    """(row count per frame, all rows of each column concatenated) of table ``name``, or None."""
     if name not in f:
         rep.problems.append(f"{where}: group '{name}' is missing")
         return None
     g = f[name]
-    if "offsets" not in g:
-        rep.problems.append(f"{where}: '{name}/offsets' is missing")
-        return None
-    off = g["offsets"][...]
-    if off.shape != (n + 1,) or off[0] != 0 or np.any(np.diff(off) < 0):
-        rep.problems.append(f"{where}: '{name}/offsets' is not a non-decreasing array of {n + 1} starting at 0")
-        return None
+    if major == 1:
+        if "offsets" not in g:
+            rep.problems.append(f"{where}: '{name}/offsets' is missing")
+            return None
+        off = g["offsets"][...]
+        if off.shape != (n + 1,) or off[0] != 0 or np.any(np.diff(off) < 0):
+            rep.problems.append(f"{where}: '{name}/offsets' is not a non-decreasing array of {n + 1} starting at 0")
+            return None
+        counts, shape = np.diff(off), (off[-1],)
+    cols = {}
     for col, (dtype, _, _) in fields.items():
         if col not in g:
             rep.problems.append(f"{where}: '{name}/{col}' is missing")
-            continue
+            return None
         d = g[col]
-        if d.dtype != np.dtype(dtype) or d.shape != (off[-1],):
-            rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected {np.dtype(dtype)}({off[-1]},)")
-    return off
+        if major == 1:
+            if d.dtype != np.dtype(dtype) or d.shape != shape:
+                rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected "
+                                    f"{np.dtype(dtype)}{shape}")
+                return None
+            cols[col] = d[...]
+            continue
+        base = h5py.check_vlen_dtype(d.dtype)
+        if base is None or base != np.dtype(dtype) or d.shape != (n,):
+            rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected variable-length "
+                                f"{np.dtype(dtype)} ({n},)")
+            return None
+        rows = d[...]
+        lengths = np.array([len(r) for r in rows], np.int64)
+        if col == next(iter(fields)):
+            counts = lengths
+        elif np.any(lengths != counts):
+            rep.problems.append(f"{where}: '{name}/{col}' rows differ in length from '{name}/{next(iter(fields))}'")
+            return None
+        cols[col] = np.concatenate(list(rows)) if n else np.zeros(0, dtype)
+    return counts, cols
 
 
 def _check_shard(path: Path, rep: Report, manifest: dict | None, frame_start: int | None) -> int:
@@ -83,14 +108,16 @@ def _check_shard(path: Path, rep: Report, manifest: dict | None, frame_start: in
         elif f.attrs.get("dataset_id") != config_id(cfg):
             rep.problems.append(f"{where}: dataset_id does not match its own config")
         try:
-            _check_contents(f, n, cfg, rep, where, frame_start)
+            major = int(str(f.attrs["schema_version"]).split(".")[0])
+            _check_contents(f, n, cfg, rep, where, frame_start, major)
         except (OSError, KeyError, ValueError) as exc:
             rep.problems.append(f"{where}: unreadable data ({type(exc).__name__}: {exc})")
     rep.checked.append(where)
     return n
 
 
-def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, frame_start: int | None) -> None:
+def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, frame_start: int | None,
+                    major: int) -> None:
     w, h = cfg["camera"]["width_px"], cfg["camera"]["height_px"]
     s = cfg["output"]["image_size_px"]
     if "images" not in f or f["images"].shape != (n, s, s) or f["images"].dtype != np.uint16:
@@ -99,7 +126,8 @@ def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, fr
     else:
         for j in range(n):        # reading every chunk also verifies the compressed stream
             f["images"][j]
-    for grp, fields in (("frames", FRAME_FIELDS), ("boresight", BORESIGHT_FIELDS)):
+    frame_fields = FRAME_FIELDS if major >= 2 else {k: v for k, v in FRAME_FIELDS.items() if k not in V2_FRAME_FIELDS}
+    for grp, fields in (("frames", frame_fields), ("boresight", BORESIGHT_FIELDS)):
         for col, spec in fields.items():
             key = f"{grp}/{col}"
             shape = (n,) + (spec[1] if grp == "boresight" else ())
@@ -124,26 +152,38 @@ def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, fr
     uv = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], 1)
     if np.any(np.abs(uv - b["unit_vector"]) > 1e-9):
         rep.problems.append(f"{where}: boresight/unit_vector disagrees with ra_deg/dec_deg")
-    fr = {k: f["frames"][k][...] for k in FRAME_FIELDS}
+    fr = {k: f["frames"][k][...] for k in frame_fields}
     if not np.isin(fr["split"], (0, 1, 2)).all():
         rep.problems.append(f"{where}: frames/split holds values other than 0, 1, 2")
     if n and np.any(np.diff(fr["index"]) != 1):
         rep.problems.append(f"{where}: frames/index is not contiguous")
     if frame_start is not None and n and fr["index"][0] != frame_start:
         rep.problems.append(f"{where}: first frame index {fr['index'][0]} != manifest frame_start {frame_start}")
+    if major >= 2:
+        _check_identity(fr, cfg, rep, where)
     for name, fields, count in (("stars", STAR_FIELDS, None), ("detections", DETECTION_FIELDS, "n_detections")):
-        off = _check_table(f, name, fields, n, rep, where)
-        if off is None:
+        table = _check_table(f, name, fields, n, rep, where, major)
+        if table is None:
             continue
-        x, y = f[name]["x_px"][...], f[name]["y_px"][...]
+        counts, cols = table
+        x, y = cols["x_px"], cols["y_px"]
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
             rep.problems.append(f"{where}: {name} positions hold NaN or infinite values")
         # detection-level corruptions (centroid noise) may push a centroid slightly outside
         tol = 0.5 + 6 * float(cfg["corruptions"].get("centroid_noise", 0.0)) if name == "detections" else 0.5
         if np.any((x < -tol) | (x > w - 1 + tol) | (y < -tol) | (y > h - 1 + tol)):
             rep.problems.append(f"{where}: {name} positions outside the {w}x{h} sensor")
-        if count and np.any(np.diff(off) != fr[count]):
-            rep.problems.append(f"{where}: {name}/offsets disagree with frames/{count}")
+        if count and np.any(counts != fr[count]):
+            rep.problems.append(f"{where}: {name} row counts disagree with frames/{count}")
+
+
+def _check_identity(fr: dict, cfg: dict, rep: Report, where: str) -> None:
+    """index_in_split and frame_id must be those the config gives each frame."""
+    bounds = np.array((0, *split_bounds(int(cfg["n_frames"]), tuple(cfg["output"]["split_fractions"]))))
+    if np.any(fr["index_in_split"] != fr["index"] - bounds[fr["split"].astype(np.int64)]):
+        rep.problems.append(f"{where}: frames/index_in_split disagrees with frames/index and the split fractions")
+    elif np.any(fr["frame_id"] != frame_ids(cfg, fr["split"], fr["index_in_split"], fr["index"])):
+        rep.problems.append(f"{where}: frames/frame_id disagrees with the config (edited, or another dataset's frames)")
 
 
 def validate(path: str | Path, checksums: bool = True) -> Report:

@@ -30,6 +30,12 @@ def small_dataset(tmp_path_factory) -> Path:
     return out
 
 
+def pytest_configure(config):
+    # verified shard checksums are remembered under $XDG_CACHE_HOME/skygen: keep the tests' own
+    import tempfile
+    os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="skygen-test-cache-")
+
+
 def pytest_collection_modifyitems(config, items):
     if os.environ.get("RUN_SLOW"):
         return

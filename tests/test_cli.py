@@ -1,8 +1,18 @@
 """The command line, as users type it."""
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
 
 from skygen.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_render_inspect_preview_validate(tmp_path, small_overrides, capsys):
@@ -43,3 +53,128 @@ def test_config_and_catalog_commands(capsys, tmp_path):
     assert "117955" in capsys.readouterr().out
     cfgfile.write_text("sensor: [1, 2]\n")
     assert main(["config", "--config", str(cfgfile)]) == 2
+
+
+# ------------------------------------------------------------------ rough edges a new user hit
+@pytest.mark.parametrize("args,needle", [
+    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not allowed"),
+    (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
+    (["--workers", "-1"], "--workers -1"),
+])
+def test_render_refuses_with_one_line(tmp_path, capsys, args, needle):
+    assert main(["render", "--n", "5", "--out", str(tmp_path / "x"), "--quiet", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--n", "0"], "--n 0: show at least 1 frame"),
+    (["--n", "-3"], "--n -3"),
+    (["--start", "500"], "--start 500: the whole dataset holds only 50 frames"),
+    (["--start", "-1"], "--start -1"),
+    (["--out", "name"], "give a file name ending in .png"),
+    (["--out", "nowhere/deeper/p.png"], "does not exist; create it first"),
+])
+def test_preview_refuses_nonsense(small_dataset, tmp_path, capsys, monkeypatch, args, needle):
+    monkeypatch.chdir(tmp_path)
+    assert main(["preview", str(small_dataset), *args]) == 2
+    assert needle in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())            # nothing written, no folder created
+
+
+def test_preview_of_an_empty_split_and_validate_of_a_missing_path(tmp_path, small_overrides, capsys):
+    out = tmp_path / "d"
+    sets = sum((["--set", o] for o in small_overrides), [])
+    assert main(["render", "--n", "6", "--out", str(out), "--workers", "1", "--quiet",
+                 "--set", "output.split_fractions=[1, 0, 0]", *sets]) == 0
+    assert main(["preview", str(out), "--split", "val", "--out", str(tmp_path / "p.png")]) == 2
+    assert "split 'val' holds no frames" in capsys.readouterr().err
+    assert main(["validate", str(tmp_path / "missing")]) == 2
+    assert "no such dataset folder" in capsys.readouterr().err
+
+
+def test_an_exposure_that_saturates_every_pixel_is_warned_about(tmp_path, small_overrides, capsys):
+    sets = sum((["--set", o] for o in small_overrides), [])
+    assert main(["render", "--n", "2", "--out", str(tmp_path / "d"), "--workers", "1", "--quiet",
+                 "--set", "sensor.exposure_s=3600", *sets]) == 0
+    assert "warning: every pixel saturates" in capsys.readouterr().err
+
+
+def test_version_and_documented_positionals(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and "schema 2." in capsys.readouterr().out
+    for cmd in ("inspect", "preview", "validate"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        assert "dataset folder (or one shard file)" in capsys.readouterr().out
+
+
+def _skygen(*args, **kw) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "skygen.cli", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def test_inspect_into_a_closed_pipe_is_quiet(small_dataset):
+    p = subprocess.run(f"{sys.executable} -m skygen.cli inspect {small_dataset} | head -1", shell=True,
+                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert p.stdout.startswith("dataset") and "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(d.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _start_pool_render(tmp_path, small_overrides) -> tuple[subprocess.Popen, list[int]]:
+    sets = sum((["--set", o] for o in small_overrides), [])
+    p = _skygen("render", "--n", "4000", "--workers", "2", "--quiet", "--out", str(tmp_path / "d"), *sets,
+                "--set", "output.shard_size=40")
+    deadline = time.time() + 60
+    while time.time() < deadline and not list((tmp_path / "d").glob("shard-*.h5")):
+        time.sleep(0.2)                  # the pool is up and writing
+    workers = [k for k in _children(p.pid) if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
+    assert workers, "no pool workers found"
+    return p, workers
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_kill_9_leaves_no_workers_writing(tmp_path, small_overrides):
+    """Pool workers would otherwise drain the tasks already queued to them for many seconds."""
+    p, workers = _start_pool_render(tmp_path, small_overrides)
+    p.kill()
+    p.wait()
+    at_kill = len(list((tmp_path / "d").glob("shard-*.h5")))
+    deadline = time.time() + 3
+    while time.time() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers)
+    time.sleep(1.0)
+    assert len(list((tmp_path / "d").glob("shard-*.h5"))) <= at_kill + len(workers)   # at most the shard in hand
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_says_how_to_resume(tmp_path, small_overrides):
+    p, workers = _start_pool_render(tmp_path, small_overrides)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143
+    assert "run the same command again to resume" in err and "leaked semaphore" not in err and "Traceback" not in err
+    assert not any(_alive(w) for w in workers)

@@ -184,3 +184,22 @@ def test_ten_sigkills_then_resume(tmp_path, small_overrides):
     ref = tmp_path / "ref"
     render_dataset(load_config(overrides=small_overrides + ["n_frames=400"]), ref, workers=2, progress=False)
     assert same_data(ref, out) and validate(out).ok
+
+
+def test_merge_refuses_datasets_that_share_frames(tmp_path, small_overrides, small_dataset, capsys):
+    """Seed 0 with --n 50 and --n 30: the same frames within each split (frame_id equal), so a
+    merged dataset would hold them twice; skygen merge refuses, naming the fix."""
+    from skygen.cli import main
+    from skygen.identity import dataset_frame_ids
+    render_dataset(load_config(overrides=small_overrides + ["n_frames=30"]), tmp_path / "b", progress=False)
+    assert main(["merge", str(small_dataset), str(tmp_path / "b"), "--out", str(tmp_path / "ab")]) == 2
+    err = capsys.readouterr().err
+    assert "are the same frames" in err and "another --seed" in err
+    assert not (tmp_path / "ab" / "manifest.json").exists()
+    with open_dataset(small_dataset) as a, open_dataset(tmp_path / "b") as b:
+        shared = np.intersect1d(a.frames["frame_id"], b.frames["frame_id"])
+        assert len(shared) == 24 + 3 + 3            # b's whole train, val and test splits
+        for split in ("train", "val", "test"):      # never across splits
+            ia, ib = a.indices(split), b.indices(split)
+            assert np.array_equal(a.image(int(ia[0])), b.image(int(ib[0])))
+        assert np.array_equal(dataset_frame_ids(a.config), a.frames["frame_id"])   # ids follow from the config

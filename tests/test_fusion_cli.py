@@ -61,3 +61,40 @@ def test_help_config_and_no_command(capsys):
     out = capsys.readouterr().out
     assert "labels.k" in out and "aug.rotation_max_deg" in out
     assert main([]) == 2
+
+
+def test_set_overrides_like_skygen_and_extending_a_finished_run(tmp_path, capsys):
+    data = str(small_dataset("smoke"))
+    run = tmp_path / "run"
+    assert main(["train", "--data", data, "--out", str(run), "--config", SMOKE, "--set", "train.epochs=1"]) == 0
+    assert json.loads((run / "summary.json").read_text())["epochs_run"] == 1
+    # not more epochs than it ran: refused with the way to do it
+    assert main(["train", "--out", str(run), "--resume"]) == 2
+    assert "--resume --set train.epochs=N with N > 1" in capsys.readouterr().err
+    assert main(["train", "--out", str(run), "--resume", "--set", "train.epochs=2"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["epochs_run"] == 2 and summary["last"]["epoch"] == 2
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--batch-size", "0"], "--batch-size 0: must be at least 1"),
+    (["--max-frames", "0"], "--max-frames 0: must be at least 1"),
+    (["--max-frames", "-1"], "--max-frames -1: must be at least 1"),
+    (["--workers", "-1"], "--workers -1: must be at least 0"),
+])
+def test_evaluate_refuses_nonsense_numbers(tmp_path, capsys, args, needle):
+    assert main(["evaluate", "--checkpoint", str(tmp_path), "--data", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+
+
+def test_version_help_and_run_folder_without_best(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("fusion ")
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--out OUT (required) run folder" in text and "--set KEY=VALUE" in text and "key=value" in text
+    assert main(["evaluate", "--checkpoint", str(tmp_path), "--data", str(tmp_path)]) == 2
+    assert "is a folder without best.pt" in capsys.readouterr().err

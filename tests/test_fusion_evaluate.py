@@ -110,7 +110,94 @@ def test_evaluate_refuses_an_unsupported_schema_version(trained, tmp_path):
     copy = tmp_path / "copy"
     shutil.copytree(small_dataset("smoke"), copy)
     manifest = json.loads((copy / "manifest.json").read_text())
-    manifest["schema_version"] = "2.0.0"
+    manifest["schema_version"] = "3.0.0"
     (copy / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(DatasetError, match="schema version 2.0.0 is not supported"):
+    with pytest.raises(DatasetError, match="schema version 3.0.0 is not supported"):
         evaluate_checkpoint(trained / "best.pt", copy, "test", tmp_path, log=quiet)
+
+
+# ------------------------------------------------------------------ leakage guards
+def _smoke_with(tmp_path, name, *overrides):
+    from fusion.testing import KINDS
+    return render_small(tmp_path / name, [o for o in KINDS["smoke"] if not o.startswith("n_frames")] + list(overrides))
+
+
+def test_evaluate_refuses_the_checkpoints_training_frames(trained, tmp_path):
+    with pytest.raises(DatasetError, match=r"180 of the 180 frames of split 'train'.*--allow-overlap"):
+        evaluate_checkpoint(trained, small_dataset("smoke"), "train", tmp_path, log=quiet)
+    warnings = []
+    r = evaluate_checkpoint(trained, small_dataset("smoke"), "train", tmp_path, log=quiet, allow_overlap=True,
+                            warn=warnings.append)
+    assert r["dataset"]["frames_seen_in_training"] == 180
+    assert any("WARNING: 180 of the 180 evaluated frames were TRAINING frames" in w for w in warnings)
+
+
+def test_same_seed_other_n_shares_frames_only_within_a_split(trained, tmp_path):
+    """The leak of schema 1.x: with frames keyed by the global index, the test split of a
+    200-frame seed-0 dataset (frames 160-199) held frames 160-179 of the 300-frame one's
+    training split. Keyed by (split, index in split), it holds none."""
+    from skygen.io import open_dataset
+    other = _smoke_with(tmp_path, "n200", "n_frames=200")
+    r = evaluate_checkpoint(trained, other, "test", tmp_path, log=quiet)       # accepted: no shared frame
+    assert r["dataset"]["frames_seen_in_training"] == 0
+    with open_dataset(other) as b, open_dataset(small_dataset("smoke")) as a:
+        tb = b.indices("test")[0]
+        assert not np.array_equal(a.image(int(b.frames["index"][tb])), b.image(int(tb)))
+        assert np.array_equal(a.image(int(a.indices("test")[0])), b.image(int(tb)))   # same seed, same test frame
+    with pytest.raises(DatasetError, match="frames the checkpoint was trained on"):   # train frames 0-119 repeat
+        evaluate_checkpoint(trained, other, "train", tmp_path, log=quiet)
+
+
+def test_evaluate_warns_about_another_camera_and_takes_a_run_folder(trained, tmp_path):
+    other = _smoke_with(tmp_path, "cam", "n_frames=20", "camera.fov_deg=24", "seed=9")
+    warnings = []
+    r = evaluate_checkpoint(trained, other, "test", tmp_path, log=quiet, warn=warnings.append)
+    assert r["checkpoint"] == str(trained / "best.pt")
+    assert any("another camera" in w and "camera.fov_deg" in w for w in warnings), warnings
+
+
+def test_evaluate_and_train_refuse_a_shard_changed_after_rendering(trained, tmp_path, monkeypatch, capsys):
+    import h5py
+    from fusion.cli import main
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    copy = tmp_path / "copy"
+    shutil.copytree(small_dataset("smoke"), copy)
+    assert main(["evaluate", "--checkpoint", str(trained), "--data", str(copy), "--out", str(tmp_path)]) == 0
+    with h5py.File(copy / "shard-00001.h5", "r+") as f:          # an edited detection value, same size
+        row = f["detections/flux_adu"][3]
+        row[0] += 1000
+        f["detections/flux_adu"][3] = row
+    assert main(["evaluate", "--checkpoint", str(trained), "--data", str(copy), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "shard-00001.h5: sha256 differs" in err and len(err.splitlines()) == 1
+    assert main(["train", "--data", str(copy), "--out", str(tmp_path / "r"), "--config",
+                 str(ROOT / "configs" / "smoke.yaml")]) == 2
+    assert "shard-00001.h5: sha256 differs" in capsys.readouterr().err
+
+
+def test_checksums_are_verified_once_per_size_and_mtime(tmp_path, monkeypatch):
+    import os
+    from skygen.io import open_dataset, verify_checksums
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    with open_dataset(small_dataset("smoke")) as ds:
+        assert verify_checksums(ds) == 2
+        assert verify_checksums(ds) == 0                     # remembered
+        p = ds.shards[0].path
+        os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1))
+        assert verify_checksums(ds) == 1                     # touched: hashed again
+
+
+def test_an_error_inside_a_dataloader_worker_is_one_line_naming_the_file(tmp_path):
+    from fusion.cli import one_line
+    from fusion.data import FrameDataset, make_loader
+    from skygen.io import open_dataset
+    copy = tmp_path / "copy"
+    shutil.copytree(small_dataset("smoke"), copy)
+    ds = open_dataset(copy)
+    frames = FrameDataset(ds, np.arange(4), np.zeros(4, np.int64))
+    (copy / "shard-00000.h5").unlink()                           # vanishes after the dataset was opened
+    with pytest.raises(DatasetError) as info:
+        next(iter(make_loader(frames, 2, shuffle=False, workers=1)))
+    assert "Original Traceback" in str(info.value)               # what torch hands back
+    line = one_line(info.value)
+    assert "\n" not in line and line.endswith("shard-00000.h5: shard file is missing")

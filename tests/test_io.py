@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -71,8 +72,8 @@ def test_foreign_and_garbage_files(tmp_path):
 
 def test_unknown_major_version_is_refused(copy):
     with h5py.File(copy / "shard-00000.h5", "r+") as f:
-        f.attrs["schema_version"] = "2.0.0"
-    with pytest.raises(DatasetError, match="schema version 2.0.0 is not supported"):
+        f.attrs["schema_version"] = "3.0.0"
+    with pytest.raises(DatasetError, match="schema version 3.0.0 is not supported"):
         open_shard_file(copy / "shard-00000.h5")
     man = json.loads((copy / "manifest.json").read_text())
     man["schema_version"] = "9.1.0"
@@ -130,3 +131,45 @@ def test_damaged_labels_name_file_and_dataset(copy, damage, words):
     (copy / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(DatasetError, match=f"shard-00001.h5.*{words}"):
         open_dataset(copy)
+
+
+SCHEMA1 = Path(__file__).parent / "data" / "schema1-dataset"   # written by skygen 0.1.0 at commit 8cffe5a
+
+
+def test_schema1_dataset_still_reads_through_the_one_reader():
+    """A 1.x dataset (flat tables + offsets) reads through open_dataset with the 2.x API."""
+    with open_dataset(SCHEMA1) as ds:
+        assert ds.schema_version.startswith("1.") and len(ds) == 10
+        with h5py.File(SCHEMA1 / "shard-00001.h5") as f:       # frame 7 = row 2 of the second shard
+            lo, hi = f["detections/offsets"][2:4]
+            want = f["detections/x_px"][lo:hi]
+            slo, shi = f["stars/offsets"][2:4]
+            want_mag = f["stars/mag"][slo:shi]
+        np.testing.assert_array_equal(ds.detections(7)["x_px"], want)
+        np.testing.assert_array_equal(ds.true_stars(7)["mag"], want_mag)
+        assert ds.image(7).shape == (32, 32)
+        # identities derived for the 1.x keying (frames drawn from the global index)
+        assert ds.frames["frame_id"].dtype == np.uint64 and len(set(ds.frames["frame_id"])) == 10
+        assert list(ds.frames["index_in_split"]) == [0, 1, 2, 3, 4, 5, 6, 7, 0, 0]
+    assert validate(SCHEMA1).ok, validate(SCHEMA1).text()
+
+
+@pytest.mark.parametrize("counts", [(0, 0), (3, 3), (2, 0, 5)])
+def test_tables_of_empty_or_equal_length_rows_round_trip(tmp_path, counts):
+    """Per-frame variable-length rows survive frames without detections and frames of equal counts."""
+    from types import SimpleNamespace
+    from skygen.io import DETECTION_FIELDS, STAR_FIELDS, write_shard
+    from skygen.config import config_dict, load_config
+    cfg = config_dict(load_config(overrides=["n_frames=3"]))
+    table = lambda fields, k: {n: np.arange(k).astype(v[0]) for n, v in fields.items()}  # noqa: E731
+    frames = [SimpleNamespace(index=i, split=0, index_in_split=i, frame_id=i, n_stars=k, n_detections=k,
+                              background_adu=0.0, noise_adu=1.0, ra_deg=0.0, dec_deg=0.0, roll_deg=0.0,
+                              unit_vector=np.array([1.0, 0, 0]), quaternion=np.array([1.0, 0, 0, 0]),
+                              image=np.zeros((4, 4), np.uint16), image_full=None, downsample_factor=1,
+                              stars=table(STAR_FIELDS, k), detections=table(DETECTION_FIELDS, k), applied={}, log={})
+              for i, k in enumerate(counts)]
+    write_shard(tmp_path / "s.h5", frames, config=cfg, shard_index=0, frame_start=0)
+    with h5py.File(tmp_path / "s.h5") as f:
+        assert f["detections/x_px"].shape == (len(counts),)
+        assert [len(r) for r in f["detections/x_px"][...]] == list(counts)
+        assert [len(r) for r in f["stars/mag"][...]] == list(counts)

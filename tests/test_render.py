@@ -132,3 +132,16 @@ def test_corruption_log_records_what_happened(small_overrides):
     assert f.log["cosmic_rays"]["n_hits"] > 0 and "false_stars" in f.log and "dropout" in f.log
     assert f.applied["cosmic_rays"] == 20000 and f.applied["motion_blur"] == 0
     assert (f.stars["hip_id"] == -1).sum() == f.log["false_stars"]["n"]
+
+
+def test_a_frame_with_detections_but_no_catalog_star(small_overrides):
+    """Only false sources (a one-star catalog far from the boresight, cosmic rays): every
+    detection is false (hip_id -1), no IndexError."""
+    from skygen.catalog import StarTable
+    one = StarTable(np.array([1]), np.array([0.0]), np.array([-1.5]), np.zeros(1), np.zeros(1),
+                    np.array([3.0], np.float32), np.array([0.6], np.float32), 1991.25, "test")
+    cfg = load_config(overrides=small_overrides + ["attitude.mode=list", "attitude.ra_deg=[180]",
+                                                   "attitude.dec_deg=[60]", "corruptions.cosmic_rays=3000"])
+    f = Renderer(cfg, catalog=one).render(0)
+    assert len(f.stars["hip_id"]) == 0 and len(f.detections["hip_id"]) > 0
+    assert np.all(f.detections["hip_id"] == -1) and np.all(f.detections["star_index"] == -1)
