@@ -86,3 +86,70 @@ def test_tetra3rs_refuses_few_or_random_detections(renderer, tetra):
     res = tetra.solve(noise, renderer.camera)
     assert isinstance(res, Refusal) and res.reason in ("no_match", "timeout")
     assert res.to_dict()["status"] == "refused"
+
+
+# --------------------------------------------------------------------------- coarse-to-fine
+@pytest.fixture(scope="module")
+def regions():
+    from fusion.benchmark import default_centroids
+    return default_centroids(15)
+
+
+def test_region_radii_cover_the_sphere(regions):
+    from fusion.solvers.coarse_fine import region_radii_deg
+    r = region_radii_deg(regions)
+    rng = np.random.default_rng(3)
+    v = rng.standard_normal((5000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    lab = np.argmax(v @ regions.T, axis=1)
+    ang = np.degrees(np.arccos(np.clip(np.sum(v * regions[lab], axis=1), -1, 1)))
+    assert np.all(ang <= r[lab])                   # every direction lies within its region's radius
+    assert 20 < r.min() and r.max() < 60           # K = 15: cells tens of degrees wide
+
+
+def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, tetra, regions):
+    """4 brightest detections: tetra3rs lost-in-space refuses; the true region as prior gives the attitude."""
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=1)
+    solved = lis = 0
+    for i in range(8):
+        f = renderer.render(i)
+        det = Detections.from_table(f.detections).brightest(4)
+        lis += isinstance(tetra.solve(det, renderer.camera), Solution)
+        res = c2f.solve(det, renderer.camera, probabilities=prior.probabilities_for(f.unit_vector, i))
+        if isinstance(res, Solution):
+            truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+            assert boresight_error_deg(truth, res.matrix) < 0.05      # never a wrong attitude
+            assert res.confidence >= 0.99 and res.n_matched >= 3
+            solved += 1
+    assert lis == 0 and solved >= 5
+
+
+def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=2)
+    f = renderer.render(2)
+    p = prior.probabilities_for(f.unit_vector, 2)
+    three = Detections.from_table(f.detections).brightest(3)
+    res = c2f.solve(three, renderer.camera, probabilities=p)      # one triangle: chance matches abound
+    assert isinstance(res, Refusal)
+    rng = np.random.default_rng(5)
+    noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
+    assert isinstance(c2f.solve(noise, renderer.camera, probabilities=p), Refusal)
+    # the wrong region only: the right attitude is outside it, so nothing is returned
+    wrong = np.roll(p, 7)
+    res = c2f.solve(Detections.from_table(f.detections).brightest(6), renderer.camera, probabilities=wrong)
+    if isinstance(res, Solution):
+        assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
+
+
+def test_confidence_falls_with_hypotheses(tetra):
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    c2f = CoarseToFineSolver(tetra, None)
+    assert c2f.confidence(1000, 3, 3) < c2f.confidence(10, 3, 3)
+    assert c2f.confidence(10_000, 6, 6) > 0.999
+    assert c2f.confidence(10_000, 6, 2) == 0.0
