@@ -12,7 +12,8 @@ Per frame:
 
 1. detection: skygen's detector (:func:`skygen.detect.detect`) with the camera's detection
    settings (threshold in background sigma, minimum area), positions in full-resolution
-   pixels (skygen convention: (0, 0) is the centre of the top-left pixel);
+   pixels (skygen convention: (0, 0) is the centre of the top-left pixel); ``--detector
+   tetra3rs`` uses tetra3rs's extractor instead (no checkpoint only);
 2. with ``--checkpoint``: the model's preprocessing (area-average to the stored size, the
    checkpoint's log stretch and coordinate encoding, :func:`fusion.solvers.priors.model_inputs`)
    and its region probabilities; the top-k regions with probability and the RA/Dec of each
@@ -108,7 +109,8 @@ class Predictor:
     """Detector + (optional) region prior + (optional) solver for one camera."""
 
     def __init__(self, checkpoint: str | Path | None = None, *, camera: str | Path | None = None,
-                 dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, log=None):
+                 dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
+                 log=None):
         from .solvers.priors import load_prior
         if checkpoint is None and camera is None:
             raise ConfigError("give --checkpoint CK (a trained model) or --camera FILE.yaml (tetra3rs only)")
@@ -126,7 +128,10 @@ class Predictor:
         self.cfg = build_render_config(render_config)
         self.camera = Camera.from_config(self.cfg.camera)
         self.factor = self.cfg.camera.width_px // self.cfg.output.image_size_px
-        self.top_k = top_k
+        self.top_k, self.detector = top_k, detector
+        if detector == "tetra3rs" and self.prior is not None:
+            raise ConfigError("--detector tetra3rs: the model was trained on skygen's detector; use it only "
+                              "without --checkpoint")
         self.solver = None
         if solve:
             from .solvers.coarse_fine import CoarseToFineSolver
@@ -143,6 +148,18 @@ class Predictor:
 
     def detect(self, img: np.ndarray) -> tuple[Detections, float, float]:
         d = self.cfg.detection
+        if self.detector == "tetra3rs":
+            # tetra3rs's extractor (local background, matched filter): centroids relative to the image centre;
+            # skygen pixel = centroid + (size - 1) / 2 (checked against rendered true positions to 0.004 px)
+            import tetra3rs
+            res = tetra3rs.extract_centroids(np.ascontiguousarray(img, np.float32),
+                                             sigma_threshold=d.threshold_sigma, min_pixels=d.min_area_px,
+                                             max_centroids=d.max_detections)
+            c = res.centroids
+            h, w = img.shape
+            table = {"x_px": np.array([p.x for p in c]) + (w - 1) / 2, "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
+                     "flux_adu": np.array([p.brightness or 0.0 for p in c])}
+            return Detections.from_table(table), float(res.background_mean), float(res.background_sigma)
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, d.max_detections)
         return Detections.from_table(det), bg, sigma
 
@@ -222,10 +239,11 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
 
 
 def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
-            overlay_dir=None, out=None, max_frames=None, log=print, err=None) -> tuple[list[dict], int]:
+            detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
+            err=None) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames)."""
     err = err or (lambda m: print(m, file=sys.stderr))
-    pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k,
+    pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      log=lambda m: err(m))
     sink = open(out, "w") if out else None
     if overlay_dir:
@@ -275,9 +293,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
     p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
     p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
+    p.add_argument("--detector", choices=("skygen", "tetra3rs"), default="skygen",
+                   help="skygen (default; what models are trained on) or tetra3rs's extractor (local background, "
+                        "matched filter: more stars on ground frames with sky gradients; without --checkpoint only)")
 
 
 def run(args: argparse.Namespace) -> int:
     _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
-                        top_k=args.top_k, overlay_dir=args.overlay, out=args.out, max_frames=args.max_frames)
+                        top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
+                        max_frames=args.max_frames)
     return 1 if failed else 0

@@ -159,3 +159,14 @@ def test_real_blackfly_frame_solves_to_the_listed_attitude(tmp_path):
     assert sol["status"] == "solved"
     assert abs(sol["ra_deg"] - 286.4356) * np.cos(np.radians(28.94)) < 0.01 and abs(sol["dec_deg"] - 28.9442) < 0.01
     assert abs((sol["roll_deg"] - (151.367 + 180.0) + 180) % 360 - 180) < 0.05   # listed roll is tetra3rs's (+y)
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="real frames not present (../shared/real-frames)")
+def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extractor(tmp_path):
+    frame = REAL / "2019-07-29T204726_Alt40_Azi-45_Try1.tiff"        # sky gradient: skygen's detector finds 4 stars
+    cam = str(ROOT / "configs/cameras/blackfly-s-imx265-35mm.yaml")
+    out = tmp_path / "r.jsonl"
+    assert main(["predict", str(frame), "--camera", cam, "--solve", "--detector", "tetra3rs", "--out", str(out)]) == 0
+    sol = _lines(out)[0]["solution"]
+    assert sol["status"] == "solved"
+    assert abs(sol["ra_deg"] - 172.3667) * np.cos(np.radians(57.65)) < 0.01 and abs(sol["dec_deg"] - 57.6494) < 0.01
