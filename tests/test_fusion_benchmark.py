@@ -67,3 +67,28 @@ def test_benchmark_rejects_unknown_names(small_dataset, tmp_path):
     from fusion.cli import main
     assert main(["benchmark", "--data", str(small_dataset), "--out", str(tmp_path), "--solvers", "astrometry"]) == 2
     assert main(["benchmark", "--data", str(small_dataset), "--out", str(tmp_path), "--corruptions", "hotpixels"]) == 2
+
+
+def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path, monkeypatch):
+    """The learned columns: region top-1/top-k of the checkpoint and coarse-to-fine with it as the prior."""
+    from pathlib import Path
+
+    from fusion.cli import main
+    from fusion.config import load_config
+    from fusion.testing import small_dataset
+    from fusion.train import train
+    monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
+    root = Path(__file__).resolve().parents[1]
+    data = small_dataset("smoke")
+    train(load_config(root / "configs" / "smoke.yaml", [f"data.path={data}", "train.epochs=2"]), tmp_path / "run",
+          log=lambda *a, **k: None)
+    out = tmp_path / "bench"
+    assert main(["benchmark", "--data", str(data), "--out", str(out), "--checkpoint", str(tmp_path / "run/best.pt"),
+                 "--frames", "5", "--n", "8", "--corruptions", "--top-k", "2",
+                 "--solvers", "tetra3rs", "learned", "learned+fine"]) == 0
+    r = json.loads((out / "benchmark.json").read_text())
+    cell = r["cells"][0]["solvers"]
+    assert 0 <= cell["learned"]["top1"] <= cell["learned"]["top2"] <= 1
+    lf = cell["learned+fine"]
+    assert lf["wrong"] == 0 and lf["correct"] + lf["refused"] == pytest.approx(1.0)
+    assert r["region_count"] == 4 and "learned top-1" in (out / "benchmark.md").read_text()
