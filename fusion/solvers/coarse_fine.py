@@ -16,13 +16,14 @@ For one region (a cap around a region centroid, :class:`Region`):
 3. score: every detection is mapped to the sky with that rotation and counts if a
    catalog star lies within ``tol_px``; a hypothesis whose boresight leaves the region is
    dropped (it belongs to another region);
-4. decision: the best hypothesis (most matches) must be unique — no other hypothesis with
+4. decision, after each detection pair (so a clear case stops early): the best hypothesis
+   so far (most matches) must be unique — no other hypothesis with
    as many matches at an attitude more than 0.5° away — and its chance of being a
    coincidence small: ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so
    far, n detections, s matches, p the chance that a random sky position has a catalog
    star within ``tol_px``) gives ``confidence = max(0, 1 - E_false)``; below
    ``min_confidence`` or fewer than ``min_matches`` matches: next region, or a refusal;
-5. refinement: tetra3rs tracking from that attitude (strict hint, 0.2°) re-matches every
+5. refinement: tetra3rs tracking from that attitude (strict hint, 1°) re-matches every
    detection against its catalog and refines the attitude; when it declines (few stars),
    the least-squares rotation of our own matches is returned.
 
@@ -153,11 +154,10 @@ class CoarseToFineSolver:
         return self._all
 
     # ---------------------------------------------------------------- search
-    def _hypotheses(self, u: np.ndarray, region: Region) -> tuple[np.ndarray, np.ndarray, int]:
-        """(rotations, match counts) of every pair hypothesis in ``region``; and the number tried."""
+    def _hypotheses(self, u: np.ndarray, region: Region):
+        """Per pair of bright detections: (rotations, match counts, hypotheses tried) in ``region``."""
         pairs, sep, cos_r = self._region_pairs(region)
         n = len(u)
-        rots, scores, tried = [], [], 0
         m = min(n, self.max_pair_detections)
         for i in range(m):
             for j in range(i + 1, m):
@@ -167,20 +167,13 @@ class CoarseToFineSolver:
                     continue
                 cand = pairs[lo:hi]
                 r = _triad(u[i], u[j], self.vec[cand[:, 0]], self.vec[cand[:, 1]])
-                tried += len(cand)
-                bore = r[:, :, 2]
-                ok = bore @ region.center >= cos_r - 1e-12
-                r = r[ok]
+                r = r[r[:, :, 2] @ region.center >= cos_r - 1e-12]       # boresight inside the region
                 if not len(r):
+                    yield r, np.zeros(0, np.int64), len(cand)
                     continue
                 sky = np.einsum("pab,nb->pna", r, u)                    # (P, n, 3)
                 dist, _ = self.tree.query(sky.reshape(-1, 3), distance_upper_bound=2 * math.sin(self.tol_rad / 2))
-                s = np.isfinite(dist).reshape(len(r), n).sum(axis=1)
-                rots.append(r)
-                scores.append(s)
-        if not rots:
-            return np.zeros((0, 3, 3)), np.zeros(0, np.int64), tried
-        return np.concatenate(rots), np.concatenate(scores), tried
+                yield r, np.isfinite(dist).reshape(len(r), n).sum(axis=1), len(cand)
 
     def _matches(self, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dist, idx = self.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
@@ -195,6 +188,18 @@ class CoarseToFineSolver:
         e = sum(math.comb(n_det - 2, k) * self.p_chance ** k * (1 - self.p_chance) ** (n_det - 2 - k)
                 for k in range(extra, n_det - 1))
         return float(max(0.0, 1.0 - n_hypotheses * e))
+
+    def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | str:
+        """Index of the accepted hypothesis, or why none is accepted yet."""
+        best = int(np.argmax(scores))
+        s = int(scores[best])
+        rivals = np.flatnonzero(scores == s)
+        if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
+            return f"ambiguous: several attitudes match {s} of {n} detections"
+        conf = self.confidence(tried, n, s)
+        if s < self.min_matches or conf < self.min_confidence:
+            return f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}"
+        return best
 
     def solve(self, detections: Detections, camera=None, image=None,
               probabilities: np.ndarray | None = None) -> Solution | Refusal:
@@ -212,24 +217,20 @@ class CoarseToFineSolver:
                 raise ValueError("probabilities given but the solver has no prior with centroids")
         u = camera.unproject(detections.x_px, detections.y_px)
         n = len(u)
-        tried, last = 0, "no hypothesis"
+        tried, last = 0, "no catalog pair matches the detections in the prior's regions"
         for region in self.regions(probabilities, centroids):
-            rots, scores, t = self._hypotheses(u, region)
-            tried += t
-            if not len(scores):
-                last = "no catalog pair matches the detections in the prior's regions"
-                continue
-            best = int(np.argmax(scores))
-            s = int(scores[best])
-            rivals = np.flatnonzero(scores == s)
-            if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
-                last = f"ambiguous: several attitudes match {s} of {n} detections"
-                continue
-            conf = self.confidence(tried, n, s)
-            if s < self.min_matches or conf < self.min_confidence:
-                last = f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}"
-                continue
-            return self._finish(rots[best], u, detections, camera, conf, region, tried, t0)
+            rots, scores = np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+            # sequential: decide after every detection pair, with H = every hypothesis tried so far
+            for r, sc, t in self._hypotheses(u, region):
+                tried += t
+                if not len(sc):
+                    continue
+                rots, scores = np.concatenate([rots, r]), np.concatenate([scores, sc])
+                verdict = self._decide(rots, scores, tried, n)
+                if isinstance(verdict, int):
+                    return self._finish(rots[verdict], u, detections, camera,
+                                        self.confidence(tried, n, int(scores[verdict])), region, tried, t0)
+                last = verdict
         return Refusal(last, self.name, ms(), {"hypotheses": tried})
 
     def _finish(self, rot, u, detections, camera, conf, region, tried, t0) -> Solution:
@@ -239,8 +240,10 @@ class CoarseToFineSolver:
         extra = {"region": region.index, "region_probability": region.probability, "hypotheses": tried,
                  "refined_by": "own least squares"}
         if self.verify:
-            res = self.tetra.solve_with_hint(detections, camera, rot, 0.2, name=self.name)
-            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 0.1:
+            # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
+            # to about a degree; tetra3rs re-matches every detection within that and refines
+            res = self.tetra.solve_with_hint(detections, camera, rot, 1.0, name=self.name)
+            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0:
                 extra["refined_by"] = "tetra3rs tracking"
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
