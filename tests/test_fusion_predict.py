@@ -170,3 +170,13 @@ def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extracto
     sol = _lines(out)[0]["solution"]
     assert sol["status"] == "solved"
     assert abs(sol["ra_deg"] - 172.3667) * np.cos(np.radians(57.65)) < 0.01 and abs(sol["dec_deg"] - 57.6494) < 0.01
+
+
+def test_predict_on_a_dataset_folder(checkpoint, tmp_path):
+    out = tmp_path / "d.jsonl"
+    assert main(["predict", str(small_dataset("smoke")), "--checkpoint", str(checkpoint), "--max-frames", "3",
+                 "--solve", "--top-k", "4", "--out", str(out)]) == 0
+    recs = _lines(out)
+    assert len(recs) == 3 and all(r["detections_from"] == "dataset" for r in recs)
+    assert all(abs(sum(x["probability"] for x in r["regions"]) - 1) < 1e-5 for r in recs)   # K = 4, all listed
+    assert all(r["solution"]["status"] in ("solved", "refused") for r in recs)
