@@ -209,13 +209,24 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
                   ["learned"] if "learned" in solvers else []),
               "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
               "region_count": int(len(centroids)), "top_k": top_k, "notes": notes, "cells": rows,
-              "hardware": f"{platform.machine()} CPU, {platform.processor() or 'unknown model'}, one process",
+              "hardware": _hardware(),
               "tetra3rs_version": tetra.t3.__version__, "wall_time_s": time.perf_counter() - t_start}
     write_json(out / "benchmark.json", report)
     atomic_write_text(out / "benchmark.md", markdown(report))
     plot(report, out)
     log(f"wrote {out / 'benchmark.json'}, benchmark.md and plots ({report['wall_time_s']:.0f} s)")
     return report
+
+
+def _hardware() -> str:
+    import os
+    model = platform.processor() or "unknown model"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), model)
+    except OSError:
+        pass
+    return f"{platform.machine()} {model}, {os.cpu_count()} logical CPUs, one process"
 
 
 def _learned_cell(prior, dets, images, labels, v_true, centroids, top_k) -> dict:

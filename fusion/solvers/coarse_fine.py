@@ -23,9 +23,14 @@ For one region (a cap around a region centroid, :class:`Region`):
    far, n detections, s matches, p the chance that a random sky position has a catalog
    star within ``tol_px``) gives ``confidence = max(0, 1 - E_false)``; below
    ``min_confidence`` or fewer than ``min_matches`` matches: next region, or a refusal;
-5. refinement: tetra3rs tracking from that attitude (strict hint, 1°) re-matches every
-   detection against its catalog and refines the attitude; when it declines (few stars),
-   the least-squares rotation of our own matches is returned.
+5. verification and refinement: tetra3rs tracking from that attitude (strict hint, 1°)
+   re-matches every detection against its catalog, tests the match against its own
+   false-positive budget and refines the attitude. A candidate tetra3rs does not confirm is
+   returned (as the least-squares rotation of our own matches) only if its confidence
+   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched.
+   Measured on 150 test frames: the candidates that turned out wrong under heavy
+   corruption (4 of 6 detections matched, confidence ~0.994) were exactly those tetra3rs
+   did not confirm, while 77 of 78 correct 4-star solutions were confirmed.
 
 Regions are tried in order of prior probability (``top_k`` at most); the hypothesis
 count H accumulates, so searching more regions demands stronger evidence. The prior is
@@ -96,10 +101,12 @@ class CoarseToFineSolver:
 
     def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
                  stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
-                 min_confidence: float = 0.99, verify_with_tetra3rs: bool = True):
+                 min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
+                 verify_with_tetra3rs: bool = True):
         self.tetra, self.prior, self.name = tetra, prior, name
         self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
+        self.unverified_confidence = unverified_confidence
         cam = tetra.camera
         db = tetra.db
         stars = [db.get_star(i) for i in range(db.num_stars)]
@@ -228,12 +235,16 @@ class CoarseToFineSolver:
                 rots, scores = np.concatenate([rots, r]), np.concatenate([scores, sc])
                 verdict = self._decide(rots, scores, tried, n)
                 if isinstance(verdict, int):
-                    return self._finish(rots[verdict], u, detections, camera,
-                                        self.confidence(tried, n, int(scores[verdict])), region, tried, t0)
+                    sol = self._finish(rots[verdict], u, detections, camera,
+                                       self.confidence(tried, n, int(scores[verdict])), region, tried, t0)
+                    if sol is not None:
+                        return sol
+                    last = "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar"
+                    break                                            # this region's best is doubtful: next region
                 last = verdict
         return Refusal(last, self.name, ms(), {"hypotheses": tried})
 
-    def _finish(self, rot, u, detections, camera, conf, region, tried, t0) -> Solution:
+    def _finish(self, rot, u, detections, camera, conf, region, tried, t0) -> Solution | None:
         det_rows, cat_rows = self._matches(rot, u)
         rot = _kabsch(u[det_rows], self.vec[cat_rows])
         det_rows, cat_rows = self._matches(rot, u)
@@ -248,6 +259,8 @@ class CoarseToFineSolver:
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
                                 res.residual_arcsec, conf, self.name, (time.perf_counter() - t0) * 1e3, extra)
+            if conf < self.unverified_confidence:
+                return None
         resid = np.arccos(np.clip(np.sum((u[det_rows] @ rot.T) * self.vec[cat_rows], axis=1), -1, 1))
         return solution_from_matrix(rot, matched=np.column_stack([det_rows, self.ids[cat_rows]]),
                                     residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
