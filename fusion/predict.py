@@ -112,8 +112,9 @@ class Predictor:
                  dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
                  log=None):
         from .solvers.priors import load_prior
-        if checkpoint is None and camera is None:
-            raise ConfigError("give --checkpoint CK (a trained model) or --camera FILE.yaml (tetra3rs only)")
+        if (checkpoint is None) == (camera is None):
+            raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
+                              "(tetra3rs only), exactly one of them")
         render_config = None
         if dataset is not None:
             from skygen.io import open_dataset
