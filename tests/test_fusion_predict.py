@@ -180,3 +180,11 @@ def test_predict_on_a_dataset_folder(checkpoint, tmp_path):
     assert len(recs) == 3 and all(r["detections_from"] == "dataset" for r in recs)
     assert all(abs(sum(x["probability"] for x in r["regions"]) - 1) < 1e-5 for r in recs)   # K = 4, all listed
     assert all(r["solution"]["status"] in ("solved", "refused") for r in recs)
+
+
+def test_checkpoint_and_camera_are_exclusive(checkpoint, frame_and_truth, capsys):
+    paths, _ = frame_and_truth
+    cam = str(ROOT / "configs/cameras/default-20deg.yaml")
+    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--camera", cam]) == 2
+    assert main(["predict", str(paths["npy"])]) == 2
+    assert "exactly one" in capsys.readouterr().err
