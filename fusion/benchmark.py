@@ -158,7 +158,12 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     tetra = Tetra3Solver(cam, log=log)
     prior, notes = None, []
     if checkpoint:
-        prior = load_prior(checkpoint, dict(ds.config))
+        from .checkpoint import load_checkpoint
+        own = load_checkpoint(checkpoint).get("render_config")       # older checkpoints: the benchmark dataset's
+        prior = load_prior(checkpoint, None if own else dict(ds.config))
+        if own and own["camera"] != ds.config["camera"]:
+            raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
+                              f"({own['camera']} vs {ds.config['camera']}); benchmark it on frames of its camera")
         centroids = prior.centroids
     else:
         centroids = default_centroids()
