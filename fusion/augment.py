@@ -53,6 +53,11 @@ class FrameGeometry:
     @classmethod
     def from_render_config(cls, config: dict) -> "FrameGeometry":
         w = int(config["camera"]["width_px"])
+        if int(config["camera"]["height_px"]) != w:
+            from .errors import ConfigError
+            raise ConfigError(f"fusion models take square sensors for now; this dataset's camera is {w} x "
+                              f"{config['camera']['height_px']} px (tetra3rs solving works on any sensor: "
+                              "`fusion predict --camera ... --solve` without --checkpoint)")
         s = int(config["output"]["image_size_px"])
         return cls(w, s, w // s, float(config["sensor"]["bias_adu"]),
                    float(2 ** int(config["sensor"]["bit_depth"]) - 1), float(config["optics"]["psf_sigma_px"]))

@@ -16,9 +16,11 @@ A checkpoint (``best.pt``, ``last.pt``) is a ``torch.save`` dict that loads with
     metrics rows so far, the best-epoch record, whether the run ended.
 ``rng``
     torch / CUDA / NumPy / Python generator states; ``versions`` of the libraries; ``dataset``
-    (root, dataset_id, schema_version, camera config) the run was trained on;
+    (root as an absolute path, dataset_id, schema_version, camera config) the run was trained on;
     ``train_frame_ids`` (int64 tensor, the uint64 frame identities of the training frames,
-    see :mod:`skygen.identity`) so that evaluation can refuse frames the model has seen.
+    see :mod:`skygen.identity`) so that evaluation can refuse frames the model has seen;
+    ``render_config`` the training dataset's resolved skygen config (camera, sensor, detector,
+    stored image size): what applying the model to a new frame needs (:func:`render_config_of`).
 
 Every file is written to a hidden temporary name in the same folder and ``os.replace``d,
 so a crash never leaves a half-written ``best.pt`` that looks whole.
@@ -140,6 +142,19 @@ def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
                               f"(it holds {ckpt.get('model_name')!r} with branches {ckpt.get('branches')})")
     model.load_state_dict(take, strict=False)
     return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take)}
+
+
+def render_config_of(ckpt: dict, source: str | Path = "checkpoint") -> dict:
+    """The skygen render config (camera, sensor, detector, storage) a checkpoint's model was trained for.
+
+    Checkpoints written before this key existed get a one-line CheckpointError saying how to proceed.
+    """
+    rc = ckpt.get("render_config")
+    if not isinstance(rc, dict) or "camera" not in rc:
+        raise CheckpointError(f"{source}: this checkpoint predates camera data in checkpoints (no 'render_config'); "
+                              "re-train it with this fusion, or pass --dataset DIR (its training dataset) to take "
+                              "the camera and detector from there")
+    return rc
 
 
 def rng_state() -> dict:

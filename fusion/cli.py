@@ -8,6 +8,8 @@
     fusion timing --checkpoint CKPT --mode both --out FILE.json
     fusion export --checkpoint CKPT --onnx FILE.onnx [--opset 17]
     fusion experiment --preset cpu|gpu|smoke [--out results/PRESET]
+    fusion predict FRAME... --checkpoint CKPT [--solve] [--overlay DIR]   (or --camera PRESET.yaml)
+    fusion benchmark --data DIR --out DIR [--checkpoint CKPT] [--grid small|full]
 
 Each subcommand is registered in :data:`SUBCOMMANDS` (name -> (help, add_arguments, run)). Errors the project raises
 on purpose (:class:`skygen.errors.SkygenError` and subclasses) print one line and return 2, also when raised
@@ -122,6 +124,10 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
     "export": ("export a checkpoint to ONNX and verify it against onnxruntime", *_module("export")),
     "experiment": ("run the paper's tables and the missing experiments; writes REPORT.md",
                    *_module("experiment")),
+    "predict": ("detections, the model's top-k regions and (--solve) a full attitude for PNG/TIFF/FITS/.npy frames",
+                *_module("predict")),
+    "benchmark": ("score attitude solvers (tetra3rs lost-in-space, learned prior + fine stage, ...) on the same "
+                  "detections: correct/wrong/refused vs N and corruptions", *_module("benchmark")),
 }
 
 

@@ -393,10 +393,13 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     static = {"config": config_dict(cfg), "centroids": torch.from_numpy(data.centroids),
               "num_classes": k, "image_size": image_size, "max_stars": cfg.data.max_stars,
               "model_name": cfg.model.name, "branches": model.branches, "versions": versions(),
-              "dataset": {"root": str(data.ds.root), "dataset_id": data.ds.manifest.get("dataset_id"),
+              "dataset": {"root": str(Path(data.ds.root).resolve()), "dataset_id": data.ds.manifest.get("dataset_id"),
                           "schema_version": data.ds.schema_version, "camera": data.ds.config["camera"]},
               # identities of the frames trained on: `fusion evaluate` refuses to score them
-              "train_frame_ids": torch.from_numpy(data.ds.frames["frame_id"][data.train.positions].view(np.int64))}
+              "train_frame_ids": torch.from_numpy(data.ds.frames["frame_id"][data.train.positions].view(np.int64)),
+              # the camera, sensor, detector and storage the model was trained for: `fusion predict` needs
+              # nothing else, from any folder (see fusion.checkpoint.render_config_of)
+              "render_config": dict(data.ds.config)}
     if info.is_main:
         write_config_yaml(out / "config.yaml", cfg)
         atomic_save_numpy(out / "centroids.npy", data.centroids)

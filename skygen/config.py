@@ -119,7 +119,7 @@ class DetectionConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
-    image_size_px: int = param(256, lo=8, hi=16384, doc="stored image size (square; area-averaged from the sensor)")
+    image_size_px: int = param(256, lo=8, hi=16384, doc="stored image width (area-averaged from the sensor by width_px/image_size_px; height scaled alike)")
     full_res: bool = param(False, doc="also store the full-resolution frame")
     compression: str = param("gzip", choices=("gzip", "lzf", "none", "blosc-zstd", "blosc-lz4"), doc="HDF5 image compression (blosc needs hdf5plugin)")
     compression_level: int = param(4, lo=0, hi=9, doc="gzip/blosc level")
@@ -165,12 +165,14 @@ def check_consistency(cfg: RenderConfig) -> None:
     if a.roll_range_deg[1] < a.roll_range_deg[0]:
         raise ConfigError(f"attitude.roll_range_deg: {list(a.roll_range_deg)} must be [lo, hi] with lo <= hi")
     cam, out = cfg.camera, cfg.output
-    if cam.width_px != cam.height_px:
-        raise ConfigError(f"camera.width_px ({cam.width_px}) and camera.height_px ({cam.height_px}) must be "
-                          "equal: stored images are square")
     if cam.width_px % out.image_size_px:
         raise ConfigError(f"output.image_size_px ({out.image_size_px}) must divide camera.width_px "
                           f"({cam.width_px}) so that frames are area-averaged by an integer factor")
+    factor = cam.width_px // out.image_size_px
+    if cam.height_px % factor:
+        raise ConfigError(f"camera.height_px ({cam.height_px}) must be a multiple of the downsampling factor "
+                          f"camera.width_px / output.image_size_px = {factor}: stored frames are "
+                          f"{out.image_size_px} x height_px/{factor}")
     if abs(sum(out.split_fractions) - 1.0) > 1e-6:
         raise ConfigError(f"output.split_fractions {list(out.split_fractions)} must sum to 1")
     if cfg.sensor.bias_adu >= 2 ** cfg.sensor.bit_depth:

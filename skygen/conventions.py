@@ -38,6 +38,12 @@ Pixels and arrays
     ``s``, stored pixel (u, v) covers full-resolution x in [s*u - 0.5, s*(u+1) - 0.5):
     ``u = (x + 0.5) / s - 0.5``.
 
+Other tools (checked on rendered frames in ``tests/test_solvers.py``)
+    tetra3rs: centroids relative to the image centre, ``x_t3 = x - (W - 1)/2`` (same axes);
+    its quaternion and ``rotation_matrix_icrs_to_camera`` rotate ICRS into the camera frame
+    (the conjugate / transpose of ours); its ``roll_deg`` is the position angle of +y, i.e.
+    ``roll_tetra3rs = roll - 180`` (mod 360).
+
 Photometry
     Electrons (e-) for charge, ADU for digital numbers, gain in e-/ADU. Magnitudes are
     Hipparcos Hp unless named otherwise.

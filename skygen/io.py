@@ -310,8 +310,10 @@ class Dataset:
 
     @property
     def image_shape(self) -> tuple[int, int]:
+        """(rows, columns) of the stored images: the sensor area-averaged by an integer factor."""
         s = int(self.config["output"]["image_size_px"])
-        return s, s
+        h, w = self.sensor_shape
+        return h // (w // s), s
 
     @property
     def downsample_factor(self) -> int:

@@ -120,9 +120,10 @@ def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, fr
                     major: int) -> None:
     w, h = cfg["camera"]["width_px"], cfg["camera"]["height_px"]
     s = cfg["output"]["image_size_px"]
-    if "images" not in f or f["images"].shape != (n, s, s) or f["images"].dtype != np.uint16:
+    sh = h // (w // s)          # stored rows: the sensor rows over the same downsampling factor
+    if "images" not in f or f["images"].shape != (n, sh, s) or f["images"].dtype != np.uint16:
         got = (f["images"].dtype, f["images"].shape) if "images" in f else "missing"
-        rep.problems.append(f"{where}: 'images' should be uint16 ({n}, {s}, {s}); got {got}")
+        rep.problems.append(f"{where}: 'images' should be uint16 ({n}, {sh}, {s}); got {got}")
     else:
         for j in range(n):        # reading every chunk also verifies the compressed stream
             f["images"][j]

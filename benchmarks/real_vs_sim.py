@@ -1,0 +1,224 @@
+"""Real Blackfly S frames against skygen frames of the same camera preset: the sim-to-real gap.
+
+    python benchmarks/real_vs_sim.py [--real DIR] [--camera configs/cameras/blackfly-s-imx265-35mm.yaml]
+                                     [--sim-frames 50] [--out results/real-frames]
+
+For every real frame (ESA tetra3 test data, ../shared/real-frames/tetra3-blackfly) and every
+rendered frame: background level and noise (skygen's sigma-clipped estimator), detections
+per frame (skygen's detector with the preset's settings; tetra3rs's own extractor, with
+local background and a matched filter, for reference), star width (intensity-weighted
+second moment of the 20 brightest unsaturated detections, 9 x 9 px), and on the real
+frames the tetra3rs solution from skygen's detections against the listed plate solution.
+The real TIFFs hold 12-bit values scaled by 16: they are divided by 16 to compare ADU.
+Writes REPORT.md, real_vs_sim.json and real_vs_sim.png (a real and a rendered frame).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+LISTED = {  # ../shared/real-frames/README.md: ra, dec, fov, tetra3rs roll (+y east of north)
+    "2019-07-29T204726_Alt40_Azi-135_Try1.tiff": (230.6676, 11.0358, 11.4206, -152.278),
+    "2019-07-29T204726_Alt40_Azi-45_Try1.tiff": (172.3667, 57.6494, 11.4243, -123.426),
+    "2019-07-29T204726_Alt40_Azi135_Try1.tiff": (296.7571, 11.3140, 11.4289, 155.109),
+    "2019-07-29T204726_Alt40_Azi45_Try1.tiff": (355.2049, 58.1518, 11.4246, 126.690),
+    "2019-07-29T204726_Alt60_Azi-135_Try1.tiff": (240.4640, 28.9401, 11.4238, -149.041),
+    "2019-07-29T204726_Alt60_Azi-45_Try1.tiff": (212.2125, 64.2007, 11.4262, -88.321),
+    "2019-07-29T204726_Alt60_Azi135_Try1.tiff": (286.4356, 28.9442, 11.4224, 151.367),
+    "2019-07-29T204726_Alt60_Azi45_Try1.tiff": (314.6943, 64.2250, 11.4300, 90.616),
+}
+
+
+def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> float:
+    sig = []
+    h, w = img.shape
+    for x, y, peak in zip(det["x_px"][:n], det["y_px"][:n], det["peak_adu"][:n]):
+        if peak + bg >= 0.9 * saturation:
+            continue
+        xi, yi = int(round(x)), int(round(y))
+        if not (4 <= xi < w - 4 and 4 <= yi < h - 4):
+            continue
+        st = np.clip(img[yi - 4:yi + 5, xi - 4:xi + 5] - bg, 0, None)
+        yy, xx = np.mgrid[-4:5, -4:5]
+        tot = st.sum()
+        if tot <= 0:
+            continue
+        mx, my = (st * xx).sum() / tot, (st * yy).sum() / tot
+        sig.append(np.sqrt(((st * ((xx - mx) ** 2 + (yy - my) ** 2)).sum() / tot) / 2))
+    return float(np.median(sig)) if sig else float("nan")
+
+
+def frame_stats(img: np.ndarray, cfg, saturation: float) -> dict:
+    import tetra3rs
+    from skygen.detect import detect
+    d = cfg.detection
+    det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, 100_000)     # count them all
+    t3 = tetra3rs.extract_centroids(img.astype(np.float32), sigma_threshold=d.threshold_sigma, threads=1)
+    h, w = img.shape
+    t3det = {"x_px": np.array([c.x for c in t3.centroids]) + (w - 1) / 2,
+             "y_px": np.array([c.y for c in t3.centroids]) + (h - 1) / 2,
+             "flux_adu": np.array([c.brightness or 0.0 for c in t3.centroids])}
+    return {"background_adu": bg, "noise_adu": sigma, "detections": int(len(det["x_px"])),
+            "tetra3rs_centroids": int(len(t3.centroids)), "star_sigma_px": star_width_px(img, det, bg, saturation),
+            "_det": det, "_t3": t3det}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--real", default=str(ROOT.parent / "shared" / "real-frames" / "tetra3-blackfly"))
+    p.add_argument("--camera", default=str(ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml"))
+    p.add_argument("--sim-frames", type=int, default=50)
+    p.add_argument("--out", default=str(ROOT / "results" / "real-frames"))
+    a = p.parse_args(argv)
+    from skygen.camera import Camera
+    from skygen.config import config_dict, load_config
+    from skygen.render import Renderer
+    from fusion.predict import read_frame
+    from fusion.solvers.base import Detections, Solution
+    from fusion.solvers.tetra import Tetra3Solver
+    cfg = load_config(a.camera, ["output.full_res=true", f"n_frames={a.sim_frames}"])
+    cam = Camera.from_config(cfg.camera)
+    sat = 2 ** cfg.sensor.bit_depth - 1
+    solver = Tetra3Solver(cam)
+    real_rows = []
+    for name, (ra, dec, fov, roll_t3) in LISTED.items():
+        path = Path(a.real) / name
+        if not path.exists():
+            continue
+        img = read_frame(path) / 16.0                     # 12-bit values stored x16
+        st = frame_stats(img, cfg, sat)
+        res = solver.solve(Detections.from_table(st.pop("_det")), cam)
+        res_t3 = solver.solve(Detections.from_table(st.pop("_t3")).brightest(cfg.detection.max_detections), cam)
+        row = {"frame": name, **st, "tetra3rs_extractor_solution": _compare(res_t3, ra, dec, roll_t3)}
+        if isinstance(res, Solution):
+            dra = ((res.ra_deg - ra + 180) % 360 - 180) * np.cos(np.radians(dec)) * 3600
+            row.update({"solved": True, "d_ra_arcsec": dra, "d_dec_arcsec": (res.dec_deg - dec) * 3600,
+                        "d_roll_deg": ((res.roll_deg - (roll_t3 + 180.0)) + 180) % 360 - 180,
+                        "fov_deg": res.extra["fov_deg"], "listed_fov_deg": fov, "n_matched": res.n_matched,
+                        "residual_arcsec": res.residual_arcsec})
+        else:
+            row.update({"solved": False, "reason": res.reason})
+        real_rows.append(row)
+    if not real_rows:
+        print(f"no real frames under {a.real}", file=sys.stderr)
+        return 1
+    r = Renderer(cfg)
+    sim_rows, sim_example = [], None
+    for i in range(a.sim_frames):
+        f = r.render(i)
+        st = frame_stats(f.image_full.astype(np.float32), cfg, sat)
+        st.pop("_det"), st.pop("_t3")
+        sim_rows.append({"frame": i, **st})
+        sim_example = f.image_full if i == 0 else sim_example
+    keys = ("background_adu", "noise_adu", "detections", "tetra3rs_centroids", "star_sigma_px")
+    med = lambda rows, k: float(np.nanmedian([row[k] for row in rows]))
+    rng = lambda rows, k: (float(np.nanmin([row[k] for row in rows])), float(np.nanmax([row[k] for row in rows])))
+    summary = {k: {"real_median": med(real_rows, k), "real_range": rng(real_rows, k), "sim_median": med(sim_rows, k),
+                   "sim_range": rng(sim_rows, k)} for k in keys}
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"camera_preset": str(Path(a.camera).relative_to(ROOT)), "camera_config": config_dict(cfg)["camera"],
+              "summary": summary, "real": real_rows, "sim": sim_rows,
+              "hardware": f"{platform.machine()} CPU", "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    (out / "real_vs_sim.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    _plot(Path(a.real) / list(LISTED)[6], sim_example, out / "real_vs_sim.png", read_frame)
+    (out / "REPORT.md").write_text(markdown(report))
+    print((out / "REPORT.md").read_text())
+    return 0
+
+
+def _compare(res, ra, dec, roll_t3) -> dict:
+    from fusion.solvers.base import Solution
+    if not isinstance(res, Solution):
+        return {"solved": False, "reason": res.reason}
+    return {"solved": True, "d_ra_arcsec": ((res.ra_deg - ra + 180) % 360 - 180) * np.cos(np.radians(dec)) * 3600,
+            "d_dec_arcsec": (res.dec_deg - dec) * 3600, "d_roll_deg": ((res.roll_deg - (roll_t3 + 180.0)) + 180) % 360 - 180,
+            "n_matched": res.n_matched, "residual_arcsec": res.residual_arcsec}
+
+
+def _plot(real_path, sim, path, read_frame):
+    import matplotlib
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+    real = read_frame(real_path) / 16.0
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.4))
+    for a_, img, title in ((ax[0], real, f"real: {real_path.name[:30]}"), (ax[1], sim.astype(float), "skygen, same preset")):
+        lo, hi = np.percentile(img, [1, 99.8])
+        a_.imshow(np.clip((img - lo) / max(hi - lo, 1), 0, 1) ** 0.5, cmap="gray", origin="upper")
+        a_.set_title(title, fontsize=9)
+        a_.axis("off")
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+
+
+def markdown(r: dict) -> str:
+    s = r["summary"]
+    lab = {"background_adu": "background level (12-bit ADU)", "noise_adu": "background noise σ (ADU)",
+           "detections": "detections / frame (skygen detector, 5σ, ≥3 px)",
+           "tetra3rs_centroids": "centroids / frame (tetra3rs extractor, 5σ, matched filter)",
+           "star_sigma_px": "star width σ (px, 2nd moment, 9×9)"}
+    ratio = lambda k: s[k]["real_median"] / s[k]["sim_median"]
+    lines = ["# Real Blackfly S frames vs skygen frames of the same camera", "",
+             f"`python benchmarks/real_vs_sim.py` ({r['hardware']}, {r['created_utc']}): the 8 real frames of "
+             "`../shared/real-frames/tetra3-blackfly` (ESA tetra3 test data, Apache-2.0; ground-based, through the "
+             f"atmosphere) against {len(r['sim'])} frames rendered from `{r['camera_preset']}` (uniform random "
+             "boresights). Real TIFF values are divided by 16 (12-bit data stored ×16).", "",
+             "| quantity | real median (range) | skygen median (range) |", "|---|---|---|"]
+    for k, v in s.items():
+        lines.append(f"| {lab[k]} | {v['real_median']:.1f} ({v['real_range'][0]:.1f}–{v['real_range'][1]:.1f}) | "
+                     f"{v['sim_median']:.1f} ({v['sim_range'][0]:.1f}–{v['sim_range'][1]:.1f}) |")
+    lines += ["", "What the gap says (the preset is datasheet-nominal, not fitted to these frames):", "",
+              f"- **background and noise**: the real frames sit {ratio('background_adu'):.0f}x higher and are "
+              f"{ratio('noise_adu'):.0f}x noisier than the preset renders — ground sky glow and a longer exposure "
+              "or higher gain than the guessed 0.2 s at 10 e-/ADU; an orbiting tracker sees neither the glow nor "
+              "its gradients;",
+              f"- **detections**: skygen's detector (one global background, 5σ) finds a median "
+              f"{s['detections']['real_median']:.0f} stars per real frame against "
+              f"{s['tetra3rs_centroids']['real_median']:.0f} for tetra3rs's extractor (local background, "
+              "matched filter): on real frames with sky gradients a local background is worth adding to "
+              "`skygen.detect`; rendered frames of the preset give far more detections than real ones "
+              "because their noise is far lower;",
+              f"- **star width**: real stars are {ratio('star_sigma_px'):.2f}x wider (seeing and focus; σ "
+              f"{s['star_sigma_px']['real_median']:.2f} px against {s['star_sigma_px']['sim_median']:.2f} px "
+              "measured the same way on renders with `psf_sigma_px` 1.0);",
+              "- **geometry**: the plate solutions give a field of 11.42–11.43°, the nominal 35 mm lens 11.53°: "
+              "the effective focal length is ~1 % longer. tetra3rs fits the scale and is unaffected; a "
+              "fixed-scale matcher (the coarse-to-fine fine stage, 2 px tolerance) needs the calibrated value.", ""]
+    lines += ["", "## Solving the real frames (skygen detector → tetra3rs lost-in-space)", "",
+              "Compared with the listed plate solutions (tetra3rs 0.14 on its own 64–144 centroids). Listed roll is "
+              "tetra3rs's (+y east of north) = skygen roll − 180°.", "",
+              "| frame | detections | solved | ΔRA cos δ (″) | ΔDec (″) | Δroll (°) | fov solved / listed (°) | matched | rms (″) |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for row in r["real"]:
+        if row["solved"]:
+            lines.append(f"| {row['frame'][18:-10]} | {row['detections']} | yes | {row['d_ra_arcsec']:.1f} | "
+                         f"{row['d_dec_arcsec']:.1f} | {row['d_roll_deg']:.3f} | {row['fov_deg']:.3f} / "
+                         f"{row['listed_fov_deg']:.3f} | {row['n_matched']} | {row['residual_arcsec']:.1f} |")
+        else:
+            lines.append(f"| {row['frame'][18:-10]} | {row['detections']} | no ({row['reason']}) | | | | | | |")
+    t3 = [row["tetra3rs_extractor_solution"] for row in r["real"]]
+    ok = [x for x in t3 if x["solved"]]
+    if ok:
+        lines += ["", f"With tetra3rs's extractor instead (`fusion predict --detector tetra3rs`, brightest 64): "
+                  f"{len(ok)} of {len(t3)} frames solved; largest offsets from the listed solutions "
+                  f"{max(abs(x['d_ra_arcsec']) for x in ok):.1f}″ in RA cos δ, {max(abs(x['d_dec_arcsec']) for x in ok):.1f}″ "
+                  f"in Dec, {max(abs(x['d_roll_deg']) for x in ok):.3f}° in roll; median "
+                  f"{np.median([x['n_matched'] for x in ok]):.0f} matched stars, rms "
+                  f"{np.median([x['residual_arcsec'] for x in ok]):.1f}″."]
+    lines += ["", "Command for the same from the CLI: `fusion predict ../shared/real-frames/tetra3-blackfly/*.tiff "
+              "--camera configs/cameras/blackfly-s-imx265-35mm.yaml --solve [--detector tetra3rs] --overlay DIR`.",
+              "", "![real vs sim](real_vs_sim.png)", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

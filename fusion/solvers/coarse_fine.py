@@ -1,0 +1,268 @@
+"""Coarse-to-fine: a region prior narrows the sky, a few-star identification finds the attitude.
+
+tetra3rs's tracking mode (attitude hint) verifies and refines an attitude only when the
+hint is within about half a degree (measured: 4 brightest stars, hint 0.5° off -> 70 %
+solved, 2° off -> 0 %), and a learned region is tens of degrees wide. What tetra3rs does
+not do, this module does: **region-restricted hypothesise-and-verify** for few stars.
+
+For one region (a cap around a region centroid, :class:`Region`):
+
+1. catalog: tetra3rs's own catalog stars (Gaia DR3 + Hipparcos gap-fill, the stars its
+   database verifies with) inside the cap widened by the camera's half-diagonal, the
+   brightest ``stars_per_fov`` per field of view (a global magnitude cut);
+2. hypotheses: every catalog pair whose separation matches that of two bright detections
+   (i, j) within ``tol_px`` (both orders); each pair fixes a rotation (TRIAD: detection i
+   onto star a exactly, the i->j direction onto a->b);
+3. score: every detection is mapped to the sky with that rotation and counts if a
+   catalog star lies within ``tol_px``; a hypothesis whose boresight leaves the region is
+   dropped (it belongs to another region);
+4. decision, after each detection pair (so a clear case stops early): the best hypothesis
+   so far (most matches) must be unique — no other hypothesis with
+   as many matches at an attitude more than 0.5° away — and its chance of being a
+   coincidence small: ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so
+   far, n detections, s matches, p the chance that a random sky position has a catalog
+   star within ``tol_px``) gives ``confidence = max(0, 1 - E_false)``; below
+   ``min_confidence`` or fewer than ``min_matches`` matches: next region, or a refusal;
+5. verification and refinement: tetra3rs tracking from that attitude (strict hint, 1°)
+   re-matches every detection against its catalog, tests the match against its own
+   false-positive budget and refines the attitude. A candidate tetra3rs does not confirm is
+   returned (as the least-squares rotation of our own matches) only if its confidence
+   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched.
+   Measured on 150 test frames: the candidates that turned out wrong under heavy
+   corruption (4 of 6 detections matched, confidence ~0.994) were exactly those tetra3rs
+   did not confirm, while 77 of 78 correct 4-star solutions were confirmed.
+
+Regions are tried in order of prior probability (``top_k`` at most); the hypothesis
+count H accumulates, so searching more regions demands stronger evidence. The prior is
+pluggable: anything with ``centroids`` (K, 3) and ``probabilities(detections, image)``
+(:mod:`fusion.solvers.priors`), or probabilities passed to :meth:`CoarseToFineSolver.solve`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .base import Detections, Refusal, Solution, rotation_angle_deg, solution_from_matrix
+
+
+@dataclass(frozen=True)
+class Region:
+    center: np.ndarray      # (3,) ICRS unit vector
+    radius_deg: float       # every boresight of the region lies within this angle of the centre
+    probability: float
+    index: int
+
+
+def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndarray:
+    """Circumradius of each max-cosine (Voronoi) cell on the sphere, from a Fibonacci lattice, degrees."""
+    c = np.asarray(centroids, np.float64)
+    if len(c) == 1:
+        return np.array([180.0])
+    k = np.arange(n_samples) + 0.5
+    z = 1 - 2 * k / n_samples
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    r = np.sqrt(1 - z * z)
+    v = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    dots = v @ c.T
+    lab = np.argmax(dots, axis=1)
+    best = dots[np.arange(n_samples), lab]
+    radii = np.zeros(len(c))
+    np.maximum.at(radii, lab, np.degrees(np.arccos(np.clip(best, -1, 1))))
+    spacing = np.degrees(np.sqrt(4 * np.pi / n_samples))      # lattice spacing: the radius is at most this short
+    return radii + spacing
+
+
+def _triad(u0, u1, s0, s1) -> np.ndarray:
+    """Rotations (P, 3, 3) taking camera vectors u0 -> s0 exactly and the u0->u1 plane onto s0->s1."""
+    def frame(a, b):
+        t2 = np.cross(a, b)
+        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
+        return np.stack([a, t2, np.cross(a, t2)], axis=-1)
+    fu = frame(np.broadcast_to(u0, s0.shape), np.broadcast_to(u1, s0.shape))
+    fs = frame(s0, s1)
+    return fs @ np.swapaxes(fu, -1, -2)
+
+
+def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Least-squares rotation R with R u_i ~ s_i (proper rotation)."""
+    h = u.T @ s
+    uu, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ uu.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ uu.T
+
+
+class CoarseToFineSolver:
+    """Region prior -> region-restricted identification -> tetra3rs verification. See the module docstring."""
+
+    def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
+                 stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
+                 min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
+                 verify_with_tetra3rs: bool = True):
+        self.tetra, self.prior, self.name = tetra, prior, name
+        self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
+        self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
+        self.unverified_confidence = unverified_confidence
+        cam = tetra.camera
+        db = tetra.db
+        stars = [db.get_star(i) for i in range(db.num_stars)]
+        ra = np.radians([s.ra_deg for s in stars])
+        dec = np.radians([s.dec_deg for s in stars])
+        mag = np.array([s.magnitude for s in stars])
+        ids = np.array([s.id for s in stars], np.int64)
+        fov_sr = 4 * math.atan(cam.width_px * cam.height_px / (2 * cam.f_px * math.hypot(
+            cam.width_px, cam.height_px, 2 * cam.f_px)))            # solid angle of the rectangular pinhole field
+        n_keep = int(min(len(stars), stars_per_fov * 4 * math.pi / fov_sr))
+        keep = np.argsort(mag, kind="stable")[:n_keep]
+        self.vec = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=1)[keep]
+        self.ids, self.mag = ids[keep], mag[keep]
+        self.tree = cKDTree(self.vec)
+        self.tol_rad = tol_px / cam.f_px
+        self.half_diag_rad = math.atan(math.hypot(cam.width_px, cam.height_px) / 2 / cam.f_px)
+        # chance that a random direction has a catalog star within tol
+        self.p_chance = min(1.0, len(self.vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)
+        self._pairs: dict = {}
+        self._all = None
+        self.radii = None if prior is None else region_radii_deg(prior.centroids)
+
+    # ---------------------------------------------------------------- regions
+    def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None) -> list[Region]:
+        if probs is None:
+            return [Region(np.array([0.0, 0.0, 1.0]), 180.0, 1.0, 0)]
+        radii = self.radii if self.radii is not None and len(self.radii) == len(centroids) \
+            else region_radii_deg(centroids)
+        order = np.argsort(-np.asarray(probs), kind="stable")[: self.top_k]
+        return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
+
+    def _region_pairs(self, region: Region) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Catalog pairs (ordered both ways) with first star in the widened cap, sorted by separation."""
+        key = (region.index, round(region.radius_deg, 6), tuple(np.round(region.center, 9)))
+        if key not in self._pairs:
+            cap = min(np.pi, np.radians(region.radius_deg) + self.half_diag_rad + self.tol_rad)
+            inside = np.flatnonzero(self.vec @ region.center >= np.cos(cap)) if cap < np.pi else np.arange(len(self.vec))
+            all_pairs, all_sep = self._global_pairs()
+            sel = np.isin(all_pairs[:, 0], inside)
+            self._pairs[key] = (all_pairs[sel], all_sep[sel], np.cos(np.radians(region.radius_deg)))
+        return self._pairs[key]
+
+    def _global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every ordered catalog pair closer than the field's diagonal, sorted by separation (built once)."""
+        if self._all is None:
+            max_sep = 2 * self.half_diag_rad + 2 * self.tol_rad
+            pairs = self.tree.query_pairs(2 * math.sin(max_sep / 2), output_type="ndarray")
+            pairs = np.concatenate([pairs, pairs[:, ::-1]])
+            sep = np.arccos(np.clip(np.sum(self.vec[pairs[:, 0]] * self.vec[pairs[:, 1]], axis=1), -1, 1))
+            order = np.argsort(sep, kind="stable")
+            self._all = (pairs[order], sep[order])
+        return self._all
+
+    # ---------------------------------------------------------------- search
+    def _hypotheses(self, u: np.ndarray, region: Region):
+        """Per pair of bright detections: (rotations, match counts, hypotheses tried) in ``region``."""
+        pairs, sep, cos_r = self._region_pairs(region)
+        n = len(u)
+        m = min(n, self.max_pair_detections)
+        for i in range(m):
+            for j in range(i + 1, m):
+                d = math.acos(min(1.0, float(u[i] @ u[j])))
+                lo, hi = np.searchsorted(sep, [d - 2 * self.tol_rad, d + 2 * self.tol_rad])
+                if hi <= lo:
+                    continue
+                cand = pairs[lo:hi]
+                r = _triad(u[i], u[j], self.vec[cand[:, 0]], self.vec[cand[:, 1]])
+                r = r[r[:, :, 2] @ region.center >= cos_r - 1e-12]       # boresight inside the region
+                if not len(r):
+                    yield r, np.zeros(0, np.int64), len(cand)
+                    continue
+                sky = np.einsum("pab,nb->pna", r, u)                    # (P, n, 3)
+                dist, _ = self.tree.query(sky.reshape(-1, 3), distance_upper_bound=2 * math.sin(self.tol_rad / 2))
+                yield r, np.isfinite(dist).reshape(len(r), n).sum(axis=1), len(cand)
+
+    def _matches(self, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dist, idx = self.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
+        ok = np.isfinite(dist)
+        return np.flatnonzero(ok), idx[ok]
+
+    def confidence(self, n_hypotheses: int, n_det: int, score: int) -> float:
+        """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc)."""
+        extra = score - 2
+        if extra <= 0:
+            return 0.0
+        e = sum(math.comb(n_det - 2, k) * self.p_chance ** k * (1 - self.p_chance) ** (n_det - 2 - k)
+                for k in range(extra, n_det - 1))
+        return float(max(0.0, 1.0 - n_hypotheses * e))
+
+    def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | str:
+        """Index of the accepted hypothesis, or why none is accepted yet."""
+        best = int(np.argmax(scores))
+        s = int(scores[best])
+        rivals = np.flatnonzero(scores == s)
+        if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
+            return f"ambiguous: several attitudes match {s} of {n} detections"
+        conf = self.confidence(tried, n, s)
+        if s < self.min_matches or conf < self.min_confidence:
+            return f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}"
+        return best
+
+    def solve(self, detections: Detections, camera=None, image=None,
+              probabilities: np.ndarray | None = None) -> Solution | Refusal:
+        t0 = time.perf_counter()
+        camera = camera or self.tetra.camera
+        ms = lambda: (time.perf_counter() - t0) * 1e3
+        if len(detections) < 3:
+            return Refusal(f"too few detections ({len(detections)})", self.name, ms())
+        centroids = None
+        if probabilities is None and self.prior is not None:
+            probabilities = self.prior.probabilities(detections, image)
+        if probabilities is not None:
+            centroids = self.prior.centroids if self.prior is not None else None
+            if centroids is None:
+                raise ValueError("probabilities given but the solver has no prior with centroids")
+        u = camera.unproject(detections.x_px, detections.y_px)
+        n = len(u)
+        tried, last = 0, "no catalog pair matches the detections in the prior's regions"
+        for region in self.regions(probabilities, centroids):
+            rots, scores = np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+            # sequential: decide after every detection pair, with H = every hypothesis tried so far
+            for r, sc, t in self._hypotheses(u, region):
+                tried += t
+                if not len(sc):
+                    continue
+                rots, scores = np.concatenate([rots, r]), np.concatenate([scores, sc])
+                verdict = self._decide(rots, scores, tried, n)
+                if isinstance(verdict, int):
+                    sol = self._finish(rots[verdict], u, detections, camera,
+                                       self.confidence(tried, n, int(scores[verdict])), region, tried, t0)
+                    if sol is not None:
+                        return sol
+                    last = "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar"
+                    break                                            # this region's best is doubtful: next region
+                last = verdict
+        return Refusal(last, self.name, ms(), {"hypotheses": tried})
+
+    def _finish(self, rot, u, detections, camera, conf, region, tried, t0) -> Solution | None:
+        det_rows, cat_rows = self._matches(rot, u)
+        rot = _kabsch(u[det_rows], self.vec[cat_rows])
+        det_rows, cat_rows = self._matches(rot, u)
+        extra = {"region": region.index, "region_probability": region.probability, "hypotheses": tried,
+                 "refined_by": "own least squares"}
+        if self.verify:
+            # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
+            # to about a degree; tetra3rs re-matches every detection within that and refines
+            res = self.tetra.solve_with_hint(detections, camera, rot, 1.0, name=self.name)
+            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0:
+                extra["refined_by"] = "tetra3rs tracking"
+                extra["false_positive_probability"] = res.extra.get("false_positive_probability")
+                return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
+                                res.residual_arcsec, conf, self.name, (time.perf_counter() - t0) * 1e3, extra)
+            if conf < self.unverified_confidence:
+                return None
+        resid = np.arccos(np.clip(np.sum((u[det_rows] @ rot.T) * self.vec[cat_rows], axis=1), -1, 1))
+        return solution_from_matrix(rot, matched=np.column_stack([det_rows, self.ids[cat_rows]]),
+                                    residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
+                                    confidence=conf, solver=self.name, time_ms=(time.perf_counter() - t0) * 1e3,
+                                    extra=extra)

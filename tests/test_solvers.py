@@ -1,0 +1,155 @@
+"""The solver interface and the tetra3rs baseline: conventions checked on rendered frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skygen.attitude import attitude_matrix
+from skygen.config import load_config
+from skygen.render import Renderer
+
+from fusion.solvers.base import (Detections, Refusal, Solution, Solver, boresight_error_deg, radec_roll_from_matrix,
+                                 roll_error_deg, rotation_angle_deg)
+
+tetra3rs = pytest.importorskip("tetra3rs")
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return Renderer(load_config(overrides=["n_frames=20"]))
+
+
+@pytest.fixture(scope="module")
+def tetra(renderer, tmp_path_factory):
+    from fusion.solvers.tetra import Tetra3Solver
+    return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
+
+
+def test_radec_roll_from_matrix_inverts_attitude_matrix():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        ra, dec, roll = rng.uniform(0, 360), rng.uniform(-89, 89), rng.uniform(0, 360)
+        r2, d2, o2 = radec_roll_from_matrix(attitude_matrix(ra, dec, roll))
+        assert abs((r2 - ra + 180) % 360 - 180) < 1e-9 and abs(d2 - dec) < 1e-9
+        assert roll_error_deg(o2, roll) < 1e-8
+
+
+def test_attitude_errors():
+    a, b = attitude_matrix(10, 20, 30), attitude_matrix(10, 20, 31)
+    assert rotation_angle_deg(a, b) == pytest.approx(1.0, abs=1e-9)
+    assert boresight_error_deg(a, b) == pytest.approx(0.0, abs=1e-6)
+    assert roll_error_deg(359.5, 0.5) == pytest.approx(1.0)
+
+
+def test_tetra3rs_agrees_with_skygen_conventions(renderer, tetra):
+    """Rendered frames solved from their detections: quaternion, RA/Dec and roll in skygen's convention."""
+    assert isinstance(tetra, Solver)
+    n_solved = 0
+    for i in range(6):
+        f = renderer.render(i)
+        res = tetra.solve(Detections.from_table(f.detections), renderer.camera)
+        if isinstance(res, Refusal):
+            continue
+        n_solved += 1
+        truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+        assert rotation_angle_deg(truth, res.matrix) < 60 / 3600        # < 1 arcmin, full attitude
+        assert abs((res.ra_deg - f.ra_deg + 180) % 360 - 180) * np.cos(np.radians(f.dec_deg)) < 0.01
+        assert res.dec_deg == pytest.approx(f.dec_deg, abs=0.01)
+        assert roll_error_deg(res.roll_deg, f.roll_deg) < 0.02
+        # tetra3rs's own roll is the position angle of +y (image down): skygen's roll + 180
+        assert roll_error_deg(res.extra["tetra3rs_roll_deg"] + 180.0, f.roll_deg) < 0.02
+        np.testing.assert_allclose(res.quaternion, f.quaternion, atol=1e-3)
+        assert res.n_matched >= 4 and res.residual_arcsec < 60 and 0 <= res.confidence <= 1
+        assert set(res.matched[:, 0]) <= set(range(len(f.detections["x_px"])))
+    assert n_solved >= 5
+
+
+def test_tetra3rs_principal_point_and_distortion(tmp_path):
+    """An off-centre principal point and barrel distortion are removed before tetra3rs sees the centroids."""
+    from fusion.solvers.tetra import Tetra3Solver
+    r = Renderer(load_config(overrides=["n_frames=4", "camera.principal_x_px=540", "camera.principal_y_px=490",
+                                        "camera.k1=-0.05"]))
+    solver = Tetra3Solver(r.camera, db_folder=tmp_path)
+    f = r.render(1)
+    res = solver.solve(Detections.from_table(f.detections), r.camera)
+    assert isinstance(res, Solution), res
+    assert rotation_angle_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 60 / 3600
+
+
+def test_tetra3rs_refuses_few_or_random_detections(renderer, tetra):
+    f = renderer.render(0)
+    det = Detections.from_table(f.detections)
+    assert isinstance(tetra.solve(det.brightest(2), renderer.camera), Refusal)
+    rng = np.random.default_rng(1)
+    noise = Detections(rng.uniform(0, 1023, 12), rng.uniform(0, 1023, 12), rng.uniform(1e3, 1e4, 12))
+    res = tetra.solve(noise, renderer.camera)
+    assert isinstance(res, Refusal) and res.reason in ("no_match", "timeout")
+    assert res.to_dict()["status"] == "refused"
+
+
+# --------------------------------------------------------------------------- coarse-to-fine
+@pytest.fixture(scope="module")
+def regions():
+    from fusion.benchmark import default_centroids
+    return default_centroids(15)
+
+
+def test_region_radii_cover_the_sphere(regions):
+    from fusion.solvers.coarse_fine import region_radii_deg
+    r = region_radii_deg(regions)
+    rng = np.random.default_rng(3)
+    v = rng.standard_normal((5000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    lab = np.argmax(v @ regions.T, axis=1)
+    ang = np.degrees(np.arccos(np.clip(np.sum(v * regions[lab], axis=1), -1, 1)))
+    assert np.all(ang <= r[lab])                   # every direction lies within its region's radius
+    assert 20 < r.min() and r.max() < 60           # K = 15: cells tens of degrees wide
+
+
+def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, tetra, regions):
+    """4 brightest detections: tetra3rs lost-in-space refuses; the true region as prior gives the attitude."""
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=1)
+    solved = lis = 0
+    for i in range(8):
+        f = renderer.render(i)
+        det = Detections.from_table(f.detections).brightest(4)
+        lis += isinstance(tetra.solve(det, renderer.camera), Solution)
+        res = c2f.solve(det, renderer.camera, probabilities=prior.probabilities_for(f.unit_vector, i))
+        if isinstance(res, Solution):
+            truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+            assert boresight_error_deg(truth, res.matrix) < 0.05      # never a wrong attitude
+            assert res.confidence >= 0.99 and res.n_matched >= 3
+            solved += 1
+    assert lis == 0 and solved >= 5
+
+
+def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=2)
+    f = renderer.render(2)
+    p = prior.probabilities_for(f.unit_vector, 2)
+    three = Detections.from_table(f.detections).brightest(3)
+    res = c2f.solve(three, renderer.camera, probabilities=p)      # one triangle: chance matches abound
+    assert isinstance(res, Refusal)
+    rng = np.random.default_rng(5)
+    noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
+    assert isinstance(c2f.solve(noise, renderer.camera, probabilities=p), Refusal)
+    # the wrong region only: the right attitude is outside it, so nothing is returned
+    wrong = np.roll(p, 7)
+    res = c2f.solve(Detections.from_table(f.detections).brightest(6), renderer.camera, probabilities=wrong)
+    if isinstance(res, Solution):
+        assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
+
+
+def test_confidence_falls_with_hypotheses(tetra):
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    c2f = CoarseToFineSolver(tetra, None)
+    assert c2f.confidence(1000, 3, 3) < c2f.confidence(10, 3, 3)
+    assert c2f.confidence(10_000, 6, 6) > 0.999
+    assert c2f.confidence(10_000, 6, 2) == 0.0
