@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         rows.append(measure(kind, n, a.batch, 1))
         if a.workers > 1:
             rows.append(measure(kind, n, a.batch, a.workers))
-    host = f"{platform.machine()} {platform.processor() or ''}, {os.cpu_count()} logical CPUs".strip()
+    host = f"{platform.machine()}{(' ' + platform.processor()) if platform.processor() else ''}, {os.cpu_count()} logical CPUs"
     lines = [f"stream throughput ({host}; default camera, corruptions at defaults)", "",
              "| kind | processes | samples | samples/s (wall) | samples per CPU-second | ms per sample per core |",
              "|---|---:|---:|---:|---:|---:|"]

@@ -51,3 +51,27 @@ def small_dataset(kind: str = "smoke") -> Path:
     if kind not in _CACHE:
         _CACHE[kind] = render_small(_root() / kind, KINDS[kind])
     return _CACHE[kind]
+
+
+class Killed(Exception):
+    """Raised by :func:`killing_log` to interrupt a training run at a chosen point."""
+
+
+def killing_log(prefix: str):
+    """A ``log`` callback for :func:`fusion.train.train` that raises :class:`Killed` at the
+    first message starting with ``prefix`` (e.g. ``"epoch 2/3"``: killed after epoch 2)."""
+    def log(msg, *a, **k):
+        if msg.startswith(prefix):
+            raise Killed(msg)
+    return log
+
+
+def assert_same_run(a, b) -> None:
+    """Two run folders ended with identical weights and metric history (times aside)."""
+    import torch
+    from .checkpoint import load_checkpoint
+    ca, cb = load_checkpoint(Path(a) / "last.pt"), load_checkpoint(Path(b) / "last.pt")
+    for name, tensor in ca["model"].items():
+        assert torch.equal(tensor, cb["model"][name]), name
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
+    assert strip(ca["history"]) == strip(cb["history"])

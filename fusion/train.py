@@ -396,7 +396,9 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
               "dataset": {"root": str(Path(data.ds.root).resolve()), "dataset_id": data.ds.manifest.get("dataset_id"),
                           "schema_version": data.ds.schema_version, "camera": data.ds.config["camera"]},
               # identities of the frames trained on: `fusion evaluate` refuses to score them
-              "train_frame_ids": torch.from_numpy(data.ds.frames["frame_id"][data.train.positions].view(np.int64)),
+              # (none for a stream-trained model: it never saw a dataset frame)
+              "train_frame_ids": (torch.zeros(0, dtype=torch.int64) if cfg.stream.kind != "none" else
+                                  torch.from_numpy(data.ds.frames["frame_id"][data.train.positions].view(np.int64))),
               # the camera, sensor, detector and storage the model was trained for: `fusion predict` needs
               # nothing else, from any folder (see fusion.checkpoint.render_config_of)
               "render_config": dict(data.ds.config)}
@@ -435,7 +437,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
                     "val_top5": va["top5"]}
         row = {"epoch": epoch + 1, "train_loss": tr["loss"], "train_top1": tr["top1"], "val_loss": va["loss"],
                "val_top1": va["top1"], "val_top3": va["top3"], "val_top5": va["top5"], "lr": tr["lr"],
-               "epoch_time_s": time.perf_counter() - t0, "best": int(improved)}
+               "epoch_time_s": time.perf_counter() - t0, "best": int(improved), "train_samples": tr["n"]}
         history.append(row)
         since_best = epoch + 1 - (best["epoch"] or 0)
         stopped_early = tc.patience is not None and since_best >= tc.patience and epoch + 1 < tc.epochs
@@ -465,6 +467,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
                "sparse_frames": data.sparse_frames, "frames": {"train": len(data.train), "val": len(data.val)},
                "processes": info.world, "device": str(device), "amp": str(amp_dtype),
                "init": cfg.model.pretrained or "scratch", "wall_time_s": time.perf_counter() - t_start,
+               "samples_seen": int(sum(h.get("train_samples", 0) for h in history)),
                "versions": static["versions"], "dataset": static["dataset"]}
     if info.is_main:
         write_json(out / "summary.json", summary)

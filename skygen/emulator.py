@@ -438,12 +438,10 @@ def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_
     if len(sp) == 0:
         pmf = np.array([1.0])
         sp = np.zeros((1, 3))
-    det_counts = None
     info = dict(info or {})
     info.update({"frames": n_frames, "isolated_sources": int(len(u_all)), "matched_rows": int(len(rows)),
                  "spurious_per_frame": float(counts.mean()), "pairs_for_blending": int(sum(len(p) for p in pair_d)),
                  "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
-    del det_counts
     return DetectorModel(key=key, threshold_e=float(threshold_e), psf_sigma_px=float(psf_sigma_px),
                          completeness=completeness, bank_start=start,
                          bank=bank, p_resolved=p_res, spurious_pmf=pmf,

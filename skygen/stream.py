@@ -479,14 +479,12 @@ def stream_summary(batches) -> dict:
     n_det = np.concatenate([np.diff(b.offsets) for b in batches])
     mags, spur, total = [], 0, 0
     for b in batches:
-        hip = b.detections["hip_id"]
         sidx = b.detections["star_index"]
         spur += int((sidx < 0).sum())
         total += len(sidx)
         fr = np.repeat(np.arange(len(b)), np.diff(b.offsets))
         ok = sidx >= 0
         mags.append(b.stars["mag"][b.star_offsets[fr[ok]] + sidx[ok]])
-        del hip
     mags = np.concatenate(mags) if mags else np.zeros(0)
     q = lambda a, p: float(np.percentile(a, p)) if len(a) else float("nan")
     return {"samples": int(len(n_det)), "detections_per_sample": {"mean": float(n_det.mean()), "p10": q(n_det, 10),

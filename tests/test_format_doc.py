@@ -37,7 +37,7 @@ def test_every_dataset_is_documented_and_vice_versa(small_dataset):
     got = written(small_dataset / "shard-00000.h5")
     assert set(got) == set(expanded)
     n = 20                                   # frames in the first shard of the fixture
-    sizes = {"N": n, "S": 64, "H": 256, "W": 256}
+    sizes = {"N": n, "S": 64, "H": 256, "W": 256, "H/f": 64}
     for path, (dtype, shape) in got.items():
         want, want_shape = expanded[path]
         assert shape[0] == n, path           # one row per frame: what `datasets` needs

@@ -14,7 +14,7 @@ from fusion.config import load_config
 from fusion.data import encode_detections
 from fusion.errors import ConfigError
 from fusion.stream import StreamBatches, encode_batch, make_stream_loader
-from fusion.testing import small_dataset
+from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train import train
 from skygen import emulator as emu
 from skygen.config import build_config as build_render_config
@@ -92,22 +92,11 @@ def test_stream_training_learns_and_resumes_exactly(smoke, tmp_path):
     summary = train(cfg, full, log=quiet)
     assert summary["epochs_run"] == 3 and np.isfinite(summary["best"]["val_loss"])
 
-    class Killed(Exception):
-        pass
-
-    def die(msg, *a, **k):
-        if msg.startswith("epoch 2/3"):
-            raise Killed
-
     killed = tmp_path / "killed"
     with pytest.raises(Killed):
-        train(cfg, killed, log=die)
+        train(cfg, killed, log=killing_log("epoch 2/3"))
     train(cfg, killed, resume=True, log=quiet)
-    a, b = load_checkpoint(full / "last.pt"), load_checkpoint(killed / "last.pt")
-    for name, tensor in a["model"].items():
-        assert torch.equal(tensor, b["model"][name]), name
-    strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
-    assert strip(a["history"]) == strip(b["history"])
+    assert_same_run(full, killed)
 
 
 def test_stream_bad_input(smoke, tmp_path):

@@ -14,7 +14,7 @@ from fusion.checkpoint import load_checkpoint, load_model_state
 from fusion.config import load_config
 from fusion.errors import CheckpointError, RunFolderError
 from fusion.models import create_model
-from fusion.testing import small_dataset
+from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train import WarmupCosine, load_trained_model, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,27 +65,14 @@ def test_resume_continues_exactly(tmp_path):
     train(cfg, full, log=quiet)
 
     killed = tmp_path / "killed"
-
-    class Killed(Exception):
-        pass
-
-    def die_after_epoch_2(msg, *a, **k):
-        if msg.startswith("epoch 2/3"):
-            raise Killed
-
     with pytest.raises(Killed):
-        train(cfg, killed, log=die_after_epoch_2)
+        train(cfg, killed, log=killing_log("epoch 2/3"))
     assert load_checkpoint(killed / "last.pt")["epoch"] == 2
     assert not (killed / "summary.json").exists()
     with pytest.raises(RunFolderError, match="unfinished run"):
         train(cfg, killed, log=quiet)
     train(cfg, killed, resume=True, log=quiet)
-
-    a, b = load_checkpoint(full / "last.pt"), load_checkpoint(killed / "last.pt")
-    for name, tensor in a["model"].items():
-        assert torch.equal(tensor, b["model"][name]), name
-    strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
-    assert strip(a["history"]) == strip(b["history"])
+    assert_same_run(full, killed)
 
 
 def test_finished_run_is_not_overwritten_without_force(smoke_run, tmp_path):
