@@ -76,7 +76,7 @@ def main(argv=None) -> int:
         clean = _evaluate(name, runs, a.test, "test")
         row = {"run": name, "what": RUNS[name][2], "train_s": s.get("wall_time_s"),
                "samples": s.get("samples_seen"), "k": clean["num_classes"], "top1": clean["top1"],
-               "top3": clean["top3"], "top5": clean["top5"], "median_err": clean["angular_error"]["median"],
+               "top3": clean["top3"], "top5": clean["top5"], "median_err": clean["angular_error"]["median_deg"],
                "n_test": clean["n_frames"]}
         if a.corrupted:
             bad = _evaluate(name, runs, a.corrupted, "corrupted")
