@@ -42,25 +42,41 @@ cv2.setNumThreads(1)
 
 @dataclass(frozen=True)
 class FrameGeometry:
-    """The sensor and stored-image geometry of a dataset (from its resolved render config)."""
-    sensor_px: int          # W = H (skygen frames are square)
-    image_px: int           # S
+    """The sensor and stored-image geometry of a dataset (from its resolved render config).
+
+    Sensors may be non-square: W x H full-resolution pixels stored as S x (H / f), f = W / S.
+    ``sensor_h``/``image_h`` of 0 mean square (= ``sensor_px``/``image_px``).
+    """
+    sensor_px: int          # W, sensor columns
+    image_px: int           # S, stored columns
     factor: int             # f = W / S
     bias_adu: float
     max_adu: float          # 2**bit_depth - 1
     psf_sigma_px: float     # full-resolution pixels
+    sensor_h: int = 0       # H, sensor rows (0: = W)
+    image_h: int = 0        # stored rows = H / f (0: = S)
+
+    def __post_init__(self) -> None:
+        if not self.sensor_h:
+            object.__setattr__(self, "sensor_h", self.sensor_px)
+        if not self.image_h:
+            object.__setattr__(self, "image_h", self.sensor_h // self.factor)
 
     @classmethod
     def from_render_config(cls, config: dict) -> "FrameGeometry":
-        w = int(config["camera"]["width_px"])
-        if int(config["camera"]["height_px"]) != w:
-            from .errors import ConfigError
-            raise ConfigError(f"fusion models take square sensors for now; this dataset's camera is {w} x "
-                              f"{config['camera']['height_px']} px (tetra3rs solving works on any sensor: "
-                              "`fusion predict --camera ... --solve` without --checkpoint)")
+        w, h = int(config["camera"]["width_px"]), int(config["camera"]["height_px"])
         s = int(config["output"]["image_size_px"])
         return cls(w, s, w // s, float(config["sensor"]["bias_adu"]),
-                   float(2 ** int(config["sensor"]["bit_depth"]) - 1), float(config["optics"]["psf_sigma_px"]))
+                   float(2 ** int(config["sensor"]["bit_depth"]) - 1), float(config["optics"]["psf_sigma_px"]),
+                   h, h // (w // s))
+
+    def normalised(self, x_px: np.ndarray, y_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Full-resolution pixels -> the models' coordinates: the sensor centre at 0, one scale for
+        both axes (half the sensor width = 1), so x spans [-1, 1] and y [-H/W, H/W]; angles and
+        distances are preserved (the canonical rotation needs that)."""
+        half = self.sensor_px / 2.0
+        return ((np.asarray(x_px, np.float64) + 0.5 - half) / half,
+                (np.asarray(y_px, np.float64) + 0.5 - self.sensor_h / 2.0) / half)
 
     def to_stored(self, xy_full: np.ndarray) -> np.ndarray:
         return (np.asarray(xy_full, np.float64) + 0.5) / self.factor - 0.5
@@ -116,15 +132,14 @@ def rotate(sample: Sample, theta_deg: float, geo: FrameGeometry) -> Sample:
         return sample
     t = np.radians(theta_deg)
     c, s = np.cos(t), np.sin(t)
-    cs = (geo.image_px - 1) / 2.0          # stored centre
-    m = np.array([[c, -s, cs - c * cs + s * cs], [s, c, cs - s * cs - c * cs]])
-    img = cv2.warpAffine(sample.image, m, (geo.image_px, geo.image_px), flags=cv2.INTER_LINEAR,
+    cu, cv = (geo.image_px - 1) / 2.0, (geo.image_h - 1) / 2.0       # stored centre
+    m = np.array([[c, -s, cu - c * cu + s * cv], [s, c, cv - s * cu - c * cv]])
+    img = cv2.warpAffine(sample.image, m, (geo.image_px, geo.image_h), flags=cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=float(sample.background_adu))
-    cf = (geo.sensor_px - 1) / 2.0          # full-resolution centre: the same point
-    dx, dy = sample.x_px - cf, sample.y_px - cf
-    x, y = cf + c * dx - s * dy, cf + s * dx + c * dy
-    lim_lo, lim_hi = -0.5, geo.sensor_px - 0.5
-    keep = (x >= lim_lo) & (x < lim_hi) & (y >= lim_lo) & (y < lim_hi)
+    cx, cy = (geo.sensor_px - 1) / 2.0, (geo.sensor_h - 1) / 2.0     # full-resolution centre: the same point
+    dx, dy = sample.x_px - cx, sample.y_px - cy
+    x, y = cx + c * dx - s * dy, cy + s * dx + c * dy
+    keep = (x >= -0.5) & (x < geo.sensor_px - 0.5) & (y >= -0.5) & (y < geo.sensor_h - 0.5)
     out = replace(sample, image=img, x_px=x, y_px=y)
     return out.take(keep)
 
@@ -154,7 +169,7 @@ def drop_stars(sample: Sample, p: float, rng: np.random.Generator, geo: FrameGeo
     out = sample.take(keep)
     if erase_image and not keep.all():
         img = sample.image.copy()
-        yy, xx = np.mgrid[0:geo.image_px, 0:geo.image_px]
+        yy, xx = np.mgrid[0:geo.image_h, 0:geo.image_px]
         for j in np.flatnonzero(~keep):
             r_full = np.sqrt(max(float(sample.area_px[j]), 1.0) / np.pi) + 3.0 * geo.psf_sigma_px
             u, v = geo.to_stored(np.array([sample.x_px[j], sample.y_px[j]]))
@@ -179,7 +194,7 @@ def inject_false_stars(sample: Sample, n: int, snr_range: tuple[float, float], r
     f, sig = geo.factor, geo.psf_sigma_px
     margin = 2.0 * sig
     x = rng.uniform(margin - 0.5, geo.sensor_px - 0.5 - margin, n)
-    y = rng.uniform(margin - 0.5, geo.sensor_px - 0.5 - margin, n)
+    y = rng.uniform(margin - 0.5, geo.sensor_h - 0.5 - margin, n)
     lo, hi = snr_range
     snr = np.exp(rng.uniform(np.log(lo), np.log(hi), n))
     noise_full = sample.noise_adu * f

@@ -16,8 +16,10 @@ Coordinate input (the explicit ordering/padding convention the paper asks for)
     Detections sorted by ``flux_adu`` descending (stable: ties keep skygen's order), the
     first ``max_stars`` kept, one row per star with features
     ``[x, y, log10(1 + flux_adu) - log_flux_offset]`` where ``x = (x_px + 0.5) / (W / 2) - 1``
-    and likewise y: the sensor's outer pixel *edges* map to -1 and +1 (the convention of
-    ``torch.nn.functional.grid_sample(align_corners=False)``), the sensor centre to 0. Rows
+    and ``y = (y_px + 0.5 - H / 2) / (W / 2)``: the sensor's outer pixel *edges* map to -1
+    and +1 in x (the convention of ``torch.nn.functional.grid_sample(align_corners=False)``),
+    the sensor centre to 0, and y uses the same scale (a non-square sensor spans
+    ``[-H/W, H/W]`` in y), so distances and angles are preserved. Rows
     beyond the detected stars are zeros with ``mask = False``. The heatmap branch renders the
     same rows (see :mod:`fusion.heatmap`).
 
@@ -87,9 +89,7 @@ def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
     n = min(sample.n, max_stars)
     coords = np.zeros((max_stars, len(COORD_FEATURES)), np.float32)
     mask = np.zeros(max_stars, bool)
-    half = geo.sensor_px / 2.0
-    coords[:n, 0] = (sample.x_px[:n] + 0.5) / half - 1.0
-    coords[:n, 1] = (sample.y_px[:n] + 0.5) / half - 1.0
+    coords[:n, 0], coords[:n, 1] = geo.normalised(sample.x_px[:n], sample.y_px[:n])
     coords[:n, 2] = np.log10(1.0 + np.maximum(sample.flux_adu[:n], 0.0)) - log_flux_offset
     mask[:n] = True
     return coords, mask

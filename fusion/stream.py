@@ -69,11 +69,10 @@ def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: 
     rank = np.arange(len(fr)) - offsets[:-1][fr]
     keep = rank < max_stars
     fr, rank = fr[keep], rank[keep]
-    half = geo.sensor_px / 2.0
     coords = np.zeros((b, max_stars, len(COORD_FEATURES)), np.float32)
     mask = np.zeros((b, max_stars), bool)
-    coords[fr, rank, 0] = (np.asarray(det["x_px"])[keep] + 0.5) / half - 1.0
-    coords[fr, rank, 1] = (np.asarray(det["y_px"])[keep] + 0.5) / half - 1.0
+    coords[fr, rank, 0], coords[fr, rank, 1] = geo.normalised(np.asarray(det["x_px"])[keep],
+                                                                np.asarray(det["y_px"])[keep])
     coords[fr, rank, 2] = np.log10(1.0 + np.maximum(np.asarray(det["flux_adu"], np.float64)[keep], 0.0)) - log_flux_offset
     mask[fr, rank] = True
     return coords, mask, counts

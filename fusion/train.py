@@ -331,6 +331,11 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     centroids = None if ckpt is None else ckpt["centroids"].numpy()
     data = prepare_data(cfg, centroids)
     k, image_size = cfg.labels.k, data.ds.image_shape[0]
+    if (cfg.model.branches.image and data.ds.image_shape[0] != data.ds.image_shape[1]
+            and cfg.model.image_backbone not in ("tiny_cnn",)):
+        raise ConfigError(f"model.image_backbone={cfg.model.image_backbone} takes square images, but this dataset "
+                          f"stores {data.ds.image_shape[1]} x {data.ds.image_shape[0]} (a non-square sensor); use "
+                          "model.image_backbone=tiny_cnn or switch the image branch off")
     model = create_model(cfg.model.name, k, cfg.model, image_size=image_size, max_stars=cfg.data.max_stars)
     counts = parameter_counts(model)
     if cfg.model.init_from and ckpt is None:

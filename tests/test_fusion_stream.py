@@ -150,3 +150,32 @@ def test_frames_stream_on_the_torch_renderer(smoke, tmp_path):
                          "stream.render_backend=torch", "model.branches.image=true",
                          "model.image_backbone=tiny_cnn"), tmp_path / "t", log=quiet)
     assert summary["epochs_run"] == 1
+
+
+def test_non_square_sensor_trains_on_shards_and_stream(tmp_path):
+    """A 256 x 192 sensor (stored 64 x 48): shard training with augmentations and the image,
+    and stream training with a calibration made for that camera."""
+    from fusion.testing import render_small
+    ds = render_small(tmp_path / "ns", ["n_frames=120", "output.shard_size=60", "camera.width_px=256",
+                                        "camera.height_px=192", "camera.fov_deg=20", "output.image_size_px=64",
+                                        "output.split_fractions=[0.5, 0.25, 0.25]"])
+    with open_dataset(ds) as d:
+        config = d.config
+        assert d.image_shape == (48, 64)
+    geo = FrameGeometry.from_render_config(config)
+    x, y = geo.normalised(np.array([-0.5, 255.5, 127.5]), np.array([-0.5, 191.5, 95.5]))
+    np.testing.assert_allclose(x, [-1, 1, 0])
+    np.testing.assert_allclose(y, [-0.75, 0.75, 0])          # one scale for both axes
+    base = [f"data.path={ds}", "labels.k=3", "model.image_backbone=tiny_cnn", "model.canonical.mode=multi",
+            "model.canonical.image=true", "model.coord_encoder=transformer", "model.transformer.dim=16",
+            "model.transformer.layers=1", "model.transformer.heads=2", "model.coord_hidden=32",
+            "model.heatmap.channels=[4,8]", "model.heatmap.out_dim=16", "model.heatmap.canvas_px=32",
+            "train.epochs=1", "train.batch_size=16", "train.workers=0", "data.max_stars=8"]
+    s = train(load_config(ROOT / "configs" / "smoke.yaml", base), tmp_path / "shards", log=quiet)
+    assert np.isfinite(s["best"]["val_loss"])
+    cal = tmp_path / "ns-detector.json"
+    emu.save(emu.calibrate_from_renders(build_render_config(config), 60), cal)
+    s = train(load_config(ROOT / "configs" / "smoke.yaml", base + [
+        "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=64",
+        "model.branches.image=false"]), tmp_path / "stream", log=quiet)
+    assert np.isfinite(s["best"]["val_loss"])

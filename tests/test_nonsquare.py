@@ -51,8 +51,9 @@ def test_render_store_validate_non_square(tmp_path):
     assert rep.ok, rep.problems
 
 
-def test_fusion_training_refuses_non_square_in_one_line(tmp_path):
+def test_fusion_geometry_of_a_non_square_sensor():
+    """fusion takes non-square sensors (training on them: tests/test_fusion_stream.py)."""
     from fusion.augment import FrameGeometry
     from skygen.config import config_dict
-    with pytest.raises(ConfigError, match="square sensors"):
-        FrameGeometry.from_render_config(config_dict(load_config(overrides=WIDE)))
+    geo = FrameGeometry.from_render_config(config_dict(load_config(overrides=WIDE)))
+    assert (geo.sensor_px, geo.sensor_h, geo.image_px, geo.image_h, geo.factor) == (256, 192, 64, 48, 4)

@@ -54,7 +54,7 @@ def model_inputs(detections: Detections, image: np.ndarray | None, render_config
     from ..data import encode_detections, normalise_image
     geo = FrameGeometry.from_render_config(render_config)
     if image is None:
-        image = np.full((image_size, image_size), geo.bias_adu, np.float32)
+        image = np.full((geo.image_h, geo.image_px), geo.bias_adu, np.float32)
     s = Sample(image=np.asarray(image, np.float32), x_px=detections.x_px, y_px=detections.y_px,
                flux_adu=np.asarray(detections.flux_adu, np.float32), area_px=np.zeros(len(detections), np.int32),
                background_adu=0.0, noise_adu=0.0)
