@@ -30,6 +30,7 @@ RUNS = {
     "best-s1": ("configs/cpu-best.yaml", ["train.seed=1"], "cpu-best.yaml, seed 1"),
     "best-s2": ("configs/cpu-best.yaml", ["train.seed=2"], "cpu-best.yaml, seed 2"),
     "best-k100": ("configs/cpu-best.yaml", ["labels.k=100"], "cpu-best.yaml, K = 100"),
+    "demo-fine": ("configs/cpu.yaml", ["labels.fine_k=100"], "cpu.yaml trained on 100 fine regions, K = 15 by summing them"),
     "raw": ("configs/cpu.yaml", ["model.canonical.mode=none"], "cpu.yaml with raw sensor-frame rows (no canonical frame)"),
     "brightest": ("configs/cpu.yaml", ["model.canonical.mode=brightest"], "cpu.yaml with one reference (brightest)"),
     "fixed": ("configs/cpu.yaml", ["stream.kind=none", "train.epochs=60", "aug.rotation_max_deg=180",

@@ -43,6 +43,7 @@ class LabelsConfig:
     n_init: int = param(4, lo=1, hi=100, doc="K-means restarts; the one with the largest total cosine similarity is kept")
     max_iter: int = param(300, lo=1, hi=100000, doc="K-means iterations per restart at most")
     tol_deg: float = param(1e-6, lo=0, hi=10, doc="converged when no centroid moves by more than this angle (and assignments are stable)")
+    fine_k: Optional[int] = param(None, lo=2, hi=100000, doc="train on fine_k finer regions (spherical K-means too) and predict the k regions by summing the probabilities of the fine regions whose centroid lies in each (None: train on the k regions directly)")
 
 
 @dataclass(frozen=True)
@@ -193,6 +194,10 @@ def check_consistency(cfg: FusionConfig) -> None:
     if cfg.stream.kind == "detections" and cfg.model.branches.image and cfg.model.name == "star_fusion":
         raise ConfigError("stream.kind=detections makes no images, but model.branches.image is on; use "
                           "--stream frames, or switch the image branch off (model.branches.image=false)")
+    if cfg.labels.fine_k is not None and cfg.labels.fine_k <= cfg.labels.k:
+        raise ConfigError(f"labels.fine_k ({cfg.labels.fine_k}) must exceed labels.k ({cfg.labels.k})")
+    if cfg.labels.fine_k is not None and cfg.labels.soft_labels:
+        raise ConfigError("labels.fine_k and labels.soft_labels cannot be combined; choose one")
     t = cfg.model.transformer
     if t.dim % t.heads:
         raise ConfigError(f"model.transformer.heads ({t.heads}) must divide model.transformer.dim ({t.dim})")

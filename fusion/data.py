@@ -121,13 +121,14 @@ class FrameDataset(torch.utils.data.Dataset):
 
     def __init__(self, ds: SkyDataset, positions: np.ndarray, labels: np.ndarray, *, max_stars: int = 6,
                  norm_scale_adu: float = 8.0, log_flux_offset: float = 3.0, soft: np.ndarray | None = None,
-                 aug: AugConfig | None = None, seed: int = 0):
+                 aug: AugConfig | None = None, seed: int = 0, fine: np.ndarray | None = None):
         if len(positions) != len(labels) or (soft is not None and len(soft) != len(labels)):
             raise ValueError("positions, labels and soft targets must have the same length")
         self.ds = ds
         self.positions = np.asarray(positions, np.int64)
         self.labels = np.asarray(labels, np.int64)
         self.soft = None if soft is None else np.asarray(soft, np.float32)
+        self.fine = None if fine is None else np.asarray(fine, np.int64)   # fine-region labels (labels.fine_k)
         self.geo = FrameGeometry.from_render_config(ds.config)
         self.max_stars, self.norm_scale_adu, self.log_flux_offset = max_stars, norm_scale_adu, log_flux_offset
         self.aug, self.seed = aug, seed
@@ -162,6 +163,8 @@ class FrameDataset(torch.utils.data.Dataset):
                 "n_detections": torch.tensor(s.n)}
         if self.soft is not None:
             item["soft"] = torch.from_numpy(self.soft[j])
+        if self.fine is not None:
+            item["label_fine"] = torch.tensor(self.fine[j])
         return item
 
 

@@ -280,7 +280,7 @@ class StarFusion(nn.Module):
     """Any non-empty subset of {image, heatmap, coords} branches -> concat -> LayerNorm -> Linear(K)."""
 
     def __init__(self, num_classes: int, image: nn.Module | None = None, heatmap: nn.Module | None = None,
-                 coords: nn.Module | None = None, dropout: float = 0.0, canonical=None):
+                 coords: nn.Module | None = None, dropout: float = 0.0, canonical=None, fine_classes: int | None = None):
         super().__init__()
         self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
         if image is None and heatmap is None and coords is None:
@@ -290,7 +290,12 @@ class StarFusion(nn.Module):
         self.num_classes, self.num_features = num_classes, dim
         self.norm = nn.LayerNorm(dim)
         self.drop = nn.Dropout(dropout)
-        self.head = nn.Linear(dim, num_classes)
+        # with fine regions the head scores them, and a region's logit is the log-sum-exp of
+        # its fine regions' (fine_groups[f] = the region of fine region f, set from the data)
+        self.fine_classes = fine_classes
+        self.head = nn.Linear(dim, fine_classes or num_classes)
+        if fine_classes:
+            self.register_buffer("fine_groups", torch.zeros(fine_classes, dtype=torch.int64))
 
     @property
     def branches(self) -> dict[str, bool]:
@@ -307,23 +312,30 @@ class StarFusion(nn.Module):
             parts.append(self.coords(coords, mask))
         return torch.cat(parts, dim=-1)
 
-    def forward_head(self, z: torch.Tensor) -> torch.Tensor:
-        return self.head(self.drop(self.norm(z)))
+    def forward_head(self, z: torch.Tensor, fine: bool = False) -> torch.Tensor:
+        out = self.head(self.drop(self.norm(z)))
+        return out if fine or not self.fine_classes else self.coarse_logits(out)
+
+    def coarse_logits(self, fine_logits: torch.Tensor) -> torch.Tensor:
+        """Region logits from fine-region logits: log-sum-exp over each region's fine regions."""
+        member = self.fine_groups[None, :] == torch.arange(self.num_classes, device=fine_logits.device)[:, None]
+        x = fine_logits.float()[:, None, :].masked_fill(~member[None], float("-inf"))
+        return torch.logsumexp(x, dim=-1).to(fine_logits.dtype)
 
     def forward(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
-                mask: torch.Tensor | None = None) -> torch.Tensor:
+                mask: torch.Tensor | None = None, fine: bool = False) -> torch.Tensor:
         """Logits (B, K). With a canonical orientation (:mod:`fusion.canonical`) the inputs are
         rotated first; with several reference views the output is the log of the mean of the
         views' class probabilities (a valid logit vector: softmax gives that mean back)."""
         c = self.canonical
         if c is None:
-            return self.forward_head(self.forward_features(image, coords, mask))
+            return self.forward_head(self.forward_features(image, coords, mask), fine)
         cv, mv, theta, views = canonical_views(coords, mask, c.mode, c.n_refs, c.min_radius, self.training)
         if image is not None and self.image is not None:
             image = image.repeat_interleave(views, dim=0)
             if c.image:
                 image = rotate_image(image, theta)
-        logits = self.forward_head(self.forward_features(image, cv, mv))
+        logits = self.forward_head(self.forward_features(image, cv, mv), fine)
         if views == 1:
             return logits
         w = view_weights(coords, mask, c.n_refs, c.min_radius)            # (B, V)
@@ -333,7 +345,7 @@ class StarFusion(nn.Module):
 
 
 def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *, image_size: int = 256,
-                 max_stars: int = 6, load_pretrained: bool = True) -> StarFusion:
+                 max_stars: int = 6, load_pretrained: bool = True, fine_classes: int | None = None) -> StarFusion:
     """Build registered model ``name`` with K = ``num_classes`` outputs from a :class:`ModelConfig`.
 
     ``load_pretrained=False`` builds the architecture of a pretrained model (3 channels,
@@ -357,7 +369,7 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
             t = cfg.transformer
             coords = TransformerSetEncoder(dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult,
                                            out_dim=cfg.coord_hidden)
-    return StarFusion(num_classes, image, heat, coords, cfg.dropout, cfg.canonical)
+    return StarFusion(num_classes, image, heat, coords, cfg.dropout, cfg.canonical, fine_classes)
 
 
 def parameter_counts(model: StarFusion) -> dict[str, int]:

@@ -84,12 +84,14 @@ class StreamBatches(torch.utils.data.IterableDataset):
     def __init__(self, dataset_config: dict, kind: str, centroids: np.ndarray, *, seed: int, batch: int,
                  steps: int, rank: int = 0, world: int = 1, max_stars: int = 6, log_flux_offset: float = 3.0,
                  norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
-                 calibration: str | None = None, device: str | None = None, render_backend: str | None = None):
+                 calibration: str | None = None, device: str | None = None, render_backend: str | None = None,
+                 fine_centroids: np.ndarray | None = None):
         if steps < 1:
             raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
                               "to at least one global batch")
         self.config, self.kind = dataset_config, kind
         self.centroids = np.asarray(centroids, np.float64)
+        self.fine_centroids = None if fine_centroids is None else np.asarray(fine_centroids, np.float64)
         self.seed, self.batch, self.steps, self.rank, self.world = seed, batch, steps, rank, world
         self.max_stars, self.log_flux_offset, self.norm_scale_adu = max_stars, log_flux_offset, norm_scale_adu
         self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
@@ -146,6 +148,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
                "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
         if image is not None:
             out["image"] = image if isinstance(image, torch.Tensor) else torch.from_numpy(image)
+        if self.fine_centroids is not None:
+            out["label_fine"] = torch.from_numpy(assign(unit, self.fine_centroids).astype(np.int64))
         if self.soft_kappa is not None:
             out["soft"] = torch.from_numpy(soft_targets(unit, self.centroids, self.soft_kappa).astype(np.float32))
         return out

@@ -108,7 +108,7 @@ def load_timed_model(checkpoint: str | Path | None = None, config: str | Path | 
                           int(ckpt["max_stars"]), int(ckpt["num_classes"]), render)
     cfg = load_config(config, overrides)
     cfg = replace(cfg, model=resolve_model_config(cfg.model))
-    model = create_model(cfg.model.name, cfg.labels.k, cfg.model, image_size=image_size,
+    model = create_model(cfg.model.name, cfg.labels.k, cfg.model, image_size=image_size, fine_classes=cfg.labels.fine_k,
                          max_stars=cfg.data.max_stars, load_pretrained=False)
     return TimedModel(model.eval(), cfg, {"config": str(config) if config else "defaults (the paper's recipe)",
                                           "overrides": list(overrides),

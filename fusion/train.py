@@ -70,10 +70,16 @@ class PreparedData:
     alpha: np.ndarray                     # (K,)
     kmeans: KMeansResult | None           # None when the centroids came from a checkpoint
     sparse_frames: dict                   # split -> frames with < 2 detections
+    fine_centroids: np.ndarray | None = None   # (F, 3) with labels.fine_k
+    fine_groups: np.ndarray | None = None      # (F,) region of each fine region
 
 
-def prepare_data(cfg: FusionConfig, centroids: np.ndarray | None = None) -> PreparedData:
-    """Open the dataset, fit (or reuse) the centroids on the training split, label both splits."""
+def prepare_data(cfg: FusionConfig, centroids: np.ndarray | None = None,
+                 fine_centroids: np.ndarray | None = None) -> PreparedData:
+    """Open the dataset, fit (or reuse) the centroids on the training split, label both splits.
+
+    With ``labels.fine_k`` also the fine regions (spherical K-means on the same directions)
+    and the region each belongs to (the region of its centroid)."""
     if not cfg.data.path:
         raise ConfigError("data.path: no dataset given; pass --data DIR (a folder written by `skygen render`)")
     ds = open_dataset(cfg.data.path)
@@ -88,14 +94,28 @@ def prepare_data(cfg: FusionConfig, centroids: np.ndarray | None = None) -> Prep
     elif len(centroids) != lab.k:
         raise CheckpointError(f"the checkpoint's centroids define K={len(centroids)} classes but labels.k={lab.k}")
     labels = {name: assign(v, centroids) for name, v in vec.items()}
+    groups = fine = None
+    if lab.fine_k:
+        if fine_centroids is None:
+            if lab.fine_k > len(vec["train"]):
+                raise ConfigError(f"labels.fine_k={lab.fine_k} exceeds the {len(vec['train'])} training directions")
+            fine_centroids = spherical_kmeans(vec["train"], lab.fine_k, lab.seed, lab.n_init, lab.max_iter,
+                                              lab.tol_deg).centroids
+        groups = assign(fine_centroids, centroids)
+        empty = sorted(set(range(lab.k)) - set(groups.tolist()))
+        if empty:
+            raise ConfigError(f"labels.fine_k={lab.fine_k}: regions {empty} contain no fine-region centroid; "
+                              "raise labels.fine_k")
+        fine = {name: assign(v, fine_centroids) for name, v in vec.items()}
     soft = {name: (soft_targets(v, centroids, lab.kappa) if lab.soft_labels else None) for name, v in vec.items()}
     common = dict(max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
     train = FrameDataset(ds, pos["train"], labels["train"], soft=soft["train"], aug=cfg.aug, seed=cfg.train.seed,
-                         **common)
+                         fine=None if fine is None else fine["train"], **common)
     val = FrameDataset(ds, pos["val"], labels["val"], soft=soft["val"], aug=None, seed=cfg.train.seed, **common)
     return PreparedData(ds, np.asarray(centroids, np.float64), train, val,
                         class_weights(labels["train"], lab.k, cfg.loss.alpha), km,
-                        {name: count_sparse_frames(ds, p) for name, p in pos.items()})
+                        {name: count_sparse_frames(ds, p) for name, p in pos.items()},
+                        None if fine_centroids is None else np.asarray(fine_centroids, np.float64), groups)
 
 
 # --------------------------------------------------------------------------- optimisation
@@ -172,8 +192,15 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         image, coords, mask = _inputs(batch, device)
         target = _target(batch, device, soft)
         with _autocast(device, amp_dtype):
-            logits = model(image, coords, mask)
-        loss = loss_fn(logits.float(), target)
+            if "label_fine" in batch:     # fine regions: cross-entropy on them, regions by log-sum-exp
+                fine = model(image, coords, mask, fine=True)
+                logits = getattr(model, "module", model).coarse_logits(fine)
+            else:
+                logits = model(image, coords, mask)
+        if "label_fine" in batch:
+            loss = torch.nn.functional.cross_entropy(fine.float(), batch["label_fine"].to(device))
+        else:
+            loss = loss_fn(logits.float(), target)
         if not torch.isfinite(loss):
             raise FusionError(f"training loss became {loss.item()}; lower optim.lr or enable optim.grad_clip_norm")
         optimizer.zero_grad(set_to_none=True)
@@ -329,14 +356,18 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
     np.random.seed(tc.seed)
 
     centroids = None if ckpt is None else ckpt["centroids"].numpy()
-    data = prepare_data(cfg, centroids)
+    fine_c = None if ckpt is None or ckpt.get("fine_centroids") is None else ckpt["fine_centroids"].numpy()
+    data = prepare_data(cfg, centroids, fine_c)
     k, image_size = cfg.labels.k, data.ds.image_shape[0]
     if (cfg.model.branches.image and data.ds.image_shape[0] != data.ds.image_shape[1]
             and cfg.model.image_backbone not in ("tiny_cnn",)):
         raise ConfigError(f"model.image_backbone={cfg.model.image_backbone} takes square images, but this dataset "
                           f"stores {data.ds.image_shape[1]} x {data.ds.image_shape[0]} (a non-square sensor); use "
                           "model.image_backbone=tiny_cnn or switch the image branch off")
-    model = create_model(cfg.model.name, k, cfg.model, image_size=image_size, max_stars=cfg.data.max_stars)
+    model = create_model(cfg.model.name, k, cfg.model, image_size=image_size, max_stars=cfg.data.max_stars,
+                         fine_classes=cfg.labels.fine_k)
+    if data.fine_groups is not None:
+        model.fine_groups.copy_(torch.from_numpy(data.fine_groups))
     counts = parameter_counts(model)
     if cfg.model.init_from and ckpt is None:
         warm = load_matching_state(model, cfg.model.init_from)
@@ -362,6 +393,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
                                 norm_scale_adu=cfg.data.norm_scale_adu,
                                 soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None,
                                 ranges=level_ranges(sc), calibration=sc.calibration,
+                                fine_centroids=data.fine_centroids,
                                 device=str(device) if sc.render_backend == "torch" else None,
                                 render_backend=sc.render_backend)
         workers = tc.workers
@@ -396,6 +428,7 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
             model, device_ids=[device.index] if device.type == "cuda" else None)
 
     static = {"config": config_dict(cfg), "centroids": torch.from_numpy(data.centroids),
+              "fine_centroids": None if data.fine_centroids is None else torch.from_numpy(data.fine_centroids),
               "num_classes": k, "image_size": image_size, "max_stars": cfg.data.max_stars,
               "model_name": cfg.model.name, "branches": model.branches, "versions": versions(),
               "dataset": {"root": str(Path(data.ds.root).resolve()), "dataset_id": data.ds.manifest.get("dataset_id"),
@@ -488,6 +521,7 @@ def load_trained_model(ckpt: dict, source: str = "checkpoint") -> tuple[StarFusi
     except ConfigError as exc:
         raise CheckpointError(f"{source}: its config is not valid for this fusion version ({exc})") from None
     model = create_model(cfg.model.name, int(ckpt["num_classes"]), cfg.model, image_size=int(ckpt["image_size"]),
+                         fine_classes=cfg.labels.fine_k,
                          max_stars=int(ckpt["max_stars"]), load_pretrained=False)
     load_model_state(model, ckpt, source)
     return model, cfg

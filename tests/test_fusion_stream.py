@@ -179,3 +179,26 @@ def test_non_square_sensor_trains_on_shards_and_stream(tmp_path):
         "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=64",
         "model.branches.image=false"]), tmp_path / "stream", log=quiet)
     assert np.isfinite(s["best"]["val_loss"])
+
+
+def test_fine_regions_head(smoke, tmp_path):
+    """labels.fine_k: trained on finer regions, predicting the K regions by log-sum-exp; the
+    checkpoint reloads with its grouping and its region probabilities sum to one."""
+    from fusion.train import load_trained_model
+    cfg = _cfg(smoke, "train.epochs=1", "labels.fine_k=8")
+    s = train(cfg, tmp_path / "fine", log=quiet)
+    assert np.isfinite(s["best"]["val_loss"])
+    ck = load_checkpoint(tmp_path / "fine" / "best.pt")
+    model, _ = load_trained_model(ck)
+    groups = model.fine_groups.numpy()
+    assert set(groups.tolist()) == set(range(4)) and len(groups) == 8
+    c, m = torch.rand(3, 8, 3) - 0.5, torch.ones(3, 8, dtype=torch.bool)
+    with torch.no_grad():
+        coarse, fine = model.eval()(None, c, m), model(None, c, m, fine=True)
+    torch.testing.assert_close(torch.softmax(coarse, -1).sum(-1), torch.ones(3))
+    # a region's probability is the sum of its fine regions'
+    pf = torch.softmax(fine, -1)
+    want = torch.stack([pf[:, torch.from_numpy(groups == g)].sum(-1) for g in range(4)], -1)
+    torch.testing.assert_close(torch.softmax(coarse, -1), want, atol=1e-5, rtol=1e-4)
+    with pytest.raises(ConfigError, match="must exceed"):
+        _cfg(smoke, "labels.fine_k=3")
