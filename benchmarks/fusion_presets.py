@@ -25,17 +25,18 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # name: (preset, overrides, what it is)
 RUNS = {
-    "demo": ("configs/cpu.yaml", [], "cpu.yaml (make demo): stream, canonical x3, transformer d64x2"),
+    "demo": ("configs/cpu.yaml", [], "cpu.yaml (make demo): stream, brightest reference, transformer d64x2, 100 fine regions"),
+    "multi": ("configs/cpu.yaml", ["model.canonical.mode=multi"], "cpu.yaml with three reference views averaged"),
+    "multi-coarse": ("configs/cpu.yaml", ["model.canonical.mode=multi", "labels.fine_k=null"],
+                     "cpu.yaml with three reference views, trained on the 15 regions directly"),
     "best-s0": ("configs/cpu-best.yaml", ["train.seed=0"], "cpu-best.yaml, seed 0"),
     "best-s1": ("configs/cpu-best.yaml", ["train.seed=1"], "cpu-best.yaml, seed 1"),
     "best-s2": ("configs/cpu-best.yaml", ["train.seed=2"], "cpu-best.yaml, seed 2"),
     "best-k100": ("configs/cpu-best.yaml", ["labels.k=100"], "cpu-best.yaml, K = 100"),
-    "demo-fine": ("configs/cpu.yaml", ["labels.fine_k=100"], "cpu.yaml trained on 100 fine regions, K = 15 by summing them"),
     "raw": ("configs/cpu.yaml", ["model.canonical.mode=none"], "cpu.yaml with raw sensor-frame rows (no canonical frame)"),
-    "brightest": ("configs/cpu.yaml", ["model.canonical.mode=brightest"], "cpu.yaml with one reference (brightest)"),
-    "fixed": ("configs/cpu.yaml", ["stream.kind=none", "train.epochs=60", "aug.rotation_max_deg=180",
-                                   "aug.false_star_rate=1.0", "aug.dropout_prob=0.15"],
-              "cpu.yaml model on the dataset's fixed training frames (augmented), about the same time"),
+    "fixed": ("configs/cpu.yaml", ["model.canonical.mode=multi", "stream.kind=none", "train.epochs=60",
+                                   "aug.rotation_max_deg=180", "aug.false_star_rate=1.0", "aug.dropout_prob=0.15"],
+              "the 'multi' model on the dataset's 3,200 fixed training frames (augmented), about the same time"),
 }
 
 

@@ -16,12 +16,14 @@ Choice of reference (``model.canonical.mode``)
                    evaluated once per reference and the class probabilities are averaged.
                    In training one of them is drawn per sample, so the network learns to
                    work from any of them. A reference lost to dropout, or a false star that
-                   outshines the real ones, then spoils only one of ``n_refs`` views. This is
-                   the default of the CPU presets; the measured comparison is in
-                   ``results/cpu/REPORT.md``.
+                   outshines the real ones, then spoils only one of ``n_refs`` views. But the
+                   network must learn ``n_refs`` canonical frames instead of one: at the
+                   1 M-sample budget of ``configs/cpu.yaml``, ``brightest`` scored higher on clean
+                   *and* on corrupted frames (``results/cpu/presets/presets.md``), so that preset
+                   uses it; ``cpu-best.yaml`` uses ``multi``.
 
 Convention: rows are ``[x, y, log_flux]`` with x, y normalised to [-1, 1] over the sensor
-(:mod:`fusion.data`), y growing downwards. Rotating by ``-theta`` (``theta = atan2(y_ref,
+(:mod:`fusion.data`; y on the same scale), y growing downwards. Rotating by ``-theta`` (``theta = atan2(y_ref,
 x_ref)``) maps the reference onto ``(r_ref, 0)``. The image, when ``model.canonical.image``
 is on, is resampled with the same rotation (bilinear, zeros outside), so image, heatmap
 and coordinate rows stay in agreement.
