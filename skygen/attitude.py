@@ -101,3 +101,64 @@ def sample_boresight(cfg, frame_index: int, rng: np.random.Generator) -> tuple[f
         dec = np.degrees(np.arcsin(np.clip(v[2], -1, 1)))
     roll = lo + (hi - lo) * u3
     return float(ra % 360.0), float(dec), float(roll % 360.0)
+
+
+def boresights_from_uniforms(acfg, idx: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ra, dec, roll) in degrees for frames ``idx`` from three uniforms per frame ``u`` (B, 3),
+    distributed as :func:`sample_boresight` draws them (the vectorised form the streams use)."""
+    lo, hi = acfg.roll_range_deg
+    roll = (lo + (hi - lo) * u[:, 2]) % 360.0
+    if acfg.mode == "list":
+        k = idx % len(acfg.ra_deg)
+        ra = np.asarray(acfg.ra_deg, np.float64)[k] % 360.0
+        dec = np.asarray(acfg.dec_deg, np.float64)[k]
+        if acfg.roll_deg:
+            roll = np.asarray(acfg.roll_deg, np.float64)[k] % 360.0
+        return ra, dec, roll
+    if acfg.mode == "uniform":
+        return (360.0 * u[:, 0]) % 360.0, np.degrees(np.arcsin(2.0 * u[:, 1] - 1.0)), roll
+    cos_r = np.cos(np.radians(acfg.region_radius_deg))
+    cos_t = 1.0 - u[:, 1] * (1.0 - cos_r)
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    phi = 2 * np.pi * u[:, 0]
+    local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+    v = local @ attitude_matrix(acfg.region_ra_deg, acfg.region_dec_deg, 0.0).T
+    return (np.degrees(np.arctan2(v[:, 1], v[:, 0])) % 360.0, np.degrees(np.arcsin(np.clip(v[:, 2], -1, 1))), roll)
+
+
+def attitude_matrices(ra_deg, dec_deg, roll_deg) -> np.ndarray:
+    """:func:`attitude_matrix` for arrays: (B, 3, 3)."""
+    a, d, r = (np.radians(np.asarray(v, np.float64)) for v in (ra_deg, dec_deg, roll_deg))
+    b = radec_to_vec(a, d)
+    z = np.zeros_like(a)
+    east = np.stack([-np.sin(a), np.cos(a), z], -1)
+    north = np.stack([-np.sin(d) * np.cos(a), -np.sin(d) * np.sin(a), np.cos(d)], -1)
+    y = -(np.cos(r)[:, None] * north + np.sin(r)[:, None] * east)
+    x = np.cross(y, b)
+    return np.stack([x, y, b], axis=-1)
+
+
+def matrices_to_quaternions(R: np.ndarray) -> np.ndarray:
+    """:func:`matrix_to_quaternion` for (B, 3, 3): (B, 4), w >= 0 (same method)."""
+    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    tr = np.trace(R, axis1=1, axis2=2)
+    k = np.argmax(np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], -1), axis=-1)
+    q = np.empty((len(R), 4))
+    for case in range(4):
+        m = R[k == case]
+        t = tr[k == case]
+        if case == 0:
+            w = np.sqrt(1.0 + t) / 2
+            c = [w, (m[:, 2, 1] - m[:, 1, 2]) / (4 * w), (m[:, 0, 2] - m[:, 2, 0]) / (4 * w), (m[:, 1, 0] - m[:, 0, 1]) / (4 * w)]
+        elif case == 1:
+            x = np.sqrt(1.0 + 2 * m[:, 0, 0] - t) / 2
+            c = [(m[:, 2, 1] - m[:, 1, 2]) / (4 * x), x, (m[:, 0, 1] + m[:, 1, 0]) / (4 * x), (m[:, 0, 2] + m[:, 2, 0]) / (4 * x)]
+        elif case == 2:
+            y = np.sqrt(1.0 + 2 * m[:, 1, 1] - t) / 2
+            c = [(m[:, 0, 2] - m[:, 2, 0]) / (4 * y), (m[:, 0, 1] + m[:, 1, 0]) / (4 * y), y, (m[:, 1, 2] + m[:, 2, 1]) / (4 * y)]
+        else:
+            z = np.sqrt(1.0 + 2 * m[:, 2, 2] - t) / 2
+            c = [(m[:, 1, 0] - m[:, 0, 1]) / (4 * z), (m[:, 0, 2] + m[:, 2, 0]) / (4 * z), (m[:, 1, 2] + m[:, 2, 1]) / (4 * z), z]
+        q[k == case] = np.stack(c, -1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(q[:, :1] < 0, -q, q)

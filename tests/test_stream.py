@@ -12,7 +12,8 @@ from skygen.cli import main
 from skygen.config import build_config, load_config
 from skygen.errors import ConfigError, DatasetError
 from skygen.render import Renderer
-from skygen.stream import SampleStream, partition, quaternions, attitude_matrices
+from skygen.attitude import attitude_matrices, matrices_to_quaternions as quaternions
+from skygen.stream import SampleStream, partition
 
 
 @pytest.fixture(scope="module")
