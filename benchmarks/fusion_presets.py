@@ -24,19 +24,33 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 # name: (preset, overrides, what it is)
+OLD = ["labels.fine_k=100", "train.epochs=10"]                      # cpu.yaml before fine_k = 1000
+OLD_BEST = ["labels.fine_k=null", "train.epochs=32", "stream.dropout=[0,0.3]", "stream.false_stars=[0,2]"]
 RUNS = {
-    "demo": ("configs/cpu.yaml", [], "cpu.yaml (make demo): stream, brightest reference, transformer d64x2, 100 fine regions"),
-    "multi": ("configs/cpu.yaml", ["model.canonical.mode=multi"], "cpu.yaml with three reference views averaged"),
-    "multi-coarse": ("configs/cpu.yaml", ["model.canonical.mode=multi", "labels.fine_k=null"],
-                     "cpu.yaml with three reference views, trained on the 15 regions directly"),
+    "demo": ("configs/cpu.yaml", [], "cpu.yaml (make demo): stream, brightest reference, transformer d64x2, "
+                                     "1000 fine regions, 786 k samples"),
+    "fine1000": ("configs/cpu.yaml", ["train.epochs=10"], "cpu.yaml with 983 k samples"),
+    "fine600": ("configs/cpu.yaml", ["labels.fine_k=600", "train.epochs=10"], "... with 600 fine regions"),
+    "fine300": ("configs/cpu.yaml", ["labels.fine_k=300", "train.epochs=10"], "... with 300 fine regions"),
+    "fine100": ("configs/cpu.yaml", OLD, "... with 100 fine regions (the previous cpu.yaml)"),
+    "multi": ("configs/cpu.yaml", ["model.canonical.mode=multi", *OLD],
+              "... 100 fine regions, three reference views averaged"),
+    "multi-coarse": ("configs/cpu.yaml", ["model.canonical.mode=multi", "labels.fine_k=null", "train.epochs=10"],
+                     "... three reference views, trained on the 15 regions directly"),
+    "raw": ("configs/cpu.yaml", ["model.canonical.mode=none", *OLD],
+            "... 100 fine regions, raw sensor-frame rows (no canonical frame)"),
+    "fixed": ("configs/cpu.yaml", ["model.canonical.mode=multi", "stream.kind=none", "train.epochs=60", "labels.fine_k=100",
+                                   "aug.rotation_max_deg=180", "aug.false_star_rate=1.0", "aug.dropout_prob=0.15"],
+              "the 'multi' model on the dataset's 3,200 fixed training frames (augmented), about the same time"),
+    "fusion": ("configs/cpu-fusion.yaml", ["model.init_from=runs/presets/demo/best.pt"],
+               "three branches (image + heatmap + coords) on the frames stream, warm-started from 'demo'"),
+    "few": ("configs/cpu-few.yaml", [], "cpu-few.yaml: half the samples cut to their brightest 3-12 detections"),
     "best-s0": ("configs/cpu-best.yaml", ["train.seed=0"], "cpu-best.yaml, seed 0"),
     "best-s1": ("configs/cpu-best.yaml", ["train.seed=1"], "cpu-best.yaml, seed 1"),
     "best-s2": ("configs/cpu-best.yaml", ["train.seed=2"], "cpu-best.yaml, seed 2"),
-    "best-k100": ("configs/cpu-best.yaml", ["labels.k=100"], "cpu-best.yaml, K = 100"),
-    "raw": ("configs/cpu.yaml", ["model.canonical.mode=none"], "cpu.yaml with raw sensor-frame rows (no canonical frame)"),
-    "fixed": ("configs/cpu.yaml", ["model.canonical.mode=multi", "stream.kind=none", "train.epochs=60",
-                                   "aug.rotation_max_deg=180", "aug.false_star_rate=1.0", "aug.dropout_prob=0.15"],
-              "the 'multi' model on the dataset's 3,200 fixed training frames (augmented), about the same time"),
+    "best-coarse": ("configs/cpu-best.yaml", OLD_BEST, "the previous cpu-best.yaml: 15 regions directly, 3.3 M samples, "
+                                                       "dropout up to 0.3, up to 2 false stars"),
+    "best-k100": ("configs/cpu-best.yaml", ["labels.k=100", *OLD_BEST], "the previous cpu-best.yaml, K = 100"),
 }
 
 
@@ -60,6 +74,28 @@ def _evaluate(name: str, runs: Path, data: str, tag: str) -> dict:
     quiet = lambda *a, **k: None  # noqa: E731
     return evaluate_checkpoint(runs / name / "best.pt", data, "test", runs / name / f"eval-{tag}", log=quiet,
                                warn=quiet)
+
+
+def seed_summary(rows: list[dict]) -> list[str]:
+    """Mean ± sample std over the seeds of runs named NAME-s<seed> (at least two seeds)."""
+    import re
+    import numpy as np
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        m = re.fullmatch(r"(.+)-s(\d+)", r["run"])
+        if m:
+            groups.setdefault(m.group(1), []).append(r)
+    out = []
+    for name, rs in groups.items():
+        if len(rs) < 2:
+            continue
+        ms = lambda key: (f"{100 * np.mean([r[key] for r in rs]):.1f} ± {100 * np.std([r[key] for r in rs], ddof=1):.1f} %"
+                          if all(key in r for r in rs) else "–")
+        out.append(f"\n{name}, {len(rs)} seeds ({', '.join(r['run'] for r in rs)}): top-1 {ms('top1')}, top-3 "
+                   f"{ms('top3')}, top-5 {ms('top5')}, corrupted top-1 {ms('corrupted_top1')}; training time "
+                   f"{np.mean([r['train_s'] for r in rs]) / 60:.1f} min (mean), "
+                   f"{max(r['train_s'] for r in rs) / 60:.1f} min (longest)")
+    return out
 
 
 def main(argv=None) -> int:
@@ -88,12 +124,14 @@ def main(argv=None) -> int:
     host = f"{platform.machine()}, {os.cpu_count()} logical CPUs"
     lines = [f"CPU presets ({host}); test split of {a.test}"
              + (f"; corrupted: test split of {a.corrupted}" if a.corrupted else ""), "",
-             "| run | K | training time | top-1 | top-3 | top-5 | median error | top-1, corrupted | what |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "| run | K | training time | samples | top-1 | top-3 | top-5 | median error | top-1, corrupted | what |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         cor = f"{100 * r['corrupted_top1']:.1f} %" if "corrupted_top1" in r else "–"
-        lines.append(f"| {r['run']} | {r['k']} | {r['train_s'] / 60:.1f} min | {100 * r['top1']:.1f} % | "
+        seen = f"{r['samples'] / 1e6:.2f} M" if r.get("samples") else "–"
+        lines.append(f"| {r['run']} | {r['k']} | {r['train_s'] / 60:.1f} min | {seen} | {100 * r['top1']:.1f} % | "
                      f"{100 * r['top3']:.1f} % | {100 * r['top5']:.1f} % | {r['median_err']:.1f}° | {cor} | {r['what']} |")
+    lines += seed_summary(rows)
     text = "\n".join(lines)
     print(text)
     if a.out:

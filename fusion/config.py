@@ -90,6 +90,7 @@ class ModelConfig:
     coord_encoder: str = param("mlp", choices=("mlp", "set", "transformer"), doc="coordinate branch: 3-layer MLP over the ordered list, permutation-invariant set encoder (deep sets), or transformer set encoder")
     coord_hidden: int = param(256, lo=1, hi=65536, doc="hidden and output width of the coordinate encoder")
     dropout: float = param(0.0, lo=0, hi=0.9, doc="dropout before the fusion classifier")
+    relative_flux: bool = param(False, doc="subtract the brightest detection's log flux from every coordinate row: the model sees flux ratios only, so a real camera's exposure, gain or ADU scaling (e.g. 12-bit data stored x16) cannot shift its inputs")
     branches: BranchesConfig = section(BranchesConfig)
     heatmap: HeatmapConfig = section(HeatmapConfig)
     canonical: CanonicalConfig = section(CanonicalConfig)
@@ -162,6 +163,9 @@ class StreamConfig:
     false_stars: tuple[float, float] = param((0.0, 0.0), lo=0, hi=100, doc="per-sample mean number of false stars (Poisson) drawn in [lo, hi]")
     centroid_noise: tuple[float, float] = param((0.0, 0.0), lo=0, hi=50, doc="per-sample centroid noise, px rms per axis, drawn in [lo, hi]")
     magnitude_noise: tuple[float, float] = param((0.0, 0.0), lo=0, hi=5, doc="per-sample magnitude noise, mag rms, drawn in [lo, hi]")
+    brightness_mag: tuple[float, float] = param((0.0, 0.0), lo=-10, hi=10, doc="per-sample brightness offset of every detection, mag, drawn in [lo, hi] (exposure, gain, extinction differ from the render config's; coordinate rows only)")
+    few_prob: float = param(0.0, lo=0, hi=1, doc="share of samples cut to their brightest few detections (few-star training: the regime where a lost-in-space solver fails)")
+    few_stars: tuple[int, int] = param((3, 8), lo=1, hi=256, doc="few_prob > 0: a cut sample keeps its brightest N detections, N drawn uniformly in [lo, hi] (after the corruptions)")
 
 
 @dataclass(frozen=True)
@@ -187,7 +191,7 @@ def check_consistency(cfg: FusionConfig) -> None:
     lo, hi = cfg.aug.false_star_snr
     if hi < lo:
         raise ConfigError(f"aug.false_star_snr: {[lo, hi]} must be [lo, hi] with lo <= hi")
-    for name in ("dropout", "false_stars", "centroid_noise", "magnitude_noise"):
+    for name in ("dropout", "false_stars", "centroid_noise", "magnitude_noise", "few_stars", "brightness_mag"):
         lo, hi = getattr(cfg.stream, name)
         if hi < lo:
             raise ConfigError(f"stream.{name}: {[lo, hi]} must be [lo, hi] with lo <= hi")

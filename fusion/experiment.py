@@ -13,15 +13,20 @@ Sections (names usable with ``--sections``):
 2. ``ablation`` — all 7 non-empty subsets of {image, heatmap, coordinates};
 3. ``k_sweep``  — K in the preset's list: top-1 and angular error (median, p95) against K;
 4. ``labels``   — hard labels with focal loss vs geometry-aware soft labels (several kappa);
-5. ``coords``   — coordinate MLP vs permutation-invariant set encoder, each evaluated with
+5. ``coords``   — coordinate encoders (MLP, set encoder, transformer), each evaluated with
    the detections in brightness order and shuffled;
-6. ``robustness`` — every registered corruption for the full, image-only and geometry-only
+6. ``recipe``   — the training recipe's own ablations (e.g. roll-canonical vs raw inputs, the
+   sample stream vs the fixed training split at about equal training time), with the
+   training time and samples seen of every row;
+7. ``robustness`` — every registered corruption for the full, image-only and geometry-only
    models (first seed), one figure per corruption;
-7. ``latency``  — ``fusion timing`` of the trained full model, forward and end-to-end.
+8. ``latency``  — ``fusion timing`` of the trained full model, forward and end-to-end.
 
 A preset is a YAML file (``configs/experiments/<name>.yaml``) that names the dataset
 (skygen overrides), the training preset, the seeds and each section's variants as lists
-of ``key=value`` overrides of the training config.
+of ``key=value`` overrides of the training config. ``sweep_model`` names the table-1 row
+whose overrides the K sweep, the label study and the latency timing start from (default
+``star_fusion``; the CPU preset uses its geometry-only model, which learns in minutes).
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from .config import load_config
 from .errors import ConfigError
 from .evaluate import evaluate_checkpoint
 
-SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "robustness", "latency")
+SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
 PRESET_DIR = Path(__file__).resolve().parents[1] / "configs" / "experiments"
 
 # The paper's reported numbers (Hammad & Hammad, Star-Fusion; K = 15, validation split,
@@ -91,6 +96,8 @@ class Preset:
     robustness_levels: dict[str, list[float]] = field(default_factory=dict)
     timing_iters: int = 50
     notes: list[str] = field(default_factory=list)
+    sweep_model: str = "star_fusion"
+    recipe: dict[str, list[str]] = field(default_factory=dict)
 
 
 def load_preset(name_or_path: str | Path) -> Preset:
@@ -112,10 +119,16 @@ def load_preset(name_or_path: str | Path) -> Preset:
             coord_encoders=dict(sec["coords"]), robustness_models=dict(sec["robustness"]["models"]),
             robustness_frames=int(sec["robustness"]["frames"]),
             robustness_levels={k: [float(x) for x in v] for k, v in sec["robustness"].get("levels", {}).items()},
-            timing_iters=int(sec.get("latency", {}).get("iters", 50)), notes=list(raw.get("notes", [])))
+            timing_iters=int(sec.get("latency", {}).get("iters", 50)), notes=list(raw.get("notes", [])),
+            sweep_model=str(raw.get("sweep_model", "star_fusion")), recipe=dict(sec.get("recipe") or {}))
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: malformed experiment preset ({type(exc).__name__}: {exc})") from None
-    load_config(_repo_path(preset.train_config), preset.train_overrides)   # validate early
+    if preset.sweep_model not in preset.table1:
+        raise ConfigError(f"{path}: sweep_model {preset.sweep_model!r} is not a row of sections.table1 "
+                          f"({', '.join(preset.table1)})")
+    for ov in [[], *preset.table1.values(), *preset.ablation.values(), *preset.coord_encoders.values(),
+               *preset.robustness_models.values(), *preset.recipe.values()]:
+        load_config(_repo_path(preset.train_config), preset.train_overrides + list(ov))   # validate early
     return preset
 
 
@@ -133,18 +146,29 @@ def plan(preset: Preset) -> dict[str, list[RunSpec]]:
         runs["table1"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     for label, ov in preset.ablation.items():
         runs["ablation"] += [RunSpec(label, tuple(ov), s) for s in seeds]
-    full = tuple(preset.table1.get("star_fusion", []))
-    for k in preset.k_values:
-        runs["k_sweep"] += [RunSpec(f"K={k}", full + (f"labels.k={k}",), s) for s in seeds]
-    runs["labels"] += [RunSpec("hard, focal", full, s) for s in seeds]
+    full = tuple(preset.table1[preset.sweep_model])
+    base = load_config(_repo_path(preset.train_config), preset.train_overrides + list(full))
+    for k in preset.k_values:       # the preset's own K shares the sweep model's runs
+        ov = full if k == base.labels.k else full + (f"labels.k={k}",)
+        runs["k_sweep"] += [RunSpec(f"K={k}", ov, s) for s in seeds]
+    loss = "focal" if base.loss.gamma > 0 else "cross-entropy"
+    if base.labels.fine_k:     # soft labels and fine regions exclude each other: compare both against plain hard labels
+        runs["labels"] += [RunSpec(f"hard, {loss}, {base.labels.fine_k} fine regions", full, s) for s in seeds]
+        full_coarse = full + ("labels.fine_k=null",)
+    else:
+        full_coarse = full
+    runs["labels"] += [RunSpec(f"hard, {loss}", full_coarse, s) for s in seeds]
     for kappa in preset.soft_kappas:
-        runs["labels"] += [RunSpec(f"soft, kappa={kappa:g}", full + ("labels.soft_labels=true", f"labels.kappa={kappa}"), s)
+        runs["labels"] += [RunSpec(f"soft, kappa={kappa:g}", full_coarse + ("labels.soft_labels=true",
+                                                                             f"labels.kappa={kappa}"), s)
                            for s in seeds]
     for label, ov in preset.coord_encoders.items():
         runs["coords"] += [RunSpec(label, tuple(ov), s) for s in seeds]
+    for label, ov in preset.recipe.items():
+        runs["recipe"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     for label, ov in preset.robustness_models.items():
         runs["robustness"].append(RunSpec(label, tuple(ov), seeds[0]))
-    runs["latency"].append(RunSpec("star_fusion", full, seeds[0]))
+    runs["latency"].append(RunSpec(preset.sweep_model, full, seeds[0]))
     return runs
 
 
@@ -157,10 +181,14 @@ def ensure_dataset(preset: Preset, data: Path, workers: int, log) -> Path:
     return data
 
 
+def run_folder(runs_dir: Path, run: RunSpec) -> Path:
+    return runs_dir / f"{run.name.replace(' ', '_').replace(',', '').replace('=', '')}-{run.key}"
+
+
 def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log) -> Path:
     """Train (or resume, or skip) one run and evaluate its best checkpoint on the test split."""
     from .train import train
-    folder = runs_dir / f"{run.name.replace(' ', '_').replace(',', '').replace('=', '')}-{run.key}"
+    folder = run_folder(runs_dir, run)
     ov = preset.train_overrides + list(run.overrides) + [f"train.seed={run.seed}", f"data.path={data}",
                                                           "train.progress=false"]
     if not (folder / "summary.json").exists():
@@ -206,7 +234,11 @@ def evaluate_shuffled(checkpoint: Path, data: Path, split: str, seed: int = 0) -
 
 # --------------------------------------------------------------------------- tables
 def _eval(folder: Path, split: str) -> dict:
-    return json.loads((folder / f"eval-{split}.json").read_text())
+    ev = json.loads((folder / f"eval-{split}.json").read_text())
+    summary = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").exists() else {}
+    ev["train_wall_s"] = summary.get("wall_time_s")
+    ev["train_samples"] = summary.get("samples_seen")
+    return ev
 
 
 def _ms(values: list[float], pct: bool = True) -> str:
@@ -223,15 +255,25 @@ def _group(runs: list[RunSpec], folders: dict[str, Path], split: str) -> dict[st
     return out
 
 
+def _train_cost(evs: list[dict]) -> str:
+    """Mean training wall time (min) and samples seen of a group of runs."""
+    wall = [e["train_wall_s"] for e in evs if e.get("train_wall_s")]
+    seen = [e["train_samples"] for e in evs if e.get("train_samples")]
+    t = f"{np.mean(wall) / 60:.1f}" if wall else "—"
+    n = f"{np.mean(seen) / 1000:,.0f} k" if seen else "—"
+    return f"{t} | {n}"
+
+
 def table_topk(groups: dict[str, list[dict]], paper: dict | None = None) -> list[str]:
-    head = "| model | top-1 (%) | top-3 (%) | top-5 (%) | median error (deg) | seeds |"
+    head = ("| model | top-1 (%) | top-3 (%) | top-5 (%) | median error (deg) | seeds | training (min) | "
+            "samples seen |")
     if paper:
         head += " paper top-1/3/5 (%) |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, evs in groups.items():
         row = (f"| {name} | {_ms([e['top1'] for e in evs])} | {_ms([e['top3'] for e in evs])} | "
                f"{_ms([e['top5'] for e in evs])} | {_ms([e['angular_error']['median_deg'] for e in evs], False)} | "
-               f"{len(evs)} |")
+               f"{len(evs)} | {_train_cost(evs)} |")
         if paper:
             p = paper.get(name)
             row += (" " + (" / ".join(f"{x:.1f}" for x in p) if isinstance(p, tuple) else
@@ -295,12 +337,30 @@ def _hardware() -> str:
 
 
 # --------------------------------------------------------------------------- main
+def _ensure_run_job(args) -> str:
+    preset, run, data, runs_dir = args
+    return str(ensure_run(preset, run, data, runs_dir, lambda *a, **k: print(*a, **k, flush=True)))
+
+
+def train_runs(preset: Preset, todo: list[RunSpec], data: Path, runs_dir: Path, jobs: int, log) -> dict[str, Path]:
+    """Train and evaluate every run of ``todo`` (finished ones are skipped), ``jobs`` processes at a
+    time; a run folder per run, so processes never share one. Returns the folders by run key."""
+    if jobs <= 1 or len(todo) <= 1:
+        return {r.key: ensure_run(preset, r, data, runs_dir, log) for r in todo}
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        done = pool.map(_ensure_run_job, [(preset, r, data, runs_dir) for r in todo])
+        return {r.key: Path(f) for r, f in zip(todo, done)}
+
+
 def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[str, ...] = SECTIONS,
                    workers: int | None = None, data_dir: str | Path | None = None,
-                   runs_dir: str | Path | None = None, log=print) -> Path:
+                   runs_dir: str | Path | None = None, jobs: int = 1, log=print) -> Path:
     """Run the preset's sections; small results and REPORT.md go to ``out``, the dataset to
     ``data_dir`` (default data/experiment-<preset>) and the run folders with checkpoints to
-    ``runs_dir`` (default runs/experiment-<preset>), both ignored by git."""
+    ``runs_dir`` (default runs/experiment-<preset>), both ignored by git. ``jobs`` trainings run
+    at a time in separate processes (each with the preset's ``train.threads``)."""
     t_start = time.perf_counter()
     revision = _git_revision()          # the code that runs, not the code at the end
     preset = load_preset(preset_name)
@@ -313,12 +373,9 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     data = ensure_dataset(preset, Path(data_dir or f"data/experiment-{preset.name}"), workers, log)
     runs_dir = Path(runs_dir or f"runs/experiment-{preset.name}")
     runs = plan(preset)
-    folders: dict[str, Path] = {}
-    todo = [r for s in sections for r in runs[s]]
-    log(f"{len({r.key for r in todo})} training runs ({len(preset.seeds)} seeds)")
-    for r in todo:
-        if r.key not in folders:
-            folders[r.key] = ensure_run(preset, r, data, runs_dir, log)
+    todo = list({r.key: r for s in sections for r in runs[s]}.values())
+    log(f"{len(todo)} training runs ({len(preset.seeds)} seeds), {jobs} at a time")
+    folders = train_runs(preset, todo, data, runs_dir, jobs, log)
     results: dict = {"preset": preset.name, "sections": {}}
     md = [f"# Star-Fusion experiments — preset `{preset.name}`", ""]
     md += _header(preset, data)
@@ -345,7 +402,9 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     if "labels" in sections:
         g = _group(runs["labels"], folders, split)
         results["sections"]["labels"] = g
-        md += ["## 4. Hard labels (focal loss) vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", ""] + \
+        md += ["## 4. Hard labels vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", "",
+               f"Model: the `{preset.sweep_model}` row of table 1. Soft labels replace fine regions (the two "
+               "cannot be combined), so they are compared with hard labels on the K regions themselves.", ""] + \
             table_topk(g) + [""]
     if "coords" in sections:
         g = _group(runs["coords"], folders, split)
@@ -353,12 +412,19 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
         for r in runs["coords"]:
             shuffled.setdefault(r.name, []).append(evaluate_shuffled(folders[r.key] / "best.pt", data, split, r.seed))
         results["sections"]["coords"] = {"ordered": g, "shuffled_top1": shuffled}
-        md += ["## 5. Coordinate MLP vs permutation-invariant set encoder", "",
+        md += ["## 5. Coordinate encoders: MLP over the ordered list, set encoder, transformer", "",
                "Shuffled: the same test frames with the kept detection rows in a random order at evaluation time.",
                "", "| encoder | top-1 ordered (%) | top-1 shuffled (%) | seeds |", "|---|---|---|---|"]
         for name, evs in g.items():
             md.append(f"| {name} | {_ms([e['top1'] for e in evs])} | {_ms(shuffled[name])} | {len(evs)} |")
         md.append("")
+    if "recipe" in sections and runs["recipe"]:
+        g = _group(runs["recipe"], folders, split)
+        results["sections"]["recipe"] = g
+        md += ["## 6. Recipe ablations", "",
+               "Each row changes one thing of the preset's recipe (overrides in `results.json` and the preset "
+               "file). Training time is wall time on this machine; compare rows at equal time, not equal "
+               "epochs.", ""] + table_topk(g) + [""]
     if "robustness" in sections:
         md += _robustness_section(preset, runs["robustness"], folders, data, out, results, log)
     if "latency" in sections:
@@ -404,7 +470,7 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
     results["sections"]["robustness"] = {"report": str(report_path.relative_to(out))}
     names = {str(folders[r.key] / "best.pt"): r.name for r in runs}
     models = [r.name for r in runs]
-    lines = ["## 6. Robustness to controlled corruptions", "",
+    lines = ["## 7. Robustness to controlled corruptions", "",
              f"Top-1 (%) on {preset.robustness_frames} test frames per severity, models of the first seed. "
              "Severities are *extra*, in the corruption's physical unit, stacked on the dataset's own; sensor "
              "and scene corruptions re-render the frames and re-run the detector. Mean detections per frame in "
@@ -437,10 +503,10 @@ def _latency_section(preset, folder, data, out, results, log) -> list[str]:
                    log=lambda *a, **k: None, **kw)
         text[name] = summary_text(json.loads(path.read_text()))
     results["sections"]["latency"] = {n: f"timing/{n}-cpu-fp32-b1.json" for n in jobs}
-    return ["## 7. Latency on this machine's CPU", "",
+    return ["## 8. Latency on this machine's CPU", "",
             "`fusion timing --mode both`, batch 1, fp32, raw JSON in `timing/`. End-to-end starts from a raw "
             "full-resolution frame (background, detection, coordinate encoding, downsampling, forward). "
-            "*Trained*: the full model of this preset. *Paper-size*: the default Star-Fusion architecture "
+            f"*Trained*: the `{preset.sweep_model}` model of table 1. *Paper-size*: the default Star-Fusion architecture "
             f"(SwinV2-Tiny at 256x256, random weights; latency does not depend on them). Paper, for reference: "
             f"{PAPER_LATENCY}.", "", "Trained model:", "", "```", text["trained"], "```", "",
             "Paper-size model:", "", "```", text["paper-size"], "```", ""]
@@ -454,10 +520,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=0, help="render/robustness worker processes (default: all cores)")
     p.add_argument("--data-dir", help="dataset folder (default data/experiment-<preset>)")
     p.add_argument("--runs-dir", help="folder of the training runs (default runs/experiment-<preset>)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="training runs at a time, each in its own process (default 1; on a 2-core machine 2 "
+                        "with the preset's train.threads=1)")
 
 
 def run(args: argparse.Namespace) -> int:
     out = args.out or f"results/{Path(args.preset).stem}"
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
     run_experiment(args.preset, out, sections=tuple(s for s in args.sections.split(",") if s),
-                   workers=args.workers or None, data_dir=args.data_dir, runs_dir=args.runs_dir)
+                   workers=args.workers or None, data_dir=args.data_dir, runs_dir=args.runs_dir, jobs=args.jobs)
     return 0

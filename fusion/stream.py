@@ -23,6 +23,16 @@ where a batch came from.
 Corruption-aware training: ``stream.dropout``, ``stream.false_stars``,
 ``stream.centroid_noise`` and ``stream.magnitude_noise`` are ``[lo, hi]`` ranges; each
 sample draws its severities uniformly in them (skygen's registry code and units).
+
+Few-star training: a share ``stream.few_prob`` of the samples keeps only its brightest N
+detections (after the corruptions, so false stars compete for the slots), N drawn uniformly
+in the integers ``stream.few_stars = [lo, hi]``: the frames a lost-in-space solver cannot
+solve (few stars in the field, a short exposure, a bright Moon) are where a learned prior
+must work. The cut is a pure function of (stream seed, sample index).
+
+Brightness: ``stream.brightness_mag = [lo, hi]`` shifts every flux of a sample by one offset
+drawn in that range (magnitudes): a real camera's exposure, gain and atmospheric extinction
+are never exactly the render config's, and the coordinate rows carry absolute log flux.
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from skygen import hashrng
 from skygen.config import build_config as build_render_config
 from skygen.stream import RANGED, SampleStream
 
@@ -57,17 +68,40 @@ def level_ranges(scfg) -> dict:
     return {name: tuple(getattr(scfg, name)) for name in RANGED}
 
 
+def few_star_limits(seed: int, index: np.ndarray, prob: float, lo: int, hi: int) -> np.ndarray | None:
+    """Per-sample detection limit of few-star training (a huge number where a sample is not cut);
+    None when ``prob`` is 0."""
+    if prob <= 0:
+        return None
+    key = hashrng.stream_key(seed, "fusion/few_stars")
+    cut = hashrng.uniform(key, index, 0) < prob
+    n = lo + np.minimum((hashrng.uniform(key, index, 1) * (hi - lo + 1)).astype(np.int64), hi - lo)
+    return np.where(cut, n, np.iinfo(np.int64).max)
+
+
+def brightness_offsets(seed: int, index: np.ndarray, lo: float, hi: float) -> np.ndarray | None:
+    """Per-sample log10 flux offsets of ``stream.brightness_mag`` (None when the range is [0, 0])."""
+    if lo == 0 and hi == 0:
+        return None
+    u = hashrng.uniform(hashrng.stream_key(seed, "fusion/brightness"), index, 0)
+    return (-0.4 * (lo + (hi - lo) * u)).astype(np.float32)
+
+
 def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: int,
-                 log_flux_offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 log_flux_offset: float, limits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flat detection tables (brightest first per sample) -> coords (B, M, 3), mask (B, M), counts (B,).
 
     The same rows as :func:`fusion.data.encode_detections`, vectorised over samples.
+    ``limits`` (B,) keeps at most that many (brightest) detections of each sample; ``counts``
+    are then the detections kept.
     """
     b = len(offsets) - 1
     counts = np.diff(offsets)
-    fr = np.repeat(np.arange(b), counts)
+    if limits is not None:
+        counts = np.minimum(counts, limits)
+    fr = np.repeat(np.arange(b), np.diff(offsets))
     rank = np.arange(len(fr)) - offsets[:-1][fr]
-    keep = rank < max_stars
+    keep = (rank < max_stars) & (rank < counts[fr])
     fr, rank = fr[keep], rank[keep]
     coords = np.zeros((b, max_stars, len(COORD_FEATURES)), np.float32)
     mask = np.zeros((b, max_stars), bool)
@@ -85,7 +119,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
                  steps: int, rank: int = 0, world: int = 1, max_stars: int = 6, log_flux_offset: float = 3.0,
                  norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
                  calibration: str | None = None, device: str | None = None, render_backend: str | None = None,
-                 fine_centroids: np.ndarray | None = None):
+                 fine_centroids: np.ndarray | None = None, few_prob: float = 0.0,
+                 few_stars: tuple[int, int] = (3, 8), brightness_mag: tuple[float, float] = (0.0, 0.0)):
         if steps < 1:
             raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
                               "to at least one global batch")
@@ -97,6 +132,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
         self.geo = FrameGeometry.from_render_config(dataset_config)
         self.device, self.render_backend = device, render_backend
+        self.few_prob, self.few_stars = float(few_prob), (int(few_stars[0]), int(few_stars[1]))
+        self.brightness_mag = (float(brightness_mag[0]), float(brightness_mag[1]))
         self.epoch = 0
         self._stream = None
         # fail early (config, calibration, detectability) in the main process, not in a worker
@@ -142,7 +179,11 @@ class StreamBatches(torch.utils.data.IterableDataset):
             else:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
                 top = float(np.log1p((geo.max_adu - geo.bias_adu) / self.norm_scale_adu))
                 image = (torch.log1p(torch.clamp(dev_images - geo.bias_adu, min=0) / self.norm_scale_adu) / top)[:, None]
-        coords, mask, counts = encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset)
+        limits = few_star_limits(self.seed, idx, self.few_prob, *self.few_stars)
+        coords, mask, counts = encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset, limits)
+        shift = brightness_offsets(self.seed, idx, *self.brightness_mag)
+        if shift is not None:
+            coords[..., 2] += shift[:, None] * mask
         out = {"coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
                "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
                "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}

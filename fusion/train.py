@@ -393,7 +393,8 @@ def _run(cfg: FusionConfig, out: Path, ckpt: dict | None, info: D.DistInfo, devi
                                 norm_scale_adu=cfg.data.norm_scale_adu,
                                 soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None,
                                 ranges=level_ranges(sc), calibration=sc.calibration,
-                                fine_centroids=data.fine_centroids,
+                                fine_centroids=data.fine_centroids, few_prob=sc.few_prob,
+                                few_stars=sc.few_stars, brightness_mag=sc.brightness_mag,
                                 device=str(device) if sc.render_backend == "torch" else None,
                                 render_backend=sc.render_backend)
         workers = tc.workers

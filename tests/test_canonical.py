@@ -102,3 +102,25 @@ def test_canonical_image_branch_runs():
     with torch.no_grad():
         out = model(torch.rand(len(coords), 1, 64, 64), coords, mask)
     assert out.shape == (len(coords), 15) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("encoder", ["mlp", "transformer"])
+def test_relative_flux_models_ignore_the_flux_scale(encoder):
+    """model.relative_flux: multiplying every flux by one factor (exposure, gain, 12-bit data stored
+    x16) leaves the logits unchanged; without it the model sees the change."""
+    coords, mask = _inputs()
+    shifted = coords.clone()
+    shifted[..., 2] = torch.where(mask, coords[..., 2] + math.log10(16.0), coords[..., 2])
+    for relative in (True, False):
+        cfg = build_config({"model": {"coord_encoder": encoder, "branches": {"image": False},
+                                      "relative_flux": relative, "canonical": {"mode": "brightest"},
+                                      "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+        torch.manual_seed(0)
+        model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
+        with torch.no_grad():
+            a, b = model(None, coords, mask), model(None, shifted, mask)
+        assert torch.isfinite(a).all()
+        if relative:
+            torch.testing.assert_close(a, b, atol=2e-5, rtol=1e-5)
+        else:
+            assert (a - b).abs().max() > 1e-3

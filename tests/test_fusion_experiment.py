@@ -6,17 +6,21 @@ from fusion.experiment import load_preset, plan, run_experiment
 def test_plan_shares_identical_runs():
     p = load_preset("cpu")
     runs = plan(p)
-    assert len(runs["table1"]) == 2 * len(p.seeds) and len(runs["ablation"]) == 7 * len(p.seeds)
+    assert len(runs["table1"]) == len(p.table1) * len(p.seeds) and len(runs["ablation"]) == 7 * len(p.seeds)
+    assert len(runs["recipe"]) == len(p.recipe) * len(p.seeds) >= 2 * len(p.seeds)
     keys = {r.key for v in runs.values() for r in v}
     assert len(keys) < sum(len(v) for v in runs.values())      # the full model is trained once per seed
+    sweep = {r.key for r in runs["table1"] if r.name == p.sweep_model}
+    assert sweep == {r.key for r in runs["k_sweep"] if r.name == "K=15"}     # the preset's own K is not retrained
 
 
 def test_smoke_experiment_writes_report_and_resumes(tmp_path):
     kw = dict(sections=("table1", "coords", "latency"), workers=1, data_dir=tmp_path / "data",
               runs_dir=tmp_path / "runs", log=lambda *a, **k: None)
-    report = run_experiment("smoke", tmp_path / "out", **kw)
+    report = run_experiment("smoke", tmp_path / "out", jobs=2, **kw)      # two trainings at a time
     text = report.read_text()
-    for heading in ("## 1. Table 1", "## 5. Coordinate MLP", "## 7. Latency", "## Provenance", "paper top-1/3/5"):
+    for heading in ("## 1. Table 1", "## 5. Coordinate encoders", "## 8. Latency", "## Provenance", "paper top-1/3/5",
+                    "training (min)"):
         assert heading in text
     best = sorted((tmp_path / "runs").glob("*/best.pt"))
     stamps = [p.stat().st_mtime_ns for p in best]

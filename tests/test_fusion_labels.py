@@ -110,3 +110,15 @@ def test_centroids_are_fitted_on_the_training_split_only(tmp_path):
     np.testing.assert_array_equal(data.val.labels, assign(ds.boresight["unit_vector"][data.val.positions],
                                                           data.centroids))
     data.ds.close()
+
+
+def test_assign_with_many_centroids_is_the_largest_cosine():
+    """Fine regions go through a k-d tree; the class is still the centroid of largest cosine."""
+    rng = np.random.default_rng(5)
+    c = rng.normal(size=(1000, 3))
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    v = rng.normal(size=(20000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    got = assign(v, c)
+    assert got.dtype == np.int64 and np.array_equal(got, np.argmax(v @ c.T, axis=1))
+    assert assign(v[:0], c).shape == (0,)

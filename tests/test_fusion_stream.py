@@ -76,6 +76,38 @@ def test_encode_batch_matches_the_shard_encoder(smoke):
         assert np.array_equal(mask[j], m) and counts[j] == len(d["x_px"])
 
 
+def test_few_star_training_keeps_the_brightest_few(smoke):
+    plain = _batches(smoke, max_stars=30).make_batch(0)
+    few = _batches(smoke, max_stars=30, few_prob=0.5, few_stars=(3, 5))
+    got = few.make_batch(0)
+    n_all, n = plain["n_detections"].numpy(), got["n_detections"].numpy()
+    cut = n < np.minimum(n_all, 30)
+    assert 0.2 < cut.mean() < 0.8                              # about half the samples are cut ...
+    assert np.all(n[cut] >= 3) and np.all(n[cut] <= 5)         # ... to 3-5 detections
+    assert np.array_equal(got["mask"].sum(1).numpy(), np.minimum(n, 30))
+    for j in range(len(n)):                                     # the kept rows are the brightest of the full set
+        k = int(got["mask"][j].sum())
+        assert torch.equal(got["coords"][j, :k], plain["coords"][j, :k])
+        assert not got["mask"][j, k:].any()
+    assert torch.equal(got["label"], plain["label"])
+    assert torch.equal(few.make_batch(0)["coords"], got["coords"])          # a pure function of the index
+    with pytest.raises(ConfigError, match="stream.few_stars"):
+        _cfg(smoke, "stream.few_stars=[6, 3]")
+
+
+def test_brightness_offset_shifts_every_log_flux_of_a_sample(smoke):
+    plain = _batches(smoke).make_batch(0)
+    got = _batches(smoke, brightness_mag=(-1.0, 2.0)).make_batch(0)
+    m = plain["mask"]
+    d = (got["coords"][..., 2] - plain["coords"][..., 2])
+    assert torch.equal(got["coords"][..., :2], plain["coords"][..., :2]) and torch.equal(got["mask"], m)
+    assert torch.all(d[~m] == 0)
+    for j in range(len(d)):                                    # one offset per sample, in [-2.5 * 2, 2.5 * 1] / 2.5
+        v = d[j][m[j]]
+        assert torch.allclose(v, v[0].expand_as(v), atol=1e-5) and -0.8 - 1e-5 <= float(v[0]) <= 0.4 + 1e-5
+    assert d[m].std() > 0.1                                     # and it differs between samples
+
+
 def _cfg(smoke, *extra):
     path, config, cal = smoke
     return load_config(ROOT / "configs" / "smoke.yaml", [
