@@ -462,6 +462,10 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
     rdir = out / "robustness"
     ckpts = [folders[r.key] / "best.pt" for r in runs]
     report_path = rdir / "robustness-all.json"
+    if report_path.exists() and {r["checkpoint"] for r in json.loads(report_path.read_text())["rows"]} != \
+            {str(c) for c in ckpts}:
+        log(f"{report_path}: made with other checkpoints than this plan's; recomputing")
+        report_path.unlink()
     if not report_path.exists():
         levels = None
         robustness(ckpts, data, "all", rdir, split=preset.split, n=preset.robustness_frames, workers=os.cpu_count() or 1,
@@ -498,6 +502,9 @@ def _latency_section(preset, folder, data, out, results, log) -> list[str]:
     text = {}
     for name, kw in jobs.items():
         path = out / "timing" / f"{name}-cpu-fp32-b1.json"
+        if name == "trained" and path.exists() and \
+                json.loads(path.read_text()).get("model", {}).get("checkpoint") != str(kw["checkpoint"]):
+            path.unlink()             # timed another run's checkpoint (an older plan): time this one
         if not path.exists():
             timing(path, device="cpu", precision="fp32", batch=1, iters=preset.timing_iters, mode="both",
                    log=lambda *a, **k: None, **kw)
