@@ -167,8 +167,7 @@ def _learned(checkpoint: str, real: str, top_k: int) -> dict:
         if row["solved"]:
             row["confidence"] = float(res.confidence)
         rows.append(row)
-    ck = Path(checkpoint)
-    return {"checkpoint": str(ck), "top_k": top_k, "rows": rows}
+    return {"checkpoint": str(checkpoint), "top_k": top_k, "rows": rows}
 
 
 def _compare(res, ra, dec, roll_t3) -> dict:

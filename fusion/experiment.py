@@ -462,15 +462,14 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
     rdir = out / "robustness"
     ckpts = [folders[r.key] / "best.pt" for r in runs]
     report_path = rdir / "robustness-all.json"
-    if report_path.exists() and {r["checkpoint"] for r in json.loads(report_path.read_text())["rows"]} != \
-            {str(c) for c in ckpts}:
+    rep = json.loads(report_path.read_text()) if report_path.exists() else None
+    if rep is not None and {r["checkpoint"] for r in rep["rows"]} != {str(c) for c in ckpts}:
         log(f"{report_path}: made with other checkpoints than this plan's; recomputing")
-        report_path.unlink()
-    if not report_path.exists():
-        levels = None
+        rep = None
+    if rep is None:
         robustness(ckpts, data, "all", rdir, split=preset.split, n=preset.robustness_frames, workers=os.cpu_count() or 1,
-                   seed=0, progress=False, log=lambda *a, **k: None, levels=levels)
-    rep = json.loads(report_path.read_text())
+                   seed=0, progress=False, log=lambda *a, **k: None, levels=None)
+        rep = json.loads(report_path.read_text())
     results["sections"]["robustness"] = {"report": str(report_path.relative_to(out))}
     names = {str(folders[r.key] / "best.pt"): r.name for r in runs}
     models = [r.name for r in runs]
