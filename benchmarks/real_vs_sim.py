@@ -84,7 +84,9 @@ def main(argv=None) -> int:
     p.add_argument("--sim-frames", type=int, default=50)
     p.add_argument("--out", default=str(ROOT / "results" / "real-frames"))
     p.add_argument("--checkpoint", help="a model trained for this camera: score the learned path on the real frames")
-    p.add_argument("--top-k", type=int, default=3, help="regions the fine stage searches (as fusion predict --top-k)")
+    p.add_argument("--search", choices=("fine", "coarse"), default="fine", help="as fusion predict --search")
+    p.add_argument("--search-k", type=int, help="regions the fine stage searches (as fusion predict --search-k)")
+    p.add_argument("--focal-tol", type=float, default=0.02, help="as fusion predict --focal-tol")
     a = p.parse_args(argv)
     from skygen.camera import Camera
     from skygen.config import config_dict, load_config
@@ -133,7 +135,7 @@ def main(argv=None) -> int:
                    "sim_range": rng(sim_rows, k)} for k in keys}
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    learned = _learned(a.checkpoint, a.real, a.top_k) if a.checkpoint else None
+    learned = _learned(a.checkpoint, a.real, a.search, a.search_k, a.focal_tol) if a.checkpoint else None
     report = {"camera_preset": str(Path(a.camera).relative_to(ROOT)), "camera_config": config_dict(cfg)["camera"],
               "summary": summary, "real": real_rows, "sim": sim_rows, "learned": learned,
               "hardware": f"{platform.machine()} CPU", "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -144,11 +146,12 @@ def main(argv=None) -> int:
     return 0
 
 
-def _learned(checkpoint: str, real: str, top_k: int) -> dict:
+def _learned(checkpoint: str, real: str, search: str, search_k: int | None, focal_tol: float) -> dict:
     """The learned path of ``fusion predict --checkpoint CK --solve`` on every listed real frame."""
     from fusion.labels import assign, radec_to_unit
     from fusion.predict import Predictor, read_frame
-    pred = Predictor(checkpoint, solve=True, top_k=top_k)
+    pred = Predictor(checkpoint, solve=True, search=search, search_k=search_k, focal_tol=focal_tol)
+    centroids = pred.solver.prior.centroids
     rows = []
     for name, (ra, dec, fov, roll_t3) in LISTED.items():
         path = Path(real) / name
@@ -156,18 +159,25 @@ def _learned(checkpoint: str, real: str, top_k: int) -> dict:
             continue
         img = read_frame(path)                     # as fusion predict reads it: no rescaling
         det, _, _ = pred.detect(img)
-        probs = pred.prior.probabilities(det, pred.stored_image(img))
-        true_region = int(assign(radec_to_unit(np.array([ra]), np.array([dec])), pred.prior.centroids)[0])
-        rank = int(np.sum(probs > probs[true_region])) + 1
+        coarse, fine = pred.prior.both(det, pred.stored_image(img))
+        v = radec_to_unit(np.array([ra]), np.array([dec]))
+        probs = fine if pred.search_level == "fine" else coarse
+        true_region = int(assign(v, centroids)[0])
+        true_coarse = int(assign(v, pred.prior.coarse_centroids)[0])
         t0 = time.perf_counter()
         res = pred.solver.solve(det, pred.camera, None, probabilities=probs)
-        row = {"frame": name, "detections": len(det), "true_region": true_region, "true_region_rank": rank,
+        row = {"frame": name, "detections": len(det), "true_region": true_region,
+               "true_region_rank": int(np.sum(probs > probs[true_region])) + 1,
                "true_region_probability": float(probs[true_region]), "top1_probability": float(probs.max()),
+               "true_coarse_rank": int(np.sum(coarse > coarse[true_coarse])) + 1,
                "solve_ms": (time.perf_counter() - t0) * 1e3, **_compare(res, ra, dec, roll_t3)}
         if row["solved"]:
             row["confidence"] = float(res.confidence)
+            row["fov_deg"] = float(res.extra["fov_deg"][0])
+            row["listed_fov_deg"] = fov
         rows.append(row)
-    return {"checkpoint": str(checkpoint), "top_k": top_k, "rows": rows}
+    return {"checkpoint": str(checkpoint), "search": pred.search_level, "search_k": pred.solver.top_k,
+            "regions": int(len(centroids)), "focal_tol": focal_tol, "rows": rows}
 
 
 def _compare(res, ra, dec, roll_t3) -> dict:
@@ -257,27 +267,32 @@ def markdown(r: dict) -> str:
 
 def _learned_markdown(le: dict) -> list[str]:
     rows = le["rows"]
-    n = len(rows)
+    n, k = len(rows), le["search_k"]
     top1 = sum(r["true_region_rank"] == 1 for r in rows)
-    topk = sum(r["true_region_rank"] <= le["top_k"] for r in rows)
+    topk = sum(r["true_region_rank"] <= k for r in rows)
+    coarse3 = sum(r["true_coarse_rank"] <= 3 for r in rows)
     solved = [r for r in rows if r["solved"]]
     wrong = [r for r in solved if abs(r["d_ra_arcsec"]) > 360 or abs(r["d_dec_arcsec"]) > 360]
+    what = f"{le['regions']} fine regions" if le["search"] == "fine" else f"{le['regions']} regions"
     lines = ["", "## The learned path: `fusion predict --checkpoint CK --solve` on the real frames", "",
              f"Checkpoint `{le['checkpoint']}` (trained only on skygen's detections stream of the nominal preset). "
-             f"The model ranks the region holding the listed boresight first in {top1} of {n} frames and within its "
-             f"top {le['top_k']} in {topk}; the coarse-to-fine stage (search in the top {le['top_k']} regions, "
-             f"tetra3rs confirmation) returns an attitude for {len(solved)} of {n} frames, {len(wrong)} of them "
-             "more than 0.1° from the listed one.", "",
-             "| frame | detections | rank of the true region (probability) | top-1 probability | solved | ΔRA cos δ (″) | "
-             "ΔDec (″) | Δroll (°) | confidence | ms |", "|---|---|---|---|---|---|---|---|---|---|"]
+             f"Searched: the {k} most probable of its {what}, focal length within ±{100 * le['focal_tol']:g} % of "
+             f"the preset's (`--focal-tol {le['focal_tol']:g}`). The region holding the listed boresight is ranked "
+             f"first in {top1} of {n} frames and within the {k} searched in {topk} (coarse regions: within the top 3 "
+             f"in {coarse3}); the coarse-to-fine stage returns an attitude for {len(solved)} of {n} frames, "
+             f"{len(wrong)} of them more than 0.1° from the listed one.", "",
+             "| frame | detections | rank of the true region (probability) | solved | ΔRA cos δ (″) | "
+             "ΔDec (″) | Δroll (°) | fov fitted / listed (°) | confidence | ms |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         head = (f"| {r['frame'][18:-10]} | {r['detections']} | {r['true_region_rank']} "
-                f"({r['true_region_probability']:.2f}) | {r['top1_probability']:.2f} | ")
+                f"({r['true_region_probability']:.3f}) | ")
         if r["solved"]:
             lines.append(head + f"yes | {r['d_ra_arcsec']:.1f} | {r['d_dec_arcsec']:.1f} | {r['d_roll_deg']:.3f} | "
-                         f"{r['confidence']:.6f} | {r['solve_ms']:.0f} |")
+                         f"{r['fov_deg']:.3f} / {r['listed_fov_deg']:.3f} | {r['confidence']:.6f} | "
+                         f"{r['solve_ms']:.0f} |")
         else:
-            lines.append(head + f"no ({r['reason']}) | | | | | {r['solve_ms']:.0f} |")
+            lines.append(head + f"no ({r['reason']}) | | | | | | {r['solve_ms']:.0f} |")
     return lines
 
 

@@ -18,14 +18,21 @@ Solvers (``--solvers``):
 
 * ``tetra3rs`` — tetra3rs lost-in-space (the classical baseline, :mod:`fusion.solvers.tetra`);
 * ``oracle-prior`` — coarse-to-fine with a prior that ranks the true region first (an upper
-  bound for a learned prior; regions: the checkpoint's centroids or K = 15 spherical
-  K-means regions of the sphere);
+  bound for a learned prior; regions: the ones the learned prior searches — the checkpoint's
+  fine regions with ``--search fine`` (default) or its K regions — or, without a checkpoint,
+  K = 15 spherical K-means regions of the sphere);
 * ``sim85-prior`` — the same with the true region first in 85 % of frames, second otherwise
   (the top-1 expected of the issue-10 model; a simulation, not a model);
 * ``whole-sky`` — the same few-star identification over the whole sky (no prior): what the
   prior adds over classical search alone (slow: about 0.2–0.4 s per frame);
 * ``learned`` / ``learned+fine`` — with ``--checkpoint``: the model's regions alone (top-1/top-3
-  accuracy, angular error of the top-1 centroid), and coarse-to-fine with the model as prior.
+  accuracy of its K regions, angular error of the top-1 centroid, and how often the true fine
+  region is among the ``--top-k`` searched), and coarse-to-fine with the model as prior.
+
+The coarse-to-fine solvers run as ``fusion predict --solve`` does: ``--search fine`` (the
+20 most probable fine regions) and ``--focal-tol 0.02`` by default, so the benchmark scores
+what a user gets; the frames are rendered at the nominal focal length, so the tolerance
+only costs here (``--focal-tol 0`` shows how much).
 
 Definitions: a returned attitude is **correct** when its boresight is within ``--correct-deg``
 (0.1° by default) of the true boresight and its roll within ``--correct-roll-deg`` (1°) of the
@@ -124,10 +131,14 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
 def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
                   frames: int = 200, n_values=FULL_N, corruption_n=(6, 10), corruptions=DETECTION_CORRUPTIONS,
                   severities=None, solvers=("tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine"),
-                  correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int = 3, log=print) -> dict:
+                  correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
+                  search: str = "fine", focal_tol: float = 0.02, log=print) -> dict:
     from .solvers.coarse_fine import CoarseToFineSolver
+    from .predict import default_search_k
     from .solvers.priors import OraclePrior, load_prior
     from .solvers.tetra import Tetra3Solver
+    if not 0.0 <= focal_tol < 0.2:
+        raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
         raise ConfigError(f"--solvers: unknown {sorted(unknown)}; choose from {', '.join(SOLVERS)}")
@@ -156,7 +167,7 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     from skygen.attitude import quaternion_to_matrix
     truth = [(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)]
     tetra = Tetra3Solver(cam, log=log)
-    prior, notes = None, []
+    prior, search_prior, notes = None, None, []
     if checkpoint:
         from .checkpoint import load_checkpoint
         own = load_checkpoint(checkpoint).get("render_config")       # older checkpoints: the benchmark dataset's
@@ -164,27 +175,34 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         if own and own["camera"] != ds.config["camera"]:
             raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
                               f"({own['camera']} vs {ds.config['camera']}); benchmark it on frames of its camera")
+        search_prior = prior.at_level(search) if hasattr(prior, "at_level") else prior
         centroids = prior.centroids
+        search_centroids = search_prior.centroids
+        level = getattr(search_prior, "level", "coarse")
     else:
-        centroids = default_centroids()
+        centroids = search_centroids = default_centroids()
+        level = "coarse"
         dropped = [s for s in solvers if s.startswith("learned")]
         if dropped:
             notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
         solvers = [s for s in solvers if not s.startswith("learned")]
+    top_k = top_k or default_search_k(level)
+    c2f = dict(top_k=top_k, focal_tol=focal_tol)
     built = {}
     if "tetra3rs" in solvers:
         built["tetra3rs"] = tetra
-    oracle = OraclePrior(centroids, 1.0)
-    sim = OraclePrior(centroids, 0.85, seed=1)
+    oracle = OraclePrior(search_centroids, 1.0)
+    sim = OraclePrior(search_centroids, 0.85, seed=1)
     if "oracle-prior" in solvers:
-        built["oracle-prior"] = CoarseToFineSolver(tetra, oracle, name="oracle-prior", top_k=top_k)
+        built["oracle-prior"] = CoarseToFineSolver(tetra, oracle, name="oracle-prior", **c2f)
     if "sim85-prior" in solvers:
-        built["sim85-prior"] = CoarseToFineSolver(tetra, sim, name="sim85-prior", top_k=top_k)
+        built["sim85-prior"] = CoarseToFineSolver(tetra, sim, name="sim85-prior", **c2f)
     if "whole-sky" in solvers:
-        built["whole-sky"] = CoarseToFineSolver(tetra, None, name="whole-sky")
+        built["whole-sky"] = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=focal_tol)
     if "learned+fine" in solvers:
-        built["learned+fine"] = CoarseToFineSolver(tetra, prior, name="learned+fine", top_k=top_k)
+        built["learned+fine"] = CoarseToFineSolver(tetra, search_prior, name="learned+fine", **c2f)
     labels = np.argmax(v_true @ centroids.T, axis=1)
+    search_labels = np.argmax(v_true @ search_centroids.T, axis=1)
     cells = grid(n_values, corruption_n, corruptions, severities)
     log(f"benchmark: {len(pos)} frames x {len(cells)} cells; solvers: {', '.join(solvers)}")
     rows = []
@@ -205,7 +223,8 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
                 secs.append(time.perf_counter() - t0)
             row["solvers"][name] = _summary(results, truth, secs, correct_deg, correct_roll_deg)
         if "learned" in solvers:
-            row["solvers"]["learned"] = _learned_cell(prior, dets, images, labels, v_true, centroids, top_k)
+            row["solvers"]["learned"] = _learned_cell(prior, dets, images, labels, v_true, centroids,
+                                                      search_labels if level == "fine" else None, top_k)
         rows.append(row)
         log(_cell_line(row, ci, len(cells)))
     report = {"dataset": dataset_info, "camera": {"width_px": cam.width_px, "height_px": cam.height_px,
@@ -213,7 +232,9 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
               "checkpoint": str(checkpoint) if checkpoint else None, "solvers": list(built) + (
                   ["learned"] if "learned" in solvers else []),
               "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
-              "region_count": int(len(centroids)), "top_k": top_k, "notes": notes, "cells": rows,
+              "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(search_centroids)),
+                                                              "top_k": top_k, "focal_tol": focal_tol},
+              "top_k": top_k, "notes": notes, "cells": rows,
               "hardware": _hardware(),
               "tetra3rs_version": tetra.t3.__version__, "wall_time_s": time.perf_counter() - t_start}
     write_json(out / "benchmark.json", report)
@@ -234,20 +255,31 @@ def _hardware() -> str:
     return f"{platform.machine()} {model}, {os.cpu_count()} logical CPUs, one process"
 
 
-def _learned_cell(prior, dets, images, labels, v_true, centroids, top_k) -> dict:
-    t, probs = [], []
+def _learned_cell(prior, dets, images, labels, v_true, centroids, search_labels, search_k) -> dict:
+    """The model's regions alone: top-1 / top-3 of its K regions, angular error of the top-1 centroid, and
+    (``search_labels`` given) how often the true fine region is among the ``search_k`` searched."""
+    t, probs, fine = [], [], []
     for d, im in zip(dets, images):
         t0 = time.perf_counter()
-        probs.append(prior.probabilities(d, im))
+        if hasattr(prior, "both"):
+            c, f = prior.both(d, im)
+        else:
+            c, f = prior.probabilities(d, im), None
         t.append(time.perf_counter() - t0)
+        probs.append(c)
+        fine.append(f)
     p = np.array(probs)
     order = np.argsort(-p, axis=1)
     top1 = order[:, 0] == labels
-    topk = (order[:, :top_k] == labels[:, None]).any(axis=1)
+    top3 = (order[:, :3] == labels[:, None]).any(axis=1)
     err = np.degrees(np.arccos(np.clip(np.sum(v_true * centroids[order[:, 0]], axis=1), -1, 1)))
-    return {"frames": len(dets), "top1": float(top1.mean()), f"top{top_k}": float(topk.mean()),
-            "angular_error_deg": {"median": float(np.median(err)), "p95": float(np.percentile(err, 95))},
-            "ms_per_frame": 1e3 * float(np.mean(t))}
+    out = {"frames": len(dets), "top1": float(top1.mean()), "top3": float(top3.mean()),
+           "angular_error_deg": {"median": float(np.median(err)), "p95": float(np.percentile(err, 95))},
+           "ms_per_frame": 1e3 * float(np.mean(t))}
+    if search_labels is not None and fine[0] is not None:
+        fo = np.argsort(-np.array(fine), axis=1)[:, :search_k]
+        out[f"fine_top{search_k}"] = float((fo == search_labels[:, None]).any(axis=1).mean())
+    return out
 
 
 def _cell_name(c: dict) -> str:
@@ -267,13 +299,13 @@ def markdown(r: dict) -> str:
     lines = [f"# Solver benchmark on `{r['dataset']['path']}` ({r['dataset']['split']}, {r['dataset']['frames']} "
              "frames)", "",
              f"Camera {r['camera']['width_px']} x {r['camera']['height_px']} px, field "
-             f"{r['camera']['fov_deg'][0]:.2f} x {r['camera']['fov_deg'][1]:.2f} deg; {r['region_count']} regions, "
-             f"top-{r['top_k']} searched; tetra3rs {r['tetra3rs_version']}; {r['hardware']}; "
+             f"{r['camera']['fov_deg'][0]:.2f} x {r['camera']['fov_deg'][1]:.2f} deg; {r['region_count']} regions; "
+             f"{_search_text(r)}; tetra3rs {r['tetra3rs_version']}; {r['hardware']}; "
              f"{r['wall_time_s']:.0f} s in all.", "",
              f"**correct** = {r['correct_definition']}; **wrong** = any other returned attitude; **refused** = no "
              "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame.", ""]
     lines += [f"- {n}" for n in r["notes"]] + ([""] if r["notes"] else [])
-    head = "| cell | N | mean det. | " + " | ".join(full) + (" | learned top-1 / top-k |" if "learned" in r["solvers"]
+    head = "| cell | N | mean det. | " + " | ".join(full) + (" | learned top-1 / top-3 |" if "learned" in r["solvers"]
                                                             else "")
     lines += [head.rstrip(" |") + " |", "|" + "---|" * (3 + len(full) + ("learned" in r["solvers"]))]
     for row in r["cells"]:
@@ -285,7 +317,10 @@ def markdown(r: dict) -> str:
         if "learned" in r["solvers"]:
             s = row["solvers"]["learned"]
             k = [key for key in s if key.startswith("top") and key != "top1"][0]
-            cols.append(f"{100 * s['top1']:.0f} / {100 * s[k]:.0f} (median err {s['angular_error_deg']['median']:.1f}°)")
+            fk = [key for key in s if key.startswith("fine_top")]
+            fine = f"; fine top-{fk[0][8:]} {100 * s[fk[0]]:.0f}" if fk else ""
+            cols.append(f"{100 * s['top1']:.0f} / {100 * s[k]:.0f}{fine} (median err "
+                        f"{s['angular_error_deg']['median']:.1f}°)")
         lines.append(f"| {_cell_name(row)} | {row['n']} | {row['mean_detections']:.1f} | " + " | ".join(cols) + " |")
     lines += ["", "Attitude errors of returned solutions (median boresight / median roll, arcsec), clean cells:", "",
               "| N | " + " | ".join(full) + " |", "|---|" + "---|" * len(full)]
@@ -298,6 +333,13 @@ def markdown(r: dict) -> str:
                 cols.append("–" if b is None else f"{b['median']:.1f} / {o['median']:.1f}")
             lines.append(f"| {row['n']} | " + " | ".join(cols) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _search_text(r: dict) -> str:
+    se = r.get("search") or {"level": "coarse", "regions": r["region_count"], "top_k": r["top_k"], "focal_tol": 0.0}
+    what = "fine regions" if se["level"] == "fine" else "regions"
+    return (f"coarse-to-fine solvers search the top {se['top_k']} of {se['regions']} {what}, focal length "
+            f"within ±{100 * se['focal_tol']:g} %")
 
 
 def plot(r: dict, out: Path) -> None:
@@ -362,7 +404,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"solvers to score, from: {', '.join(SOLVERS)} (default: all but whole-sky)")
     p.add_argument("--correct-deg", type=float, default=0.1, help="boresight error counted as correct (default 0.1 deg)")
     p.add_argument("--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct (default 1 deg)")
-    p.add_argument("--top-k", type=int, default=3, help="regions searched by the coarse-to-fine solvers (default 3)")
+    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
+                   help="regions the coarse-to-fine solvers search: the checkpoint's fine regions (default, when it "
+                        "has them) or its K regions (as fusion predict --search)")
+    p.add_argument("--top-k", type=int, help="regions searched by the coarse-to-fine solvers (default 20 fine "
+                                            "regions or 3 coarse ones, as fusion predict --search-k)")
+    p.add_argument("--focal-tol", type=float, default=0.02,
+                   help="relative focal-length uncertainty of the coarse-to-fine solvers (default 0.02, as fusion "
+                        "predict)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -372,5 +421,6 @@ def run(args: argparse.Namespace) -> int:
                   frames=args.frames or (30 if small else 200), n_values=args.n or (SMALL_N if small else FULL_N),
                   corruption_n=args.corruption_n or ((6,) if small else (6, 10)), corruptions=args.corruptions,
                   severities=severities, solvers=args.solvers, correct_deg=args.correct_deg,
-                  correct_roll_deg=args.correct_roll_deg, top_k=args.top_k)
+                  correct_roll_deg=args.correct_roll_deg, top_k=args.top_k, search=args.search,
+                  focal_tol=args.focal_tol)
     return 0

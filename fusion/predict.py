@@ -1,6 +1,7 @@
 """``fusion predict``: a user's own frames -> detections, the model's regions, optionally a full attitude.
 
     fusion predict FRAME... --checkpoint CK [--solve] [--overlay DIR] [--top-k 3] [--out FILE.jsonl]
+                            [--search fine|coarse] [--search-k N] [--focal-tol 0.02]
     fusion predict FRAME... --camera configs/cameras/NAME.yaml --solve      # no model: tetra3rs only
 
 Frames: PNG, TIFF (8 or 16 bit), FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
@@ -19,7 +20,9 @@ Per frame:
    and its region probabilities; the top-k regions with probability and the RA/Dec of each
    region's centroid;
 3. with ``--solve``: the coarse-to-fine solver (:mod:`fusion.solvers.coarse_fine`) with the
-   model's regions as prior; without a checkpoint, tetra3rs lost-in-space. A full attitude
+   model's regions as prior — by default its fine regions (``--search fine``, the 20 most
+   probable, ``--search-k``), and a focal length known to ±2 % (``--focal-tol``; fitted and
+   reported as ``focal_factor`` / ``fov_deg``); without a checkpoint, tetra3rs lost-in-space. A full attitude
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
    confidence) or an explicit refusal with its reason.
 
@@ -110,7 +113,7 @@ class Predictor:
 
     def __init__(self, checkpoint: str | Path | None = None, *, camera: str | Path | None = None,
                  dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
-                 log=None):
+                 search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02, log=None):
         from .solvers.priors import load_prior
         if (checkpoint is None) == (camera is None):
             raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
@@ -133,13 +136,22 @@ class Predictor:
         if detector == "tetra3rs" and self.prior is not None:
             raise ConfigError("--detector tetra3rs: the model was trained on skygen's detector; use it only "
                               "without --checkpoint")
-        self.solver = None
+        if not 0.0 <= focal_tol < 0.2:
+            raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
+        if search_k is not None and search_k < 1:
+            raise ConfigError(f"--search-k {search_k}: search at least 1 region")
+        self.solver, self.search_level = None, None
         if solve:
             from .solvers.coarse_fine import CoarseToFineSolver
             from .solvers.tetra import Tetra3Solver
             tetra = Tetra3Solver(self.camera, log=log)
-            self.solver = CoarseToFineSolver(tetra, self.prior, top_k=top_k, name="learned+fine") \
-                if self.prior is not None else tetra
+            if self.prior is not None:
+                search_prior = self.prior.at_level(search) if hasattr(self.prior, "at_level") else self.prior
+                self.search_level = getattr(search_prior, "level", "coarse")
+                self.solver = CoarseToFineSolver(tetra, search_prior, name="learned+fine", focal_tol=focal_tol,
+                                                 top_k=search_k or default_search_k(self.search_level))
+            else:
+                self.solver = tetra
 
     def check_shape(self, img: np.ndarray, source: str) -> None:
         want = (self.cfg.camera.height_px, self.cfg.camera.width_px)
@@ -175,10 +187,14 @@ class Predictor:
         rec = {"frame": source, **extra, "n_detections": len(det),
                "detections": [[round(float(x), 3), round(float(y), 3), round(float(f), 1)]
                               for x, y, f in zip(det.x_px, det.y_px, det.flux_adu)]}
-        probs = None
+        probs = search_probs = None
         if self.prior is not None:
             t0 = time.perf_counter()
-            probs = self.prior.probabilities(det, stored)
+            if hasattr(self.prior, "both"):
+                probs, fine = self.prior.both(det, stored)
+            else:
+                probs, fine = self.prior.probabilities(det, stored), None
+            search_probs = fine if self.solver is not None and self.search_level == "fine" else probs
             rec["model_ms"] = (time.perf_counter() - t0) * 1e3
             order = np.argsort(-probs, kind="stable")[: self.top_k]
             c = self.prior.centroids
@@ -187,10 +203,15 @@ class Predictor:
                                "dec_deg": float(np.degrees(np.arcsin(np.clip(c[k, 2], -1, 1))))}
                               for r, k in enumerate(order)]
         if self.solver is not None:
-            kw = {"probabilities": probs} if probs is not None else {}
+            kw = {"probabilities": search_probs} if search_probs is not None else {}
             res = self.solver.solve(det, self.camera, stored, **kw)
             rec["solution"] = res.to_dict()
         return rec
+
+
+def default_search_k(level: str) -> int:
+    """Regions the fine stage searches by default: 20 fine regions (~2 % of the sky at fine_k = 1000) or 3 of K."""
+    return 20 if level == "fine" else 3
 
 
 def iter_inputs(paths: list[str], max_frames: int | None):
@@ -241,11 +262,11 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
 
 def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
             detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
-            err=None) -> tuple[list[dict], int]:
+            err=None, search="fine", search_k=None, focal_tol=0.02) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
-                     log=lambda m: err(m))
+                     search=search, search_k=search_k, focal_tol=focal_tol, log=lambda m: err(m))
     sink = open(out, "w") if out else None
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
@@ -290,7 +311,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                      "their camera")
     p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
                    "as prior of the fine stage; tetra3rs lost-in-space without a checkpoint")
-    p.add_argument("--top-k", type=int, default=3, help="regions reported and searched (default 3)")
+    p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
+    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
+                   help="--solve: search the model's fine regions (default; a few degrees each, for checkpoints "
+                        "trained with labels.fine_k, else its K regions) or its K regions")
+    p.add_argument("--search-k", type=int, help="--solve: regions searched, most probable first (default 20 fine "
+                                               "regions or 3 coarse ones)")
+    p.add_argument("--focal-tol", type=float, default=0.02,
+                   help="--solve with a checkpoint: relative focal-length uncertainty the fine stage fits within "
+                        "(default 0.02; 0 = the camera's nominal focal length exactly)")
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
     p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
     p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
@@ -302,5 +331,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
                         top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
-                        max_frames=args.max_frames)
+                        max_frames=args.max_frames, search=args.search, search_k=args.search_k,
+                        focal_tol=args.focal_tol)
     return 1 if failed else 0

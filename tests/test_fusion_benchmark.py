@@ -70,7 +70,7 @@ def test_benchmark_rejects_unknown_names(small_dataset, tmp_path):
 
 
 def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path, monkeypatch):
-    """The learned columns: region top-1/top-k of the checkpoint and coarse-to-fine with it as the prior."""
+    """The learned columns: region top-1/top-3 of the checkpoint and coarse-to-fine with it as the prior."""
     from pathlib import Path
 
     from fusion.cli import main
@@ -88,7 +88,9 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
                  "--solvers", "tetra3rs", "learned", "learned+fine"]) == 0
     r = json.loads((out / "benchmark.json").read_text())
     cell = r["cells"][0]["solvers"]
-    assert 0 <= cell["learned"]["top1"] <= cell["learned"]["top2"] <= 1
+    assert 0 <= cell["learned"]["top1"] <= cell["learned"]["top3"] <= 1
+    # a checkpoint without fine regions: the search falls back to its K regions, top 2 as asked
+    assert r["search"] == {"level": "coarse", "regions": 4, "top_k": 2, "focal_tol": 0.02}
     lf = cell["learned+fine"]
     assert lf["wrong"] == 0 and lf["correct"] + lf["refused"] == pytest.approx(1.0)
     assert r["region_count"] == 4 and "learned top-1" in (out / "benchmark.md").read_text()

@@ -188,3 +188,11 @@ def test_checkpoint_and_camera_are_exclusive(checkpoint, frame_and_truth, capsys
     assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--camera", cam]) == 2
     assert main(["predict", str(paths["npy"])]) == 2
     assert "exactly one" in capsys.readouterr().err
+
+
+def test_search_options_are_checked(checkpoint, frame_and_truth, capsys):
+    paths, _ = frame_and_truth
+    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--solve", "--focal-tol", "0.5"]) == 2
+    assert "--focal-tol 0.5" in capsys.readouterr().err
+    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--solve", "--search-k", "0"]) == 2
+    assert "--search-k 0" in capsys.readouterr().err

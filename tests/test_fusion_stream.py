@@ -232,5 +232,17 @@ def test_fine_regions_head(smoke, tmp_path):
     pf = torch.softmax(fine, -1)
     want = torch.stack([pf[:, torch.from_numpy(groups == g)].sum(-1) for g in range(4)], -1)
     torch.testing.assert_close(torch.softmax(coarse, -1), want, atol=1e-5, rtol=1e-4)
+    # the prior the coarse-to-fine search uses: fine regions, consistent with the K regions
+    from fusion.solvers.base import Detections
+    from fusion.solvers.priors import load_prior
+    fine_prior = load_prior(tmp_path / "fine" / "best.pt", level="fine")
+    coarse_prior = fine_prior.at_level("coarse")
+    assert fine_prior.level == "fine" and fine_prior.centroids.shape == (8, 3)
+    assert coarse_prior.centroids.shape == (4, 3) and coarse_prior.model is fine_prior.model
+    rng = np.random.default_rng(0)
+    det = Detections(rng.uniform(0, 63, 6), rng.uniform(0, 63, 6), rng.uniform(1e3, 1e4, 6))
+    pf, pc = fine_prior.probabilities(det), coarse_prior.probabilities(det)
+    assert pf.shape == (8,) and pf.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(pc, [pf[groups == g].sum() for g in range(4)], atol=1e-6)
     with pytest.raises(ConfigError, match="must exceed"):
         _cfg(smoke, "labels.fine_k=3")

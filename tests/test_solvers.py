@@ -153,3 +153,31 @@ def test_confidence_falls_with_hypotheses(tetra):
     assert c2f.confidence(1000, 3, 3) < c2f.confidence(10, 3, 3)
     assert c2f.confidence(10_000, 6, 6) > 0.999
     assert c2f.confidence(10_000, 6, 2) == 0.0
+
+
+def test_coarse_to_fine_fits_an_unknown_focal_length(tmp_path, regions):
+    """Frames from a lens 1.5 % longer than the solver's camera (a real lens against its datasheet):
+    the fine stage with focal_tol fits the focal length and returns the attitude to arcseconds."""
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    from fusion.solvers.tetra import Tetra3Solver
+    nominal = Renderer(load_config(overrides=["n_frames=6"]))
+    longer = Renderer(load_config(overrides=["n_frames=6", f"camera.fov_deg={nominal.camera.fov_deg[0] / 1.015}"]))
+    factor = longer.camera.f_px / nominal.camera.f_px
+    assert factor == pytest.approx(1.015, abs=1e-3)
+    tetra = Tetra3Solver(nominal.camera, db_folder=tmp_path)
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=1, focal_tol=0.02)
+    solved = 0
+    for i in range(6):
+        f = longer.render(i)
+        det = Detections.from_table(f.detections).brightest(12)
+        res = c2f.solve(det, nominal.camera, probabilities=prior.probabilities_for(f.unit_vector, i))
+        if isinstance(res, Solution):
+            solved += 1
+            truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+            assert boresight_error_deg(truth, res.matrix) < 20 / 3600
+            assert res.extra["focal_factor"] == pytest.approx(factor, abs=2e-3)
+    assert solved >= 5
+    with pytest.raises(ValueError, match="focal_tol"):
+        CoarseToFineSolver(tetra, prior, focal_tol=0.5)

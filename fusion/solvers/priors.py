@@ -5,7 +5,11 @@ A prior has ``centroids`` (K, 3) ICRS unit vectors (the regions, max-cosine cell
 
 * :class:`CheckpointPrior` — a fusion checkpoint's model (the learned prior); it rebuilds the
   model's inputs from a detection table and the stored frame with the checkpoint's own
-  preprocessing (:func:`model_inputs`). **Plugging in another model**: write a class with
+  preprocessing (:func:`model_inputs`). ``level="coarse"``: the K regions the model
+  classifies; ``level="fine"``: its fine regions (``labels.fine_k``, a few degrees across),
+  which the coarse-to-fine search prefers: with 1000 fine regions the top 20 cover 2 % of
+  the sky and hold the true boresight as often as the top 3 of 15 regions (20 % of the sky)
+  or more (``benchmarks/prior_coverage.py``). **Plugging in another model**: write a class with
   these two members (or register a builder in :data:`PRIOR_BUILDERS` keyed by the
   checkpoint's ``model_name``) — the solver, ``fusion predict`` and ``fusion benchmark``
   only call ``probabilities``.
@@ -64,37 +68,68 @@ def model_inputs(detections: Detections, image: np.ndarray | None, render_config
 
 
 class CheckpointPrior:
-    """The region probabilities of a fusion checkpoint (current ``fusion train`` models)."""
+    """The region probabilities of a fusion checkpoint (current ``fusion train`` models).
 
-    def __init__(self, checkpoint: str | Path, render_config: dict | None = None):
+    ``level``: ``"coarse"`` (the K regions), ``"fine"`` (the fine regions of a model trained with
+    ``labels.fine_k``; a checkpoint without them stays coarse, :attr:`level` says which).
+    """
+
+    def __init__(self, checkpoint: str | Path, render_config: dict | None = None, level: str = "coarse"):
         import torch
         from ..checkpoint import load_checkpoint, render_config_of
         from ..train import load_trained_model
+        if level not in ("coarse", "fine"):
+            raise ValueError(f"level={level!r}: choose 'coarse' or 'fine'")
         ckpt = load_checkpoint(checkpoint)
         self.render_config = render_config if render_config is not None else render_config_of(ckpt, checkpoint)
         self.model, self.cfg = load_trained_model(ckpt, str(checkpoint))
         self.model.eval()
-        self.centroids = ckpt["centroids"].numpy().astype(np.float64)
+        self.coarse_centroids = ckpt["centroids"].numpy().astype(np.float64)
+        fine = ckpt.get("fine_centroids")
+        has_fine = fine is not None and bool(getattr(self.model, "fine_classes", None))
+        self.fine_centroids = fine.numpy().astype(np.float64) if has_fine else None
+        self.level = "fine" if level == "fine" and has_fine else "coarse"
         self.image_size, self.max_stars = int(ckpt["image_size"]), int(ckpt["max_stars"])
         self.source = str(checkpoint)
         self._torch = torch
 
-    def probabilities(self, detections: Detections, image: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def centroids(self) -> np.ndarray:
+        return self.fine_centroids if self.level == "fine" else self.coarse_centroids
+
+    def at_level(self, level: str) -> "CheckpointPrior":
+        """The same model (shared, not copied) answering at another level."""
+        import copy
+        if level not in ("coarse", "fine"):
+            raise ValueError(f"level={level!r}: choose 'coarse' or 'fine'")
+        view = copy.copy(self)
+        view.level = "fine" if level == "fine" and self.fine_centroids is not None else "coarse"
+        return view
+
+    def both(self, detections: Detections, image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(coarse probabilities (K,), fine probabilities (F,) or None) from one forward pass."""
         x = model_inputs(detections, image, self.render_config, self.cfg.data, self.image_size, self.max_stars)
+        sm = lambda z: self._torch.softmax(z.float(), dim=1)[0].numpy().astype(np.float64)
         with self._torch.no_grad():
-            logits = self.model(*x)
-        return self._torch.softmax(logits.float(), dim=1)[0].numpy().astype(np.float64)
+            if self.fine_centroids is None:
+                return sm(self.model(*x)), None
+            fine = self.model(*x, fine=True)
+            return sm(self.model.coarse_logits(fine)), sm(fine)
+
+    def probabilities(self, detections: Detections, image: np.ndarray | None = None) -> np.ndarray:
+        coarse, fine = self.both(detections, image)
+        return fine if self.level == "fine" else coarse
 
 
 PRIOR_BUILDERS: dict[str, Callable[..., object]] = {}
 
 
-def load_prior(checkpoint: str | Path, render_config: dict | None = None):
+def load_prior(checkpoint: str | Path, render_config: dict | None = None, level: str = "coarse"):
     """The region prior of a checkpoint: a registered builder for its model, else :class:`CheckpointPrior`."""
     from ..checkpoint import load_checkpoint
     name = load_checkpoint(checkpoint).get("model_name")
     builder = PRIOR_BUILDERS.get(name, CheckpointPrior)
     try:
-        return builder(checkpoint, render_config)
+        return builder(checkpoint, render_config, level)
     except KeyError as exc:
         raise CheckpointError(f"{checkpoint}: lacks {exc} needed to apply it; re-train with this fusion") from None

@@ -119,6 +119,8 @@ class Tetra3Solver:
     def _model(self, camera):
         key = (camera.f_px, camera.width_px, camera.height_px)
         if key not in self._models:
+            if len(self._models) >= 32:           # the coarse-to-fine stage passes fitted focal lengths
+                self._models.clear()
             self._models[key] = self.t3.CameraModel(float(camera.f_px), int(camera.width_px), int(camera.height_px))
         return self._models[key]
 
