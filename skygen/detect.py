@@ -1,7 +1,13 @@
 """Star detection and centroiding on the full-resolution frame.
 
-1. Background: sigma-clipped mean and standard deviation of an 8 x 8-strided subsample.
-2. Threshold: pixels above ``background + threshold_sigma * sigma``.
+1. Background: sigma-clipped mean and standard deviation of an 8 x 8-strided subsample —
+   one level for the frame (the default: what skygen's renders have and what the emulator
+   is calibrated on) — or, with ``background_box_px`` = B > 0, a local background
+   (:func:`background_map`): the same statistics per B x B box, a 3 x 3 median filter
+   over the boxes (a box filled by a bright star takes its neighbours' level) and bilinear
+   interpolation between box centres, for frames with sky glow, gradients or vignetting
+   (ground-based frames; the same idea as SExtractor's and photutils' mesh background).
+2. Threshold: pixels above ``background + threshold_sigma * sigma`` (per pixel with a map).
 3. Connected components (8-connectivity, OpenCV); components smaller than
    ``min_area_px`` are dropped (single hot pixels, noise spikes).
 4. For each component: intensity-weighted centroid of the background-subtracted
@@ -43,19 +49,66 @@ def estimate_background(image: np.ndarray, stride: int = 8) -> tuple[float, floa
     return level, sigma
 
 
+def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """(level, sigma) maps, float32 and the image's shape, from per-box clipped statistics (see module doc)."""
+    from scipy import ndimage
+    h, w = image.shape
+    if box_px < 8:
+        raise ValueError(f"background box of {box_px} px: use at least 8 px (several star widths)")
+    ny, nx = -(-h // box_px), -(-w // box_px)
+    level, sigma = np.empty((ny, nx)), np.empty((ny, nx))
+    stride = 2 if box_px >= 32 else 1
+    for i in range(ny):
+        for j in range(nx):
+            level[i, j], sigma[i, j] = estimate_background(
+                image[i * box_px:(i + 1) * box_px, j * box_px:(j + 1) * box_px], stride)
+    if ny >= 3 and nx >= 3:
+        level = ndimage.median_filter(level, size=3, mode="nearest")
+        sigma = ndimage.median_filter(sigma, size=3, mode="nearest")
+    # bilinear between box centres, linear beyond the outer centres (half a box): the mesh gets a ring
+    # extrapolated from its two outer rows/columns; box centres at (i + 0.5) * box - 0.5 (a partial last
+    # box: the centre of its pixels), ring centres one box further out
+    def ring(a):
+        for axis in (0, 1):
+            if a.shape[axis] >= 2:
+                first, second = np.take(a, [0], axis), np.take(a, [1], axis)
+                last, before = np.take(a, [-1], axis), np.take(a, [-2], axis)
+                a = np.concatenate([2 * first - second, a, 2 * last - before], axis)
+            else:
+                a = np.concatenate([a, a, a], axis)
+        return a
+
+    def index(n_box, size):
+        c = np.minimum((np.arange(n_box) + 0.5) * box_px, (np.arange(n_box) * box_px + size) / 2) - 0.5
+        c = np.concatenate([[c[0] - box_px], c, [c[-1] + box_px]])
+        return np.interp(np.arange(size), c, np.arange(n_box + 2))
+
+    coords = np.stack(np.meshgrid(index(ny, h), index(nx, w), indexing="ij"))
+    level_px = ndimage.map_coordinates(ring(level), coords, order=1, mode="nearest")
+    sigma_px = ndimage.map_coordinates(ring(sigma), coords, order=1, mode="nearest")
+    return level_px.astype(np.float32), np.maximum(sigma_px, 0.5 * sigma.min()).astype(np.float32)
+
+
 _NEIGHBOURS = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
 
 
 def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3,
-           max_detections: int = 64) -> tuple[dict, float, float]:
-    """Detect stars in a full-resolution ADU frame. Returns (detections, background, sigma).
+           max_detections: int = 64, background_box_px: int = 0) -> tuple[dict, float, float]:
+    """Detect stars in a full-resolution ADU frame. Returns (detections, background, sigma);
+    with ``background_box_px`` > 0 (local background) the last two are the medians of the maps.
 
     Vectorised over components: only the few pixels above threshold (and their
     neighbours) are touched after the connected-component labelling.
     """
-    bg, sigma = estimate_background(image)
-    level = bg + threshold_sigma * sigma
-    mask = image > level
+    if background_box_px:
+        bg_map, sigma_map = background_map(image, background_box_px)
+        bg, sigma = float(np.median(bg_map)), float(np.median(sigma_map))
+        mask = image > bg_map + threshold_sigma * sigma_map
+        bg_at = lambda idx: bg_map.ravel()[idx].astype(np.float64)       # noqa: E731
+    else:
+        bg, sigma = estimate_background(image)
+        mask = image > bg + threshold_sigma * sigma
+        bg_at = lambda idx: bg                                           # noqa: E731
     _, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     fg = np.flatnonzero(mask)
     lab = labels.ravel()[fg]
@@ -73,7 +126,7 @@ def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3
     key = np.unique(np.repeat(lab, 9)[ok.ravel()].astype(np.int64) * (h * w) + (ny * w + nx)[ok])
     glab, gpix = np.divmod(key, h * w)
     ids, comp = np.unique(glab, return_inverse=True)
-    val = image.ravel()[gpix].astype(np.float64) - bg
+    val = image.ravel()[gpix].astype(np.float64) - bg_at(gpix)
     wgt = np.clip(val, 0, None)
     gy, gx = np.divmod(gpix, w)
     tot = np.bincount(comp, wgt)
@@ -84,7 +137,7 @@ def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3
     # peak over the thresholded pixels of each component
     fcomp = np.searchsorted(ids, lab)
     peak = np.full(len(ids), -np.inf)
-    np.maximum.at(peak, fcomp, image.ravel()[fg].astype(np.float64) - bg)
+    np.maximum.at(peak, fcomp, image.ravel()[fg].astype(np.float64) - bg_at(fg))
     flux, peak, ar = flux[good], peak[good], area[ids][good]
     order = np.argsort(-flux, kind="stable")[:max_detections]
     det = {"x_px": cx[order], "y_px": cy[order], "flux_adu": flux[order].astype(np.float32),

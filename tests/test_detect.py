@@ -57,3 +57,31 @@ def test_brightest_first_and_match_is_one_to_one():
     idx = match(det["x_px"], det["y_px"], np.array([100.0, 100.5]), np.array([100.0, 100.0]),
                 np.array([1.0, 2.0]), 2.0)
     assert sorted(idx[idx >= 0].tolist()) == [1]     # two stars, one detection: brightest claims it
+
+
+def test_local_background_follows_a_sky_gradient():
+    """Sky glow rising 80 ADU across the frame (ground frames): one global level loses the stars on
+    the dark side under a sea of false pixels on the bright side; the box background finds every star."""
+    from skygen.detect import background_map
+    rng = np.random.default_rng(2)
+    gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)
+    xs, ys = gx.ravel() + rng.uniform(-0.5, 0.5, 30), gy.ravel() + rng.uniform(-0.5, 0.5, 30)
+    flat = frame_with_stars(xs, ys, 3000.0)
+    ramp = np.linspace(0.0, 80.0, flat.shape[1], dtype=np.float32)[None, :]
+    img = flat.astype(np.float32) + ramp
+    bg_flat, _ = estimate_background(flat)
+    level, sigma = background_map(img, 64)
+    assert level.shape == img.shape
+    assert np.abs(level - (bg_flat + ramp)).max() < 3.0                  # the ramp is followed
+    det_global, _, _ = detect(img)
+    det_local, _, _ = detect(img, background_box_px=64)
+    found = lambda d: (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) >= 0).sum()   # noqa: E731
+    assert found(det_global) < 25
+    assert found(det_local) == 30 and len(det_local["x_px"]) <= 31
+    # on a flat frame the local background gives the global detections
+    a, _, _ = detect(flat)
+    b, _, _ = detect(flat, background_box_px=64)
+    assert len(a["x_px"]) == len(b["x_px"]) == 30
+    ia, ib = (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) for d in (a, b))
+    pos = lambda d, i: np.column_stack([d["x_px"], d["y_px"]])[np.argsort(i)]     # noqa: E731  (true-star order)
+    np.testing.assert_allclose(pos(b, ib), pos(a, ia), atol=0.05)   # box levels differ by noise

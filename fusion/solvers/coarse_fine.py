@@ -296,9 +296,13 @@ class CoarseToFineSolver:
                     last = verdict
         return Refusal(last, self.name, ms(), {"hypotheses": tried})
 
-    def refine(self, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 4):
-        """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows)."""
+    def refine(self, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
+        """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
+
+        Iterated to convergence: a scale error leaves the outer stars unmatched at first, and each
+        fit with the inner ones brings more of them within the tolerance."""
         t = u[:, :2] / u[:, 2:3]
+        previous = None
         for _ in range(iterations):
             uk = _unit_at(t, k)
             det_rows, cat_rows = self._matches(rot, uk)
@@ -306,9 +310,23 @@ class CoarseToFineSolver:
                 break
             rot = _kabsch(uk[det_rows], self.vec[cat_rows])
             if s > 0 and len(det_rows) >= 3:
+                # scale of the 2-D similarity (Umeyama) from the matched stars' tangent-plane coordinates
+                # (g) to the detections' (t = k g up to a small shift and turn): free of the rotation's own
+                # error, which a plain t = k g fit absorbs, so it converges in a few iterations
                 c = self.vec[cat_rows] @ rot                     # matched stars in the camera frame
-                g = c[:, :2] / c[:, 2:3]                        # their tangent-plane coordinates; t = k g
-                k = float(np.clip(np.sum(t[det_rows] * g) / np.sum(g * g), 1 - s, 1 + s))
+                g = c[:, :2] / c[:, 2:3]
+                gc, tc = g - g.mean(axis=0), t[det_rows] - t[det_rows].mean(axis=0)
+                sv = np.linalg.svd(gc.T @ tc, compute_uv=False)
+                flip = np.sign(np.linalg.det(gc.T @ tc)) or 1.0
+                k_new = float(np.clip((sv[0] + flip * sv[1]) / np.sum(gc * gc), 1 - s, 1 + s))
+                done = previous is not None and np.array_equal(previous, det_rows) and abs(k_new - k) < 1e-6
+                k, previous = k_new, det_rows
+                if done:
+                    break
+            elif previous is not None and np.array_equal(previous, det_rows):
+                break
+            else:
+                previous = det_rows
         uk = _unit_at(t, k)
         det_rows, cat_rows = self._matches(rot, uk)
         return rot, k, det_rows, cat_rows, uk
