@@ -27,7 +27,9 @@ Solvers (``--solvers``):
   prior adds over classical search alone (slow: about 0.2–0.4 s per frame);
 * ``learned`` / ``learned+fine`` — with ``--checkpoint``: the model's regions alone (top-1/top-3
   accuracy of its K regions, angular error of the top-1 centroid, and how often the true fine
-  region is among the ``--top-k`` searched), and coarse-to-fine with the model as prior.
+  region is among the ``--top-k`` searched), and coarse-to-fine with the model as prior;
+* ``tetra3rs>learned+fine`` — tetra3rs lost-in-space, and learned + fine where it refuses
+  (``fusion predict --solve --lis-first``).
 
 The coarse-to-fine solvers run as ``fusion predict --solve`` does: ``--search fine`` (the
 20 most probable fine regions) and ``--focal-tol 0.02`` by default, so the benchmark scores
@@ -69,7 +71,7 @@ from .solvers.base import Detections, Solution, boresight_error_deg, roll_error_
 DETECTION_CORRUPTIONS = ("dropout", "false_stars", "centroid_noise", "magnitude_noise")
 FULL_N = (3, 4, 5, 6, 7, 8, 10, 12, 15, 20)
 SMALL_N = (4, 6, 10)
-SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "whole-sky", "learned", "learned+fine")
+SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "whole-sky", "learned", "learned+fine", "tetra3rs>learned+fine")
 
 
 def corrupt(det: dict, name: str | None, severity: float, seed: int, frame_index: int,
@@ -182,10 +184,10 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     else:
         centroids = search_centroids = default_centroids()
         level = "coarse"
-        dropped = [s for s in solvers if s.startswith("learned")]
+        dropped = [s for s in solvers if "learned" in s]
         if dropped:
             notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
-        solvers = [s for s in solvers if not s.startswith("learned")]
+        solvers = [s for s in solvers if "learned" not in s]
     top_k = top_k or default_search_k(level)
     c2f = dict(top_k=top_k, focal_tol=focal_tol)
     built = {}
@@ -199,8 +201,18 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         built["sim85-prior"] = CoarseToFineSolver(tetra, sim, name="sim85-prior", **c2f)
     if "whole-sky" in solvers:
         built["whole-sky"] = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=focal_tol)
-    if "learned+fine" in solvers:
-        built["learned+fine"] = CoarseToFineSolver(tetra, search_prior, name="learned+fine", **c2f)
+    if "learned+fine" in solvers or "tetra3rs>learned+fine" in solvers:
+        lf = CoarseToFineSolver(tetra, search_prior, name="learned+fine", **c2f)
+        if "learned+fine" in solvers:
+            built["learned+fine"] = lf
+        if "tetra3rs>learned+fine" in solvers:
+            from .solvers.base import FallbackSolver
+            built["tetra3rs>learned+fine"] = FallbackSolver(tetra, lf)
+    composite = {}
+    if "tetra3rs>learned+fine" in built and "tetra3rs" in built and "learned+fine" in built:
+        # both parts are scored anyway: compose their per-frame answers instead of solving twice
+        composite["tetra3rs>learned+fine"] = ("tetra3rs", "learned+fine")
+        del built["tetra3rs>learned+fine"]
     labels = np.argmax(v_true @ centroids.T, axis=1)
     search_labels = np.argmax(v_true @ search_centroids.T, axis=1)
     cells = grid(n_values, corruption_n, corruptions, severities)
@@ -210,6 +222,7 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         dets = [corrupt(t, cell["corruption"], cell["severity"], seed, int(i), cam.width_px, cam.height_px)
                 .brightest(cell["n"]) for t, i in zip(tables, idx)]
         row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
+        answers = {}
         for name, solver in built.items():
             results, secs = [], []
             for j, d in enumerate(dets):
@@ -222,6 +235,13 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
                 results.append(solver.solve(d, cam, images[j], **kw))
                 secs.append(time.perf_counter() - t0)
             row["solvers"][name] = _summary(results, truth, secs, correct_deg, correct_roll_deg)
+            answers[name] = (results, secs)
+        for name, (a, b) in composite.items():
+            (ra, sa), (rb, sb) = answers[a], answers[b]
+            first = [isinstance(x, Solution) for x in ra]
+            row["solvers"][name] = _summary([x if ok else y for x, y, ok in zip(ra, rb, first)], truth,
+                                            [x if ok else x + y for x, y, ok in zip(sa, sb, first)],
+                                            correct_deg, correct_roll_deg)
         if "learned" in solvers:
             row["solvers"]["learned"] = _learned_cell(prior, dets, images, labels, v_true, centroids,
                                                       search_labels if level == "fine" else None, top_k)
@@ -229,7 +249,7 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         log(_cell_line(row, ci, len(cells)))
     report = {"dataset": dataset_info, "camera": {"width_px": cam.width_px, "height_px": cam.height_px,
                                                   "fov_deg": list(cam.fov_deg)},
-              "checkpoint": str(checkpoint) if checkpoint else None, "solvers": list(built) + (
+              "checkpoint": str(checkpoint) if checkpoint else None, "solvers": list(built) + list(composite) + (
                   ["learned"] if "learned" in solvers else []),
               "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
               "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(search_centroids)),

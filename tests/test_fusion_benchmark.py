@@ -85,7 +85,7 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
     out = tmp_path / "bench"
     assert main(["benchmark", "--data", str(data), "--out", str(out), "--checkpoint", str(tmp_path / "run/best.pt"),
                  "--frames", "5", "--n", "8", "--corruptions", "--top-k", "2",
-                 "--solvers", "tetra3rs", "learned", "learned+fine"]) == 0
+                 "--solvers", "tetra3rs", "learned", "learned+fine", "tetra3rs>learned+fine"]) == 0
     r = json.loads((out / "benchmark.json").read_text())
     cell = r["cells"][0]["solvers"]
     assert 0 <= cell["learned"]["top1"] <= cell["learned"]["top3"] <= 1
@@ -93,4 +93,9 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
     assert r["search"] == {"level": "coarse", "regions": 4, "top_k": 2, "focal_tol": 0.02}
     lf = cell["learned+fine"]
     assert lf["wrong"] == 0 and lf["correct"] + lf["refused"] == pytest.approx(1.0)
+    # lost-in-space first, the learned path where it refuses: composed from the two columns' answers
+    both, t3 = cell["tetra3rs>learned+fine"], cell["tetra3rs"]
+    assert both["refused"] <= min(t3["refused"], lf["refused"]) + 1e-9          # refused only if both refuse
+    assert both["correct"] >= t3["correct"] and (t3["wrong"] > 0 or both["correct"] >= lf["correct"])
+    assert both["ms_per_frame"] >= t3["ms_per_frame"]
     assert r["region_count"] == 4 and "learned top-1" in (out / "benchmark.md").read_text()

@@ -170,6 +170,13 @@ def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extracto
     sol = _lines(out)[0]["solution"]
     assert sol["status"] == "solved"
     assert abs(sol["ra_deg"] - 172.3667) * np.cos(np.radians(57.65)) < 0.01 and abs(sol["dec_deg"] - 57.6494) < 0.01
+    # skygen's own detector with a background per 64 px box follows the gradient: many more stars, solved
+    out2 = tmp_path / "r2.jsonl"
+    assert main(["predict", str(frame), "--camera", cam, "--solve", "--background-box", "64", "--out", str(out2)]) == 0
+    r = _lines(out2)[0]
+    assert r["n_detections"] >= 15 and r["solution"]["status"] == "solved"
+    sol = r["solution"]
+    assert abs(sol["ra_deg"] - 172.3667) * np.cos(np.radians(57.65)) < 0.01 and abs(sol["dec_deg"] - 57.6494) < 0.01
 
 
 def test_predict_on_a_dataset_folder(checkpoint, tmp_path):

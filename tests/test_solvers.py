@@ -181,3 +181,23 @@ def test_coarse_to_fine_fits_an_unknown_focal_length(tmp_path, regions):
     assert solved >= 5
     with pytest.raises(ValueError, match="focal_tol"):
         CoarseToFineSolver(tetra, prior, focal_tol=0.5)
+
+
+def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, regions):
+    from fusion.solvers.base import FallbackSolver
+    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solvers.priors import OraclePrior
+    prior = OraclePrior(regions)
+    both = FallbackSolver(tetra, CoarseToFineSolver(tetra, prior, top_k=1, name="c2f"))
+    f = renderer.render(3)
+    p = prior.probabilities_for(f.unit_vector, 3)
+    det = Detections.from_table(f.detections)
+    assert both.solve(det, renderer.camera, probabilities=p).solver == tetra.name       # plenty of stars
+    few = both.solve(det.brightest(4), renderer.camera, probabilities=p)              # lost-in-space refuses
+    if isinstance(few, Solution):
+        assert few.solver == "c2f"
+        assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), few.matrix) < 0.05
+    rng = np.random.default_rng(5)
+    noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
+    res = both.solve(noise, renderer.camera, probabilities=p)
+    assert isinstance(res, Refusal) and tetra.name in res.reason and "c2f" in res.reason

@@ -110,6 +110,30 @@ class Solver(Protocol):
     def solve(self, detections: Detections, camera, image: np.ndarray | None = None) -> Solution | Refusal: ...
 
 
+class FallbackSolver:
+    """``first`` (e.g. tetra3rs lost-in-space: ~0.1 ms, never wrong in the benchmark), and where it refuses,
+    ``second`` (e.g. the coarse-to-fine stage with a learned prior), which alone receives keyword arguments
+    such as ``probabilities``. The answer names the solver that gave it; a refusal gives both reasons."""
+
+    def __init__(self, first, second, name: str | None = None):
+        self.first, self.second = first, second
+        self.name = name or f"{first.name}>{second.name}"
+
+    @property
+    def prior(self):
+        return getattr(self.second, "prior", None)
+
+    def solve(self, detections: Detections, camera, image: np.ndarray | None = None, **kw) -> Solution | Refusal:
+        a = self.first.solve(detections, camera, image)
+        if isinstance(a, Solution):
+            return a
+        b = self.second.solve(detections, camera, image, **kw)
+        if isinstance(b, Solution):
+            return b
+        return Refusal(f"{a.solver}: {a.reason}; {b.solver}: {b.reason}", self.name, a.time_ms + b.time_ms,
+                       {**a.extra, **b.extra})
+
+
 # --------------------------------------------------------------------------- attitude helpers
 def radec_roll_from_matrix(m: np.ndarray) -> tuple[float, float, float]:
     """(ra_deg, dec_deg, roll_deg) of a camera -> ICRS matrix (columns: camera x, y, z in ICRS).
