@@ -184,7 +184,13 @@ def _learned(checkpoint: str, real: str, search: str, search_k: int | None, foca
             row["fov_deg"] = float(res.extra["fov_deg"][0])
             row["listed_fov_deg"] = fov
         rows.append(row)
-    return {"checkpoint": str(checkpoint), "search": pred.search_level, "search_k": pred.solver.top_k,
+    summary = Path(checkpoint).parent / "summary.json"
+    training = None
+    if summary.is_file():
+        sm = json.loads(summary.read_text())
+        training = {"wall_time_min": sm.get("wall_time_s", 0) / 60, "samples_seen": sm.get("samples_seen"),
+                    "val_top1": sm["best"].get("val_top1"), "val_top3": sm["best"].get("val_top3")}
+    return {"checkpoint": str(checkpoint), "training": training, "search": pred.search_level, "search_k": pred.solver.top_k,
             "regions": int(len(centroids)), "focal_tol": focal_tol, "background_box": box, "rows": rows}
 
 
@@ -295,14 +301,20 @@ def _learned_markdown(le: dict) -> list[str]:
     wrong = [r for r in solved if abs(r["d_ra_arcsec"]) > 360 or abs(r["d_dec_arcsec"]) > 360]
     what = f"{le['regions']} fine regions" if le["search"] == "fine" else f"{le['regions']} regions"
     lines = ["", "## The learned path: `fusion predict --checkpoint CK --solve` on the real frames", "",
-             f"Checkpoint `{le['checkpoint']}` (trained only on skygen's detections stream of the nominal preset). "
+             f"Checkpoint `{le['checkpoint']}` (trained only on skygen's detections stream of the nominal preset"
+             + (f"; {tr['samples_seen'] / 1e6:.1f} M samples in {tr['wall_time_min']:.0f} min on this CPU, "
+                f"{100 * tr['val_top1']:.1f} % top-1 / {100 * tr['val_top3']:.0f} % top-3 on rendered val frames"
+                if (tr := le.get("training")) else "") + "). "
              f"Searched: the {k} most probable of its {what}, focal length within ±{100 * le['focal_tol']:g} % of "
              f"the preset's (`--focal-tol {le['focal_tol']:g}`), skygen's detector with "
              + (f"{le['background_box']} px background boxes (`--background-box {le['background_box']}`)"
                 if le.get("background_box") else "one background per frame") + ". The region holding the listed boresight is ranked "
              f"first in {top1} of {n} frames and within the {k} searched in {topk} (coarse regions: within the top 3 "
              f"in {coarse3}); the coarse-to-fine stage returns an attitude for {len(solved)} of {n} frames, "
-             f"{len(wrong)} of them more than 0.1° from the listed one.", "",
+             f"{len(wrong)} of them more than 0.1° from the listed one. (A frame whose own fine region is not "
+             "among those searched can still be solved: each searched region is a cap around its centroid that "
+             "covers its whole cell, and so parts of the neighbouring cells; the attitude itself is always "
+             "verified against the catalog, never taken from the region.)", "",
              "| frame | detections | rank of the true region (probability) | solved | ΔRA cos δ (″) | "
              "ΔDec (″) | Δroll (°) | fov fitted / listed (°) | confidence | ms |",
              "|---|---|---|---|---|---|---|---|---|---|"]
