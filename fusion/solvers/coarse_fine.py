@@ -33,8 +33,9 @@ For one region (a cap around a region centroid, :class:`Region`):
    star within ``tol_px``) gives ``confidence = max(0, 1 - E_false)``; below
    ``min_confidence`` or fewer than ``min_matches`` matches: next region, or a refusal;
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
-   Kabsch and a 1-D least-squares scale, k kept within 1 ± s, whichever pass found the
-   hypothesis), re-matched at ``tol_px``;
+   Kabsch and the scale of a 2-D similarity between tangent-plane coordinates, k kept within
+   1 ± s whichever pass found the hypothesis), re-matched at ``tol_px`` until the matches
+   and k stop changing;
    the confidence above is recomputed from this tight match count and must still pass;
 6. verification: tetra3rs tracking from that attitude (strict hint, 1°, the fitted focal length)
    re-matches every detection against its catalog, tests the match against its own
@@ -319,14 +320,12 @@ class CoarseToFineSolver:
                 sv = np.linalg.svd(gc.T @ tc, compute_uv=False)
                 flip = np.sign(np.linalg.det(gc.T @ tc)) or 1.0
                 k_new = float(np.clip((sv[0] + flip * sv[1]) / np.sum(gc * gc), 1 - s, 1 + s))
-                done = previous is not None and np.array_equal(previous, det_rows) and abs(k_new - k) < 1e-6
-                k, previous = k_new, det_rows
-                if done:
-                    break
-            elif previous is not None and np.array_equal(previous, det_rows):
-                break
             else:
-                previous = det_rows
+                k_new = k
+            converged = previous is not None and np.array_equal(previous, det_rows) and abs(k_new - k) < 1e-6
+            k, previous = k_new, det_rows
+            if converged:
+                break
         uk = _unit_at(t, k)
         det_rows, cat_rows = self._matches(rot, uk)
         return rot, k, det_rows, cat_rows, uk
