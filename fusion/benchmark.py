@@ -136,11 +136,10 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
                   correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
                   search: str = "fine", focal_tol: float = 0.02, log=print) -> dict:
     from .solvers.coarse_fine import CoarseToFineSolver
-    from .predict import default_search_k
+    from .predict import check_search_options, default_search_k
     from .solvers.priors import OraclePrior, load_prior
     from .solvers.tetra import Tetra3Solver
-    if not 0.0 <= focal_tol < 0.2:
-        raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
+    check_search_options(focal_tol, top_k, "--top-k")
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
         raise ConfigError(f"--solvers: unknown {sorted(unknown)}; choose from {', '.join(SOLVERS)}")
@@ -424,14 +423,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"solvers to score, from: {', '.join(SOLVERS)} (default: all but whole-sky)")
     p.add_argument("--correct-deg", type=float, default=0.1, help="boresight error counted as correct (default 0.1 deg)")
     p.add_argument("--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct (default 1 deg)")
-    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
-                   help="regions the coarse-to-fine solvers search: the checkpoint's fine regions (default, when it "
-                        "has them) or its K regions (as fusion predict --search)")
-    p.add_argument("--top-k", type=int, help="regions searched by the coarse-to-fine solvers (default 20 fine "
-                                            "regions or 3 coarse ones, as fusion predict --search-k)")
-    p.add_argument("--focal-tol", type=float, default=0.02,
-                   help="relative focal-length uncertainty of the coarse-to-fine solvers (default 0.02, as fusion "
-                        "predict)")
+    from .predict import add_search_arguments
+    add_search_arguments(p, "--top-k")                 # the coarse-to-fine solvers run as fusion predict --solve
 
 
 def run(args: argparse.Namespace) -> int:
@@ -441,6 +434,6 @@ def run(args: argparse.Namespace) -> int:
                   frames=args.frames or (30 if small else 200), n_values=args.n or (SMALL_N if small else FULL_N),
                   corruption_n=args.corruption_n or ((6,) if small else (6, 10)), corruptions=args.corruptions,
                   severities=severities, solvers=args.solvers, correct_deg=args.correct_deg,
-                  correct_roll_deg=args.correct_roll_deg, top_k=args.top_k, search=args.search,
+                  correct_roll_deg=args.correct_roll_deg, top_k=args.search_k, search=args.search,
                   focal_tol=args.focal_tol)
     return 0

@@ -144,10 +144,7 @@ class Predictor:
             raise ConfigError(f"--background-box {background_box}: 0 (one background per frame) or a box of at "
                               "least 8 px, e.g. 64")
         self.background_box = int(background_box)
-        if not 0.0 <= focal_tol < 0.2:
-            raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
-        if search_k is not None and search_k < 1:
-            raise ConfigError(f"--search-k {search_k}: search at least 1 region")
+        check_search_options(focal_tol, search_k)
         self.solver, self.search_level = None, None
         if solve:
             from .solvers.coarse_fine import CoarseToFineSolver
@@ -218,6 +215,26 @@ class Predictor:
             res = self.solver.solve(det, self.camera, stored, **kw)
             rec["solution"] = res.to_dict()
         return rec
+
+
+def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k") -> None:
+    """The coarse-to-fine options shared by ``fusion predict --solve`` and ``fusion benchmark``."""
+    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
+                   help="coarse-to-fine stage: search the model's fine regions (default; a few degrees each, for "
+                        "checkpoints trained with labels.fine_k, else its K regions) or its K regions")
+    p.add_argument(k_flag, dest="search_k", type=int, metavar="K",
+                   help="coarse-to-fine stage: regions searched, most probable first (default 20 fine regions or "
+                        "3 coarse ones)")
+    p.add_argument("--focal-tol", type=float, default=0.02,
+                   help="coarse-to-fine stage: relative focal-length uncertainty it fits within (default 0.02; "
+                        "0 = the camera's nominal focal length exactly)")
+
+
+def check_search_options(focal_tol: float, search_k: int | None, k_flag: str = "--search-k") -> None:
+    if not 0.0 <= focal_tol < 0.2:
+        raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
+    if search_k is not None and search_k < 1:
+        raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
 
 
 def default_search_k(level: str) -> int:
@@ -325,14 +342,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
                    "as prior of the fine stage; tetra3rs lost-in-space without a checkpoint")
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
-    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
-                   help="--solve: search the model's fine regions (default; a few degrees each, for checkpoints "
-                        "trained with labels.fine_k, else its K regions) or its K regions")
-    p.add_argument("--search-k", type=int, help="--solve: regions searched, most probable first (default 20 fine "
-                                               "regions or 3 coarse ones)")
-    p.add_argument("--focal-tol", type=float, default=0.02,
-                   help="--solve with a checkpoint: relative focal-length uncertainty the fine stage fits within "
-                        "(default 0.02; 0 = the camera's nominal focal length exactly)")
+    add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
     p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
     p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
