@@ -57,7 +57,7 @@ from skygen.config import load_config as load_render_config
 from skygen.detect import detect
 
 from .errors import ConfigError, FusionError
-from .solvers.base import Detections, Solution
+from .solvers.base import Detections
 
 FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
 
