@@ -78,8 +78,6 @@ class CheckpointPrior:
         import torch
         from ..checkpoint import load_checkpoint, render_config_of
         from ..train import load_trained_model
-        if level not in ("coarse", "fine"):
-            raise ValueError(f"level={level!r}: choose 'coarse' or 'fine'")
         ckpt = load_checkpoint(checkpoint)
         self.render_config = render_config if render_config is not None else render_config_of(ckpt, checkpoint)
         self.model, self.cfg = load_trained_model(ckpt, str(checkpoint))
@@ -88,7 +86,7 @@ class CheckpointPrior:
         fine = ckpt.get("fine_centroids")
         has_fine = fine is not None and bool(getattr(self.model, "fine_classes", None))
         self.fine_centroids = fine.numpy().astype(np.float64) if has_fine else None
-        self.level = "fine" if level == "fine" and has_fine else "coarse"
+        self.level = self._resolve(level)
         self.image_size, self.max_stars = int(ckpt["image_size"]), int(ckpt["max_stars"])
         self.source = str(checkpoint)
         self._torch = torch
@@ -97,13 +95,16 @@ class CheckpointPrior:
     def centroids(self) -> np.ndarray:
         return self.fine_centroids if self.level == "fine" else self.coarse_centroids
 
+    def _resolve(self, level: str) -> str:
+        if level not in ("coarse", "fine"):
+            raise ValueError(f"level={level!r}: choose 'coarse' or 'fine'")
+        return "fine" if level == "fine" and self.fine_centroids is not None else "coarse"
+
     def at_level(self, level: str) -> "CheckpointPrior":
         """The same model (shared, not copied) answering at another level."""
         import copy
-        if level not in ("coarse", "fine"):
-            raise ValueError(f"level={level!r}: choose 'coarse' or 'fine'")
         view = copy.copy(self)
-        view.level = "fine" if level == "fine" and self.fine_centroids is not None else "coarse"
+        view.level = self._resolve(level)
         return view
 
     def both(self, detections: Detections, image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
