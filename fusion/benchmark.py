@@ -204,14 +204,14 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         lf = CoarseToFineSolver(tetra, search_prior, name="learned+fine", **c2f)
         if "learned+fine" in solvers:
             built["learned+fine"] = lf
-        if "tetra3rs>learned+fine" in solvers:
+    composite = {}
+    if "tetra3rs>learned+fine" in solvers:
+        if "tetra3rs" in built and "learned+fine" in built:
+            # both parts are scored anyway: compose their per-frame answers instead of solving twice
+            composite["tetra3rs>learned+fine"] = ("tetra3rs", "learned+fine")
+        else:
             from .solvers.base import FallbackSolver
             built["tetra3rs>learned+fine"] = FallbackSolver(tetra, lf)
-    composite = {}
-    if "tetra3rs>learned+fine" in built and "tetra3rs" in built and "learned+fine" in built:
-        # both parts are scored anyway: compose their per-frame answers instead of solving twice
-        composite["tetra3rs>learned+fine"] = ("tetra3rs", "learned+fine")
-        del built["tetra3rs>learned+fine"]
     labels = np.argmax(v_true @ centroids.T, axis=1)
     search_labels = np.argmax(v_true @ search_centroids.T, axis=1)
     cells = grid(n_values, corruption_n, corruptions, severities)
