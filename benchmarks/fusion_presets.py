@@ -56,7 +56,7 @@ RUNS = {
 
 def _train(name: str, data: str, runs: Path, log) -> dict:
     from fusion.config import load_config
-    from fusion.train import train
+    from fusion.train.run import train
     preset, overrides, _ = RUNS[name]
     out = runs / name
     if (out / "summary.json").exists():
@@ -70,7 +70,7 @@ def _train(name: str, data: str, runs: Path, log) -> dict:
 
 
 def _evaluate(name: str, runs: Path, data: str, tag: str) -> dict:
-    from fusion.evaluate import evaluate_checkpoint
+    from fusion.measure.evaluate import evaluate_checkpoint
     quiet = lambda *a, **k: None  # noqa: E731
     return evaluate_checkpoint(runs / name / "best.pt", data, "test", runs / name / f"eval-{tag}", log=quiet,
                                warn=quiet)

@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fusion.checkpoint import write_json
-from fusion.timing import run_timing
+from skygen.runtime import write_json
+from fusion.measure.timing import run_timing
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = {"star_fusion": None, "cpu-preset": ROOT / "configs" / "cpu.yaml"}

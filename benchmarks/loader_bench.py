@@ -25,8 +25,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from fusion.config import AugConfig  # noqa: E402
-from fusion.data import FrameDataset, make_loader, split_positions  # noqa: E402
-from fusion.heatmap import rasterise  # noqa: E402
+from fusion.model.shards import FrameDataset, make_loader, split_positions  # noqa: E402
+from fusion.model.heatmap import rasterise  # noqa: E402
 from skygen.io import open_dataset  # noqa: E402
 
 

@@ -25,8 +25,8 @@ import numpy as np
 
 def coverage(checkpoint: str, data: str, split: str, frames: int, n_values, k_values) -> dict:
     from skygen.io import open_dataset
-    from fusion.solvers.base import Detections
-    from fusion.solvers.priors import load_prior
+    from fusion.solve.base import Detections
+    from fusion.solve.priors import load_prior
     prior = load_prior(checkpoint, level="fine")
     if prior.fine_centroids is None:
         raise SystemExit(f"{checkpoint}: trained without fine regions (labels.fine_k); nothing to compare")

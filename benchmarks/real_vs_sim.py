@@ -95,9 +95,9 @@ def main(argv=None) -> int:
     from skygen.camera import Camera
     from skygen.config import config_dict, load_config
     from skygen.render import Renderer
-    from fusion.predict import read_frame
-    from fusion.solvers.base import Detections, Solution
-    from fusion.solvers.tetra import Tetra3Solver
+    from fusion.solve.frames import read_frame
+    from fusion.solve.base import Detections, Solution
+    from fusion.solve.tetra import Tetra3Solver
     cfg = load_config(a.camera, ["output.full_res=true", f"n_frames={a.sim_frames}"])
     cam = Camera.from_config(cfg.camera)
     sat = 2 ** cfg.sensor.bit_depth - 1
@@ -155,8 +155,9 @@ def main(argv=None) -> int:
 
 def _learned(checkpoint: str, real: str, search: str, search_k: int | None, focal_tol: float, box: int) -> dict:
     """The learned path of ``fusion predict --checkpoint CK --solve`` on every listed real frame."""
-    from fusion.labels import assign, radec_to_unit
-    from fusion.predict import Predictor, read_frame
+    from fusion.model.regions import assign, radec_to_unit
+    from fusion.solve.predict import Predictor
+    from fusion.solve.frames import read_frame
     pred = Predictor(checkpoint, solve=True, search=search, search_k=search_k, focal_tol=focal_tol,
                      background_box=box)
     centroids = pred.solver.prior.centroids
@@ -195,7 +196,7 @@ def _learned(checkpoint: str, real: str, search: str, search_k: int | None, foca
 
 
 def _compare(res, ra, dec, roll_t3) -> dict:
-    from fusion.solvers.base import Solution
+    from fusion.solve.base import Solution
     if not isinstance(res, Solution):
         return {"solved": False, "reason": res.reason}
     return {"solved": True, "d_ra_arcsec": ((res.ra_deg - ra + 180) % 360 - 180) * np.cos(np.radians(dec)) * 3600,

@@ -1,9 +1,8 @@
-"""``fusion`` command line: thin wrappers over the library functions.
+"""``fusion`` command line: argument parsing and thin calls into the library.
 
     fusion train --data DIR --out RUNDIR [--config FILE.yaml] [--stream detections|frames] [--resume]
                  [--force] [--pretrained PATH_OR_HUB] [--set key=value ...] [key=value ...]
     fusion evaluate --checkpoint RUNDIR[/best.pt] --data DIR [--split test] [--out DIR] [--allow-overlap]
-
     fusion robustness --corruption hotpixels --checkpoint CKPT [CKPT ...] --data DIR --out DIR
     fusion timing --checkpoint CKPT --mode both --out FILE.json
     fusion export --checkpoint CKPT --onnx FILE.onnx [--opset 17]
@@ -11,10 +10,16 @@
     fusion predict FRAME... --checkpoint CKPT [--solve] [--overlay DIR]   (or --camera PRESET.yaml)
     fusion benchmark --data DIR --out DIR [--checkpoint CKPT] [--grid small|full]
 
-Each subcommand is registered in :data:`SUBCOMMANDS` (name -> (help, add_arguments, run)). Errors the project raises
-on purpose (:class:`skygen.errors.SkygenError` and subclasses) print one line and return 2, also when raised
-inside a DataLoader worker (torch re-raises them with the worker's traceback in the message; only its last
-line is printed).
+Each subcommand is registered in :data:`SUBCOMMANDS` (name -> (help, add_arguments, run)).
+The argument definitions live here and import no torch, so ``fusion --help`` and
+``fusion CMD --help`` answer at once; ``run`` imports the library module that does the work
+(``fusion.train``, ``fusion.measure.*``, ``fusion.solve.*``). Choices that the library also
+checks (precisions, exporters, experiment sections) are listed here and compared with the
+library's in ``tests/test_fusion_cli.py``.
+
+Errors the project raises on purpose (:class:`skygen.errors.SkygenError` and subclasses)
+print one line and return 2, also when raised inside a DataLoader worker (torch re-raises
+them with the worker's traceback in the message; only its last line is printed).
 
 Multi-GPU: ``torchrun --nproc_per_node N -m fusion.cli train ...``.
 """
@@ -26,9 +31,15 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from skygen.errors import SkygenError
+from skygen.errors import ConfigError, SkygenError
 
 from . import __version__
+
+PRECISIONS = ("fp32", "fp16", "bf16")
+TIMING_MODES = ("forward", "end2end", "both")
+EXPORTERS = ("legacy", "dynamo")
+MASK_DTYPES = ("bool", "float32")
+EXPERIMENT_SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
 
 
 # --------------------------------------------------------------------------- train
@@ -56,7 +67,6 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 def _run_train(args: argparse.Namespace) -> int:
     from skygen.configlib import merge_overrides, read_yaml
     from .config import build_config, config_help
-    from .train import train
     if args.help_config:
         print(config_help())
         return 0
@@ -75,6 +85,7 @@ def _run_train(args: argparse.Namespace) -> int:
     else:
         base = read_yaml(args.config) if args.config else {}
     cfg = build_config(merge_overrides(base, overrides))
+    from .train.run import train
     train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
     return 0
 
@@ -86,32 +97,217 @@ def _add_evaluate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="(required) skygen dataset folder")
     p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to evaluate (default test)")
     p.add_argument("--out", help="folder for eval-<split>.json/.md and confusion-<split>.png (default: the checkpoint's)")
-    p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--batch-size", type=int, default=64, help="frames per forward pass (default 64)")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0: in-process)")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="auto (default): the first CUDA device if one is visible, else the CPU")
     p.add_argument("--max-frames", type=int, help="evaluate only the first N frames of the split (N >= 1)")
     p.add_argument("--allow-overlap", action="store_true",
                    help="score frames the checkpoint was trained on (refused by default) with a loud warning")
 
 
 def _run_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate_checkpoint
+    from .measure.evaluate import evaluate_checkpoint
     evaluate_checkpoint(args.checkpoint, args.data, args.split, args.out, batch_size=args.batch_size,
                         workers=args.workers, device=args.device, max_frames=args.max_frames,
                         allow_overlap=args.allow_overlap)
     return 0
 
 
-def _module(name: str) -> tuple[Callable, Callable]:
-    """(add_arguments, run) of ``fusion.<name>``, imported only when that subcommand is used."""
-    import importlib
+# --------------------------------------------------------------------------- robustness
+def _add_robustness(p: argparse.ArgumentParser) -> None:
+    from skygen import corruptions as corr
+    sweeps = "; ".join(f"{c.name} ({c.unit}: {', '.join(f'{v:g}' for v in c.sweep)})" for c in corr.REGISTRY.values())
+    p.add_argument("--corruption", required=True, metavar="NAME|all",
+                   help=f"a registered corruption, a comma-separated list, or 'all'. Default severities: {sweeps}")
+    p.add_argument("--checkpoint", required=True, nargs="+", metavar="CKPT",
+                   help="one or more best.pt files (e.g. full Star-Fusion, image-only, geometry-only): one line each")
+    p.add_argument("--data", required=True, help="skygen dataset folder whose frames are corrupted")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to use (default test)")
+    p.add_argument("--levels", metavar="A,B,C",
+                   help="extra severities in the corruption's unit (single corruption only; default: its sweep)")
+    p.add_argument("--n", type=int, metavar="FRAMES", help="use this many frames of the split, drawn with --seed "
+                   "(default: all)")
+    p.add_argument("--workers", type=int, default=1, help="processes re-rendering frames (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the frame subset chosen by --n (default 0)")
+    p.add_argument("--batch-size", type=int, default=64, help="evaluation batch size (default 64)")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="auto (default): the first CUDA device if one is visible, else the CPU")
+    p.add_argument("--out", required=True, help="folder for the tables and plots (created; files replaced "
+                   "only when the whole sweep has finished)")
 
-    def add(p: argparse.ArgumentParser) -> None:
-        importlib.import_module(f"fusion.{name}").add_arguments(p)
 
-    def run(args: argparse.Namespace) -> int:
-        return importlib.import_module(f"fusion.{name}").run(args)
-    return add, run
+def _run_robustness(args: argparse.Namespace) -> int:
+    from .measure.robustness import robustness
+    robustness(args.checkpoint, args.data, args.corruption, args.out, split=args.split, levels=args.levels,
+               n=args.n, workers=args.workers, seed=args.seed, batch_size=args.batch_size, device=args.device)
+    return 0
+
+
+# --------------------------------------------------------------------------- timing
+def _add_timing(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--checkpoint", help="a trained checkpoint (best.pt)")
+    src.add_argument("--config", help="a training preset (configs/*.yaml): its architecture with random weights "
+                     "(neither option: the default config, the paper's Star-Fusion with SwinV2-T)")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="default cpu")
+    p.add_argument("--precision", default="fp32", choices=PRECISIONS,
+                   help="fp32, or weights and inputs cast to fp16/bf16 (default fp32)")
+    p.add_argument("--batch", type=int, default=1, help="images per forward pass (default 1)")
+    p.add_argument("--iters", type=int, default=100, help="timed iterations (default 100)")
+    p.add_argument("--warmup", type=int, default=10, help="untimed iterations first (default 10)")
+    p.add_argument("--mode", default="both", choices=TIMING_MODES,
+                   help="forward pass only, end to end from a raw frame, or both (default)")
+    p.add_argument("--data", help="skygen dataset whose camera renders the raw frame for end2end (default: the "
+                   "checkpoint's training dataset if present, else skygen's default 1024 px camera)")
+    p.add_argument("--image-size", type=int, default=256, help="model input size with --config (default 256)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--out", required=True, help="JSON file to write, e.g. results/timing/cpu_fp32_b1.json")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides with --config")
+
+
+def _run_timing(args: argparse.Namespace) -> int:
+    if args.overrides and args.checkpoint:
+        raise ConfigError("key=value overrides apply to a config, not to --checkpoint (it carries its own config)")
+    from .measure.timing import timing
+    timing(args.out, checkpoint=args.checkpoint, config=args.config, device=args.device, precision=args.precision,
+           batch=args.batch, iters=args.iters, warmup=args.warmup, mode=args.mode, data=args.data,
+           image_size=args.image_size, threads=args.threads, overrides=tuple(args.overrides))
+    return 0
+
+
+# --------------------------------------------------------------------------- export
+def _add_export(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="a trained checkpoint (best.pt)")
+    p.add_argument("--onnx", required=True, help="ONNX file to write (replaced only after verification)")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17: TensorRT of JetPack 5 / 6.0)")
+    p.add_argument("--exporter", default="legacy", choices=EXPORTERS, help="legacy TorchScript-based (default) or "
+                   "dynamo (torch.export-based)")
+    p.add_argument("--tolerance", type=float, default=1e-4,
+                   help="largest allowed |onnxruntime - PyTorch| of the logits (default 1e-4)")
+    p.add_argument("--data", help="also verify on the first test frames of this skygen dataset")
+    p.add_argument("--mask-dtype", default="bool", choices=MASK_DTYPES,
+                   help="type of the mask input: bool (as in PyTorch, default) or float32 0/1 for runtimes that "
+                        "reject boolean inputs")
+    p.add_argument("--report", help="also write the export report (inputs, differences, sha256) to this JSON file")
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    from .measure.export import export_onnx, summary_text
+    r = export_onnx(args.checkpoint, args.onnx, opset=args.opset, exporter=args.exporter, tolerance=args.tolerance,
+                    data=args.data, mask_dtype=args.mask_dtype)
+    if args.report:
+        from skygen.runtime import write_json
+        write_json(args.report, r)
+    print(summary_text(r))
+    return 0
+
+
+# --------------------------------------------------------------------------- experiment
+def _add_experiment(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", required=True, help="experiment preset: cpu, gpu, smoke, or a YAML path")
+    p.add_argument("--out", help="output folder (default results/<preset>)")
+    p.add_argument("--sections", default=",".join(EXPERIMENT_SECTIONS),
+                   help=f"comma list of {', '.join(EXPERIMENT_SECTIONS)}")
+    p.add_argument("--workers", type=int, default=0, help="render/robustness worker processes (default: all cores)")
+    p.add_argument("--data-dir", help="dataset folder (default data/experiment-<preset>)")
+    p.add_argument("--runs-dir", help="folder of the training runs (default runs/experiment-<preset>)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="training runs at a time, each in its own process (default 1; on a 2-core machine 2 "
+                        "with the preset's train.threads=1)")
+
+
+def _run_experiment(args: argparse.Namespace) -> int:
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
+    from .measure.experiment import run_experiment
+    run_experiment(args.preset, args.out or f"results/{Path(args.preset).stem}",
+                   sections=tuple(s for s in args.sections.split(",") if s), workers=args.workers or None,
+                   data_dir=args.data_dir, runs_dir=args.runs_dir, jobs=args.jobs)
+    return 0
+
+
+# --------------------------------------------------------------------------- predict and benchmark
+def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k") -> None:
+    """The fine-stage options shared by ``fusion predict --solve`` and ``fusion benchmark``."""
+    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
+                   help="fine stage: search the model's fine regions (default; a few degrees each, for "
+                        "checkpoints trained with labels.fine_k, else its K regions) or its K regions")
+    p.add_argument(k_flag, dest="search_k", type=int, metavar="K",
+                   help="fine stage: regions searched, most probable first (default 20 fine regions or "
+                        "3 coarse ones)")
+    p.add_argument("--focal-tol", type=float, default=0.02,
+                   help="fine stage: relative focal-length uncertainty it fits within (default 0.02; "
+                        "0 = the camera's nominal focal length exactly)")
+
+
+def _add_predict(p: argparse.ArgumentParser) -> None:
+    p.add_argument("frames", nargs="+", metavar="FRAME",
+                   help="image files (.png, .tif/.tiff 8/16-bit, .fits, .npy) or skygen dataset folders")
+    p.add_argument("--checkpoint", help="a fusion checkpoint (best.pt): its camera, detector and model")
+    p.add_argument("--camera", help="a skygen camera preset (configs/cameras/*.yaml) when no checkpoint is given")
+    p.add_argument("--dataset", help="the training dataset of a checkpoint written before checkpoints carried "
+                                     "their camera")
+    p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
+                   "as prior of the fine stage; tetra3rs lost-in-space without a checkpoint")
+    p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
+    add_search_arguments(p)
+    p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
+    p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
+    p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
+    p.add_argument("--lis-first", action="store_true",
+                   help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
+                        "stars) and the learned prior's fine stage only where it refuses; `solver` says which answered")
+    p.add_argument("--background-box", type=int, default=0, metavar="PX",
+                   help="skygen detector: background per PX x PX box (e.g. 64; for ground frames with sky glow or "
+                        "gradients) instead of one level per frame (default 0, as the renders and the training)")
+    p.add_argument("--detector", choices=("skygen", "tetra3rs"), default="skygen",
+                   help="skygen (default; what models are trained on) or tetra3rs's extractor (local background, "
+                        "matched filter: more stars on ground frames with sky gradients; without --checkpoint only)")
+
+
+def _run_predict(args: argparse.Namespace) -> int:
+    from .solve.predict import predict
+    _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
+                        top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
+                        max_frames=args.max_frames, search=args.search, search_k=args.search_k,
+                        focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first)
+    return 1 if failed else 0
+
+
+def _add_benchmark(p: argparse.ArgumentParser) -> None:
+    from .solve.benchmark import DEFAULT_SOLVERS, DETECTION_CORRUPTIONS, SOLVERS
+    p.add_argument("--data", required=True, help="skygen dataset folder (its frames are the fixed test frames)")
+    p.add_argument("--out", required=True, help="folder for benchmark.json, benchmark.md and the plots")
+    p.add_argument("--checkpoint", help="a fusion checkpoint: adds the 'learned' and 'learned+fine' solvers")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"))
+    p.add_argument("--frames", type=int, help="first N frames of the split (default 200; 30 with --grid small)")
+    p.add_argument("--grid", choices=("small", "full"), default="full",
+                   help="small: N in 4 6 10, corruptions at N=6, two severities each (a CPU minute or two); "
+                        "full: N in 3..20, every sweep severity at N=6 and N=10")
+    p.add_argument("--n", type=int, nargs="+", metavar="N", help="brightest-N values of the clean cells (overrides --grid)")
+    p.add_argument("--corruption-n", type=int, nargs="+", metavar="N", help="N values of the corruption cells")
+    p.add_argument("--corruptions", nargs="*", default=list(DETECTION_CORRUPTIONS), metavar="NAME",
+                   help=f"detection-level corruptions (default all: {', '.join(DETECTION_CORRUPTIONS)}); none: clean only")
+    p.add_argument("--solvers", nargs="+", metavar="NAME", default=list(DEFAULT_SOLVERS),
+                   help=f"solvers to score, from: {', '.join(SOLVERS)} (default: {' '.join(DEFAULT_SOLVERS)})")
+    p.add_argument("--correct-deg", type=float, default=0.1, help="boresight error counted as correct (default 0.1 deg)")
+    p.add_argument("--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct (default 1 deg)")
+    add_search_arguments(p, "--top-k")                 # the fine-stage solvers run as fusion predict --solve does
+
+
+def _run_benchmark(args: argparse.Namespace) -> int:
+    from skygen import corruptions as corr
+    from .solve.benchmark import FULL_N, SMALL_N, run_benchmark
+    small = args.grid == "small"
+    severities = {c: [s for s in corr.get(c).sweep if s > 0][:2] for c in args.corruptions} if small else None
+    run_benchmark(args.data, args.out, checkpoint=args.checkpoint, split=args.split,
+                  frames=args.frames or (30 if small else 200), n_values=args.n or (SMALL_N if small else FULL_N),
+                  corruption_n=args.corruption_n or ((6,) if small else (6, 10)), corruptions=args.corruptions,
+                  severities=severities, solvers=args.solvers, correct_deg=args.correct_deg,
+                  correct_roll_deg=args.correct_roll_deg, top_k=args.search_k, search=args.search,
+                  focal_tol=args.focal_tol)
+    return 0
 
 
 SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
@@ -119,15 +315,15 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
     "evaluate": ("evaluate a checkpoint on a split: top-k, angular error, confusion matrix", _add_evaluate,
                  _run_evaluate),
     "robustness": ("accuracy against corruption severity (skygen's registry), one line per checkpoint",
-                   *_module("robustness")),
-    "timing": ("latency (forward and end-to-end from a raw frame), parameters and FLOPs", *_module("timing")),
-    "export": ("export a checkpoint to ONNX and verify it against onnxruntime", *_module("export")),
-    "experiment": ("run the paper's tables and the missing experiments; writes REPORT.md",
-                   *_module("experiment")),
+                   _add_robustness, _run_robustness),
+    "timing": ("latency (forward and end-to-end from a raw frame), parameters and FLOPs", _add_timing, _run_timing),
+    "export": ("export a checkpoint to ONNX and verify it against onnxruntime", _add_export, _run_export),
+    "experiment": ("run the paper's tables and the missing experiments; writes REPORT.md", _add_experiment,
+                   _run_experiment),
     "predict": ("detections, the model's top-k regions and (--solve) a full attitude for PNG/TIFF/FITS/.npy frames",
-                *_module("predict")),
+                _add_predict, _run_predict),
     "benchmark": ("score attitude solvers (tetra3rs lost-in-space, learned prior + fine stage, ...) on the same "
-                  "detections: correct/wrong/refused vs N and corruptions", *_module("benchmark")),
+                  "detections: correct/wrong/refused vs N and corruptions", _add_benchmark, _run_benchmark),
 }
 
 

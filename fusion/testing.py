@@ -69,9 +69,9 @@ def killing_log(prefix: str):
 def assert_same_run(a, b) -> None:
     """Two run folders ended with identical weights and metric history (times aside)."""
     import torch
-    from .checkpoint import load_checkpoint
+    from .model.checkpoint import load_checkpoint
     ca, cb = load_checkpoint(Path(a) / "last.pt"), load_checkpoint(Path(b) / "last.pt")
-    for name, tensor in ca["model"].items():
-        assert torch.equal(tensor, cb["model"][name]), name
+    for name, tensor in ca.model.items():
+        assert torch.equal(tensor, cb.model[name]), name
     strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
-    assert strip(ca["history"]) == strip(cb["history"])
+    assert strip(ca.history) == strip(cb.history)

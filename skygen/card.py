@@ -10,7 +10,6 @@ names them (``group/column``).
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from .io import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
                  write_json_atomic)
+from .runtime import atomic_write_text
 
 CARD_NAME = "README.md"
 CROISSANT_NAME = "croissant.json"
@@ -184,13 +184,7 @@ def write_card(folder: str | Path, man: dict) -> None:
     if manifest.exists():
         meta["distribution"][0]["sha256"] = sha256_file(manifest)
     write_json_atomic(folder / CROISSANT_NAME, meta)
-    tmp = folder / f".{CARD_NAME}.tmp{os.getpid()}"
-    try:
-        tmp.write_text(card_markdown(man))
-        os.replace(tmp, folder / CARD_NAME)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write_text(folder / CARD_NAME, card_markdown(man))
 
 
 __all__ = ["write_card", "croissant", "card_markdown", "CROISSANT_NAME", "CARD_NAME"]

@@ -128,14 +128,12 @@ def load_catalog(path: str | Path | None = None) -> StarTable:
 
 
 def write_npz(table: StarTable, path: str | Path) -> None:
-    import os
-    path = Path(path)
-    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}.npz")
-    np.savez(tmp, hip=table.hip, ra_rad=table.ra_rad, dec_rad=table.dec_rad,
-             pmra_mas_yr=table.pmra_mas_yr, pmdec_mas_yr=table.pmdec_mas_yr, mag=table.mag,
-             bv=table.bv, epoch_yr=table.epoch_yr, source=table.source, band=table.band,
-             format="skygen-catalog-1")
-    os.replace(tmp, path)
+    from .runtime import atomic_path
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, hip=table.hip, ra_rad=table.ra_rad, dec_rad=table.dec_rad,
+                 pmra_mas_yr=table.pmra_mas_yr, pmdec_mas_yr=table.pmdec_mas_yr, mag=table.mag,
+                 bv=table.bv, epoch_yr=table.epoch_yr, source=table.source, band=table.band,
+                 format="skygen-catalog-1")
 
 
 def read_npz(path: str | Path) -> StarTable:
@@ -154,14 +152,6 @@ def radec_to_vec(ra_rad: np.ndarray, dec_rad: np.ndarray) -> np.ndarray:
     """Unit vectors (..., 3) from RA/Dec in radians."""
     cd = np.cos(dec_rad)
     return np.stack([cd * np.cos(ra_rad), cd * np.sin(ra_rad), np.sin(dec_rad)], axis=-1)
-
-
-def vec_to_radec(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """RA in [0, 2pi) and Dec in radians from (..., 3) vectors (not necessarily unit)."""
-    v = np.asarray(v, dtype=np.float64)
-    ra = np.mod(np.arctan2(v[..., 1], v[..., 0]), 2 * np.pi)
-    dec = np.arctan2(v[..., 2], np.hypot(v[..., 0], v[..., 1]))
-    return ra, dec
 
 
 def propagate(table: StarTable, epoch_yr: float) -> np.ndarray:

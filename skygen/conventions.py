@@ -66,8 +66,3 @@ CONVENTIONS = {
 def full_to_stored(xy_full, factor: int):
     """Convert full-resolution pixel coordinates to stored (downsampled) coordinates."""
     return (xy_full + 0.5) / factor - 0.5
-
-
-def stored_to_full(xy_stored, factor: int):
-    """Inverse of :func:`full_to_stored`."""
-    return (xy_stored + 0.5) * factor - 0.5

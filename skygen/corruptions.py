@@ -195,10 +195,3 @@ def stray_light_ramp(shape: tuple[int, int], level_e_px_s: float, exposure_s: fl
     ramp = (xx - (w - 1) / 2) * np.cos(angle_rad) + (yy - (h - 1) / 2) * np.sin(angle_rad)
     ramp = (ramp - ramp.min()) / (ramp.max() - ramp.min())
     return (level_e_px_s * exposure_s * ramp).astype(np.float32)
-
-
-def stray_light_map(shape: tuple[int, int], level_e_px_s: float, exposure_s: float,
-                    rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """A linear ramp of stray light (e- over the exposure) from a random direction; (map, degrees)."""
-    ang = stray_light_angle(rng)
-    return stray_light_ramp(shape, level_e_px_s, exposure_s, ang), float(np.degrees(ang))

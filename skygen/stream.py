@@ -374,15 +374,13 @@ def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
     """Write detection-stream samples to one HDF5 file in the shard table layout
     (``detections``/``stars`` flat tables with ``offsets``, ``boresight`` per sample)."""
     import json
-    import os
 
     import h5py
 
     from .io import BORESIGHT_FIELDS, DETECTION_FIELDS, LIBVER, STAR_FIELDS
-    path = Path(path)
-    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
+    from .runtime import atomic_path
     parts = list(batches)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w", libver=LIBVER) as f:
             f.attrs["format"] = "skygen-detection-stream"
             f.attrs["config"] = json.dumps(config, sort_keys=True)
@@ -406,10 +404,6 @@ def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
                         continue
                     d = g.create_dataset(name, data=np.concatenate(cols).astype(dtype))
                     d.attrs["units"], d.attrs["description"] = units, desc
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

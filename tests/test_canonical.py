@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.canonical import canonical_views, reference_rows, rotate_image, rotate_rows
+from fusion.model.canonical import canonical_views, reference_rows, rotate_image, rotate_rows
 from fusion.config import build_config
-from fusion.models import create_model
+from fusion.model.networks import create_model
 
 
 def _rotate(coords: torch.Tensor, ang: float) -> torch.Tensor:

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from fusion.augment import (FrameGeometry, Sample, _gaussian_stamp, add_noise, augment, drop_stars,
-                            inject_false_stars, jitter, rotate)
+from fusion.model.inputs import FrameGeometry, Sample
+from fusion.train.augment import _gaussian_stamp, add_noise, augment, drop_stars, inject_false_stars, jitter, rotate
 from fusion.config import AugConfig
-from fusion.data import read_sample
+from fusion.model.shards import read_sample
 from fusion.testing import small_dataset
 from skygen.io import open_dataset
 

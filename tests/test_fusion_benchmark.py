@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from fusion.benchmark import corrupt, grid
+from fusion.solve.benchmark import corrupt, grid
 
 pytest.importorskip("tetra3rs")
 
@@ -76,7 +76,7 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
     from fusion.cli import main
     from fusion.config import load_config
     from fusion.testing import small_dataset
-    from fusion.train import train
+    from fusion.train.run import train
     monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
     root = Path(__file__).resolve().parents[1]
     data = small_dataset("smoke")

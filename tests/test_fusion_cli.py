@@ -98,3 +98,12 @@ def test_version_help_and_run_folder_without_best(tmp_path, capsys):
     assert "--out OUT (required) run folder" in text and "--set KEY=VALUE" in text and "key=value" in text
     assert main(["evaluate", "--checkpoint", str(tmp_path), "--data", str(tmp_path)]) == 2
     assert "is a folder without best.pt" in capsys.readouterr().err
+
+
+def test_cli_choices_match_the_library():
+    """The command line lists choices without importing torch; they must be the library's own."""
+    from fusion import cli
+    from fusion.measure import experiment, export, timing
+    assert cli.PRECISIONS == tuple(timing.PRECISIONS) and cli.TIMING_MODES == timing.MODES
+    assert cli.EXPORTERS == export.EXPORTERS and cli.MASK_DTYPES == export.MASK_DTYPES
+    assert cli.EXPERIMENT_SECTIONS == experiment.SECTIONS

@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.augment import FrameGeometry
-from fusion.data import (FrameDataset, count_sparse_frames, encode_detections, make_loader, normalise_image,
-                         read_sample, split_positions)
+from fusion.model.inputs import FrameGeometry
+from fusion.model.shards import FrameDataset, count_sparse_frames, make_loader, read_sample, split_positions
+from fusion.model.inputs import encode_detections, normalise_image
 from fusion.errors import DatasetError
-from fusion.heatmap import rasterise
+from fusion.model.heatmap import rasterise
 from fusion.testing import render_small, small_dataset
+from fusion.train.augment import Augmenter
 from skygen.io import open_dataset
 
 
@@ -127,7 +128,7 @@ def test_items_are_identical_with_fork_spawn_and_forkserver_workers():
     from fusion.config import AugConfig
     with open_dataset(small_dataset("smoke")) as ds:
         pos = np.arange(8)
-        fd = FrameDataset(ds, pos, np.zeros(8, int), aug=AugConfig(), seed=3)
+        fd = FrameDataset(ds, pos, np.zeros(8, int), augment=Augmenter(AugConfig()), seed=3)
         ref = next(iter(make_loader(fd, 8, shuffle=True, seed=1)))
         for method in ("fork", "spawn", "forkserver"):
             batch = next(iter(make_loader(fd, 8, shuffle=True, seed=1, workers=1, start_method=method)))
@@ -138,7 +139,7 @@ def test_items_are_identical_with_fork_spawn_and_forkserver_workers():
 def test_augmented_items_repeat_per_epoch_and_change_between_epochs():
     from fusion.config import AugConfig
     with open_dataset(small_dataset("smoke")) as ds:
-        fd = FrameDataset(ds, np.arange(4), np.zeros(4, int), aug=AugConfig(), seed=0)
+        fd = FrameDataset(ds, np.arange(4), np.zeros(4, int), augment=Augmenter(AugConfig()), seed=0)
         a, b, c = fd[(1, 0)], fd[(1, 0)], fd[(1, 1)]
         assert torch.equal(a["image"], b["image"]) and torch.equal(a["coords"], b["coords"])
         assert not torch.equal(a["image"], c["image"])
@@ -150,14 +151,14 @@ def test_forked_workers_do_not_deadlock_after_opencv_ran_in_the_parent():
     import sys
     script = (
         "import numpy as np, cv2\n"
-        "from fusion.augment import FrameGeometry\n"
         "from fusion.config import AugConfig\n"
-        "from fusion.data import FrameDataset, make_loader\n"
+        "from fusion.model.shards import FrameDataset, make_loader\n"
+        "from fusion.train.augment import Augmenter\n"
         "from skygen.io import open_dataset\n"
         "big = np.random.rand(2048, 2048).astype(np.float32)\n"
         "cv2.warpAffine(big, np.array([[0.9, -0.4, 10], [0.4, 0.9, 5]]), (2048, 2048))\n"
         f"ds = open_dataset({str(small_dataset('smoke'))!r})\n"
-        "fd = FrameDataset(ds, np.arange(8), np.zeros(8, int), aug=AugConfig())\n"
+        "fd = FrameDataset(ds, np.arange(8), np.zeros(8, int), augment=Augmenter(AugConfig()))\n"
         "next(iter(make_loader(fd, 4, shuffle=False, workers=1, start_method='fork')))\n"
         "print('ok')\n")
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)

@@ -9,12 +9,11 @@ import pytest
 
 from fusion.config import load_config
 from fusion.errors import DatasetError
-from fusion.evaluate import evaluate_checkpoint, report_from_predictions
-from fusion.labels import radec_to_unit, spherical_kmeans
-from fusion.metrics import (angular_error_deg, confusion_matrix, neighbour_error_share, per_class_accuracy,
-                            topk_accuracy, voronoi_neighbours)
+from fusion.measure.evaluate import evaluate_checkpoint, report_from_predictions
+from fusion.model.regions import radec_to_unit, spherical_kmeans
+from fusion.model.metrics import angular_error_deg, confusion_matrix, neighbour_error_share, per_class_accuracy, topk_accuracy, voronoi_neighbours
 from fusion.testing import render_small, small_dataset
-from fusion.train import train
+from fusion.train.run import train
 
 ROOT = Path(__file__).resolve().parents[1]
 quiet = lambda *a, **k: None  # noqa: E731
@@ -189,7 +188,7 @@ def test_checksums_are_verified_once_per_size_and_mtime(tmp_path, monkeypatch):
 
 def test_an_error_inside_a_dataloader_worker_is_one_line_naming_the_file(tmp_path):
     from fusion.cli import one_line
-    from fusion.data import FrameDataset, make_loader
+    from fusion.model.shards import FrameDataset, make_loader
     from skygen.io import open_dataset
     copy = tmp_path / "copy"
     shutil.copytree(small_dataset("smoke"), copy)

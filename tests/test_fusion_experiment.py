@@ -1,6 +1,6 @@
 """`fusion experiment`: sections run end to end on the smoke preset, and re-runs skip finished work."""
 
-from fusion.experiment import load_preset, plan, run_experiment
+from fusion.measure.experiment import load_preset, plan, run_experiment
 
 
 def test_plan_shares_identical_runs():

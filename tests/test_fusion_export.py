@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fusion import cli as fcli
-from fusion import export as exp
+from fusion.measure import export as exp
 from fusion.errors import CheckpointError, FusionError
 from skygen.errors import SkygenError
 
@@ -26,7 +26,7 @@ def cli(argv: list[str]) -> int:
 def ckpt(tmp_path_factory):
     from fusion.config import load_config
     from fusion.testing import small_dataset
-    from fusion.train import train
+    from fusion.train.run import train
     out = tmp_path_factory.mktemp("run")
     train(load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1"]), out,
           log=lambda *a, **k: None)
@@ -34,9 +34,8 @@ def ckpt(tmp_path_factory):
 
 
 def test_onnx_matches_pytorch_with_a_dynamic_batch(ckpt, tmp_path, capsys):
-    from fusion.checkpoint import load_checkpoint
+    from fusion.model.checkpoint import load_checkpoint
     from fusion.testing import small_dataset
-    from fusion.train import load_trained_model
     path = tmp_path / "model.onnx"
     assert cli(["--checkpoint", str(ckpt), "--onnx", str(path), "--opset", "17", "--data", str(small_dataset("smoke")),
                 "--report", str(tmp_path / "export.json")]) == 0
@@ -51,7 +50,7 @@ def test_onnx_matches_pytorch_with_a_dynamic_batch(ckpt, tmp_path, capsys):
     assert [i.name for i in sess.get_inputs()] == ["image", "coords", "mask"]
     assert all(i.shape[0] == "batch" for i in sess.get_inputs())
     # an independent check at a batch size the export never saw
-    model, _ = load_trained_model(load_checkpoint(ckpt))
+    model = load_checkpoint(ckpt).build_model()
     rng = np.random.default_rng(7)
     feeds = exp.star_like_inputs(5, 64, 6, rng)
     with torch.inference_mode():
@@ -77,9 +76,8 @@ def test_a_mismatch_fails_loudly_and_leaves_the_old_file(ckpt, tmp_path, monkeyp
 
 def test_verify_catches_a_graph_of_other_weights(ckpt, tmp_path):
     """A real mismatch, not a simulated one: the graph of one model checked against another."""
-    from fusion.checkpoint import load_checkpoint
-    from fusion.train import load_trained_model
-    model, _ = load_trained_model(load_checkpoint(ckpt))
+    from fusion.model.checkpoint import load_checkpoint
+    model = load_checkpoint(ckpt).build_model()
     wrapper = exp.ExportWrapper(model.eval())
     feeds = exp.star_like_inputs(2, 64, 6, np.random.default_rng(0))
     exp._export(wrapper, feeds, tmp_path / "a.onnx", 17, "legacy")
@@ -92,7 +90,7 @@ def test_verify_catches_a_graph_of_other_weights(ckpt, tmp_path):
 
 def test_geometry_only_model_exports_without_an_image_input(tmp_path):
     from fusion.config import load_config
-    from fusion.models import create_model
+    from fusion.model.networks import create_model
     cfg = load_config("configs/smoke.yaml", ["model.branches.image=false"])
     model = create_model("star_fusion", 4, cfg.model, image_size=64, max_stars=6).eval()
     wrapper = exp.ExportWrapper(model)

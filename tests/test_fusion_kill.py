@@ -37,7 +37,7 @@ def test_sigkill_mid_run_then_resume_matches(tmp_path, delay_s):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert not (run / "summary.json").exists(), "the run finished before it could be killed"
-    from fusion.checkpoint import load_checkpoint
+    from fusion.model.checkpoint import load_checkpoint
     for ckpt in run.glob("*.pt"):            # whatever looks whole is whole (temp names aside)
         load_checkpoint(ckpt)
     assert subprocess.run(train_cmd(data, run, "--resume"), capture_output=True).returncode == 0

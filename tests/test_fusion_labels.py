@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from fusion.errors import DatasetError
-from fusion.labels import (angular_distance_deg, assign, class_weights, radec_to_unit, soft_targets,
-                           spherical_kmeans)
+from fusion.model.regions import angular_distance_deg, assign, class_weights, radec_to_unit, soft_targets, spherical_kmeans
 
 
 def random_directions(n, seed=0):
@@ -93,7 +92,7 @@ def test_balanced_alpha_is_inverse_frequency_and_sums_to_one():
 def test_centroids_are_fitted_on_the_training_split_only(tmp_path):
     from fusion.config import load_config
     from fusion.testing import small_dataset
-    from fusion.train import prepare_data
+    from fusion.train.data import prepare_data
     from skygen.io import open_dataset
     path = small_dataset("uniform")
     cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4"])
@@ -103,12 +102,12 @@ def test_centroids_are_fitted_on_the_training_split_only(tmp_path):
         v_all = ds.boresight["unit_vector"]
     expected = spherical_kmeans(v_train, 4, cfg.labels.seed, cfg.labels.n_init, cfg.labels.max_iter,
                                 cfg.labels.tol_deg)
-    np.testing.assert_array_equal(data.centroids, expected.centroids)
+    np.testing.assert_array_equal(data.regions.coarse, expected.centroids)
     with_all = spherical_kmeans(v_all, 4, cfg.labels.seed, cfg.labels.n_init)
-    assert not np.allclose(with_all.centroids, data.centroids)
+    assert not np.allclose(with_all.centroids, data.regions.coarse)
     # validation frames are labelled against the fixed training centroids
     np.testing.assert_array_equal(data.val.labels, assign(ds.boresight["unit_vector"][data.val.positions],
-                                                          data.centroids))
+                                                          data.regions.coarse))
     data.ds.close()
 
 

@@ -7,8 +7,8 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.labels import class_weights
-from fusion.losses import FocalLoss, focal_loss
+from fusion.model.regions import class_weights
+from fusion.train.losses import FocalLoss, focal_loss
 
 
 def batch(seed=0, b=16, k=5):

@@ -7,8 +7,7 @@ import torch
 
 from fusion.config import BranchesConfig, ModelConfig, build_config
 from fusion.errors import ConfigError
-from fusion.models import (MODELS, CoordMLP, SetEncoder, create_backbone, create_model, parameter_counts,
-                           resolve_model_config)
+from fusion.model.networks import MODELS, CoordMLP, SetEncoder, create_backbone, create_model, parameter_counts, resolve_model_config
 
 TINY = ModelConfig(image_backbone="tiny_cnn", coord_hidden=32,
                    heatmap=dataclasses.replace(ModelConfig().heatmap, canvas_px=32, channels=(8, 16), out_dim=16))

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from fusion.cli import main
-from fusion.predict import FrameError, read_frame
+from fusion.solve.frames import FrameError, read_frame
 from fusion.testing import small_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +69,7 @@ def frame_and_truth(tmp_path_factory):
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     from fusion.config import load_config
-    from fusion.train import train
+    from fusion.train.run import train
     out = tmp_path_factory.mktemp("run") / "run"
     cfg = load_config(ROOT / "configs" / "smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=2"])
     train(cfg, out, log=lambda *a, **k: None)

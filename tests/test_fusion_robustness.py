@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from fusion import cli as fcli
-from fusion import robustness as rob
+from fusion.measure import robustness as rob
 from fusion.errors import CheckpointError, ConfigError
 from fusion.testing import render_small, small_dataset
 from skygen import corruptions as corr
@@ -25,7 +25,7 @@ def cli(argv: list[str]) -> int:
 
 def _train(out, overrides=()):
     from fusion.config import load_config
-    from fusion.train import train
+    from fusion.train.run import train
     cfg = load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1", *overrides])
     train(cfg, out, log=lambda *a, **k: None)
     return out / "best.pt"
@@ -45,15 +45,15 @@ def data():
 
 def _clean_predictions(ckpt_path, data_path):
     """Predictions on the test split exactly as `fusion evaluate` makes them."""
-    from fusion.checkpoint import load_checkpoint
-    from fusion.data import FrameDataset, boresight_vectors, make_loader, split_positions
-    from fusion.labels import assign
-    from fusion.train import load_trained_model, predict
+    from fusion.model.checkpoint import load_checkpoint
+    from fusion.model.shards import FrameDataset, boresight_vectors, make_loader, split_positions
+    from fusion.model.regions import assign
+    from fusion.model.inference import predict_batches as predict
     ckpt = load_checkpoint(ckpt_path)
-    model, cfg = load_trained_model(ckpt)
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
     with open_dataset(data_path) as ds:
         pos = split_positions(ds, "test")
-        labels = assign(boresight_vectors(ds, pos), ckpt["centroids"].numpy())
+        labels = assign(boresight_vectors(ds, pos), ckpt.centroids)
         d = cfg.data
         fd = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
                           log_flux_offset=d.log_flux_offset)
@@ -62,7 +62,7 @@ def _clean_predictions(ckpt_path, data_path):
 
 
 def test_severity_zero_of_every_corruption_is_the_clean_evaluation(ckpts, data, tmp_path):
-    from fusion.evaluate import evaluate_checkpoint
+    from fusion.measure.evaluate import evaluate_checkpoint
     clean = evaluate_checkpoint(ckpts["full"], data, "test", tmp_path / "eval", log=lambda *a: None)
     pred = _clean_predictions(ckpts["full"], data)
     for name in corr.REGISTRY:

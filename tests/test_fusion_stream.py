@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.augment import FrameGeometry, Sample
-from fusion.checkpoint import load_checkpoint
+from fusion.model.inputs import FrameGeometry, Sample
+from fusion.model.checkpoint import load_checkpoint
 from fusion.config import load_config
-from fusion.data import encode_detections
+from fusion.model.inputs import encode_detections
 from fusion.errors import ConfigError
-from fusion.stream import StreamBatches, encode_batch, make_stream_loader
+from fusion.train.stream import StreamBatches, make_stream_loader
+from fusion.model.inputs import encode_batch
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
-from fusion.train import train
+from fusion.train.run import train
 from skygen import emulator as emu
 from skygen.config import build_config as build_render_config
 from skygen.errors import SkygenError
@@ -159,8 +160,8 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
     assert summary["epochs_run"] == 1 and np.isfinite(summary["best"]["val_loss"])
     warm = next(m for m in lines if m.startswith("warm start"))
     assert "coords" in warm and "heatmap" in warm
-    a = load_checkpoint(geo / "best.pt")["model"]
-    assert any(k.startswith("image.") for k in load_checkpoint(tmp_path / "full" / "best.pt")["model"])
+    a = load_checkpoint(geo / "best.pt").model
+    assert any(k.startswith("image.") for k in load_checkpoint(tmp_path / "full" / "best.pt").model)
     assert "coords.embed.0.weight" in a
 
 
@@ -216,12 +217,11 @@ def test_non_square_sensor_trains_on_shards_and_stream(tmp_path):
 def test_fine_regions_head(smoke, tmp_path):
     """labels.fine_k: trained on finer regions, predicting the K regions by log-sum-exp; the
     checkpoint reloads with its grouping and its region probabilities sum to one."""
-    from fusion.train import load_trained_model
     cfg = _cfg(smoke, "train.epochs=1", "labels.fine_k=8")
     s = train(cfg, tmp_path / "fine", log=quiet)
     assert np.isfinite(s["best"]["val_loss"])
     ck = load_checkpoint(tmp_path / "fine" / "best.pt")
-    model, _ = load_trained_model(ck)
+    model = ck.build_model()
     groups = model.fine_groups.numpy()
     assert set(groups.tolist()) == set(range(4)) and len(groups) == 8
     c, m = torch.rand(3, 8, 3) - 0.5, torch.ones(3, 8, dtype=torch.bool)
@@ -233,8 +233,8 @@ def test_fine_regions_head(smoke, tmp_path):
     want = torch.stack([pf[:, torch.from_numpy(groups == g)].sum(-1) for g in range(4)], -1)
     torch.testing.assert_close(torch.softmax(coarse, -1), want, atol=1e-5, rtol=1e-4)
     # the prior the coarse-to-fine search uses: fine regions, consistent with the K regions
-    from fusion.solvers.base import Detections
-    from fusion.solvers.priors import load_prior
+    from fusion.solve.base import Detections
+    from fusion.solve.priors import load_prior
     fine_prior = load_prior(tmp_path / "fine" / "best.pt", level="fine")
     coarse_prior = fine_prior.at_level("coarse")
     assert fine_prior.level == "fine" and fine_prior.centroids.shape == (8, 3)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fusion import cli as fcli
-from fusion import timing as tim
+from fusion.measure import timing as tim
 from fusion.errors import ConfigError
 
 STAT_KEYS = {"median_ms", "p90_ms", "p99_ms", "mean_ms", "min_ms", "max_ms", "std_ms", "n", "throughput_per_s"}
@@ -71,7 +71,7 @@ def test_flops_are_twice_the_macs_and_add_up_over_branches(report):
 
 def test_flop_count_matches_a_hand_count_for_a_linear_layer():
     """The counter's convention: 2 FLOPs per multiply-add (a Linear(a, b) on one row: 2ab)."""
-    from fusion.models import StarFusion
+    from fusion.model.networks import StarFusion
     model = StarFusion(3, coords=_Coords()).eval()
     f = tim.count_flops(model, 8, 6, torch.device("cpu"), torch.float32)
     # coords: Linear(24, 16); head: Linear(16, 3)
@@ -92,16 +92,17 @@ class _Coords(torch.nn.Module):
 
 def test_end_to_end_preprocessing_reproduces_the_stored_training_inputs():
     """Raw frame -> detect -> downsample/normalise -> rows equals what skygen stored for that frame."""
-    from fusion.augment import FrameGeometry
+    from fusion.model.inputs import FrameGeometry
     from fusion.config import load_config
-    from fusion.data import encode_detections, normalise_image, read_sample
+    from fusion.model.inputs import encode_detections, normalise_image
+    from fusion.model.shards import read_sample
     from fusion.testing import small_dataset
     from skygen.io import open_dataset
     path = small_dataset("smoke")
     cfg = load_config("configs/smoke.yaml")
     with open_dataset(path) as ds:
         frames, used, _ = tim.raw_frames(ds.config, ds.image_shape[0], 2)
-        pre = tim.Preprocessor(used, cfg, 6)
+        pre = tim.EndToEnd(used, cfg, 6)
         geo = FrameGeometry.from_render_config(ds.config)
         for i, full in enumerate(frames):
             stored = read_sample(ds, i, geo)
@@ -121,7 +122,7 @@ def test_reduced_precision_casts_the_model():
 def test_a_checkpoint_is_timed_on_frames_of_its_own_training_camera(tmp_path):
     from fusion.config import load_config
     from fusion.testing import small_dataset
-    from fusion.train import train
+    from fusion.train.run import train
     data = small_dataset("smoke")
     train(load_config("configs/smoke.yaml", [f"data.path={data}", "train.epochs=1"]), tmp_path / "run",
           log=lambda *a, **k: None)

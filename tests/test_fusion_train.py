@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.checkpoint import load_checkpoint, load_model_state
+from fusion.model.checkpoint import load_checkpoint, load_model_state
 from fusion.config import load_config
 from fusion.errors import CheckpointError, RunFolderError
-from fusion.models import create_model
+from fusion.model.networks import create_model
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
-from fusion.train import WarmupCosine, load_trained_model, train
+from fusion.train.loop import WarmupCosine
+from fusion.train.run import train
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -44,18 +45,21 @@ def test_smoke_training_beats_chance_by_far(smoke_run):
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert len(rows) == summary["epochs_run"]
     assert {"train_loss", "val_loss", "val_top1", "val_top3", "val_top5", "lr", "epoch_time_s"} <= set(rows[0])
-    np.testing.assert_array_equal(np.load(out / "centroids.npy"), load_checkpoint(out / "best.pt")["centroids"].numpy())
+    np.testing.assert_array_equal(np.load(out / "centroids.npy"), load_checkpoint(out / "best.pt").centroids)
     assert "trained from scratch" in (out / "config.yaml").read_text()
 
 
 def test_checkpoint_is_self_describing(smoke_run):
     out, _ = smoke_run
+    raw = torch.load(out / "last.pt", weights_only=True)
+    for key in ("format", "format_version", "model", "optimizer", "scheduler", "scaler", "epoch", "config",
+                "centroids", "versions", "rng", "history", "best", "num_classes", "model_name", "branches",
+                "render_config", "dataset", "train_frame_ids", "fine_centroids"):
+        assert key in raw, key
     ckpt = load_checkpoint(out / "last.pt")
-    for key in ("model", "optimizer", "scheduler", "scaler", "epoch", "config", "centroids", "versions", "rng",
-                "history", "best", "num_classes", "model_name", "branches"):
-        assert key in ckpt, key
-    assert ckpt["finished"] and ckpt["epoch"] == ckpt["config"]["train"]["epochs"]
-    model, cfg = load_trained_model(ckpt)
+    assert sorted(ckpt.to_dict()) == sorted(raw)          # one schema: what is loaded is what is saved
+    assert ckpt.finished and ckpt.epoch == ckpt.config["train"]["epochs"]
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
     assert cfg.labels.k == 4 and model.num_classes == 4
 
 
@@ -67,7 +71,7 @@ def test_resume_continues_exactly(tmp_path):
     killed = tmp_path / "killed"
     with pytest.raises(Killed):
         train(cfg, killed, log=killing_log("epoch 2/3"))
-    assert load_checkpoint(killed / "last.pt")["epoch"] == 2
+    assert load_checkpoint(killed / "last.pt").epoch == 2
     assert not (killed / "summary.json").exists()
     with pytest.raises(RunFolderError, match="unfinished run"):
         train(cfg, killed, log=quiet)
@@ -91,7 +95,7 @@ def test_force_replaces_a_finished_run(tmp_path):
     train(smoke_cfg("train.epochs=1"), out, log=quiet)
     (out / "notes.txt").write_text("mine")
     train(smoke_cfg("train.epochs=2"), out, force=True, log=quiet)
-    assert load_checkpoint(out / "last.pt")["epoch"] == 2
+    assert load_checkpoint(out / "last.pt").epoch == 2
     assert (out / "notes.txt").read_text() == "mine"      # only run files are deleted
 
 
@@ -119,6 +123,26 @@ def test_checkpoint_of_another_k_or_model_does_not_load(smoke_run):
     other_model = create_model("resnet50", 4, cfg.model, image_size=64)
     with pytest.raises(CheckpointError, match="does not fit"):
         load_model_state(other_model, ckpt)
+
+
+def test_checkpoint_without_newer_keys_still_loads(smoke_run, tmp_path):
+    """Format-1 files written before render_config / train_frame_ids / fine_centroids existed load; the
+    fields are None and the users of a missing one say what to do."""
+    out, _ = smoke_run
+    raw = torch.load(out / "best.pt", weights_only=True)
+    for key in ("render_config", "train_frame_ids", "fine_centroids", "dataset"):
+        raw.pop(key)
+    old = tmp_path / "old.pt"
+    torch.save(raw, old)
+    ckpt = load_checkpoint(old)
+    assert ckpt.render_config is None and ckpt.train_frame_ids is None and ckpt.regions.fine is None
+    assert ckpt.build_model().num_classes == 4
+    with pytest.raises(CheckpointError, match="predates camera data"):
+        ckpt.require_render_config()
+    raw["format_version"] = 99
+    torch.save(raw, old)
+    with pytest.raises(CheckpointError, match="format version 99"):
+        load_checkpoint(old)
 
 
 def test_damaged_and_foreign_checkpoints_are_clear_errors(tmp_path):
@@ -155,7 +179,7 @@ def test_ddp_on_cpu_with_gloo_and_two_processes(tmp_path):
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-3000:]
     ckpt = load_checkpoint(out / "last.pt")
-    assert ckpt["epoch"] == 2
+    assert ckpt.epoch == 2
     summary = (out / "summary.json").read_text()
     assert '"processes": 2' in summary
     assert res.stdout.count("epoch 2/2") == 1            # only rank 0 reports and writes

@@ -53,7 +53,7 @@ def test_render_store_validate_non_square(tmp_path):
 
 def test_fusion_geometry_of_a_non_square_sensor():
     """fusion takes non-square sensors (training on them: tests/test_fusion_stream.py)."""
-    from fusion.augment import FrameGeometry
+    from fusion.model.inputs import FrameGeometry
     from skygen.config import config_dict
     geo = FrameGeometry.from_render_config(config_dict(load_config(overrides=WIDE)))
     assert (geo.sensor_px, geo.sensor_h, geo.image_px, geo.image_h, geo.factor) == (256, 192, 64, 48, 4)

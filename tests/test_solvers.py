@@ -9,8 +9,7 @@ from skygen.attitude import attitude_matrix
 from skygen.config import load_config
 from skygen.render import Renderer
 
-from fusion.solvers.base import (Detections, Refusal, Solution, Solver, boresight_error_deg, radec_roll_from_matrix,
-                                 roll_error_deg, rotation_angle_deg)
+from fusion.solve.base import Detections, Refusal, Solution, Solver, boresight_error_deg, radec_roll_from_matrix, roll_error_deg, rotation_angle_deg
 
 tetra3rs = pytest.importorskip("tetra3rs")
 
@@ -22,7 +21,7 @@ def renderer():
 
 @pytest.fixture(scope="module")
 def tetra(renderer, tmp_path_factory):
-    from fusion.solvers.tetra import Tetra3Solver
+    from fusion.solve.tetra import Tetra3Solver
     return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
 
 
@@ -67,7 +66,7 @@ def test_tetra3rs_agrees_with_skygen_conventions(renderer, tetra):
 
 def test_tetra3rs_principal_point_and_distortion(tmp_path):
     """An off-centre principal point and barrel distortion are removed before tetra3rs sees the centroids."""
-    from fusion.solvers.tetra import Tetra3Solver
+    from fusion.solve.tetra import Tetra3Solver
     r = Renderer(load_config(overrides=["n_frames=4", "camera.principal_x_px=540", "camera.principal_y_px=490",
                                         "camera.k1=-0.05"]))
     solver = Tetra3Solver(r.camera, db_folder=tmp_path)
@@ -91,12 +90,12 @@ def test_tetra3rs_refuses_few_or_random_detections(renderer, tetra):
 # --------------------------------------------------------------------------- coarse-to-fine
 @pytest.fixture(scope="module")
 def regions():
-    from fusion.benchmark import default_centroids
+    from fusion.solve.benchmark import default_centroids
     return default_centroids(15)
 
 
 def test_region_radii_cover_the_sphere(regions):
-    from fusion.solvers.coarse_fine import region_radii_deg
+    from fusion.solve.fine import region_radii_deg
     r = region_radii_deg(regions)
     rng = np.random.default_rng(3)
     v = rng.standard_normal((5000, 3))
@@ -109,8 +108,8 @@ def test_region_radii_cover_the_sphere(regions):
 
 def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, tetra, regions):
     """4 brightest detections: tetra3rs lost-in-space refuses; the true region as prior gives the attitude."""
-    from fusion.solvers.coarse_fine import CoarseToFineSolver
-    from fusion.solvers.priors import OraclePrior
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
     prior = OraclePrior(regions)
     c2f = CoarseToFineSolver(tetra, prior, top_k=1)
     solved = lis = 0
@@ -128,8 +127,8 @@ def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, te
 
 
 def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
-    from fusion.solvers.coarse_fine import CoarseToFineSolver
-    from fusion.solvers.priors import OraclePrior
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
     prior = OraclePrior(regions)
     c2f = CoarseToFineSolver(tetra, prior, top_k=2)
     f = renderer.render(2)
@@ -148,7 +147,7 @@ def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
 
 
 def test_confidence_falls_with_hypotheses(tetra):
-    from fusion.solvers.coarse_fine import CoarseToFineSolver
+    from fusion.solve.fine import CoarseToFineSolver
     c2f = CoarseToFineSolver(tetra, None)
     assert c2f.confidence(1000, 3, 3) < c2f.confidence(10, 3, 3)
     assert c2f.confidence(10_000, 6, 6) > 0.999
@@ -158,9 +157,9 @@ def test_confidence_falls_with_hypotheses(tetra):
 def test_coarse_to_fine_fits_an_unknown_focal_length(tmp_path, regions):
     """Frames from a lens 1.5 % longer than the solver's camera (a real lens against its datasheet):
     the fine stage with focal_tol fits the focal length and returns the attitude to arcseconds."""
-    from fusion.solvers.coarse_fine import CoarseToFineSolver
-    from fusion.solvers.priors import OraclePrior
-    from fusion.solvers.tetra import Tetra3Solver
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
+    from fusion.solve.tetra import Tetra3Solver
     nominal = Renderer(load_config(overrides=["n_frames=6"]))
     longer = Renderer(load_config(overrides=["n_frames=6", f"camera.fov_deg={nominal.camera.fov_deg[0] / 1.015}"]))
     factor = longer.camera.f_px / nominal.camera.f_px
@@ -184,9 +183,9 @@ def test_coarse_to_fine_fits_an_unknown_focal_length(tmp_path, regions):
 
 
 def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, regions):
-    from fusion.solvers.base import FallbackSolver
-    from fusion.solvers.coarse_fine import CoarseToFineSolver
-    from fusion.solvers.priors import OraclePrior
+    from fusion.solve.base import FallbackSolver
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
     prior = OraclePrior(regions)
     both = FallbackSolver(tetra, CoarseToFineSolver(tetra, prior, top_k=1, name="c2f"))
     f = renderer.render(3)
@@ -201,3 +200,33 @@ def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, reg
     noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
     res = both.solve(noise, renderer.camera, probabilities=p)
     assert isinstance(res, Refusal) and tetra.name in res.reason and "c2f" in res.reason
+
+
+def test_registered_solver_is_built_by_name_and_unknown_names_are_refused():
+    """The plug-in interface of docs/ARCHITECTURE.md: register a builder, build it by name."""
+    from skygen.camera import Camera
+    from skygen.config import load_config
+    from fusion.errors import ConfigError
+    from fusion.solve import Refusal, SolverContext, build_solver, register_solver
+    from fusion.solve.registry import SOLVERS, make_context
+
+    class Never:
+        name = "never"
+
+        def solve(self, detections, camera, image=None, **kw):
+            return Refusal("never solves", self.name)
+
+    @register_solver("never", doc="test: refuses everything")
+    def _build(ctx: SolverContext):
+        return Never()
+    try:
+        cam = Camera.from_config(load_config().camera)
+        ctx = make_context(cam, tetra=object())          # no tetra3rs database needed for this solver
+        solver = build_solver("never", cam, context=ctx)
+        assert isinstance(solver, Never) and build_solver("never", cam, context=ctx) is solver
+        with pytest.raises(ConfigError, match="unknown; choose from"):
+            build_solver("no-such-solver", cam, context=ctx)
+        with pytest.raises(ConfigError, match="needs a learned prior"):
+            build_solver("learned+fine", cam, context=ctx)
+    finally:
+        SOLVERS.pop("never")

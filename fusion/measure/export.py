@@ -29,11 +29,9 @@ it passed.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import hashlib
 import logging
-import os
 import time
 import warnings
 from pathlib import Path
@@ -42,8 +40,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from .errors import ConfigError, FusionError
-from .models import StarFusion
+from skygen.runtime import atomic_path
+
+from ..errors import ConfigError, FusionError
+from ..model.checkpoint import load_checkpoint
+from ..model.networks import StarFusion
 
 DEFAULT_TOLERANCE = 1e-4
 EXPORTERS = ("legacy", "dynamo")
@@ -119,7 +120,7 @@ def star_like_inputs(batch: int, image_size: int, max_stars: int, rng: np.random
 def dataset_inputs(data: str | Path, cfg, n: int = 4) -> dict[str, np.ndarray]:
     """The first ``n`` test frames of a skygen dataset, preprocessed as in training."""
     from skygen.io import open_dataset
-    from .data import FrameDataset, split_positions
+    from ..model.shards import FrameDataset, split_positions
     with open_dataset(data) as ds:
         pos = split_positions(ds, "test")[:n]
         d = cfg.data
@@ -220,8 +221,6 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
                 tolerance: float = DEFAULT_TOLERANCE, data: str | Path | None = None, seed: int = 0,
                 mask_dtype: str = "bool") -> dict:
     """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place."""
-    from .checkpoint import load_checkpoint
-    from .train import load_trained_model
     if exporter not in EXPORTERS:
         raise ConfigError(f"--exporter: {exporter!r}; expected one of {', '.join(EXPORTERS)}")
     if not 7 <= opset <= 23:
@@ -230,9 +229,9 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
         raise ConfigError(f"--tolerance: {tolerance}; give a positive number")
     t0 = time.perf_counter()
     ckpt = load_checkpoint(checkpoint)
-    model, cfg = load_trained_model(ckpt, str(checkpoint))
-    wrapper = ExportWrapper(model.eval().float(), mask_dtype)
-    size, stars = int(ckpt["image_size"]), int(ckpt["max_stars"])
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
+    wrapper = ExportWrapper(model.float(), mask_dtype)
+    size, stars = ckpt.image_size, ckpt.max_stars
     rng = np.random.default_rng(seed)
     checks = {"random_batch1": random_inputs(1, size, stars, rng), "random_batch3": random_inputs(3, size, stars, rng),
               "star_like_batch2": star_like_inputs(2, size, stars, rng)}
@@ -242,8 +241,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
     if out.is_dir():
         raise ConfigError(f"--onnx {out} is a folder; give a file name such as model.onnx")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(out) as tmp:
         try:
             _export(wrapper, checks["random_batch1"], tmp, opset, exporter)
             import onnx
@@ -257,15 +255,12 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
                               f"this graph down); use --exporter legacy for opset {opset}, or --opset {got} if your "
                               "runtime supports it")
         result = verify(tmp, wrapper, checks, tolerance)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     import onnxruntime
     return {"onnx": str(out), "checkpoint": str(checkpoint), "exporter": exporter, "opset": opset,
             "inputs": {k: _shape(k, size, stars) for k in wrapper.input_names},
             "input_types": {k: ("bool" if k == "mask" and mask_dtype == "bool" else "float32")
                             for k in wrapper.input_names},
-            "outputs": {"logits": ["batch", model.num_classes]}, "model": ckpt["model_name"],
+            "outputs": {"logits": ["batch", model.num_classes]}, "model": ckpt.model_name,
             "branches": model.branches, "verification": result, "bytes": out.stat().st_size,
             "sha256": _sha256(out), "onnxruntime": onnxruntime.__version__, "torch": str(torch.__version__),
             "time_s": time.perf_counter() - t0}
@@ -284,26 +279,3 @@ def summary_text(r: dict) -> str:
 
 
 # --------------------------------------------------------------------------- command line
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="a trained checkpoint (best.pt)")
-    p.add_argument("--onnx", required=True, help="ONNX file to write (replaced only after verification)")
-    p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17: TensorRT of JetPack 5 / 6.0)")
-    p.add_argument("--exporter", default="legacy", choices=EXPORTERS, help="legacy TorchScript-based (default) or "
-                   "dynamo (torch.export-based)")
-    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
-                   help="largest allowed |onnxruntime - PyTorch| of the logits (default 1e-4)")
-    p.add_argument("--data", help="also verify on the first test frames of this skygen dataset")
-    p.add_argument("--mask-dtype", default="bool", choices=MASK_DTYPES,
-                   help="type of the mask input: bool (as in PyTorch, default) or float32 0/1 for runtimes that "
-                        "reject boolean inputs")
-    p.add_argument("--report", help="also write the export report (inputs, differences, sha256) to this JSON file")
-
-
-def run(args: argparse.Namespace) -> int:
-    r = export_onnx(args.checkpoint, args.onnx, opset=args.opset, exporter=args.exporter, tolerance=args.tolerance,
-                    data=args.data, mask_dtype=args.mask_dtype)
-    if args.report:
-        from .checkpoint import write_json
-        write_json(args.report, r)
-    print(summary_text(r))
-    return 0

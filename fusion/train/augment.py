@@ -32,81 +32,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from .config import AugConfig
+from ..config import AugConfig
+from ..model.inputs import FrameGeometry, Sample
 
-# OpenCV's own thread pool does not survive fork(): a DataLoader worker forked from a process
-# whose pool had started deadlocks inside OpenCV. The parallelism here is the DataLoader's
-# workers, so OpenCV stays single-threaded in every process that imports this module.
-cv2.setNumThreads(1)
-
-
-@dataclass(frozen=True)
-class FrameGeometry:
-    """The sensor and stored-image geometry of a dataset (from its resolved render config).
-
-    Sensors may be non-square: W x H full-resolution pixels stored as S x (H / f), f = W / S.
-    ``sensor_h``/``image_h`` of 0 mean square (= ``sensor_px``/``image_px``).
-    """
-    sensor_px: int          # W, sensor columns
-    image_px: int           # S, stored columns
-    factor: int             # f = W / S
-    bias_adu: float
-    max_adu: float          # 2**bit_depth - 1
-    psf_sigma_px: float     # full-resolution pixels
-    sensor_h: int = 0       # H, sensor rows (0: = W)
-    image_h: int = 0        # stored rows = H / f (0: = S)
-
-    def __post_init__(self) -> None:
-        if not self.sensor_h:
-            object.__setattr__(self, "sensor_h", self.sensor_px)
-        if not self.image_h:
-            object.__setattr__(self, "image_h", self.sensor_h // self.factor)
-
-    @classmethod
-    def from_render_config(cls, config: dict) -> "FrameGeometry":
-        w, h = int(config["camera"]["width_px"]), int(config["camera"]["height_px"])
-        s = int(config["output"]["image_size_px"])
-        return cls(w, s, w // s, float(config["sensor"]["bias_adu"]),
-                   float(2 ** int(config["sensor"]["bit_depth"]) - 1), float(config["optics"]["psf_sigma_px"]),
-                   h, h // (w // s))
-
-    def normalised(self, x_px: np.ndarray, y_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Full-resolution pixels -> the models' coordinates: the sensor centre at 0, one scale for
-        both axes (half the sensor width = 1), so x spans [-1, 1] and y [-H/W, H/W]; angles and
-        distances are preserved (the canonical rotation needs that)."""
-        half = self.sensor_px / 2.0
-        return ((np.asarray(x_px, np.float64) + 0.5 - half) / half,
-                (np.asarray(y_px, np.float64) + 0.5 - self.sensor_h / 2.0) / half)
-
-    def to_stored(self, xy_full: np.ndarray) -> np.ndarray:
-        return (np.asarray(xy_full, np.float64) + 0.5) / self.factor - 0.5
-
-    def to_full(self, uv_stored: np.ndarray) -> np.ndarray:
-        return (np.asarray(uv_stored, np.float64) + 0.5) * self.factor - 0.5
-
-
-@dataclass(frozen=True)
-class Sample:
-    """One frame in ADU: the stored image (float32, S x S) and its detections (brightest first)."""
-    image: np.ndarray
-    x_px: np.ndarray
-    y_px: np.ndarray
-    flux_adu: np.ndarray
-    area_px: np.ndarray
-    background_adu: float   # stored-image background level
-    noise_adu: float        # stored-image background noise (full-res sigma / f)
-
-    @property
-    def n(self) -> int:
-        return len(self.x_px)
-
-    def take(self, keep: np.ndarray) -> "Sample":
-        return replace(self, x_px=self.x_px[keep], y_px=self.y_px[keep], flux_adu=self.flux_adu[keep],
-                       area_px=self.area_px[keep])
-
-    def sorted(self) -> "Sample":
-        """Brightest first (flux descending; ties keep their order)."""
-        return self.take(np.argsort(-self.flux_adu, kind="stable"))
 
 
 def _gaussian_stamp(image: np.ndarray, u: float, v: float, total: float, sigma: float) -> None:
@@ -231,3 +159,13 @@ def augment(sample: Sample, cfg: AugConfig, rng: np.random.Generator, geo: Frame
     if cfg.noise and cfg.noise_max_sigma > 0:
         sample = add_noise(sample, float(rng.uniform(0, cfg.noise_max_sigma)) * sample.noise_adu, rng)
     return sample
+
+
+@dataclass(frozen=True)
+class Augmenter:
+    """:func:`augment` with its config bound: the ``augment`` callable :class:`fusion.model.shards.FrameDataset`
+    takes (picklable, so DataLoader workers of any start method can use it)."""
+    cfg: AugConfig
+
+    def __call__(self, sample: Sample, rng: np.random.Generator, geo: FrameGeometry) -> Sample:
+        return augment(sample, self.cfg, rng, geo)

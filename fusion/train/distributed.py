@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from .errors import ConfigError
+from skygen.runtime import pick_device
 
 
 @dataclass(frozen=True)
@@ -32,21 +32,13 @@ class DistInfo:
         return self.world > 1
 
 
-def pick_device(name: str, local_rank: int = 0) -> torch.device:
-    if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
-        if not torch.cuda.is_available():
-            raise ConfigError("train.device=cuda but no CUDA device is visible; use train.device=cpu")
-        return torch.device("cuda", local_rank)
-    return torch.device("cpu")
-
-
 def init(device_name: str) -> tuple[DistInfo, torch.device]:
     """Join the torchrun process group if there is one; returns (info, this process's device)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
-        return DistInfo(), pick_device(device_name)
+        return DistInfo(), pick_device(device_name, "train.device", local_rank=0)
     info = DistInfo(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", "0")))
-    device = pick_device(device_name, info.local_rank)
+    device = pick_device(device_name, "train.device", local_rank=info.local_rank)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if not dist.is_initialized():

@@ -2,7 +2,7 @@
 
 The checkpoint carries everything needed: the model config, K and the centroids fitted
 on its training split; the split's frames are labelled against those centroids (max
-cosine). Reported (angles in degrees, see :mod:`fusion.metrics` for definitions):
+cosine). Reported (angles in degrees, see :mod:`fusion.model.metrics` for definitions):
 
 * top-1/3/5 accuracy;
 * angular error of the prediction ``arccos(v . c_pred)`` — mean, median, p95 — and the
@@ -24,15 +24,16 @@ import numpy as np
 
 from skygen.io import open_dataset, verify_checksums
 
-from .checkpoint import atomic_write_text, load_checkpoint, resolve_checkpoint, write_json
-from .data import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
-from .distributed import pick_device
-from .errors import ConfigError, DatasetError
-from .labels import assign
-from .metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share, per_class_accuracy,
-                      topk_accuracy, voronoi_neighbours)
-from .plots import plot_confusion
-from .train import autocast_dtype, load_trained_model, predict
+from skygen.runtime import atomic_write_text, pick_device, write_json
+
+from ..errors import ConfigError, DatasetError
+from ..model.checkpoint import Checkpoint, load_checkpoint, resolve_checkpoint
+from ..model.inference import autocast_dtype, predict_batches
+from ..model.metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share,
+                             per_class_accuracy, topk_accuracy, voronoi_neighbours)
+from ..model.regions import assign
+from ..model.shards import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
+from ..plots import plot_confusion
 
 NEIGHBOUR_DEFINITION = ("clusters whose Voronoi cells on the sphere share a boundary arc (edges of the spherical "
                         "Delaunay triangulation of the centroids, from their convex hull)")
@@ -58,14 +59,14 @@ def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarra
     }
 
 
-def check_no_training_frames(ckpt: dict, ds, pos: np.ndarray, split: str, allow_overlap: bool, warn) -> int:
+def check_no_training_frames(ckpt: Checkpoint, ds, pos: np.ndarray, split: str, allow_overlap: bool, warn) -> int:
     """Frames of ``pos`` the checkpoint was trained on (by frame identity); refuses them unless ``allow_overlap``."""
-    if "train_frame_ids" not in ckpt:
+    if ckpt.train_frame_ids is None:
         warn("warning: this checkpoint predates training-frame records; cannot check that the evaluated frames "
              "were not among its training frames")
         return 0
     ids = ds.frames["frame_id"][pos].view(np.int64)
-    seen = np.isin(ids, ckpt["train_frame_ids"].numpy())
+    seen = np.isin(ids, ckpt.train_frame_ids)
     n = int(seen.sum())
     if n and not allow_overlap:
         first = int(ds.frames["index"][pos[np.argmax(seen)]])
@@ -79,8 +80,8 @@ def check_no_training_frames(ckpt: dict, ds, pos: np.ndarray, split: str, allow_
     return n
 
 
-def _camera_warning(ckpt: dict, ds, warn) -> None:
-    trained = (ckpt.get("dataset") or {}).get("camera")
+def _camera_warning(ckpt: Checkpoint, ds, warn) -> None:
+    trained = (ckpt.dataset or {}).get("camera")
     if trained is not None and trained != ds.config["camera"]:
         keys = sorted(k for k in set(trained) | set(ds.config["camera"]) if trained.get(k) != ds.config["camera"].get(k))
         warn(f"warning: {ds.root} was rendered with another camera than the checkpoint's training data "
@@ -104,17 +105,17 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
     t0 = time.perf_counter()
     checkpoint = resolve_checkpoint(checkpoint)
     ckpt = load_checkpoint(checkpoint)
-    model, cfg = load_trained_model(ckpt, str(checkpoint))
-    centroids = ckpt["centroids"].numpy()
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
+    centroids = ckpt.centroids
     dev = pick_device(device)
     model.to(dev)
     with open_dataset(data) as ds:
         verify_checksums(ds, log=log)
         _camera_warning(ckpt, ds, warn)
-        if ds.image_shape[0] != int(ckpt["image_size"]):
+        if ds.image_shape[0] != ckpt.image_size:
             raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {checkpoint} was trained on "
-                               f"{ckpt['image_size']} px images; render with output.image_size_px="
-                               f"{ckpt['image_size']} or train on this dataset")
+                               f"{ckpt.image_size} px images; render with output.image_size_px="
+                               f"{ckpt.image_size} or train on this dataset")
         pos = split_positions(ds, split, max_frames)
         overlap = check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
         v = boresight_vectors(ds, pos)
@@ -123,22 +124,22 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
         frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
                               log_flux_offset=d.log_flux_offset)
         loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
-        pred = predict(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
+        pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
         sparse = count_sparse_frames(ds, pos)
         dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
                         "frames_seen_in_training": overlap}
     if not np.array_equal(pred["index"], pos):
         raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
     report = report_from_predictions(pred["logits"], labels, v, centroids)
-    report.update({"checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]), "model": ckpt["model_name"],
-                   "branches": ckpt["branches"], "dataset": dataset_info, "frames_with_lt2_detections": sparse,
+    report.update({"checkpoint": str(checkpoint), "epoch": ckpt.epoch, "model": ckpt.model_name,
+                   "branches": ckpt.branches, "dataset": dataset_info, "frames_with_lt2_detections": sparse,
                    "device": str(dev), "wall_time_s": time.perf_counter() - t0})
     out = Path(out) if out is not None else checkpoint.parent
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / f"eval-{split}.json", report)
     atomic_write_text(out / f"eval-{split}.md", markdown_report(report))
     plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{split}.png",
-                   f"{ckpt['model_name']} on {split} (K={report['num_classes']})")
+                   f"{ckpt.model_name} on {split} (K={report['num_classes']})")
     log(summary_line(report))
     log(f"wrote {out / f'eval-{split}.json'}, eval-{split}.md, confusion-{split}.png")
     return report

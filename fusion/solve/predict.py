@@ -43,8 +43,6 @@ training dataset.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -56,60 +54,12 @@ from skygen.config import build_config as build_render_config
 from skygen.config import load_config as load_render_config
 from skygen.detect import detect
 
-from .errors import ConfigError, FusionError
-from .solvers.base import Detections
+from skygen.runtime import atomic_write_bytes, dumps_json
 
-FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
-
-
-class FrameError(FusionError):
-    """A frame file cannot be used (unreadable, empty, colour, wrong size)."""
-
-
-def read_frame(path: str | Path) -> np.ndarray:
-    """A 2-D image from PNG/TIFF (8/16 bit), FITS or .npy; FrameError with the reason otherwise."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if not path.is_file():
-        raise FrameError(f"{path}: no such file")
-    if path.stat().st_size == 0:
-        raise FrameError(f"{path}: empty file")
-    if suffix not in FRAME_SUFFIXES:
-        raise FrameError(f"{path}: unsupported file type {suffix or '(none)'}; give {', '.join(FRAME_SUFFIXES)}")
-    try:
-        if suffix == ".npy":
-            img = np.load(path, allow_pickle=False)
-        elif suffix in (".fits", ".fit", ".fts"):
-            from astropy.io import fits
-            with fits.open(path, memmap=False) as hdul:
-                img = next((h.data for h in hdul if h.data is not None and np.ndim(h.data) >= 2), None)
-            if img is None:
-                raise FrameError(f"{path}: no image HDU with 2-D data")
-        else:
-            import cv2
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image")
-            if img.ndim == 3 and img.shape[2] in (3, 4):
-                img = img[:, :, :3]
-                if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]):
-                    img = img[:, :, 0]           # grey stored as RGB: one channel
-    except FrameError:
-        raise
-    except Exception as exc:                      # decoders raise many types for damaged files
-        raise FrameError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-    img = np.asarray(img)
-    if img.ndim == 3 and img.shape[0] == 1:
-        img = img[0]
-    if img.ndim != 2:
-        raise FrameError(f"{path}: colour or multi-plane image (shape {img.shape}); give one monochrome "
-                         "sensor read-out")
-    if img.size == 0:
-        raise FrameError(f"{path}: image has no pixels")
-    if not np.issubdtype(img.dtype, np.number):
-        raise FrameError(f"{path}: pixel type {img.dtype} is not numeric")
-    return img.astype(np.float32)
-
+from ..errors import ConfigError
+from ..model.inputs import downsample
+from .base import Detections
+from .frames import FrameError, iter_inputs
 
 class Predictor:
     """Detector + (optional) region prior + (optional) solver for one camera."""
@@ -118,7 +68,8 @@ class Predictor:
                  dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
                  search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
                  background_box: int = 0, lis_first: bool = False, log=None):
-        from .solvers.priors import load_prior
+        from .priors import load_prior
+        from .registry import build_solver, check_search_options
         if (checkpoint is None) == (camera is None):
             raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
                               "(tetra3rs only), exactly one of them")
@@ -147,19 +98,13 @@ class Predictor:
         check_search_options(focal_tol, search_k)
         self.solver, self.search_level = None, None
         if solve:
-            from .solvers.coarse_fine import CoarseToFineSolver
-            from .solvers.tetra import Tetra3Solver
-            tetra = Tetra3Solver(self.camera, log=log)
-            if self.prior is not None:
-                search_prior = self.prior.at_level(search) if hasattr(self.prior, "at_level") else self.prior
-                self.search_level = getattr(search_prior, "level", "coarse")
-                self.solver = CoarseToFineSolver(tetra, search_prior, name="learned+fine", focal_tol=focal_tol,
-                                                 top_k=search_k or default_search_k(self.search_level))
-                if lis_first:
-                    from .solvers.base import FallbackSolver
-                    self.solver = FallbackSolver(tetra, self.solver)
+            if self.prior is None:
+                name = "tetra3rs"
             else:
-                self.solver = tetra
+                name = "tetra3rs>learned+fine" if lis_first else "learned+fine"
+                self.search_level = self.prior.at_level(search).level
+            self.solver = build_solver(name, self.camera, prior=self.prior, search=search, search_k=search_k,
+                                       focal_tol=focal_tol, log=log)
 
     def check_shape(self, img: np.ndarray, source: str) -> None:
         want = (self.cfg.camera.height_px, self.cfg.camera.width_px)
@@ -185,11 +130,8 @@ class Predictor:
         return Detections.from_table(det), bg, sigma
 
     def stored_image(self, img: np.ndarray) -> np.ndarray:
-        import cv2
-        if self.factor == 1:
-            return img
-        h, w = img.shape
-        return cv2.resize(img, (w // self.factor, h // self.factor), interpolation=cv2.INTER_AREA)
+        """The frame at the model's stored size (what the image branch sees)."""
+        return downsample(img, self.factor)
 
     def run(self, source: str, det: Detections, stored: np.ndarray | None, extra: dict) -> dict:
         rec = {"frame": source, **extra, "n_detections": len(det),
@@ -198,10 +140,7 @@ class Predictor:
         probs = search_probs = None
         if self.prior is not None:
             t0 = time.perf_counter()
-            if hasattr(self.prior, "both"):
-                probs, fine = self.prior.both(det, stored)
-            else:
-                probs, fine = self.prior.probabilities(det, stored), None
+            probs, fine = self.prior.both(det, stored)
             search_probs = fine if self.solver is not None and self.search_level == "fine" else probs
             rec["model_ms"] = (time.perf_counter() - t0) * 1e3
             order = np.argsort(-probs, kind="stable")[: self.top_k]
@@ -217,51 +156,9 @@ class Predictor:
         return rec
 
 
-def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k") -> None:
-    """The coarse-to-fine options shared by ``fusion predict --solve`` and ``fusion benchmark``."""
-    p.add_argument("--search", choices=("fine", "coarse"), default="fine",
-                   help="coarse-to-fine stage: search the model's fine regions (default; a few degrees each, for "
-                        "checkpoints trained with labels.fine_k, else its K regions) or its K regions")
-    p.add_argument(k_flag, dest="search_k", type=int, metavar="K",
-                   help="coarse-to-fine stage: regions searched, most probable first (default 20 fine regions or "
-                        "3 coarse ones)")
-    p.add_argument("--focal-tol", type=float, default=0.02,
-                   help="coarse-to-fine stage: relative focal-length uncertainty it fits within (default 0.02; "
-                        "0 = the camera's nominal focal length exactly)")
-
-
-def check_search_options(focal_tol: float, search_k: int | None, k_flag: str = "--search-k") -> None:
-    if not 0.0 <= focal_tol < 0.2:
-        raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
-    if search_k is not None and search_k < 1:
-        raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
-
-
-def default_search_k(level: str) -> int:
-    """Regions the fine stage searches by default: 20 fine regions (~2 % of the sky at fine_k = 1000) or 3 of K."""
-    return 20 if level == "fine" else 3
-
-
-def iter_inputs(paths: list[str], max_frames: int | None):
-    """(source name, full image or None, detections table or None, stored image or None, error) per frame."""
-    for p in paths:
-        path = Path(p)
-        if path.is_dir() and (path / "manifest.json").exists():
-            from skygen.io import open_dataset
-            with open_dataset(path) as ds:
-                for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
-                    yield f"{path}#{int(ds.frames['index'][pos])}", None, ds.detections(pos), ds.image(pos), None
-            continue
-        try:
-            yield str(path), read_frame(path), None, None, None
-        except FrameError as exc:
-            yield str(path), None, None, None, str(exc)
-
-
 def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
     """The frame (log-stretched to 8 bit) with numbered detections; matched ones green."""
     import cv2
-    from .checkpoint import atomic_write_bytes
     lo, hi = np.percentile(img, 1), max(float(np.percentile(img, 99.9)), float(np.percentile(img, 1)) + 1)
     x = np.log1p(np.clip(img - lo, 0, None)) / np.log1p(hi - lo)
     rgb = cv2.cvtColor((np.clip(x, 0, 1) * 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
@@ -324,42 +221,9 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
                 rec = {"frame": source, "error": str(exc)}
                 err(f"fusion predict: {exc}")
             records.append(rec)
-            line = json.dumps(rec, default=float)
+            line = dumps_json(rec)
             (sink.write(line + "\n") if sink else log(line))
     finally:
         if sink:
             sink.close()
     return records, failed
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("frames", nargs="+", metavar="FRAME",
-                   help="image files (.png, .tif/.tiff 8/16-bit, .fits, .npy) or skygen dataset folders")
-    p.add_argument("--checkpoint", help="a fusion checkpoint (best.pt): its camera, detector and model")
-    p.add_argument("--camera", help="a skygen camera preset (configs/cameras/*.yaml) when no checkpoint is given")
-    p.add_argument("--dataset", help="the training dataset of a checkpoint written before checkpoints carried "
-                                     "their camera")
-    p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
-                   "as prior of the fine stage; tetra3rs lost-in-space without a checkpoint")
-    p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
-    add_search_arguments(p)
-    p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
-    p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
-    p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
-    p.add_argument("--lis-first", action="store_true",
-                   help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
-                        "stars) and the learned prior's fine stage only where it refuses; `solver` says which answered")
-    p.add_argument("--background-box", type=int, default=0, metavar="PX",
-                   help="skygen detector: background per PX x PX box (e.g. 64; for ground frames with sky glow or "
-                        "gradients) instead of one level per frame (default 0, as the renders and the training)")
-    p.add_argument("--detector", choices=("skygen", "tetra3rs"), default="skygen",
-                   help="skygen (default; what models are trained on) or tetra3rs's extractor (local background, "
-                        "matched filter: more stars on ground frames with sky gradients; without --checkpoint only)")
-
-
-def run(args: argparse.Namespace) -> int:
-    _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
-                        top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
-                        max_frames=args.max_frames, search=args.search, search_k=args.search_k,
-                        focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first)
-    return 1 if failed else 0

@@ -1,9 +1,10 @@
-"""Coarse-to-fine: a region prior narrows the sky, a few-star identification finds the attitude.
+"""The fine stage: a region prior narrows the sky, a few-star identification finds the attitude.
 
 tetra3rs's tracking mode (attitude hint) verifies and refines an attitude only when the
-hint is within about half a degree (measured: 4 brightest stars, hint 0.5° off -> 70 %
-solved, 2° off -> 0 %), and a learned region is tens of degrees wide. What tetra3rs does
-not do, this module does: **region-restricted hypothesise-and-verify** for few stars.
+hint is within about half a degree, and a learned region is tens of degrees wide. What
+tetra3rs does not do, this module does: **region-restricted hypothesise-and-verify** for few
+stars. (The measurements behind each design choice below are in ``results/benchmark/README.md``,
+"Why the fine stage is built this way".)
 
 For one region (a cap around a region centroid, :class:`Region`):
 
@@ -12,47 +13,43 @@ For one region (a cap around a region centroid, :class:`Region`):
    brightest ``stars_per_fov`` per field of view (a global magnitude cut);
 2. hypotheses: every catalog pair whose separation matches that of two bright detections
    (i, j) within ``tol_px`` (both orders) — and, with ``focal_tol`` = s > 0, within a focal
-   length known only to ±s (a real lens's focal length is off its datasheet value by ~1 %:
-   the Blackfly frames of ../shared/real-frames have an 11.42° field, the nominal 35 mm lens
-   11.53°; at 600 px from the centre that is 6 px, three times a 2 px tolerance). Each
-   pair fixes a focal-length factor k (catalog separation / detection separation, clipped to
-   1 ± s) and a rotation (TRIAD: detection i onto star a exactly, the i->j direction onto
-   a->b), both computed with the detections re-projected at that focal length. All regions
-   are searched at the nominal focal length first, and again with ±s only if that finds
-   nothing: the free scale costs evidence (on 60 rendered 4-star frames at the nominal focal
-   length, one pass with s = 0.02 solved 63 % against 87 % with s = 0);
+   length known only to ±s (a real lens's focal length is off its datasheet value by about
+   a percent, which at the edge of a field is several times a 2 px tolerance). Each pair fixes
+   a focal-length factor k (catalog separation / detection separation, clipped to 1 ± s) and a
+   rotation (TRIAD: detection i onto star a exactly, the i->j direction onto a->b), both
+   computed with the detections re-projected at that focal length. All regions are searched at
+   the nominal focal length first, and again with ±s only if that finds nothing: the free scale
+   costs evidence;
 3. score: every detection is mapped to the sky with that rotation and counts if a
    catalog star lies within ``tol_px`` plus what the pair leaves uncertain of the scale
    (``min(s, 2 tol / d_ij)`` times the detection's distance from detection i); a hypothesis
    whose boresight leaves the region is dropped (it belongs to another region);
 4. decision, after each detection pair (so a clear case stops early): the best hypothesis
-   so far (most matches) must be unique — no other hypothesis with
-   as many matches at an attitude more than 0.5° away — and its chance of being a
-   coincidence small: ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so
-   far, n detections, s matches, p the chance that a random sky position has a catalog
-   star within ``tol_px``) gives ``confidence = max(0, 1 - E_false)``; below
-   ``min_confidence`` or fewer than ``min_matches`` matches: next region, or a refusal;
+   so far (most matches) must be unique — no other hypothesis with as many matches at an
+   attitude more than 0.5° away — and its chance of being a coincidence small:
+   ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so far, n detections, s
+   matches, p the chance that a random sky position has a catalog star within ``tol_px``)
+   gives ``confidence = max(0, 1 - E_false)``; below ``min_confidence`` or fewer than
+   ``min_matches`` matches: next region, or a refusal;
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
    Kabsch and the scale of a 2-D similarity between tangent-plane coordinates, k kept within
    1 ± s whichever pass found the hypothesis), re-matched at ``tol_px`` until the matches
-   and k stop changing;
-   the confidence above is recomputed from this tight match count and must still pass;
+   and k stop changing; the confidence above is recomputed from this tight match count and
+   must still pass;
 6. verification: tetra3rs tracking from that attitude (strict hint, 1°, the fitted focal length)
    re-matches every detection against its catalog, tests the match against its own
    false-positive budget and refines the attitude. A candidate tetra3rs does not confirm is
    returned (as the least-squares rotation of our own matches) only if its confidence
    reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched.
-   Measured on 150 test frames: the candidates that turned out wrong under heavy
-   corruption (4 of 6 detections matched, confidence ~0.994) were exactly those tetra3rs
-   did not confirm, while 77 of 78 correct 4-star solutions were confirmed.
 
 Regions are tried in order of prior probability (``top_k`` at most) — the prior's coarse
 regions, or, for a checkpoint trained with fine regions, its fine regions (a few degrees
-across, :meth:`fusion.solvers.priors.CheckpointPrior.at_level`), which narrow the search
-~10x more per region searched; the hypothesis
-count H accumulates, so searching more regions demands stronger evidence. The prior is
-pluggable: anything with ``centroids`` (K, 3) and ``probabilities(detections, image)``
-(:mod:`fusion.solvers.priors`), or probabilities passed to :meth:`CoarseToFineSolver.solve`.
+across, :meth:`fusion.solve.priors.CheckpointPrior.at_level`), which narrow the search
+about ten times more per region searched; the hypothesis count H accumulates, so searching
+more regions demands stronger evidence. The prior is pluggable: any
+:class:`fusion.solve.priors.RegionPrior`, or probabilities passed to
+:meth:`CoarseToFineSolver.solve`. Doubtful candidates are :class:`~fusion.solve.base.Refusal`
+values (the reason why), never strings.
 """
 
 from __future__ import annotations
@@ -243,16 +240,16 @@ class CoarseToFineSolver:
                 for k in range(extra, n_det - 1))
         return float(max(0.0, 1.0 - n_hypotheses * e))
 
-    def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | str:
-        """Index of the accepted hypothesis, or why none is accepted yet."""
+    def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | Refusal:
+        """Index of the accepted hypothesis, or a refusal saying why none is accepted yet."""
         best = int(np.argmax(scores))
         s = int(scores[best])
         rivals = np.flatnonzero(scores == s)
         if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
-            return f"ambiguous: several attitudes match {s} of {n} detections"
+            return Refusal(f"ambiguous: several attitudes match {s} of {n} detections", self.name)
         conf = self.confidence(tried, n, s)
         if s < self.min_matches or conf < self.min_confidence:
-            return f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}"
+            return Refusal(f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}", self.name)
         return best
 
     def solve(self, detections: Detections, camera=None, image=None,
@@ -271,7 +268,7 @@ class CoarseToFineSolver:
                 raise ValueError("probabilities given but the solver has no prior with centroids")
         u = camera.unproject(detections.x_px, detections.y_px)
         n = len(u)
-        tried, last = 0, "no catalog pair matches the detections in the prior's regions"
+        tried, last = 0, Refusal("no catalog pair matches the detections in the prior's regions", self.name)
         # strict first (the nominal focal length, every region), then within +-focal_tol: a wider
         # search finds more coincidences, so it runs only where the strict one found nothing,
         # and the hypotheses of both count towards H
@@ -295,7 +292,7 @@ class CoarseToFineSolver:
                         last = sol
                         break                                        # this pass's best is doubtful: go on
                     last = verdict
-        return Refusal(last, self.name, ms(), {"hypotheses": tried})
+        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried})
 
     def refine(self, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
         """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
@@ -330,14 +327,15 @@ class CoarseToFineSolver:
         det_rows, cat_rows = self._matches(rot, uk)
         return rot, k, det_rows, cat_rows, uk
 
-    def _finish(self, rot, k, u, detections, camera, region, tried, t0) -> Solution | str:
+    def _finish(self, rot, k, u, detections, camera, region, tried, t0) -> Solution | Refusal:
         # the focal factor is fitted within +-focal_tol whichever pass found the hypothesis: a strict-pass
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
         rot, k, det_rows, cat_rows, uk = self.refine(rot, k, u, self.focal_tol)
         score = len(det_rows)
         conf = self.confidence(tried, len(u), score)
         if score < self.min_matches or conf < self.min_confidence:
-            return f"weak evidence after refinement: {score} of {len(u)} detections matched, confidence {conf:.3g}"
+            return Refusal(f"weak evidence after refinement: {score} of {len(u)} detections matched, "
+                           f"confidence {conf:.3g}", self.name)
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
         extra = {"region": region.index, "region_probability": region.probability, "hypotheses": tried,
                  "refined_by": "own least squares", "focal_factor": k, "fov_deg": list(cam_k.fov_deg)}
@@ -352,7 +350,8 @@ class CoarseToFineSolver:
                 return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
                                 res.residual_arcsec, conf, self.name, (time.perf_counter() - t0) * 1e3, extra)
             if conf < self.unverified_confidence:
-                return "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar"
+                return Refusal("best candidate not confirmed by tetra3rs tracking and evidence below the unverified "
+                               "bar", self.name)
         resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * self.vec[cat_rows], axis=1), -1, 1))
         return solution_from_matrix(rot, matched=np.column_stack([det_rows, self.ids[cat_rows]]),
                                     residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),

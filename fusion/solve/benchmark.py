@@ -16,7 +16,7 @@ fixed. Cells of the grid:
 
 Solvers (``--solvers``):
 
-* ``tetra3rs`` — tetra3rs lost-in-space (the classical baseline, :mod:`fusion.solvers.tetra`);
+* ``tetra3rs`` — tetra3rs lost-in-space (the classical baseline, :mod:`fusion.solve.tetra`);
 * ``oracle-prior`` — coarse-to-fine with a prior that ranks the true region first (an upper
   bound for a learned prior; regions: the ones the learned prior searches — the checkpoint's
   fine regions with ``--search fine`` (default) or its K regions — or, without a checkpoint,
@@ -52,8 +52,6 @@ Outputs in ``--out``: ``benchmark.json`` (every cell, every solver), ``benchmark
 
 from __future__ import annotations
 
-import argparse
-import platform
 import time
 from pathlib import Path
 
@@ -64,14 +62,18 @@ from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
 from skygen.io import open_dataset
 
-from .checkpoint import atomic_write_text, write_json
-from .errors import ConfigError
-from .solvers.base import Detections, Solution, boresight_error_deg, roll_error_deg
+from skygen.runtime import atomic_write_text, hardware_line, write_json
+
+from ..errors import ConfigError
+from .base import Detections, Solution, boresight_error_deg, roll_error_deg
+from .registry import SOLVERS as REGISTERED
 
 DETECTION_CORRUPTIONS = ("dropout", "false_stars", "centroid_noise", "magnitude_noise")
 FULL_N = (3, 4, 5, 6, 7, 8, 10, 12, 15, 20)
 SMALL_N = (4, 6, 10)
-SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "whole-sky", "learned", "learned+fine", "tetra3rs>learned+fine")
+# every registered solver, and ``learned``: the model's regions alone (top-1/top-3, no attitude)
+SOLVERS = tuple(REGISTERED) + ("learned",)
+DEFAULT_SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine")
 
 
 def corrupt(det: dict, name: str | None, severity: float, seed: int, frame_index: int,
@@ -105,7 +107,7 @@ def grid(n_values, corruption_n, corruptions, severities: dict | None = None) ->
 
 def default_centroids(k: int = 15) -> np.ndarray:
     """K regions of the sphere for the oracle priors when no checkpoint is given (spherical K-means)."""
-    from .labels import spherical_kmeans
+    from ..model.regions import spherical_kmeans
     rng = np.random.default_rng(0)
     v = rng.standard_normal((20000, 3))
     return spherical_kmeans(v / np.linalg.norm(v, axis=1, keepdims=True), k, seed=0, n_init=2).centroids
@@ -132,13 +134,12 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
 
 def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
                   frames: int = 200, n_values=FULL_N, corruption_n=(6, 10), corruptions=DETECTION_CORRUPTIONS,
-                  severities=None, solvers=("tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine"),
+                  severities=None, solvers=DEFAULT_SOLVERS,
                   correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
                   search: str = "fine", focal_tol: float = 0.02, log=print) -> dict:
-    from .solvers.coarse_fine import CoarseToFineSolver
-    from .predict import check_search_options, default_search_k
-    from .solvers.priors import OraclePrior, load_prior
-    from .solvers.tetra import Tetra3Solver
+    from .priors import OraclePrior, load_prior
+    from .registry import check_search_options, get, make_context
+    from .tetra import Tetra3Solver
     check_search_options(focal_tol, top_k, "--top-k")
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
@@ -168,50 +169,36 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     from skygen.attitude import quaternion_to_matrix
     truth = [(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)]
     tetra = Tetra3Solver(cam, log=log)
-    prior, search_prior, notes = None, None, []
+    prior, notes = None, []
     if checkpoint:
-        from .checkpoint import load_checkpoint
-        own = load_checkpoint(checkpoint).get("render_config")       # older checkpoints: the benchmark dataset's
-        prior = load_prior(checkpoint, None if own else dict(ds.config))
+        from ..model.checkpoint import load_checkpoint
+        ckpt = load_checkpoint(checkpoint)
+        own = ckpt.render_config                     # older checkpoints: the benchmark dataset's
         if own and own["camera"] != ds.config["camera"]:
             raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
                               f"({own['camera']} vs {ds.config['camera']}); benchmark it on frames of its camera")
-        search_prior = prior.at_level(search) if hasattr(prior, "at_level") else prior
+        prior = load_prior(ckpt, None if own else dict(ds.config))
         centroids = prior.centroids
-        search_centroids = search_prior.centroids
-        level = getattr(search_prior, "level", "coarse")
     else:
-        centroids = search_centroids = default_centroids()
-        level = "coarse"
+        centroids = default_centroids()
         dropped = [s for s in solvers if "learned" in s]
         if dropped:
             notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
         solvers = [s for s in solvers if "learned" not in s]
-    top_k = top_k or default_search_k(level)
-    c2f = dict(top_k=top_k, focal_tol=focal_tol)
-    built = {}
-    if "tetra3rs" in solvers:
-        built["tetra3rs"] = tetra
-    oracle = OraclePrior(search_centroids, 1.0)
-    sim = OraclePrior(search_centroids, 0.85, seed=1)
-    if "oracle-prior" in solvers:
-        built["oracle-prior"] = CoarseToFineSolver(tetra, oracle, name="oracle-prior", **c2f)
-    if "sim85-prior" in solvers:
-        built["sim85-prior"] = CoarseToFineSolver(tetra, sim, name="sim85-prior", **c2f)
-    if "whole-sky" in solvers:
-        built["whole-sky"] = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=focal_tol)
-    if "learned+fine" in solvers or "tetra3rs>learned+fine" in solvers:
-        lf = CoarseToFineSolver(tetra, search_prior, name="learned+fine", **c2f)
-        if "learned+fine" in solvers:
-            built["learned+fine"] = lf
-    composite = {}
-    if "tetra3rs>learned+fine" in solvers:
-        if "tetra3rs" in built and "learned+fine" in built:
+    ctx = make_context(cam, prior=prior, search=search, search_k=top_k, focal_tol=focal_tol, tetra=tetra,
+                       search_centroids=None if prior is not None else centroids, k_flag="--top-k")
+    search_prior, search_centroids, top_k = ctx.prior, ctx.search_centroids, ctx.top_k
+    level = getattr(search_prior, "level", "coarse")
+    built, composite = {}, {}
+    for name in solvers:
+        if name == "learned":
+            continue
+        parts = name.split(">")
+        if len(parts) == 2 and all(p in solvers for p in parts):
             # both parts are scored anyway: compose their per-frame answers instead of solving twice
-            composite["tetra3rs>learned+fine"] = ("tetra3rs", "learned+fine")
+            composite[name] = tuple(parts)
         else:
-            from .solvers.base import FallbackSolver
-            built["tetra3rs>learned+fine"] = FallbackSolver(tetra, lf)
+            built[name] = get(ctx, name)
     labels = np.argmax(v_true @ centroids.T, axis=1)
     search_labels = np.argmax(v_true @ search_centroids.T, axis=1)
     cells = grid(n_values, corruption_n, corruptions, severities)
@@ -224,12 +211,12 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         answers = {}
         for name, solver in built.items():
             results, secs = [], []
+            oracle = getattr(solver, "prior", None)
+            oracle = oracle if isinstance(oracle, OraclePrior) else None    # the benchmark's truth-ranked priors
             for j, d in enumerate(dets):
                 kw = {}
-                if name == "oracle-prior":
+                if oracle is not None:
                     kw["probabilities"] = oracle.probabilities_for(v_true[j], int(idx[j]))
-                elif name == "sim85-prior":
-                    kw["probabilities"] = sim.probabilities_for(v_true[j], int(idx[j]))
                 t0 = time.perf_counter()
                 results.append(solver.solve(d, cam, images[j], **kw))
                 secs.append(time.perf_counter() - t0)
@@ -254,7 +241,7 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
               "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(search_centroids)),
                                                               "top_k": top_k, "focal_tol": focal_tol},
               "top_k": top_k, "notes": notes, "cells": rows,
-              "hardware": _hardware(),
+              "hardware": hardware_line() + ", one process",
               "tetra3rs_version": tetra.t3.__version__, "wall_time_s": time.perf_counter() - t_start}
     write_json(out / "benchmark.json", report)
     atomic_write_text(out / "benchmark.md", markdown(report))
@@ -263,27 +250,13 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     return report
 
 
-def _hardware() -> str:
-    import os
-    model = platform.processor() or "unknown model"
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), model)
-    except OSError:
-        pass
-    return f"{platform.machine()} {model}, {os.cpu_count()} logical CPUs, one process"
-
-
 def _learned_cell(prior, dets, images, labels, v_true, centroids, search_labels, search_k) -> dict:
     """The model's regions alone: top-1 / top-3 of its K regions, angular error of the top-1 centroid, and
     (``search_labels`` given) how often the true fine region is among the ``search_k`` searched."""
     t, probs, fine = [], [], []
     for d, im in zip(dets, images):
         t0 = time.perf_counter()
-        if hasattr(prior, "both"):
-            c, f = prior.both(d, im)
-        else:
-            c, f = prior.probabilities(d, im), None
+        c, f = prior.both(d, im)
         t.append(time.perf_counter() - t0)
         probs.append(c)
         fine.append(f)
@@ -362,7 +335,7 @@ def _search_text(r: dict) -> str:
 
 
 def plot(r: dict, out: Path) -> None:
-    from .plots import _figure, _save
+    from ..plots import _figure, _save
     plt = _figure()
     full = [s for s in r["solvers"] if s != "learned"]
     clean = [row for row in r["cells"] if row["corruption"] is None]
@@ -402,38 +375,3 @@ def plot(r: dict, out: Path) -> None:
         ax.legend(fontsize=6)
         _save(fig, out / f"success_vs_{name}.png")
         plt.close(fig)
-
-
-# --------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, help="skygen dataset folder (its frames are the fixed test frames)")
-    p.add_argument("--out", required=True, help="folder for benchmark.json, benchmark.md and the plots")
-    p.add_argument("--checkpoint", help="a fusion checkpoint: adds the 'learned' and 'learned+fine' solvers")
-    p.add_argument("--split", default="test", choices=("train", "val", "test"))
-    p.add_argument("--frames", type=int, help="first N frames of the split (default 200; 30 with --grid small)")
-    p.add_argument("--grid", choices=("small", "full"), default="full",
-                   help="small: N in 4 6 10, corruptions at N=6, two severities each (a CPU minute or two); "
-                        "full: N in 3..20, every sweep severity at N=6 and N=10")
-    p.add_argument("--n", type=int, nargs="+", metavar="N", help="brightest-N values of the clean cells (overrides --grid)")
-    p.add_argument("--corruption-n", type=int, nargs="+", metavar="N", help="N values of the corruption cells")
-    p.add_argument("--corruptions", nargs="*", default=list(DETECTION_CORRUPTIONS), metavar="NAME",
-                   help=f"detection-level corruptions (default all: {', '.join(DETECTION_CORRUPTIONS)}); none: clean only")
-    p.add_argument("--solvers", nargs="+", metavar="NAME",
-                   default=["tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine"],
-                   help=f"solvers to score, from: {', '.join(SOLVERS)} (default: all but whole-sky)")
-    p.add_argument("--correct-deg", type=float, default=0.1, help="boresight error counted as correct (default 0.1 deg)")
-    p.add_argument("--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct (default 1 deg)")
-    from .predict import add_search_arguments
-    add_search_arguments(p, "--top-k")                 # the coarse-to-fine solvers run as fusion predict --solve
-
-
-def run(args: argparse.Namespace) -> int:
-    small = args.grid == "small"
-    severities = {c: [s for s in corr.get(c).sweep if s > 0][:2] for c in args.corruptions} if small else None
-    run_benchmark(args.data, args.out, checkpoint=args.checkpoint, split=args.split,
-                  frames=args.frames or (30 if small else 200), n_values=args.n or (SMALL_N if small else FULL_N),
-                  corruption_n=args.corruption_n or ((6,) if small else (6, 10)), corruptions=args.corruptions,
-                  severities=severities, solvers=args.solvers, correct_deg=args.correct_deg,
-                  correct_roll_deg=args.correct_roll_deg, top_k=args.search_k, search=args.search,
-                  focal_tol=args.focal_tol)
-    return 0

@@ -31,7 +31,6 @@ whose overrides the K sweep, the label study and the latency timing start from (
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -47,13 +46,15 @@ from skygen.config import load_config as load_render_config
 from skygen.dataset import render_dataset
 from skygen.io import open_dataset
 
-from .checkpoint import atomic_write_text, load_checkpoint, write_json
-from .config import load_config
-from .errors import ConfigError
+from skygen.runtime import atomic_write_text, hardware, write_json
+
+from ..config import load_config
+from ..errors import ConfigError
+from ..model.checkpoint import load_checkpoint
 from .evaluate import evaluate_checkpoint
 
 SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
-PRESET_DIR = Path(__file__).resolve().parents[1] / "configs" / "experiments"
+PRESET_DIR = Path(__file__).resolve().parents[2] / "configs" / "experiments"
 
 # The paper's reported numbers (Hammad & Hammad, Star-Fusion; K = 15, validation split,
 # one seed, Stellarium-derived images, SwinV2 from ImageNet weights). Shown beside ours,
@@ -134,7 +135,7 @@ def load_preset(name_or_path: str | Path) -> Preset:
 
 def _repo_path(p: str) -> Path:
     path = Path(p)
-    return path if path.is_absolute() or path.exists() else Path(__file__).resolve().parents[1] / path
+    return path if path.is_absolute() or path.exists() else Path(__file__).resolve().parents[2] / path
 
 
 # --------------------------------------------------------------------------- planning
@@ -187,7 +188,7 @@ def run_folder(runs_dir: Path, run: RunSpec) -> Path:
 
 def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log) -> Path:
     """Train (or resume, or skip) one run and evaluate its best checkpoint on the test split."""
-    from .train import train
+    from ..train import train      # experiment is the one measurement that trains (docs/ARCHITECTURE.md)
     folder = run_folder(runs_dir, run)
     ov = preset.train_overrides + list(run.overrides) + [f"train.seed={run.seed}", f"data.path={data}",
                                                           "train.progress=false"]
@@ -205,16 +206,14 @@ def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log) ->
 
 def evaluate_shuffled(checkpoint: Path, data: Path, split: str, seed: int = 0) -> float:
     """Top-1 with the kept detection rows in a random order (same frames, same model)."""
-    from .data import FrameDataset, boresight_vectors, split_positions
-    from .labels import assign
-    from .train import load_trained_model
+    from ..model.regions import assign
+    from ..model.shards import FrameDataset, boresight_vectors, split_positions
     ckpt = load_checkpoint(checkpoint)
-    model, cfg = load_trained_model(ckpt, str(checkpoint))
-    model.eval()
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
     rng = np.random.default_rng(seed)
     with open_dataset(data) as ds:
         pos = split_positions(ds, split)
-        labels = assign(boresight_vectors(ds, pos), ckpt["centroids"].numpy())
+        labels = assign(boresight_vectors(ds, pos), ckpt.centroids)
         d = cfg.data
         frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
                               log_flux_offset=d.log_flux_offset)
@@ -331,7 +330,6 @@ def _git_revision() -> str:
 
 
 def _hardware() -> str:
-    from .timing import hardware
     h = hardware(torch.device("cuda" if torch.cuda.is_available() else "cpu"))
     return ", ".join(f"{k}: {v}" for k, v in h.items() if v)
 
@@ -495,7 +493,7 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
 
 def _latency_section(preset, folder, data, out, results, log) -> list[str]:
     from .timing import summary_text, timing
-    k = load_checkpoint(folder / "best.pt")["centroids"].shape[0]
+    k = load_checkpoint(folder / "best.pt").num_classes
     # the paper-size model runs on frames of the default camera (its own 256 px input)
     jobs = {"trained": dict(checkpoint=folder / "best.pt", data=data), "paper-size": dict(overrides=(f"labels.k={k}",))}
     text = {}
@@ -516,25 +514,3 @@ def _latency_section(preset, folder, data, out, results, log) -> list[str]:
             f"(SwinV2-Tiny at 256x256, random weights; latency does not depend on them). Paper, for reference: "
             f"{PAPER_LATENCY}.", "", "Trained model:", "", "```", text["trained"], "```", "",
             "Paper-size model:", "", "```", text["paper-size"], "```", ""]
-
-
-# --------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", required=True, help="experiment preset: cpu, gpu, smoke, or a YAML path")
-    p.add_argument("--out", help="output folder (default results/<preset>)")
-    p.add_argument("--sections", default=",".join(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
-    p.add_argument("--workers", type=int, default=0, help="render/robustness worker processes (default: all cores)")
-    p.add_argument("--data-dir", help="dataset folder (default data/experiment-<preset>)")
-    p.add_argument("--runs-dir", help="folder of the training runs (default runs/experiment-<preset>)")
-    p.add_argument("--jobs", type=int, default=1,
-                   help="training runs at a time, each in its own process (default 1; on a 2-core machine 2 "
-                        "with the preset's train.threads=1)")
-
-
-def run(args: argparse.Namespace) -> int:
-    out = args.out or f"results/{Path(args.preset).stem}"
-    if args.jobs < 1:
-        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
-    run_experiment(args.preset, out, sections=tuple(s for s in args.sections.split(",") if s),
-                   workers=args.workers or None, data_dir=args.data_dir, runs_dir=args.runs_dir, jobs=args.jobs)
-    return 0

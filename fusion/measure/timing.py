@@ -17,9 +17,9 @@ Two modes, each after ``warmup`` untimed iterations, then ``iters`` timed ones u
     ``detect``               background estimate, threshold, connected components and
                              centroids on the full frame (:func:`skygen.detect.detect`);
     ``downsample_normalise`` ``cv2.resize(INTER_AREA)`` to the stored size and the log stretch
-                             (:func:`fusion.data.normalise_image`);
+                             (:meth:`fusion.model.inputs.Preprocessor.image`);
     ``encode_coords``        brightest-first rows, normalised positions, padding and mask
-                             (:func:`fusion.data.encode_detections`);
+                             (:meth:`fusion.model.inputs.Preprocessor.coords`);
     ``to_device``            stacking the batch and the host-to-device copy;
     ``forward``              the model (the heatmap is rasterised inside it), softmax and the
                              copy of the probabilities back to the host;
@@ -46,10 +46,7 @@ element-wise work; the JSON gives FLOPs and MACs = FLOPs / 2 side by side, per b
 
 from __future__ import annotations
 
-import argparse
 import os
-import platform
-import subprocess
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -57,12 +54,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .augment import FrameGeometry, Sample
-from .checkpoint import write_json
-from .config import FusionConfig, load_config
-from .data import encode_detections, normalise_image
-from .errors import ConfigError, DatasetError
-from .models import StarFusion, create_model, parameter_counts, resolve_model_config
+from skygen.runtime import hardware, pick_device, write_json
+
+from ..config import FusionConfig, load_config
+from ..errors import ConfigError, DatasetError
+from ..model.checkpoint import load_checkpoint
+from ..model.inputs import Preprocessor, sample_from_table
+from ..model.networks import StarFusion, create_model, parameter_counts, resolve_model_config
 
 FORMAT = "fusion-timing"
 FORMAT_VERSION = 1
@@ -96,16 +94,13 @@ def load_timed_model(checkpoint: str | Path | None = None, config: str | Path | 
         raise ConfigError("give one of --checkpoint CKPT (a trained model) or --config FILE.yaml "
                           "(the architecture of a preset, random weights), not both")
     if checkpoint is not None:
-        from .checkpoint import load_checkpoint
-        from .train import load_trained_model
         ckpt = load_checkpoint(checkpoint)
-        model, cfg = load_trained_model(ckpt, str(checkpoint))
         render = None
-        root = (ckpt.get("dataset") or {}).get("root")
+        root = (ckpt.dataset or {}).get("root")
         if root and Path(root).is_dir():
             render = _dataset_config(root)
-        return TimedModel(model.eval(), cfg, {"checkpoint": str(checkpoint)}, int(ckpt["image_size"]),
-                          int(ckpt["max_stars"]), int(ckpt["num_classes"]), render)
+        return TimedModel(ckpt.build_model(), ckpt.fusion_config, {"checkpoint": str(checkpoint)}, ckpt.image_size,
+                          ckpt.max_stars, ckpt.num_classes, render)
     cfg = load_config(config, overrides)
     cfg = replace(cfg, model=resolve_model_config(cfg.model))
     model = create_model(cfg.model.name, cfg.labels.k, cfg.model, image_size=image_size, fine_classes=cfg.labels.fine_k,
@@ -161,31 +156,25 @@ def raw_frames(render_config: dict | None, image_size: int, n: int) -> tuple[lis
     return frames, config_dict(cfg), source
 
 
-class Preprocessor:
-    """The stages between a raw frame and the model's inputs, exactly as the training data was made."""
+class EndToEnd:
+    """The stages between a raw frame and the model's inputs, exactly as the training data was made:
+    skygen's detector with the dataset's detection settings, then the model's :class:`Preprocessor`."""
 
     def __init__(self, render_config: dict, cfg: FusionConfig, max_stars: int):
         from skygen.config import build_config
-        rc = build_config(render_config)
-        self.geo = FrameGeometry.from_render_config(render_config)
-        self.det = rc.detection
-        self.d, self.max_stars = cfg.data, max_stars
+        self.det = build_config(render_config).detection
+        self.pre = Preprocessor.from_configs(render_config, cfg.data, max_stars)
+        self.geo = self.pre.geo
 
     def detect(self, full: np.ndarray) -> dict:
         from skygen.detect import detect
         return detect(full, self.det.threshold_sigma, self.det.min_area_px, self.det.max_detections)[0]
 
     def downsample_normalise(self, full: np.ndarray) -> np.ndarray:
-        import cv2
-        s = self.geo.image_px
-        img = full if self.geo.factor == 1 else cv2.resize(full, (s, s), interpolation=cv2.INTER_AREA)
-        return normalise_image(img, self.geo, self.d.norm_scale_adu)
+        return self.pre.image(self.pre.downsample(full))
 
     def encode(self, det: dict) -> tuple[np.ndarray, np.ndarray]:
-        s = Sample(image=None, x_px=np.asarray(det["x_px"], np.float64), y_px=np.asarray(det["y_px"], np.float64),
-                   flux_adu=np.asarray(det["flux_adu"], np.float32), area_px=np.asarray(det["area_px"], np.int32),
-                   background_adu=0.0, noise_adu=0.0).sorted()
-        return encode_detections(s, self.geo, self.max_stars, self.d.log_flux_offset)
+        return self.pre.coords(sample_from_table(det))
 
 
 # --------------------------------------------------------------------------- timing loops
@@ -228,7 +217,7 @@ def time_forward(model: StarFusion, inputs: tuple, device: torch.device, iters: 
     return {**stats_ms(samples, batch), "timer": timer}
 
 
-def end_to_end_once(frames: list[np.ndarray], pre: Preprocessor, model: StarFusion, device: torch.device,
+def end_to_end_once(frames: list[np.ndarray], pre: EndToEnd, model: StarFusion, device: torch.device,
                     dtype: torch.dtype) -> tuple[dict, np.ndarray]:
     """One pass raw frames -> probabilities; returns per-stage milliseconds and the probabilities."""
     t = [time.perf_counter()]
@@ -255,7 +244,7 @@ def end_to_end_once(frames: list[np.ndarray], pre: Preprocessor, model: StarFusi
     return ms, probs
 
 
-def time_end_to_end(frames: list[np.ndarray], pre: Preprocessor, model: StarFusion, device: torch.device,
+def time_end_to_end(frames: list[np.ndarray], pre: EndToEnd, model: StarFusion, device: torch.device,
                     dtype: torch.dtype, iters: int, warmup: int) -> dict:
     batch = len(frames)
     samples: dict[str, list[float]] = {}
@@ -299,67 +288,7 @@ def count_flops(model: StarFusion, image_size: int, max_stars: int, device: torc
             "by_branch_macs": {k: v // 2 for k, v in branch.items()}, "note": FLOP_NOTE}
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _read(path: str) -> str | None:
-    try:
-        return Path(path).read_text().strip("\x00\n ")
-    except OSError:
-        return None
-
-
-def _command(args: list[str]) -> str | None:
-    try:
-        return subprocess.run(args, capture_output=True, text=True, timeout=10).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def hardware(device: torch.device) -> dict:
-    """What the numbers were measured on (and, on a Jetson, its L4T release and power mode)."""
-    import cv2
-    import timm
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:
-        usable = os.cpu_count()
-    mem = None
-    meminfo = _read("/proc/meminfo")
-    if meminfo and meminfo.startswith("MemTotal"):
-        mem = round(int(meminfo.split()[1]) / 2 ** 20, 1)
-    hw = {"cpu_model": _cpu_model(), "logical_cores": os.cpu_count(), "usable_cores": usable,
-          "torch_threads": torch.get_num_threads(), "memory_gib": mem, "os": platform.platform(),
-          "python": platform.python_version(), "torch": str(torch.__version__), "timm": str(timm.__version__),
-          "numpy": str(np.__version__), "opencv": str(cv2.__version__),
-          "load_average_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-          "device": str(device), "device_name": _cpu_model()}
-    if device.type == "cuda":
-        p = torch.cuda.get_device_properties(device)
-        hw.update({"device_name": torch.cuda.get_device_name(device), "cuda_capability": f"{p.major}.{p.minor}",
-                   "gpu_memory_gib": round(p.total_memory / 2 ** 30, 1), "cuda_runtime": torch.version.cuda,
-                   "cudnn": torch.backends.cudnn.version()})
-    tegra = _read("/etc/nv_tegra_release")
-    if tegra:   # a Jetson: record what docs/jetson.md asks for
-        hw.update({"jetson_board": _read("/proc/device-tree/model"), "l4t_release": tegra.splitlines()[0],
-                   "nvpmodel": _command(["nvpmodel", "-q"])})
-    return hw
-
-
 # --------------------------------------------------------------------------- the command
-def _device(name: str) -> torch.device:
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: no CUDA device is visible; use --device cpu")
-    return torch.device(name)
-
-
 def run_timing(checkpoint: str | Path | None = None, config: str | Path | None = None, *, device: str = "cpu",
                precision: str = "fp32", batch: int = 1, iters: int = 100, warmup: int = 10, mode: str = "both",
                data: str | Path | None = None, image_size: int = 256, threads: int | None = None,
@@ -375,7 +304,7 @@ def run_timing(checkpoint: str | Path | None = None, config: str | Path | None =
         if threads < 1:
             raise ConfigError(f"--threads: {threads}; give at least 1")
         torch.set_num_threads(threads)
-    dev, dtype = _device(device), PRECISIONS[precision]
+    dev, dtype = pick_device(device), PRECISIONS[precision]
     tm = load_timed_model(checkpoint, config, image_size=image_size, overrides=overrides)
     render_config = _dataset_config(data) if data is not None else tm.render_config
     if data is not None and render_config is None:
@@ -402,7 +331,7 @@ def run_timing(checkpoint: str | Path | None = None, config: str | Path | None =
         if mode in ("end2end", "both"):
             frames, used, source = raw_frames(render_config, tm.image_size, min(batch, 8))
             frames = [frames[i % len(frames)] for i in range(batch)]
-            pre = Preprocessor(used, tm.cfg, tm.max_stars)
+            pre = EndToEnd(used, tm.cfg, tm.max_stars)
             e2e = time_end_to_end(frames, pre, model, dev, dtype, iters, warmup)
             e2e["frame"]["source"] = source
             e2e["frame"]["downsample_factor"] = pre.geo.factor
@@ -445,33 +374,3 @@ def timing(out: str | Path, log=print, **kw) -> dict:
     log(summary_text(report))
     log(f"wrote {out}")
     return report
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--checkpoint", help="a trained checkpoint (best.pt)")
-    src.add_argument("--config", help="a training preset (configs/*.yaml): its architecture with random weights "
-                     "(neither option: the default config, the paper's Star-Fusion with SwinV2-T)")
-    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="default cpu")
-    p.add_argument("--precision", default="fp32", choices=tuple(PRECISIONS),
-                   help="fp32, or weights and inputs cast to fp16/bf16 (default fp32)")
-    p.add_argument("--batch", type=int, default=1, help="images per forward pass (default 1)")
-    p.add_argument("--iters", type=int, default=100, help="timed iterations (default 100)")
-    p.add_argument("--warmup", type=int, default=10, help="untimed iterations first (default 10)")
-    p.add_argument("--mode", default="both", choices=MODES,
-                   help="forward pass only, end to end from a raw frame, or both (default)")
-    p.add_argument("--data", help="skygen dataset whose camera renders the raw frame for end2end (default: the "
-                   "checkpoint's training dataset if present, else skygen's default 1024 px camera)")
-    p.add_argument("--image-size", type=int, default=256, help="model input size with --config (default 256)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
-    p.add_argument("--out", required=True, help="JSON file to write, e.g. results/timing/cpu_fp32_b1.json")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides with --config")
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.overrides and args.checkpoint:
-        raise ConfigError("key=value overrides apply to a config, not to --checkpoint (it carries its own config)")
-    timing(args.out, checkpoint=args.checkpoint, config=args.config, device=args.device, precision=args.precision,
-           batch=args.batch, iters=args.iters, warmup=args.warmup, mode=args.mode, data=args.data,
-           image_size=args.image_size, threads=args.threads, overrides=tuple(args.overrides))
-    return 0

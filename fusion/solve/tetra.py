@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from skygen.runtime import atomic_path
+
 from ..errors import FusionError
 from .base import Detections, Refusal, Solution, solution_from_matrix
 
@@ -83,9 +85,8 @@ def load_database(fov_deg: float, folder: str | Path | None = None, log=None):
         db = t3.SolverDatabase.generate_from_gaia(max_fov_deg=float(fov_deg), min_fov_deg=float(fov_deg),
                                                   **DB_PARAMS)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-        db.save_to_file(str(tmp))
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            db.save_to_file(str(tmp))
         if log:
             log(f"tetra3rs: built database for a {fov_deg:.2f} deg field in {time.perf_counter() - t0:.1f} s "
                 f"({db.num_stars} stars) -> {path}")

@@ -1,33 +1,16 @@
-"""The input pipeline: skygen shards -> (image, coordinates, mask, label) tensors.
+"""Model inputs from skygen shards: frames of a split as :class:`Preprocessor` items, samplers, loaders.
 
 Frames are read only through skygen's reader (:func:`skygen.io.open_dataset`), which
 opens the HDF5 shards lazily in each process; a :class:`FrameDataset` pickles without
 open handles, so DataLoader workers work with the fork, spawn and forkserver start methods.
-
-Image branch input
-    The stored frame (S x S, ADU) mapped to [0, 1] by a fixed log stretch,
-    ``x = log1p(max(adu - bias, 0) / s) / log1p((2**bits - 1 - bias) / s)`` with the
-    dataset's ``sensor.bias_adu`` and ``sensor.bit_depth`` and ``s = data.norm_scale_adu``
-    (8 ADU: the faint stars a tracker relies on stay visible next to saturated ones). One
-    channel, shape (1, S, S); the model replicates it to 3 channels when it loads ImageNet
-    weights.
-
-Coordinate input (the explicit ordering/padding convention the paper asks for)
-    Detections sorted by ``flux_adu`` descending (stable: ties keep skygen's order), the
-    first ``max_stars`` kept, one row per star with features
-    ``[x, y, log10(1 + flux_adu) - log_flux_offset]`` where ``x = (x_px + 0.5) / (W / 2) - 1``
-    and ``y = (y_px + 0.5 - H / 2) / (W / 2)``: the sensor's outer pixel *edges* map to -1
-    and +1 in x (the convention of ``torch.nn.functional.grid_sample(align_corners=False)``),
-    the sensor centre to 0, and y uses the same scale (a non-square sensor spans
-    ``[-H/W, H/W]`` in y), so distances and angles are preserved. Rows
-    beyond the detected stars are zeros with ``mask = False``. The heatmap branch renders the
-    same rows (see :mod:`fusion.heatmap`).
+Training (with an augmentation), evaluation and the experiment runner share this module.
 
 Frames with fewer than two detections are kept (their rows are mostly padding) and
 counted: :func:`count_sparse_frames`.
 
 Labels
-    One class index per frame (``label``) and, with soft labels, a (K,) target (``soft``).
+    One class index per frame (``label``) and, with soft labels, a (K,) target (``soft``);
+    with fine regions also ``label_fine``.
 
 Randomness
     The sampler yields ``(j, epoch)`` keys; the augmentation generator of a sample is
@@ -38,19 +21,25 @@ Randomness
 from __future__ import annotations
 
 import math
-import os
+from typing import Callable
 
+import cv2
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Sampler
 
 from skygen.io import Dataset as SkyDataset
 
-from .augment import FrameGeometry, Sample, augment
-from .config import AugConfig
-from .errors import DatasetError
+from ..errors import DatasetError
+from .inputs import FrameGeometry, Preprocessor, Sample
 
-COORD_FEATURES = ("x", "y", "log_flux")
+# OpenCV's own thread pool does not survive fork(): a DataLoader worker forked from a process
+# whose pool had started deadlocks inside OpenCV. The parallelism here is the DataLoader's
+# workers, so OpenCV stays single-threaded in every process that imports this module.
+cv2.setNumThreads(1)
+
+# an augmentation: (sample, generator, geometry) -> sample (fusion.train.augment.augment with its config bound)
+Augment = Callable[[Sample, np.random.Generator, FrameGeometry], Sample]
 
 
 def split_positions(ds: SkyDataset, split: str, max_frames: int | None = None) -> np.ndarray:
@@ -76,25 +65,6 @@ def count_sparse_frames(ds: SkyDataset, positions: np.ndarray) -> int:
     return int(np.sum(ds.frames["n_detections"][positions] < 2))
 
 
-def normalise_image(adu: np.ndarray, geo: FrameGeometry, scale_adu: float) -> np.ndarray:
-    """The documented log stretch of stored ADU to [0, 1] (values above the ADC range exceed 1)."""
-    top = math.log1p((geo.max_adu - geo.bias_adu) / scale_adu)
-    x = np.log1p(np.maximum(np.asarray(adu, np.float32) - geo.bias_adu, 0.0) / scale_adu) / top
-    return x.astype(np.float32)
-
-
-def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
-                      log_flux_offset: float) -> tuple[np.ndarray, np.ndarray]:
-    """(max_stars, 3) coordinate rows and (max_stars,) mask; ``sample`` must be sorted brightest first."""
-    n = min(sample.n, max_stars)
-    coords = np.zeros((max_stars, len(COORD_FEATURES)), np.float32)
-    mask = np.zeros(max_stars, bool)
-    coords[:n, 0], coords[:n, 1] = geo.normalised(sample.x_px[:n], sample.y_px[:n])
-    coords[:n, 2] = np.log10(1.0 + np.maximum(sample.flux_adu[:n], 0.0)) - log_flux_offset
-    mask[:n] = True
-    return coords, mask
-
-
 def read_detections(ds: SkyDataset, i: int) -> tuple[np.ndarray, ...]:
     """(x_px, y_px, flux_adu, area_px) of frame ``i``, brightest first."""
     det = ds.detections(i)
@@ -114,14 +84,16 @@ def read_sample(ds: SkyDataset, i: int, geo: FrameGeometry, detections: tuple | 
 class FrameDataset(torch.utils.data.Dataset):
     """Frames of one split as model inputs. Keys are ``j`` or ``(j, epoch)``; j indexes ``positions``.
 
-    Items are dicts: ``image`` (1, S, S) float32, ``coords`` (max_stars, 3) float32,
-    ``mask`` (max_stars,) bool, ``label`` int64, ``soft`` (K,) float32 when soft targets are
-    given, ``index`` (frame position in the dataset) and ``n_detections`` (before truncation).
+    Items are the :meth:`Preprocessor.item` dicts (``image`` (1, H/f, S) float32, ``coords``
+    (max_stars, 3) float32, ``mask`` (max_stars,) bool, ``n_detections`` before truncation) plus
+    ``label`` int64, ``index`` (frame position in the dataset), ``soft`` (K,) float32 when soft
+    targets are given and ``label_fine`` with fine-region labels. ``augment`` (training) is
+    applied to each sample with the generator of (seed, epoch, frame).
     """
 
     def __init__(self, ds: SkyDataset, positions: np.ndarray, labels: np.ndarray, *, max_stars: int = 6,
                  norm_scale_adu: float = 8.0, log_flux_offset: float = 3.0, soft: np.ndarray | None = None,
-                 aug: AugConfig | None = None, seed: int = 0, fine: np.ndarray | None = None):
+                 augment: Augment | None = None, seed: int = 0, fine: np.ndarray | None = None):
         if len(positions) != len(labels) or (soft is not None and len(soft) != len(labels)):
             raise ValueError("positions, labels and soft targets must have the same length")
         self.ds = ds
@@ -130,8 +102,8 @@ class FrameDataset(torch.utils.data.Dataset):
         self.soft = None if soft is None else np.asarray(soft, np.float32)
         self.fine = None if fine is None else np.asarray(fine, np.int64)   # fine-region labels (labels.fine_k)
         self.geo = FrameGeometry.from_render_config(ds.config)
-        self.max_stars, self.norm_scale_adu, self.log_flux_offset = max_stars, norm_scale_adu, log_flux_offset
-        self.aug, self.seed = aug, seed
+        self.pre = Preprocessor(self.geo, max_stars, log_flux_offset, norm_scale_adu)
+        self.augment, self.seed = augment, seed
         self._detections: dict[int, tuple] = {}   # per-process cache: the tables are small, reads are not
 
     def __getstate__(self) -> dict:
@@ -149,18 +121,14 @@ class FrameDataset(torch.utils.data.Dataset):
         if i not in self._detections:
             self._detections[i] = read_detections(self.ds, i)
         s = read_sample(self.ds, i, self.geo, self._detections[i])
-        if self.aug is not None:
-            s = augment(s, self.aug, np.random.default_rng([self.seed, epoch, i]), self.geo)
+        if self.augment is not None:
+            s = self.augment(s, np.random.default_rng([self.seed, epoch, i]), self.geo)
         return s
 
     def __getitem__(self, key) -> dict:
         j = key[0] if isinstance(key, tuple) else key
         s = self.sample(key)
-        coords, mask = encode_detections(s, self.geo, self.max_stars, self.log_flux_offset)
-        item = {"image": torch.from_numpy(normalise_image(s.image, self.geo, self.norm_scale_adu)[None]),
-                "coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
-                "label": torch.tensor(self.labels[j]), "index": torch.tensor(self.positions[j]),
-                "n_detections": torch.tensor(s.n)}
+        item = {**self.pre.item(s), "label": torch.tensor(self.labels[j]), "index": torch.tensor(self.positions[j])}
         if self.soft is not None:
             item["soft"] = torch.from_numpy(self.soft[j])
         if self.fine is not None:
@@ -229,12 +197,3 @@ def make_loader(dataset: FrameDataset, batch_size: int, *, shuffle: bool, seed: 
             kw["multiprocessing_context"] = mp.get_context(start_method)
     return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
                       pin_memory=pin_memory, drop_last=False, **kw)
-
-
-def default_workers() -> int:
-    """A sensible worker count for this machine: the usable cores minus one for the trainer."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:
-        n = os.cpu_count() or 1
-    return max(n - 1, 0)

@@ -1,4 +1,4 @@
-"""Boresight labels: spherical K-means on the training directions.
+"""Boresight regions: spherical K-means on the training directions, and the region hierarchy.
 
 A boresight (RA, Dec) becomes the ICRS unit vector ``v = [cos d cos a, cos d sin a, sin d]``
 (the same vector skygen stores as ``boresight/unit_vector``). Class k is the spherical
@@ -16,6 +16,13 @@ Algorithm (:func:`spherical_kmeans`)
     reported). ``n_init`` restarts (seeds ``[seed, r]``) and the one with the largest total
     cosine similarity is kept.
 
+Hierarchy (:class:`Regions`)
+    The K regions a model classifies and, optionally, ``fine_k`` finer regions (spherical
+    K-means on the same directions) that a model can be trained on; ``groups[f]`` is the
+    region of fine region f (the region of its centroid). One object owns both levels:
+    training fits it, the checkpoint stores it, the model's log-sum-exp head and the fine
+    stage's search read it. ``level`` is ``"coarse"`` (the K regions) or ``"fine"``.
+
 Soft targets (:func:`soft_targets`)
     ``q_k ∝ exp(kappa v . c_k)``: a von Mises–Fisher-like spread over the clusters near
     the true direction; kappa in 1/(unit of cosine). For a neighbour whose centroid is
@@ -28,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import DatasetError
+from ..errors import ConfigError, DatasetError
 
 
 def radec_to_unit(ra_deg, dec_deg) -> np.ndarray:
@@ -155,3 +162,72 @@ def class_weights(labels: np.ndarray, k: int, mode: str = "balanced") -> np.ndar
     counts = np.bincount(np.asarray(labels, np.int64), minlength=k).astype(np.float64)
     alpha = len(labels) / (k * np.maximum(counts, 1.0))
     return alpha / alpha.sum()
+
+
+LEVELS = ("coarse", "fine")
+
+
+@dataclass(frozen=True)
+class Regions:
+    """The K regions (``coarse`` (K, 3) ICRS unit vectors) and, optionally, the fine regions
+    (``fine`` (F, 3)) with ``groups`` (F,): the region each fine region belongs to."""
+    coarse: np.ndarray
+    fine: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "coarse", np.asarray(self.coarse, np.float64))
+        if self.fine is not None:
+            object.__setattr__(self, "fine", np.asarray(self.fine, np.float64))
+
+    @property
+    def k(self) -> int:
+        return len(self.coarse)
+
+    @property
+    def fine_k(self) -> int | None:
+        return None if self.fine is None else len(self.fine)
+
+    @property
+    def groups(self) -> np.ndarray | None:
+        """(F,) region index of each fine region, or None without fine regions."""
+        return None if self.fine is None else assign(self.fine, self.coarse)
+
+    @classmethod
+    def fit(cls, v: np.ndarray, k: int, fine_k: int | None = None, *, seed: int = 0, n_init: int = 4,
+            max_iter: int = 300, tol_deg: float = 1e-6) -> tuple["Regions", KMeansResult]:
+        """Fit both levels on training directions ``v`` (N, 3); also returns the coarse K-means result."""
+        km = spherical_kmeans(v, k, seed, n_init, max_iter, tol_deg)
+        fine = None
+        if fine_k:
+            if fine_k > len(v):
+                raise ConfigError(f"labels.fine_k={fine_k} exceeds the {len(v)} training directions")
+            fine = spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids
+        return cls(km.centroids, fine).checked(), km
+
+    def with_fine(self, v: np.ndarray, fine_k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300,
+                  tol_deg: float = 1e-6) -> "Regions":
+        """These regions with fine regions fitted on ``v`` (the coarse ones kept)."""
+        if fine_k > len(v):
+            raise ConfigError(f"labels.fine_k={fine_k} exceeds the {len(v)} training directions")
+        return Regions(self.coarse, spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids).checked()
+
+    def checked(self) -> "Regions":
+        """Self, after checking that every region holds at least one fine region (ConfigError otherwise)."""
+        if self.fine is not None:
+            empty = sorted(set(range(self.k)) - set(self.groups.tolist()))
+            if empty:
+                raise ConfigError(f"labels.fine_k={self.fine_k}: regions {empty} contain no fine-region centroid; "
+                                  "raise labels.fine_k")
+        return self
+
+    def has(self, level: str) -> bool:
+        return level == "coarse" or (level == "fine" and self.fine is not None)
+
+    def centroids(self, level: str = "coarse") -> np.ndarray:
+        if level not in LEVELS:
+            raise ValueError(f"level={level!r}: choose one of {LEVELS}")
+        return self.fine if level == "fine" and self.fine is not None else self.coarse
+
+    def assign(self, v: np.ndarray, level: str = "coarse") -> np.ndarray:
+        """Region (or fine region) index of each direction in ``v``: max cosine."""
+        return assign(v, self.centroids(level))

@@ -41,8 +41,8 @@ from typing import Callable
 import torch
 from torch import nn
 
-from .config import ModelConfig
-from .errors import CheckpointError, ConfigError
+from ..config import ModelConfig
+from ..errors import CheckpointError, ConfigError
 from .canonical import canonical_views, rotate_image, view_weights
 from .heatmap import HeatmapRasteriser
 

@@ -16,8 +16,8 @@ of that corruption (:meth:`skygen.corruptions.Corruption.stack`); both the extra
 resulting total are reported. Severity 0 gives the stored frames exactly, so its row
 equals ``fusion evaluate`` on the same frames.
 
-Inputs are built exactly as for training and evaluation (:func:`fusion.data.normalise_image`,
-:func:`fusion.data.encode_detections`) with each checkpoint's own data settings, and frames
+Inputs are built exactly as for training and evaluation (:class:`fusion.model.inputs.Preprocessor`)
+with each checkpoint's own data settings, and frames
 are labelled against each checkpoint's own centroids (max cosine), so every checkpoint is
 scored on its own K classes.
 
@@ -39,7 +39,6 @@ place, so a failed or interrupted sweep leaves nothing half-written.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import os
@@ -60,15 +59,17 @@ from skygen.io import Dataset as SkyDataset
 from skygen.io import open_dataset
 from skygen.perturb import perturbed_frames
 
-from .augment import FrameGeometry, Sample
-from .checkpoint import atomic_write_bytes, atomic_write_text, load_checkpoint, write_json
-from .config import FusionConfig
-from .data import boresight_vectors, encode_detections, normalise_image, split_positions
-from .errors import CheckpointError, ConfigError
-from .labels import assign
-from .metrics import angular_error_deg, error_stats, topk_accuracy
-from .models import StarFusion
-from .train import autocast_dtype, load_trained_model, predict
+from skygen.runtime import atomic_write_bytes, atomic_write_text, pick_device, write_json
+
+from ..config import FusionConfig
+from ..errors import CheckpointError, ConfigError
+from ..model.checkpoint import load_checkpoint
+from ..model.inference import autocast_dtype, predict_batches
+from ..model.inputs import FrameGeometry, Preprocessor, Sample, sample_from_table
+from ..model.metrics import angular_error_deg, error_stats, topk_accuracy
+from ..model.networks import StarFusion
+from ..model.regions import assign
+from ..model.shards import boresight_vectors, split_positions
 
 FORMAT = "fusion-robustness"
 FORMAT_VERSION = 1
@@ -162,20 +163,19 @@ def load_sweep_model(path: str | Path, ds: SkyDataset) -> SweepModel:
     """Load a checkpoint and check that it can be evaluated on ``ds`` (CheckpointError otherwise)."""
     path = Path(path)
     ckpt = load_checkpoint(path)
-    model, cfg = load_trained_model(ckpt, str(path))
-    centroids = np.asarray(ckpt["centroids"].numpy(), np.float64)
-    k = int(ckpt["num_classes"])
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
+    centroids, k = ckpt.centroids, ckpt.num_classes
     if centroids.shape != (k, 3):
         raise CheckpointError(f"{path}: holds {centroids.shape[0]} centroids of shape {centroids.shape[1:]} but "
                               f"K={k} classes; the checkpoint is damaged or was edited")
     if model.num_classes != k:
         raise CheckpointError(f"{path}: the model has {model.num_classes} outputs but the checkpoint's K is {k}")
-    size = int(ckpt["image_size"])
+    size = ckpt.image_size
     if ds.image_shape[0] != size:
         raise CheckpointError(f"{path} was trained on {size} x {size} images but dataset {ds.root} stores "
                               f"{ds.image_shape[0]} x {ds.image_shape[1]}; render the sweep dataset with "
                               f"output.image_size_px={size} or use a checkpoint trained at this size")
-    return SweepModel(path, model.eval(), cfg, centroids, str(ckpt["model_name"]), dict(ckpt["branches"]), size)
+    return SweepModel(path, model, cfg, centroids, ckpt.model_name, dict(ckpt.branches), size)
 
 
 def _label(models: list[SweepModel]) -> None:
@@ -199,31 +199,26 @@ def select_frames(ds: SkyDataset, split: str, n: int | None, seed: int) -> np.nd
 
 def frame_sample(frame: dict, ds: SkyDataset, position: int, geo: FrameGeometry) -> Sample:
     """A perturbed frame (from :func:`perturbed_frames`) as the :class:`Sample` that
-    :func:`fusion.data.read_sample` makes of a stored one (brightest first)."""
-    det = frame["detections"]
-    return Sample(image=np.asarray(frame["image"]).astype(np.float32), x_px=np.asarray(det["x_px"], np.float64),
-                  y_px=np.asarray(det["y_px"], np.float64), flux_adu=np.asarray(det["flux_adu"], np.float32),
-                  area_px=np.asarray(det["area_px"], np.int32),
-                  background_adu=float(ds.frames["background_adu"][position]),
-                  noise_adu=float(ds.frames["noise_adu"][position]) / geo.factor).sorted()
+    :func:`fusion.model.shards.read_sample` makes of a stored one (brightest first)."""
+    return sample_from_table(frame["detections"], np.asarray(frame["image"]),
+                             float(ds.frames["background_adu"][position]),
+                             float(ds.frames["noise_adu"][position]) / geo.factor)
 
 
 class _Items(torch.utils.data.Dataset):
-    """Model-input items of already perturbed frames, in the dicts :func:`fusion.train.predict` reads."""
+    """Model-input items of already perturbed frames, as :class:`fusion.model.shards.FrameDataset` makes them."""
 
     def __init__(self, samples: list[Sample], positions: np.ndarray, labels: np.ndarray, geo: FrameGeometry,
                  cfg: FusionConfig):
-        self.samples, self.positions, self.labels, self.geo, self.d = samples, positions, labels, geo, cfg.data
+        self.samples, self.positions, self.labels = samples, positions, labels
+        self.pre = Preprocessor(geo, cfg.data.max_stars, cfg.data.log_flux_offset, cfg.data.norm_scale_adu)
 
     def __len__(self) -> int:
         return len(self.samples)
 
     def __getitem__(self, j: int) -> dict:
-        s = self.samples[j]
-        coords, mask = encode_detections(s, self.geo, self.d.max_stars, self.d.log_flux_offset)
-        return {"image": torch.from_numpy(normalise_image(s.image, self.geo, self.d.norm_scale_adu)[None]),
-                "coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
-                "label": torch.tensor(self.labels[j]), "index": torch.tensor(self.positions[j])}
+        return {**self.pre.item(self.samples[j]), "label": torch.tensor(self.labels[j]),
+                "index": torch.tensor(self.positions[j])}
 
 
 def score(m: SweepModel, samples: list[Sample], positions: np.ndarray, v: np.ndarray, geo: FrameGeometry,
@@ -232,7 +227,7 @@ def score(m: SweepModel, samples: list[Sample], positions: np.ndarray, v: np.nda
     labels = assign(v, m.centroids)
     items = _Items(samples, positions, labels, geo, m.cfg)
     loader = torch.utils.data.DataLoader(items, batch_size=batch_size, shuffle=False)
-    out = predict(m.model, loader, device, amp_dtype=autocast_dtype(m.cfg.train.amp, device))
+    out = predict_batches(m.model, loader, device, amp_dtype=autocast_dtype(m.cfg.train.amp, device))
     pred = np.argmax(out["logits"], axis=1)
     err = error_stats(angular_error_deg(v, m.centroids, pred))
     return {**topk_accuracy(out["logits"], labels), "median_error_deg": err["median_deg"],
@@ -244,14 +239,6 @@ def _bar(total: int, enabled: bool):
     from tqdm import tqdm
     return tqdm(total=total, unit="frame", dynamic_ncols=True, leave=False,
                 disable=not (enabled and sys.stderr.isatty()))
-
-
-def _device(name: str) -> torch.device:
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: no CUDA device is visible; use --device cpu")
-    if name not in ("auto", "cpu", "cuda"):
-        raise ConfigError(f"--device: {name!r}; expected auto, cpu or cuda")
-    return torch.device("cuda" if name != "cpu" and torch.cuda.is_available() else "cpu")
 
 
 def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str] = "all", *,
@@ -274,7 +261,7 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
         raise ConfigError("--batch-size must be >= 1 and --workers >= 0")
     names = resolve_corruptions(corruption)
     levels = parse_levels(levels)
-    dev = _device(device)
+    dev = pick_device(device)
     with open_dataset(data) as ds:
         plan = sweep_levels(names, levels, ds.config)
         models = [load_sweep_model(p, ds) for p in checkpoints]
@@ -373,7 +360,7 @@ def markdown_text(report: dict) -> str:
 
 def plot_corruption(report: dict, name: str) -> bytes:
     """PNG bytes: top-1 and median angular error against severity, one line per checkpoint."""
-    from .plots import _figure
+    from ..plots import _figure
     plt = _figure()
     info = report["corruption_info"][name]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
@@ -465,27 +452,3 @@ def summary_text(report: dict) -> str:
 
 
 # --------------------------------------------------------------------------- command line
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    sweeps = "; ".join(f"{c.name} ({c.unit}: {', '.join(f'{v:g}' for v in c.sweep)})" for c in corr.REGISTRY.values())
-    p.add_argument("--corruption", required=True, metavar="NAME|all",
-                   help=f"a registered corruption, a comma-separated list, or 'all'. Default severities: {sweeps}")
-    p.add_argument("--checkpoint", required=True, nargs="+", metavar="CKPT",
-                   help="one or more best.pt files (e.g. full Star-Fusion, image-only, geometry-only): one line each")
-    p.add_argument("--data", required=True, help="skygen dataset folder whose frames are corrupted")
-    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to use (default test)")
-    p.add_argument("--levels", metavar="A,B,C",
-                   help="extra severities in the corruption's unit (single corruption only; default: its sweep)")
-    p.add_argument("--n", type=int, metavar="FRAMES", help="use this many frames of the split, drawn with --seed "
-                   "(default: all)")
-    p.add_argument("--workers", type=int, default=1, help="processes re-rendering frames (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the frame subset chosen by --n (default 0)")
-    p.add_argument("--batch-size", type=int, default=64, help="evaluation batch size (default 64)")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
-    p.add_argument("--out", required=True, help="folder for the tables and plots (created; files replaced "
-                   "only when the whole sweep has finished)")
-
-
-def run(args: argparse.Namespace) -> int:
-    robustness(args.checkpoint, args.data, args.corruption, args.out, split=args.split, levels=args.levels,
-               n=args.n, workers=args.workers, seed=args.seed, batch_size=args.batch_size, device=args.device)
-    return 0

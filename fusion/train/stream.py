@@ -14,11 +14,10 @@ Determinism and resume
     sample, and DataLoader workers (worker ``w`` makes steps ``s = w mod workers``, which
     the DataLoader returns round-robin, i.e. in step order) change nothing.
 
-Batches are the same dicts :class:`fusion.data.FrameDataset` items collate to
+Batches are the same dicts :class:`fusion.model.shards.FrameDataset` items collate to
 (``coords``, ``mask``, ``label``, ``index``, ``n_detections``, ``soft``; ``image`` for
-the ``frames`` kind), made with the same encoders (:func:`fusion.data.encode_detections`,
-:func:`fusion.data.normalise_image`), so the model and the training step do not know
-where a batch came from.
+the ``frames`` kind), made by the same :class:`fusion.model.inputs.Preprocessor`, so the
+model and the training step do not know where a batch came from.
 
 Corruption-aware training: ``stream.dropout``, ``stream.false_stars``,
 ``stream.centroid_noise`` and ``stream.magnitude_noise`` are ``[lo, hi]`` ranges; each
@@ -37,6 +36,8 @@ are never exactly the render config's, and the coordinate rows carry absolute lo
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -44,10 +45,9 @@ from skygen import hashrng
 from skygen.config import build_config as build_render_config
 from skygen.stream import RANGED, SampleStream
 
-from .augment import FrameGeometry
-from .data import COORD_FEATURES, normalise_image
-from .errors import ConfigError
-from .labels import assign, soft_targets
+from ..errors import ConfigError
+from ..model.inputs import Preprocessor
+from ..model.regions import Regions, assign, soft_targets
 
 
 def stream_render_config(dataset_config: dict, seed: int, render_backend: str | None = None,
@@ -87,29 +87,12 @@ def brightness_offsets(seed: int, index: np.ndarray, lo: float, hi: float) -> np
     return (-0.4 * (lo + (hi - lo) * u)).astype(np.float32)
 
 
-def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: int,
-                 log_flux_offset: float, limits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flat detection tables (brightest first per sample) -> coords (B, M, 3), mask (B, M), counts (B,).
-
-    The same rows as :func:`fusion.data.encode_detections`, vectorised over samples.
-    ``limits`` (B,) keeps at most that many (brightest) detections of each sample; ``counts``
-    are then the detections kept.
-    """
-    b = len(offsets) - 1
-    counts = np.diff(offsets)
-    if limits is not None:
-        counts = np.minimum(counts, limits)
-    fr = np.repeat(np.arange(b), np.diff(offsets))
-    rank = np.arange(len(fr)) - offsets[:-1][fr]
-    keep = (rank < max_stars) & (rank < counts[fr])
-    fr, rank = fr[keep], rank[keep]
-    coords = np.zeros((b, max_stars, len(COORD_FEATURES)), np.float32)
-    mask = np.zeros((b, max_stars), bool)
-    coords[fr, rank, 0], coords[fr, rank, 1] = geo.normalised(np.asarray(det["x_px"])[keep],
-                                                                np.asarray(det["y_px"])[keep])
-    coords[fr, rank, 2] = np.log10(1.0 + np.maximum(np.asarray(det["flux_adu"], np.float64)[keep], 0.0)) - log_flux_offset
-    mask[fr, rank] = True
-    return coords, mask, counts
+@dataclass(frozen=True)
+class _DataSettings:
+    """The ``data.*`` values the preprocessor reads (a stream is built from them, not from a whole config)."""
+    max_stars: int
+    log_flux_offset: float
+    norm_scale_adu: float
 
 
 class StreamBatches(torch.utils.data.IterableDataset):
@@ -130,7 +113,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.seed, self.batch, self.steps, self.rank, self.world = seed, batch, steps, rank, world
         self.max_stars, self.log_flux_offset, self.norm_scale_adu = max_stars, log_flux_offset, norm_scale_adu
         self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
-        self.geo = FrameGeometry.from_render_config(dataset_config)
+        self.pre = Preprocessor.from_configs(dataset_config, _DataSettings(max_stars, log_flux_offset, norm_scale_adu))
+        self.geo = self.pre.geo
         self.device, self.render_backend = device, render_backend
         self.few_prob, self.few_stars = float(few_prob), (int(few_stars[0]), int(few_stars[1]))
         self.brightness_mag = (float(brightness_mag[0]), float(brightness_mag[1]))
@@ -138,6 +122,22 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self._stream = None
         # fail early (config, calibration, detectability) in the main process, not in a worker
         self.stream()
+
+    @classmethod
+    def from_config(cls, cfg, dataset_config: dict, regions: Regions, *, rank: int = 0, world: int = 1,
+                    device=None) -> "StreamBatches":
+        """The training stream of a resolved :class:`fusion.config.FusionConfig` (``stream.*``, ``data.*``,
+        ``labels.*``) for a dataset's render config; ``device`` is used by ``stream.render_backend=torch``."""
+        sc, tc = cfg.stream, cfg.train
+        return cls(dataset_config, sc.kind, regions.coarse, seed=tc.seed if sc.seed is None else sc.seed,
+                   batch=tc.batch_size // world, steps=sc.samples_per_epoch // tc.batch_size, rank=rank,
+                   world=world, max_stars=cfg.data.max_stars, log_flux_offset=cfg.data.log_flux_offset,
+                   norm_scale_adu=cfg.data.norm_scale_adu,
+                   soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None, ranges=level_ranges(sc),
+                   calibration=sc.calibration, fine_centroids=regions.fine if cfg.labels.fine_k else None,
+                   few_prob=sc.few_prob, few_stars=sc.few_stars, brightness_mag=sc.brightness_mag,
+                   device=str(device) if sc.render_backend == "torch" and device is not None else None,
+                   render_backend=sc.render_backend)
 
     def stream(self) -> SampleStream:
         if self._stream is None:
@@ -173,14 +173,12 @@ class StreamBatches(torch.utils.data.IterableDataset):
             frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
-            geo = self.geo
             if dev_images is None:
-                image = np.stack([normalise_image(f.image, geo, self.norm_scale_adu)[None] for f in frames])
+                image = np.stack([self.pre.image(f.image)[None] for f in frames])
             else:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
-                top = float(np.log1p((geo.max_adu - geo.bias_adu) / self.norm_scale_adu))
-                image = (torch.log1p(torch.clamp(dev_images - geo.bias_adu, min=0) / self.norm_scale_adu) / top)[:, None]
+                image = self.pre.images_torch(dev_images)
         limits = few_star_limits(self.seed, idx, self.few_prob, *self.few_stars)
-        coords, mask, counts = encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset, limits)
+        coords, mask, counts = self.pre.batch(offsets, det, limits)
         shift = brightness_offsets(self.seed, idx, *self.brightness_mag)
         if shift is not None:
             coords[..., 2] += shift[:, None] * mask
@@ -206,6 +204,6 @@ def make_stream_loader(ds: StreamBatches, workers: int) -> torch.utils.data.Data
     """A DataLoader over ready batches (``batch_size=None``); call ``loader.dataset.set_epoch(e)``."""
     kw = {}
     if workers > 0:
-        from .data import worker_init
+        from ..model.shards import worker_init
         kw = {"worker_init_fn": worker_init, "prefetch_factor": 4, "persistent_workers": False}
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, **kw)

@@ -1,0 +1,222 @@
+"""Checkpoints: one typed schema (:class:`Checkpoint`), loaded once, saved atomically, versioned.
+
+A checkpoint file (``best.pt``, ``last.pt``) is a ``torch.save`` dict that loads with
+``torch.load(weights_only=True)`` (tensors and plain Python values only). Its keys are the
+fields of :class:`Checkpoint` plus ``format`` = ``"fusion-checkpoint"`` and
+``format_version`` = :data:`FORMAT_VERSION`:
+
+``model``
+    the model's state dict (unwrapped from DDP).
+``config``
+    the resolved training config (dict); ``model_name``, ``branches``, ``num_classes`` (K),
+    ``image_size`` (stored image columns), ``max_stars``.
+``centroids``, ``fine_centroids``
+    (K, 3) and (F, 3) or None float64 tensors: the regions (:class:`fusion.model.regions.Regions`).
+``render_config``
+    the training dataset's resolved skygen config (camera, sensor, detector, stored image
+    size): everything applying the model to a new frame needs.
+``dataset``, ``train_frame_ids``
+    the training dataset (root as an absolute path, dataset_id, schema_version, camera) and
+    the uint64 frame identities of its training frames as int64 (empty for a stream-trained
+    model), so that evaluation can refuse frames the model has seen.
+``versions``
+    the library versions that wrote it.
+``epoch``, ``history``, ``best``, ``finished``, ``optimizer``, ``scheduler``, ``scaler``, ``rng``
+    training state: completed epochs (training resumes at this epoch index), metric rows, the
+    best-epoch record, whether the run ended, optimiser/schedule/scaler states and generator
+    states.
+
+Older files of format version 1 lack some keys (``fine_centroids``, ``render_config``,
+``train_frame_ids``, ``dataset``); :func:`migrate` fills them with None, and the users of
+those fields say what to do when they need one. A file of another format version is
+refused with one line.
+"""
+
+from __future__ import annotations
+
+import io
+import platform
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from skygen.runtime import atomic_write_bytes
+
+from ..errors import CheckpointError, ConfigError
+from .regions import Regions
+
+FORMAT = "fusion-checkpoint"
+FORMAT_VERSION = 1
+
+
+def versions() -> dict:
+    import timm
+    from skygen import __version__ as skygen_version
+    from .. import __version__
+    return {"fusion": __version__, "skygen": skygen_version, "torch": str(torch.__version__),
+            "timm": str(timm.__version__), "numpy": str(np.__version__), "python": platform.python_version()}
+
+
+@dataclass
+class Checkpoint:
+    """A fusion checkpoint (see the module docstring for each field). ``source`` (not saved) names
+    where it was read from, for messages."""
+    model: dict
+    config: dict
+    centroids: np.ndarray
+    num_classes: int
+    image_size: int
+    max_stars: int
+    model_name: str
+    branches: dict
+    fine_centroids: np.ndarray | None = None
+    render_config: dict | None = None
+    dataset: dict | None = None
+    train_frame_ids: np.ndarray | None = None
+    versions: dict = field(default_factory=dict)
+    epoch: int = 0
+    history: list = field(default_factory=list)
+    best: dict = field(default_factory=dict)
+    finished: bool = False
+    optimizer: dict | None = None
+    scheduler: dict | None = None
+    scaler: dict | None = None
+    rng: dict | None = None
+    source: str = field(default="checkpoint", compare=False)
+
+    # ---------------------------------------------------------------- file
+    def to_dict(self) -> dict:
+        """The dict that is saved (tensors and plain values)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "source"}
+        d["centroids"] = torch.from_numpy(np.asarray(self.centroids, np.float64))
+        if self.fine_centroids is not None:
+            d["fine_centroids"] = torch.from_numpy(np.asarray(self.fine_centroids, np.float64))
+        if self.train_frame_ids is not None:
+            d["train_frame_ids"] = torch.from_numpy(np.asarray(self.train_frame_ids).view(np.int64))
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, **d}
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "checkpoint") -> "Checkpoint":
+        d = migrate(dict(d), source)
+        arr = lambda t: None if t is None else (t.numpy() if isinstance(t, torch.Tensor) else np.asarray(t))
+        try:
+            kw = {f.name: d[f.name] for f in fields(cls) if f.name in d and f.name != "source"}
+            kw["centroids"] = np.asarray(arr(d["centroids"]), np.float64)
+            kw["fine_centroids"] = None if d.get("fine_centroids") is None else np.asarray(arr(d["fine_centroids"]),
+                                                                                           np.float64)
+            kw["train_frame_ids"] = arr(d.get("train_frame_ids"))
+            for key in ("num_classes", "image_size", "max_stars", "epoch"):
+                kw[key] = int(d.get(key, 0))
+            return cls(source=str(source), **kw)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{source}: a fusion checkpoint without a usable {exc} entry; it is damaged or "
+                                  "was written by hand") from None
+
+    def save(self, path: str | Path) -> None:
+        """``torch.save`` atomically (a hidden temporary file renamed into place)."""
+        buf = io.BytesIO()
+        torch.save(self.to_dict(), buf)
+        atomic_write_bytes(path, buf.getvalue())
+
+    # ---------------------------------------------------------------- what it holds
+    @property
+    def regions(self) -> Regions:
+        """The regions; fine ones only when the model was trained on them."""
+        fine_k = (self.config.get("labels") or {}).get("fine_k")
+        return Regions(self.centroids, self.fine_centroids if fine_k else None)
+
+    @property
+    def fusion_config(self):
+        """The resolved training config as a :class:`fusion.config.FusionConfig`."""
+        from ..config import build_config
+        try:
+            return build_config(self.config)
+        except ConfigError as exc:
+            raise CheckpointError(f"{self.source}: its config is not valid for this fusion version ({exc})") from None
+
+    def require_render_config(self) -> dict:
+        """The skygen render config the model was trained for; a one-line CheckpointError when it lacks one."""
+        rc = self.render_config
+        if not isinstance(rc, dict) or "camera" not in rc:
+            raise CheckpointError(f"{self.source}: this checkpoint predates camera data in checkpoints (no "
+                                  "'render_config'); re-train it with this fusion, or pass --dataset DIR (its "
+                                  "training dataset) to take the camera and detector from there")
+        return rc
+
+    def build_model(self):
+        """The model, rebuilt from this checkpoint's own config, with its weights, on the CPU, in eval mode."""
+        from .networks import create_model
+        cfg = self.fusion_config
+        model = create_model(cfg.model.name, self.num_classes, cfg.model, image_size=self.image_size,
+                             fine_classes=cfg.labels.fine_k, max_stars=self.max_stars, load_pretrained=False)
+        load_model_state(model, self)
+        return model.eval()
+
+
+def migrate(d: dict, source: str = "checkpoint") -> dict:
+    """A loaded checkpoint dict brought to the current schema of format version 1 (missing keys -> None)."""
+    for key in ("fine_centroids", "render_config", "dataset", "train_frame_ids", "optimizer", "scheduler", "scaler",
+                "rng"):
+        d.setdefault(key, None)
+    d.setdefault("versions", {})
+    return d
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """``path`` itself, or ``path/best.pt`` when ``path`` is a run folder."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / "best.pt").is_file():
+            return path / "best.pt"
+        raise CheckpointError(f"{path} is a folder without best.pt; give a run folder written by `fusion train` "
+                              "or a checkpoint file (best.pt, last.pt)")
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Load and check a fusion checkpoint (a file, or a run folder: its best.pt); CheckpointError otherwise."""
+    path = resolve_checkpoint(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file not found")
+    try:
+        d = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises many types for damaged or foreign files
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {exc}); "
+                              "it may be truncated or from another program") from None
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        found = d.get("format") if isinstance(d, dict) else type(d).__name__
+        raise CheckpointError(f"{path}: not a fusion checkpoint (format={found!r}); give a best.pt or last.pt "
+                              "written by `fusion train`")
+    if d.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint format version {d.get('format_version')} is not supported "
+                              f"(this fusion reads version {FORMAT_VERSION}); use the fusion version that wrote it")
+    return Checkpoint.from_dict(d, str(path))
+
+
+def load_model_state(model: torch.nn.Module, ckpt: Checkpoint) -> None:
+    """Load ``ckpt.model`` strictly; a mismatch becomes a CheckpointError naming model and K."""
+    try:
+        model.load_state_dict(ckpt.model)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        raise CheckpointError(f"{ckpt.source} does not fit this model: it holds model {ckpt.model_name!r} "
+                              f"with K={ckpt.num_classes} and branches {ckpt.branches} "
+                              f"({first[1].strip() if len(first) > 1 else first[0]})") from None
+
+
+def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
+    """Warm start: copy every parameter/buffer of checkpoint ``path`` whose name and shape match.
+
+    Returns ``{"loaded": [...], "skipped": [...]}`` (names). Refuses a checkpoint that
+    matches nothing (wrong file); the head is simply skipped when K differs.
+    """
+    ckpt = load_checkpoint(path)
+    own = model.state_dict()
+    take = {k: v for k, v in ckpt.model.items() if k in own and own[k].shape == v.shape}
+    if not take:
+        raise CheckpointError(f"model.init_from={path}: no parameter of that checkpoint fits this model "
+                              f"(it holds {ckpt.model_name!r} with branches {ckpt.branches})")
+    model.load_state_dict(take, strict=False)
+    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take)}

@@ -1,0 +1,169 @@
+"""The solver registry: every attitude solver by name, and one :func:`build_solver` for predict and benchmark.
+
+A solver is anything with ``name`` and ``solve(detections, camera, image=None, **kw)``
+(:class:`fusion.solve.base.Solver`). Registered here (:data:`SOLVERS`):
+
+=========================  ======================================================================
+``tetra3rs``               tetra3rs lost-in-space, the classical baseline (:mod:`fusion.solve.tetra`)
+``whole-sky``              the fine stage over the whole sky, no prior (:mod:`fusion.solve.fine`)
+``tetra3rs>whole-sky``     tetra3rs, and the whole-sky fine stage where it refuses
+``learned+fine``           the fine stage searching a learned prior's most probable regions
+``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses (``fusion predict --lis-first``)
+``oracle-prior``           benchmark only: the fine stage with the true region ranked first
+``sim85-prior``            benchmark only: the true region first in 85 % of frames, second otherwise
+=========================  ======================================================================
+
+Each entry names the prior it needs (``None``, ``"learned"`` — a checkpoint's model or any
+:class:`fusion.solve.priors.RegionPrior` — or ``"oracle"``, the benchmark's truth).
+**Adding a solver**: write a class with ``name`` and ``solve`` and register a builder
+``@register_solver("my-solver", prior=None, doc="...")`` taking a :class:`SolverContext`;
+``fusion predict --solve`` and ``fusion benchmark --solvers my-solver`` then use it
+(docs/ARCHITECTURE.md shows a worked example). This module imports no torch, so the command
+line can list the names cheaply; builders import what they need.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass
+class SolverContext:
+    """What a builder may use: the camera, a shared tetra3rs solver, the prior and the search settings."""
+    camera: object                          # skygen.camera.Camera
+    tetra: object                           # fusion.solve.tetra.Tetra3Solver (its database loaded once)
+    prior: object | None = None             # a RegionPrior at its search level (learned solvers)
+    search_centroids: np.ndarray | None = None   # regions the oracle priors rank (benchmark)
+    top_k: int = 20                         # regions the fine stage searches, most probable first
+    focal_tol: float = 0.02                 # relative focal-length uncertainty the fine stage fits within
+    built: dict = field(default_factory=dict)    # solvers already built for this context, by name
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    name: str
+    prior: str | None       # None, "learned" or "oracle"
+    doc: str
+    build: Callable[[SolverContext], object]
+
+
+SOLVERS: dict[str, SolverSpec] = {}
+
+
+def register_solver(name: str, *, prior: str | None = None, doc: str = ""):
+    """Decorator registering ``builder(ctx: SolverContext) -> solver`` under ``name``."""
+    if prior not in (None, "learned", "oracle"):
+        raise ValueError(f"prior={prior!r}: None, 'learned' or 'oracle'")
+
+    def deco(builder):
+        SOLVERS[name] = SolverSpec(name, prior, doc, builder)
+        return builder
+    return deco
+
+
+def get(ctx: SolverContext, name: str):
+    """The solver ``name`` of this context, built once (solvers that chain others share them)."""
+    if name not in ctx.built:
+        ctx.built[name] = SOLVERS[name].build(ctx)
+    return ctx.built[name]
+
+
+@register_solver("tetra3rs", doc="tetra3rs lost-in-space (the classical baseline)")
+def _tetra3rs(ctx: SolverContext):
+    return ctx.tetra
+
+
+@register_solver("whole-sky", doc="the fine stage over the whole sky, no prior")
+def _whole_sky(ctx: SolverContext):
+    from .fine import CoarseToFineSolver
+    return CoarseToFineSolver(ctx.tetra, None, name="whole-sky", focal_tol=ctx.focal_tol)
+
+
+@register_solver("tetra3rs>whole-sky", doc="tetra3rs, and the whole-sky fine stage where it refuses")
+def _tetra3rs_whole_sky(ctx: SolverContext):
+    from .base import FallbackSolver
+    return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "whole-sky"))
+
+
+@register_solver("learned+fine", prior="learned", doc="the fine stage searching the learned prior's regions")
+def _learned_fine(ctx: SolverContext):
+    from .fine import CoarseToFineSolver
+    return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine", top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+
+@register_solver("tetra3rs>learned+fine", prior="learned",
+                 doc="tetra3rs lost-in-space, and learned + fine where it refuses")
+def _tetra3rs_learned_fine(ctx: SolverContext):
+    from .base import FallbackSolver
+    return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine"))
+
+
+@register_solver("oracle-prior", prior="oracle", doc="benchmark only: the true region ranked first")
+def _oracle(ctx: SolverContext):
+    from .fine import CoarseToFineSolver
+    from .priors import OraclePrior
+    return CoarseToFineSolver(ctx.tetra, OraclePrior(ctx.search_centroids, 1.0), name="oracle-prior",
+                              top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+
+@register_solver("sim85-prior", prior="oracle", doc="benchmark only: the true region first in 85 % of frames")
+def _sim85(ctx: SolverContext):
+    from .fine import CoarseToFineSolver
+    from .priors import OraclePrior
+    return CoarseToFineSolver(ctx.tetra, OraclePrior(ctx.search_centroids, 0.85, seed=1), name="sim85-prior",
+                              top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+
+def default_search_k(level: str) -> int:
+    """Regions the fine stage searches by default: 20 fine regions (~2 % of the sky at fine_k = 1000) or 3 of K."""
+    return 20 if level == "fine" else 3
+
+
+def check_search_options(focal_tol: float, search_k: int | None, k_flag: str = "--search-k") -> None:
+    from ..errors import ConfigError
+    if not 0.0 <= focal_tol < 0.2:
+        raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
+    if search_k is not None and search_k < 1:
+        raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
+
+
+def make_context(camera, *, prior=None, search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
+                 search_centroids: np.ndarray | None = None, tetra=None, log=None,
+                 k_flag: str = "--search-k") -> SolverContext:
+    """A :class:`SolverContext` for ``camera``: the prior at its ``search`` level (its fine regions when it has
+    them), the regions searched (``search_k``, default :func:`default_search_k`) and a tetra3rs solver."""
+    check_search_options(focal_tol, search_k, k_flag)
+    if prior is not None:
+        prior = prior.at_level(search)
+    level = getattr(prior, "level", "coarse")
+    if tetra is None:
+        from .tetra import Tetra3Solver
+        tetra = Tetra3Solver(camera, log=log)
+    if search_centroids is None and prior is not None:
+        search_centroids = prior.centroids
+    return SolverContext(camera, tetra, prior, search_centroids, search_k or default_search_k(level), focal_tol)
+
+
+def build_solver(name: str, camera, *, prior=None, search: str = "fine", search_k: int | None = None,
+                 focal_tol: float = 0.02, log=None, context: SolverContext | None = None):
+    """The registered solver ``name`` for ``camera`` (a :class:`skygen.camera.Camera`).
+
+    ``prior``: a :class:`fusion.solve.priors.RegionPrior` (e.g. ``load_prior(checkpoint)``), needed by
+    the learned solvers; ``search``/``search_k``/``focal_tol``: the fine stage's settings, as
+    ``fusion predict --solve`` takes them. Pass ``context`` to share one tetra3rs database
+    between several solvers.
+    """
+    from ..errors import ConfigError
+    if name not in SOLVERS:
+        raise ConfigError(f"--solver {name!r}: unknown; choose from {', '.join(SOLVERS)}")
+    spec = SOLVERS[name]
+    ctx = context or make_context(camera, prior=prior, search=search, search_k=search_k, focal_tol=focal_tol, log=log)
+    if spec.prior == "learned" and ctx.prior is None:
+        raise ConfigError(f"solver {name} needs a learned prior: pass --checkpoint CK (a trained model)")
+    if spec.prior == "oracle" and ctx.search_centroids is None:
+        raise ConfigError(f"solver {name} is a benchmark reference: it needs the true boresight and the regions "
+                          "to rank (fusion benchmark)")
+    return get(ctx, name)

@@ -1,0 +1,65 @@
+"""Training data: open the dataset, fit (or reuse) the regions, label the splits, build the datasets.
+
+Frames are read through :mod:`fusion.model.shards` (skygen's one reader, lazy HDF5 handles per
+process); the training split is augmented (:class:`fusion.train.augment.Augmenter`), the
+validation split is not. Streams (:mod:`fusion.train.stream`) replace the training split but
+validate on the same rendered frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from skygen.io import Dataset as SkyDataset
+from skygen.io import open_dataset, verify_checksums
+
+from ..config import FusionConfig
+from ..errors import CheckpointError, ConfigError
+from ..model.regions import KMeansResult, Regions, class_weights, soft_targets
+from ..model.shards import FrameDataset, boresight_vectors, count_sparse_frames, split_positions
+from .augment import Augmenter
+
+
+@dataclass
+class PreparedData:
+    ds: SkyDataset
+    regions: Regions
+    train: FrameDataset
+    val: FrameDataset
+    alpha: np.ndarray                     # (K,) class weights of the loss
+    kmeans: KMeansResult | None           # None when the regions came from a checkpoint
+    sparse_frames: dict                   # split -> frames with < 2 detections
+
+
+def prepare_data(cfg: FusionConfig, regions: Regions | None = None) -> PreparedData:
+    """Open the dataset, fit (or reuse, on resume) the regions on the training split, label both splits.
+
+    With ``labels.fine_k`` also the fine regions (spherical K-means on the same directions),
+    each belonging to the region of its centroid (:class:`fusion.model.regions.Regions`)."""
+    if not cfg.data.path:
+        raise ConfigError("data.path: no dataset given; pass --data DIR (a folder written by `skygen render`)")
+    ds = open_dataset(cfg.data.path)
+    verify_checksums(ds, log=print)
+    d, lab = cfg.data, cfg.labels
+    pos = {name: split_positions(ds, getattr(d, f"{name}_split"), d.max_frames) for name in ("train", "val")}
+    vec = {name: boresight_vectors(ds, p) for name, p in pos.items()}
+    km = None
+    if regions is None:
+        regions, km = Regions.fit(vec["train"], lab.k, lab.fine_k, seed=lab.seed, n_init=lab.n_init,
+                                  max_iter=lab.max_iter, tol_deg=lab.tol_deg)
+    elif regions.k != lab.k:
+        raise CheckpointError(f"the checkpoint's centroids define K={regions.k} classes but labels.k={lab.k}")
+    elif lab.fine_k and regions.fine is None:
+        regions = regions.with_fine(vec["train"], lab.fine_k, seed=lab.seed, n_init=lab.n_init,
+                                    max_iter=lab.max_iter, tol_deg=lab.tol_deg)
+    labels = {name: regions.assign(v) for name, v in vec.items()}
+    fine = {name: regions.assign(v, "fine") for name, v in vec.items()} if lab.fine_k else None
+    soft = {name: (soft_targets(v, regions.coarse, lab.kappa) if lab.soft_labels else None) for name, v in vec.items()}
+    common = dict(max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
+    train = FrameDataset(ds, pos["train"], labels["train"], soft=soft["train"], augment=Augmenter(cfg.aug),
+                         seed=cfg.train.seed, fine=None if fine is None else fine["train"], **common)
+    val = FrameDataset(ds, pos["val"], labels["val"], soft=soft["val"], seed=cfg.train.seed, **common)
+    return PreparedData(ds, regions, train, val, class_weights(labels["train"], lab.k, cfg.loss.alpha), km,
+                        {name: count_sparse_frames(ds, p) for name, p in pos.items()})
