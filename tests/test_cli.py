@@ -57,7 +57,8 @@ def test_config_and_catalog_commands(capsys, tmp_path):
 
 # ------------------------------------------------------------------ rough edges a new user hit
 @pytest.mark.parametrize("args,needle", [
-    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not allowed"),
+    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not a finite number"),
+    (["--set", "camera.fov_deg=nan"], "camera.fov_deg: nan is not a finite number; give a finite number > 0 and < 120"),
     (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
     (["--workers", "-1"], "--workers -1"),
 ])

@@ -24,6 +24,25 @@ def test_invalid_values_name_their_key(override, key):
         load_config(overrides=[override])
 
 
+@pytest.mark.parametrize("text", ["nan", ".nan", "NaN", "inf", "-.inf", "+Infinity"])
+@pytest.mark.parametrize("key, allowed", [
+    ("camera.fov_deg", "> 0 and < 120"),               # Optional[float]: was "expected Optional..."
+    ("sensor.exposure_s", "> 0 and <= 3600"),
+    ("camera.principal_x_px", ""),                     # no range: just "a finite number"
+])
+def test_non_finite_numbers_are_refused_with_the_key_and_its_range(text, key, allowed):
+    with pytest.raises(ConfigError) as exc:
+        load_config(overrides=[f"{key}={text}"])
+    msg = str(exc.value)
+    assert msg.startswith(f"{key}: ") and "is not a finite number" in msg and msg.endswith(allowed)
+    assert "\n" not in msg
+
+
+def test_non_finite_list_element_is_refused():
+    with pytest.raises(ConfigError, match=r"attitude\.ra_deg\[1\]: nan is not a finite number; give a finite number >= 0"):
+        load_config(overrides=["attitude.mode=list", "attitude.ra_deg=[1, .nan]", "attitude.dec_deg=[0, 0]"])
+
+
 def test_scientific_notation_without_a_dot_is_a_number():
     assert load_config(overrides=["corruptions.hotpixels=1e-4"]).corruptions.hotpixels == 1e-4
 
