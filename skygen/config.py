@@ -22,7 +22,7 @@ INF = float("inf")
 @dataclass(frozen=True)
 class CatalogConfig:
     path: Optional[str] = param(None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)")
-    mag_limit: Optional[float] = param(None, lo=-2, hi=20, doc="faintest magnitude rendered; None: detection limit + mag_margin")
+    mag_limit: Optional[float] = param(None, lo=0, hi=20, doc="faintest Hp magnitude rendered (the brightest star is Hp -1.1; a limit leaving under 1 star per field on average is refused); None: detection limit + mag_margin")
     mag_margin: float = param(1.0, lo=0, hi=10, doc="mag fainter than the computed detection limit still rendered")
 
 

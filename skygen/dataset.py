@@ -181,6 +181,14 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
         from .render_torch import resolve_device
         resolve_device(cfg.render.device)
+    probe_renderer = Renderer(cfg)      # refuses configs it cannot render (ConfigError) before any file is made
+    message = probe_renderer.saturation_warning()
+    if message:
+        warn(f"warning: {message}")
+    extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
+             "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
+             "shard_size": cfg.output.shard_size}
+    del probe_renderer
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -212,14 +220,6 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
                 and sha256_file(p) == e["sha256"]:
             done[e["index"]] = e
     todo = [k for k in mine if k not in done]
-    probe_renderer = Renderer(cfg)
-    message = probe_renderer.saturation_warning()
-    if message:
-        warn(f"warning: {message}")
-    extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
-             "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
-             "shard_size": cfg.output.shard_size}
-    del probe_renderer
     name = MANIFEST_NAME if num_slices == 1 else f"manifest.slice-{slice_index}-of-{num_slices}.json"
 
     def save(complete: bool) -> dict:

@@ -60,6 +60,9 @@ def test_config_and_catalog_commands(capsys, tmp_path):
     (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not a finite number"),
     (["--set", "camera.fov_deg=nan"], "camera.fov_deg: nan is not a finite number; give a finite number > 0 and < 120"),
     (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
+    (["--set", "catalog.mag_limit=-2"], "catalog.mag_limit: -2.0 is out of range; expected >= 0"),
+    (["--set", "catalog.mag_limit=2"], "catalog.mag_limit=2 leaves 46 catalog stars (the brightest is Hp -1.09), "
+                                       "0.44 per 20.0 x 20.0 deg field on average"),
     (["--workers", "-1"], "--workers -1"),
 ])
 def test_render_refuses_with_one_line(tmp_path, capsys, args, needle):
@@ -82,6 +85,11 @@ def test_preview_refuses_nonsense(small_dataset, tmp_path, capsys, monkeypatch, 
     assert main(["preview", str(small_dataset), *args]) == 2
     assert needle in capsys.readouterr().err
     assert not list(tmp_path.iterdir())            # nothing written, no folder created
+
+
+def test_a_magnitude_limit_giving_a_star_per_field_is_accepted(capsys):
+    assert main(["config", "--set", "catalog.mag_limit=3", "--summary"]) == 0
+    assert "rendering to Hp 3.00 (165 stars)" in capsys.readouterr().out
 
 
 def test_preview_of_an_empty_split_and_validate_of_a_missing_path(tmp_path, small_overrides, capsys):
