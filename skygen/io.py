@@ -503,8 +503,12 @@ def checksum_cache_path() -> Path:
 def verify_checksums(ds: Dataset, log=None) -> int:
     """Check every shard of ``ds`` against the sha256 in its manifest; returns how many were hashed.
 
-    A shard verified before is not hashed again while its path, size and modification
-    time are unchanged (remembered in :func:`checksum_cache_path`). Raises DatasetError
+    A shard verified before is not hashed again while its path, size, modification time
+    and inode change time are unchanged (remembered in :func:`checksum_cache_path`). The
+    change time (``st_ctime_ns``) is set by the kernel on every write and cannot be set
+    back by ``os.utime`` or ``touch -d``, so a same-size edit with the mtime restored is
+    hashed again. (A copy or restore from backup changes it too and costs one re-hash.)
+    ``skygen validate`` does not use this cache: it always hashes. Raises DatasetError
     naming the first shard whose checksum differs.
     """
     cache_file = checksum_cache_path()
@@ -519,7 +523,7 @@ def verify_checksums(ds: Dataset, log=None) -> int:
         if want is None:           # a single shard opened without a manifest: nothing to compare with
             continue
         st = sh.path.stat()
-        key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{st.st_ctime_ns}"
         if cache.get(key) == want:
             continue
         if log and hashed == 0:
