@@ -15,8 +15,10 @@ the whole dataset is written.
 
 from __future__ import annotations
 
+import errno
 import json
 import multiprocessing as mp
+import os
 import time
 from pathlib import Path
 
@@ -76,6 +78,18 @@ def _clean_temporaries(out: Path) -> None:
         p.unlink(missing_ok=True)
 
 
+def write_failed(exc: OSError, what: Path) -> DatasetError:
+    """The one-line error for a failed write of ``what`` (a shard, manifest or card).
+
+    A full disk (ENOSPC, or EDQUOT: over quota) says so and how to go on: the shards
+    already renamed into place are whole and recorded, so the same command resumes."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        why = "the disk is full" if exc.errno == errno.ENOSPC else "the disk quota is exceeded"
+        return DatasetError(f"cannot write {what}: {why} ({exc.strerror}); free space on the disk holding "
+                            f"{what.parent} and run the same command again to resume (finished shards are kept)")
+    return DatasetError(f"cannot write {what}: {exc.strerror or exc}")
+
+
 def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool, extra: dict) -> dict:
     entries = sorted(entries, key=lambda e: e["index"])
     splits = {s: sum(e["splits"][s] for e in entries) for s in SPLIT_NAMES}
@@ -97,7 +111,6 @@ def _exit_when_orphaned(parent_pid: int, interval_s: float = 0.2) -> None:
     (re-parented to init) and keep writing shards. Exiting leaves at most a hidden
     ``.shard-*.h5.tmp*`` file, which the next run removes.
     """
-    import os
     import threading
 
     def watch() -> None:
@@ -158,7 +171,7 @@ def _render_shard(args: tuple[int, int, int, str]) -> dict:
                            frame_start=start, compression=o.compression, compression_level=o.compression_level,
                            corruption_names=tuple(corr.REGISTRY))
     except OSError as exc:
-        raise DatasetError(f"cannot write {Path(out) / shard_name(k)}: {exc.strerror or exc}") from None
+        raise write_failed(exc, Path(out) / shard_name(k)) from None
 
 
 def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_index: int = 0,
@@ -192,11 +205,22 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write-test-{id(out)}"
+        probe = out / f".write-test-{os.getpid()}"
         probe.touch()
         probe.unlink()
     except OSError as exc:
         raise DatasetError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
+    try:
+        return _render_into(cfg, out, workers, slice_index, num_slices, force, progress, extra)
+    except DatasetError:
+        raise
+    except OSError as exc:       # a manifest, card or shard could not be written: disk full, quota, I/O error
+        raise write_failed(exc, Path(exc.filename) if exc.filename else out) from None
+
+
+def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, num_slices: int, force: bool,
+                 progress: bool, extra: dict) -> dict:
+    """render_dataset once its arguments are checked and ``out`` exists."""
     cfg_dict = config_dict(cfg)
     recorded = _check_compatible(out, cfg_dict, force)
     if force:   # remove what belongs to another dataset
@@ -262,7 +286,6 @@ def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
     ctx = mp.get_context("spawn")
     counter = ctx.Value("q", 0)
     seen = 0
-    import os
     with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(cfg, counter, os.getpid())) as pool:
         pending = [pool.apply_async(_render_shard, (t,)) for t in tasks]
         try:

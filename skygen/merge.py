@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .card import write_card
-from .dataset import _manifests, config_differences
+from .dataset import _manifests, config_differences, write_failed
 from .errors import DatasetError
 from .identity import dataset_frame_ids
 from .io import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
@@ -126,6 +126,11 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
            "complete": True, "n_frames": start, "n_shards": len(shards), "config": cfg,
            "splits": {s: sum(e["splits"][s] for e in shards) for s in SPLIT_NAMES},
            "shards": shards, "sources": sources if not single else [], "versions": library_versions()}
-    write_json_atomic(out / MANIFEST_NAME, man)
-    write_card(out, man)
+    try:
+        write_json_atomic(out / MANIFEST_NAME, man)
+        write_card(out, man)
+    except DatasetError:
+        raise
+    except OSError as exc:       # disk full, quota, read-only folder: one line, not a traceback
+        raise write_failed(exc, Path(exc.filename) if exc.filename else out / MANIFEST_NAME) from None
     return man
