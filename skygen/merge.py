@@ -28,6 +28,7 @@ from .card import write_card
 from .dataset import _manifests, config_differences, write_failed
 from .errors import DatasetError
 from .identity import dataset_frame_ids
+from .lock import FolderLock
 from .io import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
 
 MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
@@ -107,7 +108,17 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
             raise DatasetError(f"dataset {dsid} is incomplete: shard(s) {missing[:10]} missing from the inputs")
         sources.append({"dataset_id": dsid, "config": cfg, "folders": [str(g[0]) for g in group]})
         shards += [{**e, "dataset_id": dsid} for _, e in sorted(union.items())]
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with FolderLock(out, what="skygen merge"):    # two merges (or a render) into one folder: one refused
+            return _write_merged(out, shards, sources, first_cfg)
+    except DatasetError:
+        raise
+    except OSError as exc:       # disk full, quota, read-only folder: one line, not a traceback
+        raise write_failed(exc, Path(exc.filename) if exc.filename else out / MANIFEST_NAME) from None
+
+
+def _write_merged(out: Path, shards: list[dict], sources: list[dict], first_cfg: dict) -> dict:
     if (out / MANIFEST_NAME).exists():
         raise DatasetError(f"{out / MANIFEST_NAME} exists; choose an empty --out folder")
     start = 0
@@ -126,11 +137,6 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
            "complete": True, "n_frames": start, "n_shards": len(shards), "config": cfg,
            "splits": {s: sum(e["splits"][s] for e in shards) for s in SPLIT_NAMES},
            "shards": shards, "sources": sources if not single else [], "versions": library_versions()}
-    try:
-        write_json_atomic(out / MANIFEST_NAME, man)
-        write_card(out, man)
-    except DatasetError:
-        raise
-    except OSError as exc:       # disk full, quota, read-only folder: one line, not a traceback
-        raise write_failed(exc, Path(exc.filename) if exc.filename else out / MANIFEST_NAME) from None
+    write_json_atomic(out / MANIFEST_NAME, man)
+    write_card(out, man)
     return man

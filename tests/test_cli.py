@@ -187,3 +187,40 @@ def test_sigterm_says_how_to_resume(tmp_path, small_overrides):
     assert p.returncode == 143
     assert "run the same command again to resume" in err and "leaked semaphore" not in err and "Traceback" not in err
     assert not any(_alive(w) for w in workers)
+
+
+def test_a_second_render_or_merge_into_a_busy_folder_is_refused_naming_the_first(tmp_path, small_overrides, capsys):
+    from skygen.lock import FolderLock, lock_path
+    out = tmp_path / "d"
+    out.mkdir()
+    sets = sum((["--set", o] for o in small_overrides), [])
+    with FolderLock(out, what="skygen render"):
+        for args in (["render", "--n", "5", "--out", str(out), "--quiet", *sets],
+                     ["render", "--n", "5", "--out", str(out), "--quiet", "--slice", "0/1", *sets],
+                     ["merge", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]):
+            if args[0] == "merge":
+                for name in ("a", "b"):
+                    assert main(["render", "--n", "4", "--seed", str(ord(name)), "--out", str(tmp_path / name),
+                                 "--quiet", *sets]) == 0
+                capsys.readouterr()
+            assert main(args) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and f"is in use by skygen render (PID {os.getpid()} " in err
+        assert not list(out.glob("shard-*")) and not (out / "manifest.json").exists()
+    assert not lock_path(out).exists()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_two_renders_into_one_folder_at_once(tmp_path, small_overrides, capsys):
+    """Issue 21: both exited 0 and the dataset was invalid in 1 of 4 trials."""
+    from skygen.lock import lock_path
+    p, _ = _start_pool_render(tmp_path, small_overrides)
+    try:
+        sets = sum((["--set", o] for o in small_overrides), [])
+        assert main(["render", "--n", "4000", "--workers", "1", "--quiet", "--out", str(tmp_path / "d"), *sets,
+                     "--set", "output.shard_size=40"]) == 2
+        assert f"is in use by skygen render (PID {p.pid} " in capsys.readouterr().err
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.communicate(timeout=60)
+    assert p.returncode == 143 and not lock_path(tmp_path / "d").exists()     # released on SIGTERM

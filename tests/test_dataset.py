@@ -86,6 +86,18 @@ def test_slices_combine_into_one_dataset(tmp_path, small_overrides, small_datase
     assert same_data(small_dataset, tmp_path / "s")
 
 
+def test_slices_rendered_at_once_into_one_folder(tmp_path, small_overrides, small_dataset):
+    """The documented job-array use: each slice locks only itself; the combine step is serialised."""
+    out = tmp_path / "s"
+    base = [sys.executable, "-m", "skygen.cli", "render", "--quiet", "--workers", "1", "--out", str(out), "--n", "50"]
+    base += sum((["--set", o] for o in small_overrides), [])
+    procs = [subprocess.Popen(base + ["--slice", f"{i}/3"], stderr=subprocess.PIPE, text=True) for i in range(3)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], errs
+    assert validate(out).ok and same_data(small_dataset, out)
+    assert not list(out.glob(".skygen*"))                          # every lock released
+
+
 def test_other_dataset_in_folder_is_not_overwritten(tmp_path, small_overrides):
     cfg = load_config(overrides=small_overrides + ["n_frames=20"])
     render_dataset(cfg, tmp_path / "d", progress=False)
