@@ -248,8 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "second render into it is refused, naming the first")
     r.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
     r.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
-    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays); the last "
-                   "slice to finish writes manifest.json")
+    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays, counting from 0). "
+                   "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
+                   "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
+                   "once; the last slice to finish writes manifest.json")
     r.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_render)

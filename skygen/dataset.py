@@ -203,6 +203,13 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
         raise ConfigError(f"--workers {workers}: need at least 1 worker process")
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
+    n_shards = len(shard_ranges(cfg.n_frames, cfg.output.shard_size))
+    if num_slices > n_shards:       # some slices would render nothing and exit 0: refuse them all, up front
+        size = -(-cfg.n_frames // num_slices)
+        raise ConfigError(f"--slice {slice_index}/{num_slices}: slices are whole shards of output.shard_size="
+                          f"{cfg.output.shard_size} frames, and {cfg.n_frames} frames make {n_shards} shard(s), so "
+                          f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
+                          f"output.shard_size={size} for {num_slices} slices")
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
         from .render_torch import resolve_device
         resolve_device(cfg.render.device)

@@ -87,6 +87,20 @@ def test_preview_refuses_nonsense(small_dataset, tmp_path, capsys, monkeypatch, 
     assert not list(tmp_path.iterdir())            # nothing written, no folder created
 
 
+def test_more_slices_than_shards_are_refused(tmp_path, small_overrides, capsys):
+    """--n 10 --slice 5/10 gave 0 frames and exit 0: slices are whole shards."""
+    sets = sum((["--set", o] for o in small_overrides), [])         # output.shard_size=20
+    out = tmp_path / "d"
+    assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "slices are whole shards of output.shard_size=20 frames" in err
+    assert "allows at most 1 slice(s)" in err and "output.shard_size=5 for 2 slices" in err
+    assert not out.exists()
+    assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets,
+                 "--set", "output.shard_size=5"]) == 0
+    assert "5 frames in 1 shard(s)" in capsys.readouterr().out
+
+
 def test_a_magnitude_limit_giving_a_star_per_field_is_accepted(capsys):
     assert main(["config", "--set", "catalog.mag_limit=3", "--summary"]) == 0
     assert "rendering to Hp 3.00 (165 stars)" in capsys.readouterr().out
