@@ -34,9 +34,9 @@ from .card import CARD_NAME, CROISSANT_NAME, write_card
 from .configlib import flatten
 from .errors import ConfigError, DatasetError
 from .identity import content_id
-from .lock import FolderLock
 from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
+from .lock import FolderLock
 
 
 def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
@@ -190,8 +190,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     """Render (or resume) the dataset of ``cfg`` into folder ``out``; returns the manifest.
 
     Raises DatasetError when ``out`` holds a different dataset (unless ``force``) or a
-    shard cannot be written (a full disk included), FolderInUseError when another render
-    or merge is writing ``out`` (other slices of the same job array may). Interrupting leaves only whole shards and a valid manifest.
+    shard cannot be written (a full disk included); FolderInUseError when another render
+    or merge is writing ``out`` (other slices of the same job array may); ConfigError for
+    more slices than shards. Interrupting leaves only whole shards and a valid manifest.
     ``warn`` (default: print to stderr) receives warnings about the physics, e.g. an
     exposure that saturates every pixel. Also writes the dataset card (README.md and
     croissant.json, :mod:`skygen.card`) once the dataset is complete.
@@ -323,7 +324,7 @@ def _remove_other_dataset(out: Path, cfg_dict: dict, recorded: list[dict], mine:
     shard into place and not yet recorded it."""
     for path, man in _manifests(out):
         if man.get("dataset_id") != config_id(cfg_dict):
-            path.unlink()
+            path.unlink(missing_ok=True)         # another slice with --force may have been first
     keep = {e["file"] for e in recorded}
     for p in out.glob("shard-*.h5"):
         m = re.fullmatch(r"shard-(\d+)\.h5", p.name)
