@@ -244,11 +244,14 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Render frames into HDF5 shards plus manifest.json. Re-running the same "
                        "command resumes; Ctrl-C never leaves a broken shard.")
     config_args(r)
-    r.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED})")
+    r.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED}); locked while rendering: a "
+                   "second render into it is refused, naming the first")
     r.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
     r.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
-    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays); the last "
-                   "slice to finish writes manifest.json")
+    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays, counting from 0). "
+                   "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
+                   "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
+                   "once; the last slice to finish writes manifest.json")
     r.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_render)
@@ -276,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "slices of one job-array render, or datasets whose configs differ only in seed, "
                        "n_frames or storage options. Incompatible inputs are refused with the differing keys.")
     m.add_argument("inputs", nargs="+", help="dataset folders")
-    m.add_argument("--out", required=True, help="new folder for the merged manifest")
+    m.add_argument("--out", required=True, help="new folder for the merged manifest (locked while merging)")
     m.set_defaults(func=cmd_merge)
 
     c = sub.add_parser("catalog", help="show the catalog, or fetch another one from VizieR (online)")

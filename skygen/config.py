@@ -22,7 +22,7 @@ INF = float("inf")
 @dataclass(frozen=True)
 class CatalogConfig:
     path: Optional[str] = param(None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)")
-    mag_limit: Optional[float] = param(None, lo=-2, hi=20, doc="faintest magnitude rendered; None: detection limit + mag_margin")
+    mag_limit: Optional[float] = param(None, lo=0, hi=20, doc="faintest Hp magnitude rendered (the brightest star is Hp -1.1; a limit leaving under 1 star per field on average is refused); None: detection limit + mag_margin")
     mag_margin: float = param(1.0, lo=0, hi=10, doc="mag fainter than the computed detection limit still rendered")
 
 
@@ -194,9 +194,38 @@ def build_config(data: dict | None = None) -> RenderConfig:
     return configlib.build(RenderConfig, data, check_consistency)
 
 
+#: Keys a ``camera:`` section of a config file must give: a camera file (``configs/cameras/``)
+#: describes one camera, so a missing key would silently fall back to the default 20 deg
+#: tracker. Alternatives are grouped: either ``focal_length_mm`` or ``fov_deg`` fixes the
+#: scale. The other camera keys have documented defaults: principal point at the sensor
+#: centre, no distortion (k1..k3, p1, p2 = 0).
+CAMERA_FILE_KEYS = (("width_px",), ("height_px",), ("pixel_pitch_um",), ("focal_length_mm", "fov_deg"))
+
+
+def check_camera_section(data: dict, source: str) -> None:
+    """Refuse a ``camera:`` section (from a file, after overrides) that lacks a key of
+    :data:`CAMERA_FILE_KEYS`; a config without a camera section uses the default camera."""
+    cam = data.get("camera")
+    if not isinstance(cam, dict):           # absent: the default camera; not a mapping: from_dict says so
+        return
+    missing = [" or ".join(group) for group in CAMERA_FILE_KEYS if not any(k in cam for k in group)]
+    if missing:
+        raise ConfigError(f"{source}: its camera section lacks {', '.join(missing)}; a camera file must give "
+                          "width_px, height_px, pixel_pitch_um and focal_length_mm (or fov_deg), or the default "
+                          "20 deg camera's values would be mixed in (principal point and distortion may be left "
+                          "out: sensor centre, none)")
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> RenderConfig:
-    """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated."""
-    return configlib.load(RenderConfig, path, overrides, check_consistency)
+    """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated.
+
+    A file with a ``camera:`` section must describe the whole camera (:data:`CAMERA_FILE_KEYS`;
+    an override may supply a key the file lacks)."""
+    data = configlib.read_yaml(path) if path else {}
+    data = configlib.merge_overrides(data, list(overrides))
+    if path:
+        check_camera_section(data, f"config file {path}")
+    return build_config(data)
 
 
 def config_dict(cfg: RenderConfig) -> dict:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import re
 import types
 import typing
@@ -52,34 +53,54 @@ def _describe_range(meta: dict) -> str:
 
 
 def _type_name(tp: Any) -> str:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):     # Optional[float] -> "float or null"
+        return " or ".join("null" if a is type(None) else _type_name(a) for a in typing.get_args(tp))
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
-def _coerce(value: Any, tp: Any, key: str) -> Any:
-    """Check ``value`` against annotation ``tp``; return it converted (lists to tuples)."""
+class NonFiniteError(ConfigError):
+    """A float key was given NaN or an infinity (as a number, or as text such as ``nan``)."""
+
+
+_NONFINITE_WORDS = {"nan", "inf", "infinity"}
+
+
+def _nonfinite(value: Any, key: str, meta: dict | None) -> NonFiniteError:
+    shown = value.strip() if isinstance(value, str) else repr(value)
+    allowed = _describe_range(meta or {})
+    allowed = "a finite number" if allowed == "any value of the right type" else f"a finite number {allowed}"
+    return NonFiniteError(f"{key}: {shown} is not a finite number; give {allowed}")
+
+
+def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
+    """Check ``value`` against annotation ``tp``; return it converted (lists to tuples).
+
+    ``meta`` (the field's :func:`param` metadata) only words the messages: NaN and
+    infinities are refused as "not a finite number" with the key's allowed range."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
         if value is None and type(None) in args:
             return None
-        errors = []
         for arg in args:
             if arg is type(None):
                 continue
             try:
-                return _coerce(value, arg, key)
-            except ConfigError as exc:
-                errors.append(str(exc))
+                return _coerce(value, arg, key, meta)
+            except NonFiniteError:
+                raise                 # a number, just not a usable one: say so, not "expected Optional"
+            except ConfigError:
+                pass
         raise ConfigError(f"{key}: expected {_type_name(tp)}, got {value!r}")
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         args = typing.get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+            return tuple(_coerce(v, args[0], f"{key}[{i}]", meta) for i, v in enumerate(value))
         if len(args) != len(value):
             raise ConfigError(f"{key}: expected a list of {len(args)} values, got {value!r}")
-        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        return tuple(_coerce(v, a, f"{key}[{i}]", meta) for i, (a, v) in enumerate(zip(args, value)))
     if tp is Any:
         return value
     if tp is bool:
@@ -95,13 +116,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, str) and _SCI.fullmatch(value.strip()):
             value = float(value)      # YAML 1.1 reads 1e-4 (no dot) as a string
+        if isinstance(value, str) and value.strip().lower().lstrip("+-.") in _NONFINITE_WORDS:
+            raise _nonfinite(value, key, meta)      # YAML reads `nan` and `inf` (no dot) as strings
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
         value = float(value)
-        if value != value:
-            raise ConfigError(f"{key}: NaN is not allowed")
-        if value in (float("inf"), float("-inf")):
-            raise ConfigError(f"{key}: {value} is not allowed; give a finite number")
+        if not math.isfinite(value):
+            raise _nonfinite(value, key, meta)
         return value
     if tp is str:
         if not isinstance(value, str):
@@ -145,7 +166,7 @@ def from_dict(cls: type, data: dict | None, prefix: str = "") -> Any:
         if f.metadata.get("section"):
             kwargs[name] = from_dict(hints[name], data.get(name), key + ".")
         elif name in data:
-            value = _coerce(data[name], hints[name], key)
+            value = _coerce(data[name], hints[name], key, f.metadata)
             _check_range(value, f.metadata, key)
             kwargs[name] = value
     return cls(**kwargs)

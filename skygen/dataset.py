@@ -11,12 +11,19 @@ config skips shards whose file matches the recorded sha256 and renders the rest.
 render sliced for a job array (``slice_index`` of ``num_slices``) writes its own
 ``manifest.slice-I-of-K.json``; when the last slice finishes, ``manifest.json`` for
 the whole dataset is written.
+
+A render holds a lock on its output folder (:mod:`skygen.lock`): the whole folder
+without slices; only its own slice with slices, so the slices of a job array share one
+folder, and the step combining their manifests runs one slice at a time.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import multiprocessing as mp
+import os
+import re
 import time
 from pathlib import Path
 
@@ -29,6 +36,7 @@ from .errors import ConfigError, DatasetError
 from .identity import content_id
 from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
+from .lock import FolderLock
 
 
 def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
@@ -69,11 +77,28 @@ def _check_compatible(out: Path, cfg_dict: dict, force: bool) -> list[dict]:
     return entries
 
 
-def _clean_temporaries(out: Path) -> None:
-    for p in out.glob(".shard-*.h5.tmp*"):
+def _clean_temporaries(out: Path, shards: list[int] | None = None, manifest: str | None = None) -> None:
+    """Remove hidden temporaries left by an interrupted write: all of them, or (a slice rendering
+    beside other slices) only those of its ``shards`` and its ``manifest``."""
+    if shards is None:
+        found = [*out.glob(".shard-*.h5.tmp*"), *out.glob(".manifest*.json.tmp*")]
+    else:
+        found = [p for k in shards for p in out.glob(f".{shard_name(k)}.tmp*")]
+        found += list(out.glob(f".{manifest}.tmp*")) if manifest else []
+    for p in found:
         p.unlink(missing_ok=True)
-    for p in out.glob(".manifest*.json.tmp*"):
-        p.unlink(missing_ok=True)
+
+
+def write_failed(exc: OSError, what: Path) -> DatasetError:
+    """The one-line error for a failed write of ``what`` (a shard, manifest or card).
+
+    A full disk (ENOSPC, or EDQUOT: over quota) says so and how to go on: the shards
+    already renamed into place are whole and recorded, so the same command resumes."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        why = "the disk is full" if exc.errno == errno.ENOSPC else "the disk quota is exceeded"
+        return DatasetError(f"cannot write {what}: {why} ({exc.strerror}); free space on the disk holding "
+                            f"{what.parent} and run the same command again to resume (finished shards are kept)")
+    return DatasetError(f"cannot write {what}: {exc.strerror or exc}")
 
 
 def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool, extra: dict) -> dict:
@@ -97,7 +122,6 @@ def _exit_when_orphaned(parent_pid: int, interval_s: float = 0.2) -> None:
     (re-parented to init) and keep writing shards. Exiting leaves at most a hidden
     ``.shard-*.h5.tmp*`` file, which the next run removes.
     """
-    import os
     import threading
 
     def watch() -> None:
@@ -158,7 +182,7 @@ def _render_shard(args: tuple[int, int, int, str]) -> dict:
                            frame_start=start, compression=o.compression, compression_level=o.compression_level,
                            corruption_names=tuple(corr.REGISTRY))
     except OSError as exc:
-        raise DatasetError(f"cannot write {Path(out) / shard_name(k)}: {exc.strerror or exc}") from None
+        raise write_failed(exc, Path(out) / shard_name(k)) from None
 
 
 def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_index: int = 0,
@@ -166,7 +190,9 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     """Render (or resume) the dataset of ``cfg`` into folder ``out``; returns the manifest.
 
     Raises DatasetError when ``out`` holds a different dataset (unless ``force``) or a
-    shard cannot be written. Interrupting leaves only whole shards and a valid manifest.
+    shard cannot be written (a full disk included); FolderInUseError when another render
+    or merge is writing ``out`` (other slices of the same job array may); ConfigError for
+    more slices than shards. Interrupting leaves only whole shards and a valid manifest.
     ``warn`` (default: print to stderr) receives warnings about the physics, e.g. an
     exposure that saturates every pixel. Also writes the dataset card (README.md and
     croissant.json, :mod:`skygen.card`) once the dataset is complete.
@@ -178,41 +204,17 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
         raise ConfigError(f"--workers {workers}: need at least 1 worker process")
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
+    n_shards = len(shard_ranges(cfg.n_frames, cfg.output.shard_size))
+    if num_slices > n_shards:       # some slices would render nothing and exit 0: refuse them all, up front
+        size = -(-cfg.n_frames // num_slices)
+        raise ConfigError(f"--slice {slice_index}/{num_slices}: slices are whole shards of output.shard_size="
+                          f"{cfg.output.shard_size} frames, and {cfg.n_frames} frames make {n_shards} shard(s), so "
+                          f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
+                          f"output.shard_size={size} for {num_slices} slices")
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
         from .render_torch import resolve_device
         resolve_device(cfg.render.device)
-    out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write-test-{id(out)}"
-        probe.touch()
-        probe.unlink()
-    except OSError as exc:
-        raise DatasetError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
-    cfg_dict = config_dict(cfg)
-    recorded = _check_compatible(out, cfg_dict, force)
-    if force:   # remove what belongs to another dataset
-        for path, man in _manifests(out):
-            if man.get("dataset_id") != config_id(cfg_dict):
-                path.unlink()
-        keep = {e["file"] for e in recorded}
-        for p in out.glob("shard-*.h5"):
-            if p.name not in keep:
-                p.unlink()
-        if not recorded:    # the card described the replaced dataset; a new one comes with completion
-            for name in (CARD_NAME, CROISSANT_NAME):
-                (out / name).unlink(missing_ok=True)
-    _clean_temporaries(out)
-    ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
-    mine = [k for k in range(len(ranges)) if k % num_slices == slice_index]
-    done = {}
-    for e in recorded:
-        p = out / e["file"]
-        if e["index"] in mine and e["index"] not in done and p.exists() and p.stat().st_size == e["bytes"] \
-                and sha256_file(p) == e["sha256"]:
-            done[e["index"]] = e
-    todo = [k for k in mine if k not in done]
-    probe_renderer = Renderer(cfg)
+    probe_renderer = Renderer(cfg)      # refuses configs it cannot render (ConfigError) before any file is made
     message = probe_renderer.saturation_warning()
     if message:
         warn(f"warning: {message}")
@@ -220,7 +222,42 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
              "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
              "shard_size": cfg.output.shard_size}
     del probe_renderer
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise DatasetError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
+    try:
+        with _render_lock(out, slice_index, num_slices, warn):
+            return _render_into(cfg, out, workers, slice_index, num_slices, force, progress, extra, warn)
+    except DatasetError:
+        raise
+    except OSError as exc:       # a manifest, card or shard could not be written: disk full, quota, I/O error
+        raise write_failed(exc, Path(exc.filename) if exc.filename else out) from None
+
+
+def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, num_slices: int, force: bool,
+                 progress: bool, extra: dict, warn) -> dict:
+    """render_dataset once its arguments are checked, ``out`` exists and this render holds its lock."""
+    cfg_dict = config_dict(cfg)
+    ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
+    mine = [k for k in range(len(ranges)) if k % num_slices == slice_index]
     name = MANIFEST_NAME if num_slices == 1 else f"manifest.slice-{slice_index}-of-{num_slices}.json"
+    recorded = _check_compatible(out, cfg_dict, force)
+    if force:
+        _remove_other_dataset(out, cfg_dict, recorded, set(mine), len(ranges), num_slices)
+    own = None if num_slices == 1 else mine       # concurrent slices: touch only this slice's temporaries
+    _clean_temporaries(out, own, name)
+    done = {}
+    for e in recorded:
+        p = out / e["file"]
+        if e["index"] in mine and e["index"] not in done and p.exists() and p.stat().st_size == e["bytes"] \
+                and sha256_file(p) == e["sha256"]:
+            done[e["index"]] = e
+    todo = [k for k in mine if k not in done]
 
     def save(complete: bool) -> dict:
         man = _manifest(cfg_dict, list(done.values()), len(ranges), complete, extra)
@@ -245,24 +282,64 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
         else:
             _run_pool(cfg, tasks, workers, done, save, bar)
     except BaseException:
-        _clean_temporaries(out)
+        _clean_temporaries(out, own, name)
         raise
     finally:
         if bar:
             bar.close()
     man = save(True)
-    if num_slices > 1:
+    if num_slices == 1:
+        write_card(out, man)
+        return man
+    # the one step that reads and writes files of every slice: one slice at a time (waits, does not fail)
+    with FolderLock(out, what=f"skygen render --slice {slice_index}/{num_slices} (combining the slice manifests)",
+                    name="render-finish", shares=_slice_group(num_slices), wait_s=120, log=warn):
+        for p in out.glob("." + MANIFEST_NAME + ".tmp*"):      # left by a combine that was cut short
+            p.unlink(missing_ok=True)
         man = _maybe_combine_slices(out, cfg_dict, len(ranges), extra) or man
-    if man.get("complete") and (out / MANIFEST_NAME).exists():
-        write_card(out, json.loads((out / MANIFEST_NAME).read_text()))
+        if man.get("complete") and (out / MANIFEST_NAME).exists():
+            write_card(out, json.loads((out / MANIFEST_NAME).read_text()))
     return man
+
+
+def _slice_group(num_slices: int) -> str:
+    """The lock share group of the slices of a K-slice job array (:mod:`skygen.lock`)."""
+    return f"render-slices-of-{num_slices}"
+
+
+def _render_lock(out: Path, slice_index: int, num_slices: int, warn) -> FolderLock:
+    """Without --slice the whole folder; with --slice I/K only slice I (other slices of K run beside it)."""
+    if num_slices == 1:
+        return FolderLock(out, what="skygen render", log=warn)
+    return FolderLock(out, what=f"skygen render --slice {slice_index}/{num_slices}",
+                      name=f"render-slice-{slice_index}-of-{num_slices}", shares=_slice_group(num_slices), log=warn)
+
+
+def _remove_other_dataset(out: Path, cfg_dict: dict, recorded: list[dict], mine: set[int], n_shards: int,
+                          num_slices: int) -> None:
+    """--force: delete the manifests, unrecorded shards and card of the dataset being replaced.
+
+    A slice deletes only unrecorded shard files of its own indices (or beyond this
+    dataset's last shard): another slice of the same job array may have just renamed its
+    shard into place and not yet recorded it."""
+    for path, man in _manifests(out):
+        if man.get("dataset_id") != config_id(cfg_dict):
+            path.unlink(missing_ok=True)         # another slice with --force may have been first
+    keep = {e["file"] for e in recorded}
+    for p in out.glob("shard-*.h5"):
+        m = re.fullmatch(r"shard-(\d+)\.h5", p.name)
+        k = int(m.group(1)) if m else -1
+        if p.name not in keep and (num_slices == 1 or k in mine or k >= n_shards or k < 0):
+            p.unlink(missing_ok=True)
+    if not recorded:    # the card described the replaced dataset; a new one comes with completion
+        for name in (CARD_NAME, CROISSANT_NAME):
+            (out / name).unlink(missing_ok=True)
 
 
 def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
     ctx = mp.get_context("spawn")
     counter = ctx.Value("q", 0)
     seen = 0
-    import os
     with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(cfg, counter, os.getpid())) as pool:
         pending = [pool.apply_async(_render_shard, (t,)) for t in tasks]
         try:

@@ -7,9 +7,11 @@ Policy
 * :class:`DatasetError` — a file or folder on disk is not what it should be (truncated,
   foreign, unknown schema version, checksum mismatch, a different dataset in the output
   folder). The message names the file and says how to recover.
+* :class:`FolderInUseError` — an output folder is locked by another running writer
+  (:mod:`skygen.lock`); the message names it (what, PID, host, start, command).
 * :class:`CatalogError` — a star catalog could not be read or fetched.
 
-All three derive from :class:`SkygenError`, which the command-line interface catches
+All derive from :class:`SkygenError`, which the command-line interface catches
 and prints without a traceback (exit code 2). Anything else is a bug.
 """
 
@@ -24,6 +26,10 @@ class ConfigError(SkygenError, ValueError):
 
 class DatasetError(SkygenError, OSError):
     """A dataset, shard or manifest on disk is missing, damaged or incompatible."""
+
+
+class FolderInUseError(DatasetError):
+    """An output folder is being written by another process (see :mod:`skygen.lock`)."""
 
 
 class CatalogError(SkygenError):

@@ -18,6 +18,7 @@ manifest records the sha256 of every shard and is itself replaced atomically.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import platform
@@ -144,69 +145,92 @@ def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: in
                 corruption_names: tuple[str, ...] = ()) -> dict:
     """Write rendered frames (a list of :class:`skygen.render.Frame`) as one shard.
 
-    Writes to a hidden temporary file in the same folder and renames it into place, so
-    an interruption never leaves a complete-looking shard. Returns the manifest entry.
+    The HDF5 file is built in memory (about the size of the shard file; the frames
+    themselves are already held) and then written with one plain write to a hidden
+    temporary file in the same folder, which is renamed into place, so an interruption
+    never leaves a complete-looking shard. HDF5 itself never writes to disk: a full disk
+    arrives as a plain ``OSError(ENOSPC)`` from that write, with the temporary removed.
+    (Had HDF5 met ENOSPC, it raised RuntimeError on close, kept the half-written file open
+    and crashed the interpreter at exit.) Returns the manifest entry.
     """
     path = Path(path)
     tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
     n = len(frames)
+    buf = io.BytesIO()
+    with h5py.File(buf, "w", libver=LIBVER) as f:
+        _fill_shard(f, frames, config=config, shard_index=shard_index, frame_start=frame_start,
+                    compression=compression, compression_level=compression_level,
+                    corruption_names=corruption_names)
     try:
-        with h5py.File(tmp, "w", libver=LIBVER) as f:
-            a = f.attrs
-            a["format"] = FORMAT_NAME
-            a["schema_version"] = SCHEMA_VERSION
-            a["config"] = json.dumps(config, sort_keys=True)
-            a["dataset_id"] = config_id(config)
-            a["versions"] = json.dumps(library_versions(), sort_keys=True)
-            a["seed"] = int(config["seed"])
-            a["shard_index"] = shard_index
-            a["frame_start"] = frame_start
-            a["n_frames"] = n
-            a["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-            a["conventions"] = json.dumps(CONVENTIONS, sort_keys=True)
-            a["content_id"] = content_id(config)
-            comp = _compression(compression, compression_level)
-            images = np.stack([fr.image for fr in frames]) if n else np.zeros((0, 1, 1), np.uint16)
-            d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None,
-                                 **(comp if n else {}))
-            d.attrs["units"] = "ADU"
-            d.attrs["description"] = "sensor frames area-averaged to the stored size, [frame, y, x]"
-            d.attrs["downsample_factor"] = int(frames[0].downsample_factor) if n else 1
-            if n and frames[0].image_full is not None:
-                full = np.stack([fr.image_full for fr in frames])
-                d = f.create_dataset("images_full", data=full, chunks=(1,) + full.shape[1:], **comp)
-                d.attrs["units"] = "ADU"
-                d.attrs["description"] = "full-resolution sensor frames, [frame, y, x]"
-            g = f.create_group("frames")
-            for name, (dtype, units, desc) in FRAME_FIELDS.items():
-                d = g.create_dataset(name, data=np.array([getattr(fr, name) for fr in frames], dtype=dtype))
-                d.attrs["units"] = units
-                d.attrs["description"] = desc
-            g["split"].attrs["labels"] = json.dumps(SPLIT_NAMES)
-            g = f.create_group("boresight")
-            g.attrs["frame"] = "ICRS"
-            for name, (dtype, shape, units, desc) in BORESIGHT_FIELDS.items():
-                data = np.array([getattr(fr, name) for fr in frames], dtype=dtype).reshape((n,) + shape)
-                d = g.create_dataset(name, data=data)
-                d.attrs["units"] = units
-                d.attrs["description"] = desc
-            _write_table(f.create_group("stars"), [fr.stars for fr in frames], STAR_FIELDS)
-            _write_table(f.create_group("detections"), [fr.detections for fr in frames], DETECTION_FIELDS)
-            g = f.create_group("corruptions")
-            g.attrs["description"] = "per-frame severity applied for each registered corruption, in its units"
-            for name in corruption_names:
-                d = g.create_dataset(name, data=np.array([fr.applied.get(name, 0.0) for fr in frames], "f8"))
-            log = np.array([json.dumps(fr.log, sort_keys=True) for fr in frames], dtype=object)
-            d = g.create_dataset("log", data=log, dtype=h5py.string_dtype())
-            d.attrs["description"] = "JSON per frame: what each corruption/defect did (counts, vectors)"
+        _write_bytes(tmp, buf.getbuffer())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    del buf
     splits = np.bincount([fr.split for fr in frames], minlength=3)
     return {"file": path.name, "index": shard_index, "frame_start": frame_start, "n_frames": n,
             "bytes": path.stat().st_size, "sha256": sha256_file(path),
             "splits": {s: int(c) for s, c in zip(SPLIT_NAMES, splits)}}
+
+
+def _write_bytes(path: Path, data) -> None:
+    """Write ``data`` to a new file ``path``; a full disk raises OSError(ENOSPC) here."""
+    with open(path, "wb") as fh:
+        fh.write(data)
+
+
+def _fill_shard(f: h5py.File, frames: list, *, config: dict, shard_index: int, frame_start: int,
+                compression: str, compression_level: int, corruption_names: tuple[str, ...]) -> None:
+    """The datasets and attributes of one shard (layout in docs/FORMAT.md), into open file ``f``."""
+    n = len(frames)
+    a = f.attrs
+    a["format"] = FORMAT_NAME
+    a["schema_version"] = SCHEMA_VERSION
+    a["config"] = json.dumps(config, sort_keys=True)
+    a["dataset_id"] = config_id(config)
+    a["versions"] = json.dumps(library_versions(), sort_keys=True)
+    a["seed"] = int(config["seed"])
+    a["shard_index"] = shard_index
+    a["frame_start"] = frame_start
+    a["n_frames"] = n
+    a["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    a["conventions"] = json.dumps(CONVENTIONS, sort_keys=True)
+    a["content_id"] = content_id(config)
+    comp = _compression(compression, compression_level)
+    images = np.stack([fr.image for fr in frames]) if n else np.zeros((0, 1, 1), np.uint16)
+    d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None,
+                         **(comp if n else {}))
+    d.attrs["units"] = "ADU"
+    d.attrs["description"] = "sensor frames area-averaged to the stored size, [frame, y, x]"
+    d.attrs["downsample_factor"] = int(frames[0].downsample_factor) if n else 1
+    if n and frames[0].image_full is not None:
+        full = np.stack([fr.image_full for fr in frames])
+        d = f.create_dataset("images_full", data=full, chunks=(1,) + full.shape[1:], **comp)
+        d.attrs["units"] = "ADU"
+        d.attrs["description"] = "full-resolution sensor frames, [frame, y, x]"
+    g = f.create_group("frames")
+    for name, (dtype, units, desc) in FRAME_FIELDS.items():
+        d = g.create_dataset(name, data=np.array([getattr(fr, name) for fr in frames], dtype=dtype))
+        d.attrs["units"] = units
+        d.attrs["description"] = desc
+    g["split"].attrs["labels"] = json.dumps(SPLIT_NAMES)
+    g = f.create_group("boresight")
+    g.attrs["frame"] = "ICRS"
+    for name, (dtype, shape, units, desc) in BORESIGHT_FIELDS.items():
+        data = np.array([getattr(fr, name) for fr in frames], dtype=dtype).reshape((n,) + shape)
+        d = g.create_dataset(name, data=data)
+        d.attrs["units"] = units
+        d.attrs["description"] = desc
+    _write_table(f.create_group("stars"), [fr.stars for fr in frames], STAR_FIELDS)
+    _write_table(f.create_group("detections"), [fr.detections for fr in frames], DETECTION_FIELDS)
+    g = f.create_group("corruptions")
+    g.attrs["description"] = "per-frame severity applied for each registered corruption, in its units"
+    for name in corruption_names:
+        d = g.create_dataset(name, data=np.array([fr.applied.get(name, 0.0) for fr in frames], "f8"))
+    log = np.array([json.dumps(fr.log, sort_keys=True) for fr in frames], dtype=object)
+    d = g.create_dataset("log", data=log, dtype=h5py.string_dtype())
+    d.attrs["description"] = "JSON per frame: what each corruption/defect did (counts, vectors)"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
@@ -503,8 +527,12 @@ def checksum_cache_path() -> Path:
 def verify_checksums(ds: Dataset, log=None) -> int:
     """Check every shard of ``ds`` against the sha256 in its manifest; returns how many were hashed.
 
-    A shard verified before is not hashed again while its path, size and modification
-    time are unchanged (remembered in :func:`checksum_cache_path`). Raises DatasetError
+    A shard verified before is not hashed again while its path, size, modification time
+    and inode change time are unchanged (remembered in :func:`checksum_cache_path`). The
+    change time (``st_ctime_ns``) is set by the kernel on every write and cannot be set
+    back by ``os.utime`` or ``touch -d``, so a same-size edit with the mtime restored is
+    hashed again. (A copy or restore from backup changes it too and costs one re-hash.)
+    ``skygen validate`` does not use this cache: it always hashes. Raises DatasetError
     naming the first shard whose checksum differs.
     """
     cache_file = checksum_cache_path()
@@ -519,7 +547,7 @@ def verify_checksums(ds: Dataset, log=None) -> int:
         if want is None:           # a single shard opened without a manifest: nothing to compare with
             continue
         st = sh.path.stat()
-        key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{st.st_ctime_ns}"
         if cache.get(key) == want:
             continue
         if log and hashed == 0:

@@ -25,10 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from .card import write_card
-from .dataset import _manifests, config_differences
+from .dataset import _manifests, config_differences, write_failed
 from .errors import DatasetError
 from .identity import dataset_frame_ids
 from .io import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
+from .lock import FolderLock
 
 MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
                   "output.full_res"}
@@ -107,7 +108,17 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
             raise DatasetError(f"dataset {dsid} is incomplete: shard(s) {missing[:10]} missing from the inputs")
         sources.append({"dataset_id": dsid, "config": cfg, "folders": [str(g[0]) for g in group]})
         shards += [{**e, "dataset_id": dsid} for _, e in sorted(union.items())]
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with FolderLock(out, what="skygen merge"):    # two merges (or a render) into one folder: one refused
+            return _write_merged(out, shards, sources, first_cfg)
+    except DatasetError:
+        raise
+    except OSError as exc:       # disk full, quota, read-only folder: one line, not a traceback
+        raise write_failed(exc, Path(exc.filename) if exc.filename else out / MANIFEST_NAME) from None
+
+
+def _write_merged(out: Path, shards: list[dict], sources: list[dict], first_cfg: dict) -> dict:
     if (out / MANIFEST_NAME).exists():
         raise DatasetError(f"{out / MANIFEST_NAME} exists; choose an empty --out folder")
     start = 0

@@ -20,6 +20,7 @@ from .attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sam
 from .camera import Camera
 from .catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
 from .detect import detect, match
+from .errors import ConfigError
 from .identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
 from .photometry import Photometry, dark_current_e_s
 from .psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
@@ -121,6 +122,8 @@ class Renderer:
         # the magnitude limit is in Hp; a V-band catalog is shifted onto the same scale
         self.mag_offset_to_hp = cfg.photometry.hp_minus_v if table.band == "V" else 0.0
         self.sky = SkyIndex(table, cfg.epoch_yr, self.mag_limit - self.mag_offset_to_hp)
+        if cfg.catalog.mag_limit is not None:
+            self._check_stars_per_field(table)
         self.maps = sensor_maps(cfg.camera.height_px, cfg.camera.width_px, s.sensor_seed, s.prnu_frac,
                                 s.fpn_adu, s.bias_adu, cfg.corruptions.hotpixels, s.hot_pixel_dark_e_s,
                                 s.dead_pixel_fraction)
@@ -136,6 +139,24 @@ class Renderer:
         g = s.gain_e_per_adu
         return float(np.sqrt(self.background_e + s.read_noise_e ** 2 + self.levels["read_noise"] ** 2
                              + g * g / 12.0 + (g * s.fpn_adu) ** 2))
+
+    def _check_stars_per_field(self, table: StarTable) -> None:
+        """Refuse an explicit ``catalog.mag_limit`` so bright that a field holds under one star
+        on average, when a fainter limit would give one (a narrow camera with a thin catalog
+        is not this key's fault and passes)."""
+        fx, fy = (np.radians(v) for v in self.camera.fov_deg)
+        field_sr = 4 * np.arcsin(np.sin(fx / 2) * np.sin(fy / 2))      # solid angle of the rectangular field
+        per_field = len(self.sky) * field_sr / (4 * np.pi)
+        mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
+        needed = int(np.ceil(4 * np.pi / field_sr))                    # stars on the sky for 1 per field
+        if per_field >= 1 or needed > len(mags):
+            return
+        need = float(mags[needed - 1])
+        auto = self.detection_limit_mag + self.cfg.catalog.mag_margin
+        raise ConfigError(f"catalog.mag_limit={self.mag_limit:g} leaves {len(self.sky)} catalog stars (the brightest "
+                          f"is Hp {mags[0]:.2f}), {per_field:.2g} per {np.degrees(fx):.1f} x {np.degrees(fy):.1f} deg "
+                          f"field on average: frames would be nearly empty. Give catalog.mag_limit >= {need:.1f} "
+                          f"(1 star per field), or null (detection limit + catalog.mag_margin = Hp {auto:.2f})")
 
     def _detection_limit(self) -> float:
         """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold."""

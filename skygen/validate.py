@@ -1,7 +1,8 @@
 """``skygen validate``: check a dataset (or one shard) against the format.
 
 Checks the manifest (format, version, completeness, frame counts), that every listed
-shard exists with the recorded size and sha256, that no unlisted shard lies beside
+shard exists with the recorded size and sha256 (always hashed: the checksum cache of
+verified reads, :func:`skygen.io.verify_checksums`, is not consulted), that no unlisted shard lies beside
 them, and inside each shard: format name, schema version, dataset id and config equal to
 the manifest's, every documented dataset present with its dtype and shape, per-frame
 row counts consistent (offsets, for 1.x shards), frame identities matching the config,

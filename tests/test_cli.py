@@ -57,8 +57,12 @@ def test_config_and_catalog_commands(capsys, tmp_path):
 
 # ------------------------------------------------------------------ rough edges a new user hit
 @pytest.mark.parametrize("args,needle", [
-    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not allowed"),
+    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not a finite number"),
+    (["--set", "camera.fov_deg=nan"], "camera.fov_deg: nan is not a finite number; give a finite number > 0 and < 120"),
     (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
+    (["--set", "catalog.mag_limit=-2"], "catalog.mag_limit: -2.0 is out of range; expected >= 0"),
+    (["--set", "catalog.mag_limit=2"], "catalog.mag_limit=2 leaves 46 catalog stars (the brightest is Hp -1.09), "
+                                       "0.44 per 20.0 x 20.0 deg field on average"),
     (["--workers", "-1"], "--workers -1"),
 ])
 def test_render_refuses_with_one_line(tmp_path, capsys, args, needle):
@@ -81,6 +85,25 @@ def test_preview_refuses_nonsense(small_dataset, tmp_path, capsys, monkeypatch, 
     assert main(["preview", str(small_dataset), *args]) == 2
     assert needle in capsys.readouterr().err
     assert not list(tmp_path.iterdir())            # nothing written, no folder created
+
+
+def test_more_slices_than_shards_are_refused(tmp_path, small_overrides, capsys):
+    """--n 10 --slice 5/10 gave 0 frames and exit 0: slices are whole shards."""
+    sets = sum((["--set", o] for o in small_overrides), [])         # output.shard_size=20
+    out = tmp_path / "d"
+    assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "slices are whole shards of output.shard_size=20 frames" in err
+    assert "allows at most 1 slice(s)" in err and "output.shard_size=5 for 2 slices" in err
+    assert not out.exists()
+    assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets,
+                 "--set", "output.shard_size=5"]) == 0
+    assert "5 frames in 1 shard(s)" in capsys.readouterr().out
+
+
+def test_a_magnitude_limit_giving_a_star_per_field_is_accepted(capsys):
+    assert main(["config", "--set", "catalog.mag_limit=3", "--summary"]) == 0
+    assert "rendering to Hp 3.00 (165 stars)" in capsys.readouterr().out
 
 
 def test_preview_of_an_empty_split_and_validate_of_a_missing_path(tmp_path, small_overrides, capsys):
@@ -178,3 +201,40 @@ def test_sigterm_says_how_to_resume(tmp_path, small_overrides):
     assert p.returncode == 143
     assert "run the same command again to resume" in err and "leaked semaphore" not in err and "Traceback" not in err
     assert not any(_alive(w) for w in workers)
+
+
+def test_a_second_render_or_merge_into_a_busy_folder_is_refused_naming_the_first(tmp_path, small_overrides, capsys):
+    from skygen.lock import FolderLock, lock_path
+    out = tmp_path / "d"
+    out.mkdir()
+    sets = sum((["--set", o] for o in small_overrides), [])
+    with FolderLock(out, what="skygen render"):
+        for args in (["render", "--n", "5", "--out", str(out), "--quiet", *sets],
+                     ["render", "--n", "5", "--out", str(out), "--quiet", "--slice", "0/1", *sets],
+                     ["merge", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]):
+            if args[0] == "merge":
+                for name in ("a", "b"):
+                    assert main(["render", "--n", "4", "--seed", str(ord(name)), "--out", str(tmp_path / name),
+                                 "--quiet", *sets]) == 0
+                capsys.readouterr()
+            assert main(args) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and f"is in use by skygen render (PID {os.getpid()} " in err
+        assert not list(out.glob("shard-*")) and not (out / "manifest.json").exists()
+    assert not lock_path(out).exists()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_two_renders_into_one_folder_at_once(tmp_path, small_overrides, capsys):
+    """Issue 21: both exited 0 and the dataset was invalid in 1 of 4 trials."""
+    from skygen.lock import lock_path
+    p, _ = _start_pool_render(tmp_path, small_overrides)
+    try:
+        sets = sum((["--set", o] for o in small_overrides), [])
+        assert main(["render", "--n", "4000", "--workers", "1", "--quiet", "--out", str(tmp_path / "d"), *sets,
+                     "--set", "output.shard_size=40"]) == 2
+        assert f"is in use by skygen render (PID {p.pid} " in capsys.readouterr().err
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.communicate(timeout=60)
+    assert p.returncode == 143 and not lock_path(tmp_path / "d").exists()     # released on SIGTERM

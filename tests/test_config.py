@@ -24,6 +24,25 @@ def test_invalid_values_name_their_key(override, key):
         load_config(overrides=[override])
 
 
+@pytest.mark.parametrize("text", ["nan", ".nan", "NaN", "inf", "-.inf", "+Infinity"])
+@pytest.mark.parametrize("key, allowed", [
+    ("camera.fov_deg", "> 0 and < 120"),               # Optional[float]: was "expected Optional..."
+    ("sensor.exposure_s", "> 0 and <= 3600"),
+    ("camera.principal_x_px", ""),                     # no range: just "a finite number"
+])
+def test_non_finite_numbers_are_refused_with_the_key_and_its_range(text, key, allowed):
+    with pytest.raises(ConfigError) as exc:
+        load_config(overrides=[f"{key}={text}"])
+    msg = str(exc.value)
+    assert msg.startswith(f"{key}: ") and "is not a finite number" in msg and msg.endswith(allowed)
+    assert "\n" not in msg
+
+
+def test_non_finite_list_element_is_refused():
+    with pytest.raises(ConfigError, match=r"attitude\.ra_deg\[1\]: nan is not a finite number; give a finite number >= 0"):
+        load_config(overrides=["attitude.mode=list", "attitude.ra_deg=[1, .nan]", "attitude.dec_deg=[0, 0]"])
+
+
 def test_scientific_notation_without_a_dot_is_a_number():
     assert load_config(overrides=["corruptions.hotpixels=1e-4"]).corruptions.hotpixels == 1e-4
 
@@ -60,3 +79,26 @@ def test_valid_configs_render_a_frame(exposure, sigma, psf, read, temp, fov, blu
                                          f"corruptions.motion_blur={blur}"])
     f = Renderer(cfg).render(0)
     assert f.image.shape == (32, 32)
+
+
+def test_shipped_camera_presets_load():
+    from pathlib import Path
+    presets = sorted((Path(__file__).resolve().parents[1] / "configs" / "cameras").glob("*.yaml"))
+    assert len(presets) >= 2
+    for p in presets:
+        load_config(p)
+
+
+def test_a_camera_file_missing_its_focal_length_is_refused(tmp_path):
+    cam = tmp_path / "cam.yaml"
+    cam.write_text("camera:\n  width_px: 1024\n  height_px: 768\n  pixel_pitch_um: 6.9\n")
+    with pytest.raises(ConfigError, match=r"cam\.yaml: its camera section lacks focal_length_mm or fov_deg;"):
+        load_config(cam)
+    cam.write_text("camera:\n  focal_length_mm: 35.0\n")
+    with pytest.raises(ConfigError, match="lacks width_px, height_px, pixel_pitch_um;"):
+        load_config(cam)
+    # an override may complete it; a file without a camera section keeps the default camera
+    assert load_config(cam, ["camera.width_px=1024", "camera.height_px=768", "camera.pixel_pitch_um=6.9"]
+                       ).camera.focal_length_mm == 35.0
+    cam.write_text("sensor:\n  exposure_s: 0.05\n")
+    assert load_config(cam).camera.width_px == 1024

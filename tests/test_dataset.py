@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,6 +86,18 @@ def test_slices_combine_into_one_dataset(tmp_path, small_overrides, small_datase
     assert same_data(small_dataset, tmp_path / "s")
 
 
+def test_slices_rendered_at_once_into_one_folder(tmp_path, small_overrides, small_dataset):
+    """The documented job-array use: each slice locks only itself; the combine step is serialised."""
+    out = tmp_path / "s"
+    base = [sys.executable, "-m", "skygen.cli", "render", "--quiet", "--workers", "1", "--out", str(out), "--n", "50"]
+    base += sum((["--set", o] for o in small_overrides), [])
+    procs = [subprocess.Popen(base + ["--slice", f"{i}/3"], stderr=subprocess.PIPE, text=True) for i in range(3)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], errs
+    assert validate(out).ok and same_data(small_dataset, out)
+    assert not list(out.glob(".skygen*"))                          # every lock released
+
+
 def test_other_dataset_in_folder_is_not_overwritten(tmp_path, small_overrides):
     cfg = load_config(overrides=small_overrides + ["n_frames=20"])
     render_dataset(cfg, tmp_path / "d", progress=False)
@@ -114,6 +127,50 @@ def test_disk_full_leaves_existing_dataset_untouched(tmp_path, small_overrides, 
         render_dataset(cfg, out, progress=False)
     after = {p.name: p.read_bytes() for p in out.iterdir()}
     assert after.keys() == before.keys() and after["shard-00000.h5"] == before["shard-00000.h5"]
+
+
+def _enospc_after(n_ok: int, monkeypatch, module, name: str, partial: bool):
+    """Make ``module.name`` fail with ENOSPC from its (n_ok + 1)-th call on, after writing half the bytes."""
+    import errno
+    real = getattr(module, name)
+    calls = {"n": 0}
+
+    def full_disk(path, data, *a, **k):
+        calls["n"] += 1
+        if calls["n"] <= n_ok:
+            return real(path, data, *a, **k)
+        if partial:
+            Path(path).write_bytes(bytes(data[: len(data) // 2]))
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+    monkeypatch.setattr(module, name, full_disk)
+
+
+@pytest.mark.parametrize("where", ["shard", "manifest"])
+def test_a_full_disk_stops_with_one_line_and_a_rerun_resumes(tmp_path, small_overrides, small_dataset, capsys,
+                                                             monkeypatch, where):
+    """Issue 21: ENOSPC printed its line, then the interpreter crashed in HDF5's teardown (exit 139)."""
+    from skygen import io as skio
+    from skygen.cli import main
+    from skygen.errors import SkygenError
+    out = tmp_path / "full"
+    args = ["render", "--n", "50", "--out", str(out), "--workers", "1", "--quiet"]
+    args += sum((["--set", o] for o in small_overrides), [])
+    if where == "shard":      # the shard writer runs out of space half-way through its third shard
+        _enospc_after(2, monkeypatch, skio, "_write_bytes", partial=True)
+    else:                     # the manifest after the second shard cannot be written
+        _enospc_after(2, monkeypatch, dsmod, "write_json_atomic", partial=False)
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "the disk is full" in err and "run the same command again" in err
+    with pytest.raises(SkygenError, match="the disk is full"):
+        render_dataset(load_config(overrides=small_overrides + ["n_frames=50"]), out, progress=False)
+    shards = sorted(out.glob("shard-*.h5"))
+    assert shards and all(validate(p).ok for p in shards)         # whatever is named shard-*.h5 is whole
+    assert not list(out.glob(".*tmp*"))
+    assert not json.loads((out / "manifest.json").read_text())["complete"]
+    monkeypatch.undo()                                            # space freed
+    assert main(args) == 0
+    assert validate(out).ok and same_data(small_dataset, out)
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root ignores folder permissions")

@@ -173,3 +173,26 @@ def test_tables_of_empty_or_equal_length_rows_round_trip(tmp_path, counts):
         assert f["detections/x_px"].shape == (len(counts),)
         assert [len(r) for r in f["detections/x_px"][...]] == list(counts)
         assert [len(r) for r in f["stars/mag"][...]] == list(counts)
+
+
+def test_a_same_size_edit_with_its_mtime_restored_is_caught(copy):
+    """The verified-read cache must not trust size + mtime alone: both are easy to restore."""
+    import os
+    import time
+    from skygen.io import verify_checksums
+    with open_dataset(copy) as ds:
+        assert verify_checksums(ds) == len(ds.shards)
+        assert verify_checksums(ds) == 0                        # remembered
+    time.sleep(0.05)          # file timestamps tick coarsely (ms): let the edit's ctime differ
+    p = copy / "shard-00001.h5"
+    st = p.stat()
+    data = bytearray(p.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    p.write_bytes(bytes(data))
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))            # size and mtime as verified
+    assert (p.stat().st_size, p.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    with open_dataset(copy) as ds:
+        with pytest.raises(DatasetError, match="shard-00001.h5: sha256 differs"):
+            verify_checksums(ds)
+    rep = validate(copy)                                       # validate always hashes
+    assert not rep.ok and any("shard-00001.h5: sha256 differs" in x for x in rep.problems)
