@@ -27,7 +27,7 @@ import torch  # noqa: E402
 from fusion.config import AugConfig  # noqa: E402
 from fusion.model.shards import FrameDataset, make_loader, split_positions  # noqa: E402
 from fusion.model.heatmap import rasterise  # noqa: E402
-from skygen.io import open_dataset  # noqa: E402
+from skygen.datasets.shards import open_dataset  # noqa: E402
 
 
 def bench(ds, workers: int, batch_size: int, batches: int, warmup: int, aug: bool, device: torch.device,

@@ -24,7 +24,7 @@ import numpy as np
 
 
 def coverage(checkpoint: str, data: str, split: str, frames: int, n_values, k_values) -> dict:
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     from fusion.solve.base import Detections
     from fusion.solve.priors import load_prior
     prior = load_prior(checkpoint, level="fine")

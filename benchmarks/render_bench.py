@@ -26,7 +26,7 @@ import numpy as np
 from skygen import corruptions as corr
 from skygen.attitude import attitude_matrix, sample_boresight
 from skygen.config import load_config
-from skygen.dataset import render_dataset
+from skygen.datasets.build import render_dataset
 from skygen.detect import detect
 from skygen.render import Renderer
 from skygen.sensor import Exposure, read_out

@@ -41,7 +41,7 @@ def _root() -> Path:
 def render_small(out: str | Path, overrides: list[str]) -> Path:
     """Render a dataset from skygen's defaults plus ``overrides`` into ``out`` (one process, no bar)."""
     from skygen.config import load_config
-    from skygen.dataset import render_dataset
+    from skygen.datasets.build import render_dataset
     render_dataset(load_config(overrides=overrides), out, workers=1, progress=False)
     return Path(out)
 

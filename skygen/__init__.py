@@ -3,10 +3,12 @@
 The pipeline, one module per stage, in the order data flows::
 
     catalog -> attitude -> camera -> photometry -> psf -> sensor -> corruptions
-            -> detect -> render (one frame) -> dataset (many frames, shards) -> io
+            -> detect -> render (one frame) -> datasets (many frames, shards; the tools)
 
-Read conventions in :mod:`skygen.conventions`; read datasets with
-:func:`skygen.io.open_dataset`.
+The detector emulator (:mod:`skygen.emulator`, fitted by :mod:`skygen.calibration`) and the
+sample streams (:mod:`skygen.stream`) stand beside the pipeline; :mod:`skygen.runtime` holds what
+every command needs from its host (atomic files, strict JSON, hardware, devices). Read
+conventions in :mod:`skygen.conventions`; read datasets with :func:`skygen.datasets.open_dataset`.
 """
 
 __version__ = "0.1.0"

@@ -69,7 +69,7 @@ def _raise_terminated(signum, frame):
 
 def cmd_render(args) -> int:
     import signal
-    from .dataset import render_dataset
+    from .datasets.build import render_dataset
     cfg = _load(args)
     out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
     i, k = _parse_slice(args.slice)
@@ -86,13 +86,13 @@ def cmd_render(args) -> int:
 
 
 def cmd_inspect(args) -> int:
-    from .inspect import inspect_dataset
+    from .datasets.summary import inspect_dataset
     print(inspect_dataset(args.path, as_json=args.json))
     return 0
 
 
 def cmd_preview(args) -> int:
-    from .preview import preview
+    from .datasets.preview import preview
     out = preview(args.path, args.out, n=args.n, split=args.split, start=args.start)
     print(f"wrote {out}")
     return 0
@@ -100,7 +100,7 @@ def cmd_preview(args) -> int:
 
 def cmd_validate(args) -> int:
     from .errors import DatasetError
-    from .validate import validate
+    from .datasets.validate import validate
     if not Path(args.path).exists():
         raise DatasetError(f"{args.path}: no such dataset folder or shard file")
     report = validate(args.path, checksums=not args.no_checksums)
@@ -109,7 +109,7 @@ def cmd_validate(args) -> int:
 
 
 def cmd_merge(args) -> int:
-    from .merge import merge_datasets
+    from .datasets.merge import merge_datasets
     man = merge_datasets(args.inputs, args.out)
     print(f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
           f"{man['n_shards']} shards (no frame data copied; shards are referenced by relative path)")
@@ -152,19 +152,20 @@ def cmd_config(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
+    from . import calibration as cal
     from . import emulator as emu
     if args.path:
         if args.config or args.set:
             raise SkygenError("calibrate: give either a dataset DIR (its own config is used) or --config/--set "
                               "(frames are rendered), not both")
-        model = emu.calibrate_from_dataset(args.path, args.max_frames)
+        model = cal.calibrate_from_dataset(args.path, args.max_frames)
     else:
         cfg = _load(args)
         bar = None
         if not args.quiet:
             from tqdm import tqdm
             bar = tqdm(total=args.frames, desc="calibration frames", unit="frame")
-        model = emu.calibrate_from_renders(cfg, args.frames, progress=(lambda k, n: bar.update(1)) if bar else None)
+        model = cal.calibrate_from_renders(cfg, args.frames, progress=(lambda k, n: bar.update(1)) if bar else None)
         if bar:
             bar.close()
     emu.save(model, args.out)
@@ -225,7 +226,7 @@ def cmd_stream(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
-    from .io import SCHEMA_VERSION
+    from .datasets.shards import SCHEMA_VERSION
     p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
                                 "writing shareable HDF5 shards.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -45,7 +45,7 @@ def _render_some(args) -> list[dict]:
 def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers: int = 1,
                      progress=None) -> list[dict]:
     """Images (stored size) and detections of frames ``positions`` of dataset ``ds``
-    (a :class:`skygen.io.Dataset`) with ``extra`` severity of corruption ``name``.
+    (a :class:`skygen.datasets.shards.Dataset`) with ``extra`` severity of corruption ``name``.
 
     ``progress`` (optional) is called with the number of frames finished so far.
     """

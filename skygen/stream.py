@@ -377,7 +377,7 @@ def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
 
     import h5py
 
-    from .io import BORESIGHT_FIELDS, DETECTION_FIELDS, LIBVER, STAR_FIELDS
+    from .datasets.shards import BORESIGHT_FIELDS, DETECTION_FIELDS, LIBVER, STAR_FIELDS
     from .runtime import atomic_path
     parts = list(batches)
     with atomic_path(path) as tmp:

@@ -24,7 +24,7 @@ def small_overrides() -> list[str]:
 @pytest.fixture(scope="session")
 def small_dataset(tmp_path_factory) -> Path:
     from skygen.config import load_config
-    from skygen.dataset import render_dataset
+    from skygen.datasets.build import render_dataset
     out = tmp_path_factory.mktemp("data") / "small"
     render_dataset(load_config(overrides=SMALL + ["n_frames=50"]), out, workers=1, progress=False)
     return out

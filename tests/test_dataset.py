@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skygen import dataset as dsmod
+from skygen.datasets import build as dsmod
 from skygen.config import load_config
-from skygen.dataset import render_dataset
+from skygen.datasets.build import render_dataset
 from skygen.errors import DatasetError
-from skygen.io import open_dataset
-from skygen.validate import validate
+from skygen.datasets.shards import open_dataset
+from skygen.datasets.validate import validate
 
 
 def contents(path):
@@ -149,7 +149,7 @@ def _enospc_after(n_ok: int, monkeypatch, module, name: str, partial: bool):
 def test_a_full_disk_stops_with_one_line_and_a_rerun_resumes(tmp_path, small_overrides, small_dataset, capsys,
                                                              monkeypatch, where):
     """Issue 21: ENOSPC printed its line, then the interpreter crashed in HDF5's teardown (exit 139)."""
-    from skygen import io as skio
+    from skygen.datasets import shards as skio
     from skygen.cli import main
     from skygen.errors import SkygenError
     out = tmp_path / "full"
@@ -192,7 +192,7 @@ def test_splits_are_contiguous_and_complete(small_dataset):
 
 
 def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dataset):
-    from skygen.merge import merge_datasets
+    from skygen.datasets.merge import merge_datasets
     cfg = load_config(overrides=small_overrides + ["n_frames=50"])
     for i in range(2):
         render_dataset(cfg, tmp_path / f"part{i}", workers=1, slice_index=i, num_slices=2, progress=False)
@@ -204,7 +204,7 @@ def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dat
 
 
 def test_merge_compatible_datasets_and_refuse_others(tmp_path, small_overrides, small_dataset):
-    from skygen.merge import merge_datasets
+    from skygen.datasets.merge import merge_datasets
     render_dataset(load_config(overrides=small_overrides + ["n_frames=30", "seed=7"]), tmp_path / "b", progress=False)
     man = merge_datasets([small_dataset, tmp_path / "b"], tmp_path / "ab")
     assert man["n_frames"] == 80 and len(man["sources"]) == 2
@@ -219,7 +219,7 @@ def test_merge_compatible_datasets_and_refuse_others(tmp_path, small_overrides, 
 
 def test_skygen_reads_without_torch(small_dataset):
     code = ("import sys; sys.modules['torch'] = None\n"
-            "from skygen.io import open_dataset; from skygen.validate import validate\n"
+            "from skygen.datasets.shards import open_dataset; from skygen.datasets.validate import validate\n"
             f"ds = open_dataset({str(small_dataset)!r}); ds.image(3); assert validate({str(small_dataset)!r}).ok\n")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 
 datasets = pytest.importorskip("datasets", reason="dev extra: pip install -e '.[dev]'")
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from skygen import calibration as cal
 from skygen import emulator as emu
 from skygen import hashrng
 from skygen.config import load_config
@@ -26,7 +27,7 @@ N_FRAMES = 160
 
 @pytest.fixture(scope="module")
 def pairs():
-    cfg = emu.calibration_config(load_config())
+    cfg = cal.calibration_config(load_config())
     r = Renderer(cfg, rng_tag="@emulator-test")
     model = emu.load(emu.default_calibration_path())
     emu.check_compatible(model, __import__("skygen.config", fromlist=["config_dict"]).config_dict(cfg))
@@ -149,10 +150,10 @@ def test_blending_matches_the_real_detector(pairs):
 
 
 def test_fit_from_a_dataset_matches_render_fit(tmp_path):
-    from skygen.dataset import render_dataset
+    from skygen.datasets.build import render_dataset
     cfg = load_config(overrides=["n_frames=40", "output.shard_size=40"])
     render_dataset(cfg, tmp_path / "ds", workers=1, progress=False)
-    model = emu.calibrate_from_dataset(tmp_path / "ds")
+    model = cal.calibrate_from_dataset(tmp_path / "ds")
     assert model.info["frames"] == 40
     emu.check_compatible(model, __import__("skygen.config", fromlist=["config_dict"]).config_dict(cfg))
     # the 50 % point of the completeness curve sits near the threshold (u = 0) by construction

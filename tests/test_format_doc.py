@@ -52,7 +52,7 @@ def test_every_dataset_is_documented_and_vice_versa(small_dataset):
 
 
 def test_documented_schema_version_is_the_writers():
-    from skygen.io import SCHEMA_VERSION, SUPPORTED_MAJOR
+    from skygen.datasets.shards import SCHEMA_VERSION, SUPPORTED_MAJOR
     text = DOC.read_text()
     assert f"schema {SCHEMA_VERSION.rsplit('.', 1)[0]})" in text.splitlines()[0]
     assert f"`{SCHEMA_VERSION}`" in text and 1 in SUPPORTED_MAJOR

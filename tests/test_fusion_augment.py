@@ -9,7 +9,7 @@ from fusion.train.augment import _gaussian_stamp, add_noise, augment, drop_stars
 from fusion.config import AugConfig
 from fusion.model.shards import read_sample
 from fusion.testing import small_dataset
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 
 GEO = FrameGeometry(sensor_px=256, image_px=64, factor=4, bias_adu=100.0, max_adu=4095.0, psf_sigma_px=1.2)
 

@@ -11,7 +11,7 @@ from fusion.errors import DatasetError
 from fusion.model.heatmap import rasterise
 from fusion.testing import render_small, small_dataset
 from fusion.train.augment import Augmenter
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +154,7 @@ def test_forked_workers_do_not_deadlock_after_opencv_ran_in_the_parent():
         "from fusion.config import AugConfig\n"
         "from fusion.model.shards import FrameDataset, make_loader\n"
         "from fusion.train.augment import Augmenter\n"
-        "from skygen.io import open_dataset\n"
+        "from skygen.datasets.shards import open_dataset\n"
         "big = np.random.rand(2048, 2048).astype(np.float32)\n"
         "cv2.warpAffine(big, np.array([[0.9, -0.4, 10], [0.4, 0.9, 5]]), (2048, 2048))\n"
         f"ds = open_dataset({str(small_dataset('smoke'))!r})\n"

@@ -135,7 +135,7 @@ def test_same_seed_other_n_shares_frames_only_within_a_split(trained, tmp_path):
     """The leak of schema 1.x: with frames keyed by the global index, the test split of a
     200-frame seed-0 dataset (frames 160-199) held frames 160-179 of the 300-frame one's
     training split. Keyed by (split, index in split), it holds none."""
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     other = _smoke_with(tmp_path, "n200", "n_frames=200")
     r = evaluate_checkpoint(trained, other, "test", tmp_path, log=quiet)       # accepted: no shared frame
     assert r["dataset"]["frames_seen_in_training"] == 0
@@ -176,7 +176,7 @@ def test_evaluate_and_train_refuse_a_shard_changed_after_rendering(trained, tmp_
 
 def test_checksums_are_verified_once_per_size_and_mtime(tmp_path, monkeypatch):
     import os
-    from skygen.io import open_dataset, verify_checksums
+    from skygen.datasets.shards import open_dataset, verify_checksums
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     with open_dataset(small_dataset("smoke")) as ds:
         assert verify_checksums(ds) == 2
@@ -189,7 +189,7 @@ def test_checksums_are_verified_once_per_size_and_mtime(tmp_path, monkeypatch):
 def test_an_error_inside_a_dataloader_worker_is_one_line_naming_the_file(tmp_path):
     from fusion.cli import one_line
     from fusion.model.shards import FrameDataset, make_loader
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     copy = tmp_path / "copy"
     shutil.copytree(small_dataset("smoke"), copy)
     ds = open_dataset(copy)

@@ -93,7 +93,7 @@ def test_centroids_are_fitted_on_the_training_split_only(tmp_path):
     from fusion.config import load_config
     from fusion.testing import small_dataset
     from fusion.train.data import prepare_data
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     path = small_dataset("uniform")
     cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4"])
     data = prepare_data(cfg)

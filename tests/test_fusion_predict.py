@@ -56,7 +56,7 @@ def test_readers_agree_and_bad_files_say_why(tmp_path):
 def frame_and_truth(tmp_path_factory):
     """A full-resolution frame of the smoke dataset's camera, in every format, with its true attitude."""
     from skygen.config import build_config
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     from skygen.render import Renderer
     with open_dataset(small_dataset("smoke")) as ds:
         cfg = dict(ds.config)
@@ -105,7 +105,7 @@ def test_predict_with_a_checkpoint_from_another_folder(checkpoint, frame_and_tru
 
 
 def test_predict_camera_preset_solves_with_tetra3rs(frame_and_truth, tmp_path):
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     import yaml
     paths, f = frame_and_truth
     with open_dataset(small_dataset("smoke")) as ds:

@@ -15,7 +15,7 @@ from fusion.measure import robustness as rob
 from fusion.errors import CheckpointError, ConfigError
 from fusion.testing import render_small, small_dataset
 from skygen import corruptions as corr
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 from skygen.perturb import perturbed_frames
 
 

@@ -17,10 +17,11 @@ from fusion.train.stream import StreamBatches, make_stream_loader
 from fusion.model.inputs import encode_batch
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train.run import train
+from skygen import calibration as calib
 from skygen import emulator as emu
 from skygen.config import build_config as build_render_config
 from skygen.errors import SkygenError
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 quiet = lambda *a, **k: None  # noqa: E731
@@ -33,7 +34,7 @@ def smoke(tmp_path_factory):
     with open_dataset(path) as ds:
         config = ds.config
     cal = tmp_path_factory.mktemp("cal") / "smoke-detector.json"
-    emu.save(emu.calibrate_from_renders(build_render_config(config), 150), cal)
+    emu.save(calib.calibrate_from_renders(build_render_config(config), 150), cal)
     return path, config, cal
 
 
@@ -207,7 +208,7 @@ def test_non_square_sensor_trains_on_shards_and_stream(tmp_path):
     s = train(load_config(ROOT / "configs" / "smoke.yaml", base), tmp_path / "shards", log=quiet)
     assert np.isfinite(s["best"]["val_loss"])
     cal = tmp_path / "ns-detector.json"
-    emu.save(emu.calibrate_from_renders(build_render_config(config), 60), cal)
+    emu.save(calib.calibrate_from_renders(build_render_config(config), 60), cal)
     s = train(load_config(ROOT / "configs" / "smoke.yaml", base + [
         "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=64",
         "model.branches.image=false"]), tmp_path / "stream", log=quiet)

@@ -97,7 +97,7 @@ def test_end_to_end_preprocessing_reproduces_the_stored_training_inputs():
     from fusion.model.inputs import encode_detections, normalise_image
     from fusion.model.shards import read_sample
     from fusion.testing import small_dataset
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     path = small_dataset("smoke")
     cfg = load_config("configs/smoke.yaml")
     with open_dataset(path) as ds:

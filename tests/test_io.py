@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from skygen.errors import DatasetError
-from skygen.io import SCHEMA_VERSION, open_dataset, open_shard_file
-from skygen.validate import validate
+from skygen.datasets.shards import SCHEMA_VERSION, open_dataset, open_shard_file
+from skygen.datasets.validate import validate
 
 
 @pytest.fixture
@@ -105,7 +105,7 @@ def test_validate_catches_damage(copy, small_dataset, tmp_path):
 
 def test_validate_catches_shard_from_another_dataset(tmp_path, small_overrides, small_dataset):
     from skygen.config import load_config
-    from skygen.dataset import render_dataset
+    from skygen.datasets.build import render_dataset
     other = tmp_path / "other"
     render_dataset(load_config(overrides=small_overrides + ["n_frames=50", "seed=5"]), other, progress=False)
     mixed = tmp_path / "mixed"
@@ -158,7 +158,7 @@ def test_schema1_dataset_still_reads_through_the_one_reader():
 def test_tables_of_empty_or_equal_length_rows_round_trip(tmp_path, counts):
     """Per-frame variable-length rows survive frames without detections and frames of equal counts."""
     from types import SimpleNamespace
-    from skygen.io import DETECTION_FIELDS, STAR_FIELDS, write_shard
+    from skygen.datasets.shards import DETECTION_FIELDS, STAR_FIELDS, write_shard
     from skygen.config import config_dict, load_config
     cfg = config_dict(load_config(overrides=["n_frames=3"]))
     table = lambda fields, k: {n: np.arange(k).astype(v[0]) for n, v in fields.items()}  # noqa: E731
@@ -179,7 +179,7 @@ def test_a_same_size_edit_with_its_mtime_restored_is_caught(copy):
     """The verified-read cache must not trust size + mtime alone: both are easy to restore."""
     import os
     import time
-    from skygen.io import verify_checksums
+    from skygen.datasets.shards import verify_checksums
     with open_dataset(copy) as ds:
         assert verify_checksums(ds) == len(ds.shards)
         assert verify_checksums(ds) == 0                        # remembered

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from skygen.dataset import _render_lock
+from skygen.datasets.build import _render_lock
 from skygen.errors import DatasetError, FolderInUseError
 from skygen.lock import FolderLock, lock_path
 

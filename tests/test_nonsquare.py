@@ -34,9 +34,9 @@ def test_camera_presets_load():
 
 
 def test_render_store_validate_non_square(tmp_path):
-    from skygen.dataset import render_dataset
-    from skygen.io import open_dataset
-    from skygen.validate import validate
+    from skygen.datasets.build import render_dataset
+    from skygen.datasets.shards import open_dataset
+    from skygen.datasets.validate import validate
     out = tmp_path / "wide"
     render_dataset(load_config(overrides=WIDE), out, workers=1, progress=False)
     with open_dataset(out) as ds:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from skygen import corruptions as corr
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 from skygen.perturb import perturbed_frames
 
 

@@ -237,7 +237,7 @@ def test_device_errors_are_config_errors(small, tmp_path):
     with pytest.raises(ConfigError, match="render.backend"):
         load_config(overrides=["render.backend=jax"])
     if not torch.cuda.is_available():
-        from skygen.dataset import render_dataset
+        from skygen.datasets.build import render_dataset
         cfg = load_config(overrides=small + ["render.device=cuda"])
         with pytest.raises(ConfigError, match="CUDA is not available"):
             TorchRenderer(cfg)
@@ -248,8 +248,8 @@ def test_device_errors_are_config_errors(small, tmp_path):
 
 def test_dataset_with_torch_backend_is_deterministic_and_keeps_numpy_ids(small, tmp_path):
     from skygen.config import config_dict
-    from skygen.dataset import render_dataset
-    from skygen.io import config_id, open_dataset
+    from skygen.datasets.build import render_dataset
+    from skygen.datasets.shards import config_id, open_dataset
     cfg = load_config(overrides=small + ["n_frames=6", "output.shard_size=4", "render.batch_size=3"])
     m1 = render_dataset(cfg, tmp_path / "a", progress=False)
     render_dataset(cfg, tmp_path / "b", progress=False)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.io import open_dataset, verify_checksums
+from skygen.datasets.shards import open_dataset, verify_checksums
 
 from skygen.runtime import atomic_write_text, pick_device, write_json
 

@@ -43,8 +43,8 @@ import torch
 import yaml
 
 from skygen.config import load_config as load_render_config
-from skygen.dataset import render_dataset
-from skygen.io import open_dataset
+from skygen.datasets.build import render_dataset
+from skygen.datasets.shards import open_dataset
 
 from skygen.runtime import atomic_write_text, hardware, write_json
 

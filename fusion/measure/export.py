@@ -119,7 +119,7 @@ def star_like_inputs(batch: int, image_size: int, max_stars: int, rng: np.random
 
 def dataset_inputs(data: str | Path, cfg, n: int = 4) -> dict[str, np.ndarray]:
     """The first ``n`` test frames of a skygen dataset, preprocessed as in training."""
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     from ..model.shards import FrameDataset, split_positions
     with open_dataset(data) as ds:
         pos = split_positions(ds, "test")[:n]

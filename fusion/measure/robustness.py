@@ -55,8 +55,8 @@ import torch
 
 from skygen import corruptions as corr
 from skygen.config import build_config as build_render_config
-from skygen.io import Dataset as SkyDataset
-from skygen.io import open_dataset
+from skygen.datasets.shards import Dataset as SkyDataset
+from skygen.datasets.shards import open_dataset
 from skygen.perturb import perturbed_frames
 
 from skygen.runtime import atomic_write_bytes, atomic_write_text, pick_device, write_json

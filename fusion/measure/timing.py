@@ -112,7 +112,7 @@ def load_timed_model(checkpoint: str | Path | None = None, config: str | Path | 
 
 
 def _dataset_config(path: str | Path) -> dict | None:
-    from skygen.io import open_dataset
+    from skygen.datasets.shards import open_dataset
     try:
         with open_dataset(path) as ds:
             return dict(ds.config)

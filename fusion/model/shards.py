@@ -1,6 +1,6 @@
 """Model inputs from skygen shards: frames of a split as :class:`Preprocessor` items, samplers, loaders.
 
-Frames are read only through skygen's reader (:func:`skygen.io.open_dataset`), which
+Frames are read only through skygen's reader (:func:`skygen.datasets.shards.open_dataset`), which
 opens the HDF5 shards lazily in each process; a :class:`FrameDataset` pickles without
 open handles, so DataLoader workers work with the fork, spawn and forkserver start methods.
 Training (with an augmentation), evaluation and the experiment runner share this module.
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Sampler
 
-from skygen.io import Dataset as SkyDataset
+from skygen.datasets.shards import Dataset as SkyDataset
 
 from ..errors import DatasetError
 from .inputs import FrameGeometry, Preprocessor, Sample

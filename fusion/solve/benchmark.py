@@ -60,7 +60,7 @@ import numpy as np
 from skygen import corruptions as corr
 from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
-from skygen.io import open_dataset
+from skygen.datasets.shards import open_dataset
 
 from skygen.runtime import atomic_write_text, hardware_line, write_json
 

@@ -70,7 +70,7 @@ def iter_inputs(paths: list[str], max_frames: int | None):
     for p in paths:
         path = Path(p)
         if path.is_dir() and (path / "manifest.json").exists():
-            from skygen.io import open_dataset
+            from skygen.datasets.shards import open_dataset
             with open_dataset(path) as ds:
                 for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
                     yield f"{path}#{int(ds.frames['index'][pos])}", None, ds.detections(pos), ds.image(pos), None

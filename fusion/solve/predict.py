@@ -75,7 +75,7 @@ class Predictor:
                               "(tetra3rs only), exactly one of them")
         render_config = None
         if dataset is not None:
-            from skygen.io import open_dataset
+            from skygen.datasets.shards import open_dataset
             with open_dataset(dataset) as ds:
                 render_config = dict(ds.config)
         if camera is not None:

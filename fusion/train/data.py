@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skygen.io import Dataset as SkyDataset
-from skygen.io import open_dataset, verify_checksums
+from skygen.datasets.shards import Dataset as SkyDataset
+from skygen.datasets.shards import open_dataset, verify_checksums
 
 from ..config import FusionConfig
 from ..errors import CheckpointError, ConfigError

@@ -29,9 +29,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .conventions import CONVENTIONS
-from .errors import DatasetError
-from .identity import content_id, legacy_frame_ids, split_bounds
+from ..conventions import CONVENTIONS
+from ..runtime import atomic_path, write_json
+from ..errors import DatasetError
+from ..identity import content_id, legacy_frame_ids, split_bounds
 
 FORMAT_NAME = "skygen-shard"
 MANIFEST_FORMAT = "skygen-dataset"
@@ -81,7 +82,7 @@ def library_versions() -> dict:
     import astropy
     import cv2
     import scipy
-    from . import __version__
+    from .. import __version__
     return {"skygen": __version__, "python": platform.python_version(), "numpy": np.__version__,
             "scipy": scipy.__version__, "astropy": astropy.__version__, "h5py": h5py.__version__,
             "hdf5": h5py.version.hdf5_version, "opencv": cv2.__version__}
@@ -154,19 +155,14 @@ def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: in
     and crashed the interpreter at exit.) Returns the manifest entry.
     """
     path = Path(path)
-    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
     n = len(frames)
     buf = io.BytesIO()
     with h5py.File(buf, "w", libver=LIBVER) as f:
         _fill_shard(f, frames, config=config, shard_index=shard_index, frame_start=frame_start,
                     compression=compression, compression_level=compression_level,
                     corruption_names=corruption_names)
-    try:
+    with atomic_path(path) as tmp:
         _write_bytes(tmp, buf.getbuffer())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     del buf
     splits = np.bincount([fr.split for fr in frames], minlength=3)
     return {"file": path.name, "index": shard_index, "frame_start": frame_start, "n_frames": n,
@@ -234,14 +230,8 @@ def _fill_shard(f: h5py.File, frames: list, *, config: dict, shard_index: int, f
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
-    path = Path(path)
-    tmp = path.with_name("." + path.name + f".tmp{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    """``data`` as strict JSON (:func:`skygen.runtime.write_json`), written atomically."""
+    write_json(path, data)
 
 
 def read_manifest(folder: str | Path, name: str = MANIFEST_NAME) -> dict:

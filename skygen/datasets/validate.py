@@ -2,7 +2,7 @@
 
 Checks the manifest (format, version, completeness, frame counts), that every listed
 shard exists with the recorded size and sha256 (always hashed: the checksum cache of
-verified reads, :func:`skygen.io.verify_checksums`, is not consulted), that no unlisted shard lies beside
+verified reads, :func:`skygen.datasets.shards.verify_checksums`, is not consulted), that no unlisted shard lies beside
 them, and inside each shard: format name, schema version, dataset id and config equal to
 the manifest's, every documented dataset present with its dtype and shape, per-frame
 row counts consistent (offsets, for 1.x shards), frame identities matching the config,
@@ -20,9 +20,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import DatasetError
-from .identity import frame_ids, split_bounds
-from .io import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
+from ..errors import DatasetError
+from ..identity import frame_ids, split_bounds
+from .shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
                  V2_FRAME_FIELDS, config_id, open_shard_file, read_manifest, sha256_file)
 
 

@@ -28,15 +28,15 @@ import time
 from pathlib import Path
 
 
-from . import corruptions as corr
-from .config import RenderConfig, config_dict
+from .. import corruptions as corr
+from ..config import RenderConfig, config_dict
 from .card import CARD_NAME, CROISSANT_NAME, write_card
-from .configlib import flatten
-from .errors import ConfigError, DatasetError
-from .identity import content_id
-from .io import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
+from ..configlib import flatten
+from ..errors import ConfigError, DatasetError
+from ..identity import content_id
+from .shards import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
-from .lock import FolderLock
+from ..lock import FolderLock
 
 
 def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
@@ -139,13 +139,13 @@ def _init_worker(cfg: RenderConfig, counter, parent_pid: int | None = None, thre
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         _exit_when_orphaned(parent_pid)
-    from .render import Renderer
+    from ..render import Renderer
     _WORKER["renderer"] = Renderer(cfg)
     _WORKER["counter"] = counter
     _WORKER.pop("torch", None)
     if cfg.render.backend == "torch":
         import torch
-        from .render_torch import TorchRenderer
+        from ..render_torch import TorchRenderer
         if threads:                      # pool workers: one thread each, as cv2
             torch.set_num_threads(threads)
         _WORKER["torch"] = TorchRenderer(cfg, renderer=_WORKER["renderer"])
@@ -195,10 +195,10 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     more slices than shards. Interrupting leaves only whole shards and a valid manifest.
     ``warn`` (default: print to stderr) receives warnings about the physics, e.g. an
     exposure that saturates every pixel. Also writes the dataset card (README.md and
-    croissant.json, :mod:`skygen.card`) once the dataset is complete.
+    croissant.json, :mod:`skygen.datasets.card`) once the dataset is complete.
     """
     import sys
-    from .render import Renderer
+    from ..render import Renderer
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     if workers < 1:
         raise ConfigError(f"--workers {workers}: need at least 1 worker process")
@@ -212,7 +212,7 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
                           f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
                           f"output.shard_size={size} for {num_slices} slices")
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
-        from .render_torch import resolve_device
+        from ..render_torch import resolve_device
         resolve_device(cfg.render.device)
     probe_renderer = Renderer(cfg)      # refuses configs it cannot render (ConfigError) before any file is made
     message = probe_renderer.saturation_warning()

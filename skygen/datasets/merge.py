@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from .card import write_card
-from .dataset import _manifests, config_differences, write_failed
-from .errors import DatasetError
-from .identity import dataset_frame_ids
-from .io import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
-from .lock import FolderLock
+from .build import _manifests, config_differences, write_failed
+from ..errors import DatasetError
+from ..identity import dataset_frame_ids
+from .shards import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
+from ..lock import FolderLock
 
 MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
                   "output.full_res"}

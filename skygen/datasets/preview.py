@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .conventions import full_to_stored
-from .errors import ConfigError, DatasetError
-from .io import open_dataset
+from ..conventions import full_to_stored
+from ..errors import ConfigError, DatasetError
+from .shards import open_dataset
 
 
 def check_preview_args(out: Path, n: int, start: int) -> None:

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
+from .shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
                  write_json_atomic)
-from .runtime import atomic_write_text
+from ..runtime import atomic_write_text
 
 CARD_NAME = "README.md"
 CROISSANT_NAME = "croissant.json"
@@ -162,7 +162,7 @@ import h5py                                      # plain h5py
 with h5py.File("shard-00000.h5") as f:
     image, x = f["images"][0], f["detections/x_px"][0]   # frame 0: [y, x] ADU; detection x, full-res px
 
-from skygen.io import open_dataset               # skygen's reader (checks versions, lazy)
+from skygen.datasets.shards import open_dataset               # skygen's reader (checks versions, lazy)
 with open_dataset(".") as ds:
     test = ds.indices("test"); det = ds.detections(int(test[0]))
 
