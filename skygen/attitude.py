@@ -126,6 +126,16 @@ def boresights_from_uniforms(acfg, idx: np.ndarray, u: np.ndarray) -> tuple[np.n
     return (np.degrees(np.arctan2(v[:, 1], v[:, 0])) % 360.0, np.degrees(np.arcsin(np.clip(v[:, 2], -1, 1))), roll)
 
 
+def boresight_sample(acfg, n: int, seed: int) -> np.ndarray:
+    """(n, 3) ICRS unit boresight vectors drawn from an :class:`AttitudeConfig`'s distribution
+    (uniform on the sphere, a cap, or the listed pointings cycled), seeded by ``seed`` alone: what
+    regions of the sky are fitted on when they must not depend on a dataset's size."""
+    u = np.random.default_rng([int(seed), 0x5B7]).random((int(n), 3))
+    ra, dec, _ = boresights_from_uniforms(acfg, np.arange(int(n)), u)
+    ra, dec = np.radians(ra), np.radians(dec)
+    return np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=1)
+
+
 def attitude_matrices(ra_deg, dec_deg, roll_deg) -> np.ndarray:
     """:func:`attitude_matrix` for arrays: (B, 3, 3)."""
     a, d, r = (np.radians(np.asarray(v, np.float64)) for v in (ra_deg, dec_deg, roll_deg))

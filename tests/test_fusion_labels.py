@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fusion.errors import DatasetError
+from fusion.errors import ConfigError, DatasetError
 from fusion.model.regions import angular_distance_deg, assign, class_weights, radec_to_unit, soft_targets, spherical_kmeans
 
 
@@ -121,3 +121,54 @@ def test_assign_with_many_centroids_is_the_largest_cosine():
     got = assign(v, c)
     assert got.dtype == np.int64 and np.array_equal(got, np.argmax(v @ c.T, axis=1))
     assert assign(v[:0], c).shape == (0,)
+
+
+def test_fine_regions_come_from_the_sky_not_the_dataset(tmp_path):
+    """Any fine_k works with any dataset size, and two datasets of one attitude distribution share the
+    regions (issue: `fusion train --stream detections --config configs/cpu.yaml` on a small dataset)."""
+    from fusion.config import load_config
+    from fusion.testing import KINDS, render_small, small_dataset
+    from fusion.train.data import prepare_data
+    from skygen.datasets import open_dataset
+    other = render_small(tmp_path / "other", KINDS["uniform"] + ["n_frames=40", "seed=5"])
+    regions = {}
+    for kind, path in (("big", small_dataset("uniform")), ("small", other)):
+        with open_dataset(path) as ds:
+            n_train = len(ds.indices("train"))
+        cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4", "labels.fine_k=300",
+                                                 "stream.kind=detections", "labels.n_init=1",
+                                                 "model.branches.image=false"])
+        assert n_train < 300                      # more fine regions than the dataset has training frames
+        data = prepare_data(cfg)
+        data.ds.close()
+        assert data.regions.fine.shape == (300, 3) and set(data.regions.groups) == set(range(4))
+        regions[kind] = data.regions
+    np.testing.assert_array_equal(regions["big"].fine, regions["small"].fine)
+    np.testing.assert_array_equal(regions["big"].coarse, regions["small"].coarse)   # stream: K regions too
+    # fitted on the sky: the fine regions' areas are even (largest cell < 2x the mean cell area)
+    v = np.random.default_rng(1).standard_normal((50_000, 3))
+    counts = np.bincount(assign(v / np.linalg.norm(v, axis=1, keepdims=True), regions["big"].fine), minlength=300)
+    assert counts.max() < 2 * counts.mean()
+
+
+def test_shard_training_keeps_the_k_regions_of_its_training_split():
+    from fusion.config import load_config
+    from fusion.testing import small_dataset
+    from fusion.train.data import prepare_data
+    path = small_dataset("uniform")
+    cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4", "labels.fine_k=50"])
+    data = prepare_data(cfg)
+    v_train = data.ds.boresight["unit_vector"][data.ds.indices("train")]
+    data.ds.close()
+    lab = cfg.labels
+    expected = spherical_kmeans(v_train, 4, lab.seed, lab.n_init, lab.max_iter, lab.tol_deg)
+    np.testing.assert_array_equal(data.regions.coarse, expected.centroids)
+
+
+def test_fine_regions_on_a_list_of_pointings_are_refused_with_the_reason():
+    from fusion.config import load_config
+    from fusion.testing import small_dataset
+    from fusion.train.data import prepare_data
+    cfg = load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "labels.fine_k=300"])
+    with pytest.raises(ConfigError, match="8 distinct pointings"):
+        prepare_data(cfg)

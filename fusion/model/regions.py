@@ -17,9 +17,13 @@ Algorithm (:func:`spherical_kmeans`)
     cosine similarity is kept.
 
 Hierarchy (:class:`Regions`)
-    The K regions a model classifies and, optionally, ``fine_k`` finer regions (spherical
-    K-means on the same directions) that a model can be trained on; ``groups[f]`` is the
-    region of fine region f (the region of its centroid). One object owns both levels:
+    The K regions a model classifies and, optionally, ``fine_k`` finer regions that a model
+    can be trained on; ``groups[f]`` is the region of fine region f (the region of its
+    centroid). Fine regions (and, for a model trained on a stream, the K regions too) are
+    fitted on :func:`sky_directions`, ``SKY_SAMPLES_PER_REGION`` directions per region drawn
+    from the render config's attitude distribution with ``labels.seed`` (:func:`skygen.attitude.boresight_sample`),
+    never on a dataset's frames: any ``fine_k`` works with any dataset size, and datasets of one
+    camera and attitude distribution share the regions. One object owns both levels:
     training fits it, the checkpoint stores it, the model's log-sum-exp head and the fine
     stage's search read it. ``level`` is ``"coarse"`` (the K regions) or ``"fine"``.
 
@@ -165,6 +169,14 @@ def class_weights(labels: np.ndarray, k: int, mode: str = "balanced") -> np.ndar
 
 
 LEVELS = ("coarse", "fine")
+SKY_SAMPLES_PER_REGION = 20       # sky directions per fitted region (K-means on 20 F directions: ~2 s at F = 1000)
+SKY_SAMPLES_MIN = 20_000
+
+
+def sky_directions(attitude_config, n_regions: int, seed: int) -> np.ndarray:
+    """Directions to fit ``n_regions`` regions on: drawn from the attitude distribution, not from a dataset."""
+    from skygen.attitude import boresight_sample
+    return boresight_sample(attitude_config, max(SKY_SAMPLES_MIN, SKY_SAMPLES_PER_REGION * n_regions), seed)
 
 
 @dataclass(frozen=True)
@@ -193,23 +205,17 @@ class Regions:
         return None if self.fine is None else assign(self.fine, self.coarse)
 
     @classmethod
-    def fit(cls, v: np.ndarray, k: int, fine_k: int | None = None, *, seed: int = 0, n_init: int = 4,
-            max_iter: int = 300, tol_deg: float = 1e-6) -> tuple["Regions", KMeansResult]:
-        """Fit both levels on training directions ``v`` (N, 3); also returns the coarse K-means result."""
+    def fit(cls, v: np.ndarray, k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300,
+            tol_deg: float = 1e-6) -> tuple["Regions", KMeansResult]:
+        """The K regions fitted on directions ``v`` (N, 3); also returns the K-means result."""
         km = spherical_kmeans(v, k, seed, n_init, max_iter, tol_deg)
-        fine = None
-        if fine_k:
-            if fine_k > len(v):
-                raise ConfigError(f"labels.fine_k={fine_k} exceeds the {len(v)} training directions")
-            fine = spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids
-        return cls(km.centroids, fine).checked(), km
+        return cls(km.centroids), km
 
     def with_fine(self, v: np.ndarray, fine_k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300,
                   tol_deg: float = 1e-6) -> "Regions":
-        """These regions with fine regions fitted on ``v`` (the coarse ones kept)."""
-        if fine_k > len(v):
-            raise ConfigError(f"labels.fine_k={fine_k} exceeds the {len(v)} training directions")
-        return Regions(self.coarse, spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids).checked()
+        """These regions with ``fine_k`` fine regions fitted on directions ``v`` (the K regions kept)."""
+        fine = spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids
+        return Regions(self.coarse, fine).checked()
 
     def checked(self) -> "Regions":
         """Self, after checking that every region holds at least one fine region (ConfigError otherwise)."""
