@@ -146,6 +146,22 @@ def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
         assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
 
 
+def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
+    """Three detections over the whole sky cannot reach the confidence bar (~10^4 chance triangles): the
+    search stops after the first detection pair instead of trying every pair in both passes."""
+    from fusion.solve.fine import CoarseToFineSolver
+    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    f = renderer.render(1)
+    res = c2f.solve(Detections.from_table(f.detections).brightest(3), renderer.camera)
+    assert isinstance(res, Refusal) and "cannot reach the confidence bar" in res.reason
+    d = Detections.from_table(f.detections).brightest(3)
+    u = renderer.camera.unproject(d.x_px, d.y_px)
+    first_pair = 2 * np.diff(c2f.pairs.range(np.arccos(u[0] @ u[1]) - 2 * c2f.tol_rad,
+                                             np.arccos(u[0] @ u[1]) + 2 * c2f.tol_rad))[0]
+    assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
+    assert c2f.confidence(first_pair, 3, 3) < c2f.min_confidence
+
+
 def test_confidence_falls_with_hypotheses(tetra):
     from fusion.solve.fine import CoarseToFineSolver
     c2f = CoarseToFineSolver(tetra, None)

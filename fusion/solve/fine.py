@@ -12,7 +12,8 @@ For one region (a cap around a region centroid, :class:`Region`):
    database verifies with) inside the cap widened by the camera's half-diagonal, the
    brightest ``stars_per_fov`` per field of view (a global magnitude cut);
 2. hypotheses: every catalog pair whose separation matches that of two bright detections
-   (i, j) within ``tol_px`` (both orders) — and, with ``focal_tol`` = s > 0, within a focal
+   (i, j) within ``tol_px`` (both orders; a range of the catalogue pair index,
+   :mod:`fusion.solve.pairs`, built once per camera and catalogue cut and cached on disk) — and, with ``focal_tol`` = s > 0, within a focal
    length known only to ±s (a real lens's focal length is off its datasheet value by about
    a percent, which at the edge of a field is several times a 2 px tolerance). Each pair fixes
    a focal-length factor k (catalog separation / detection separation, clipped to 1 ± s) and a
@@ -23,14 +24,18 @@ For one region (a cap around a region centroid, :class:`Region`):
 3. score: every detection is mapped to the sky with that rotation and counts if a
    catalog star lies within ``tol_px`` plus what the pair leaves uncertain of the scale
    (``min(s, 2 tol / d_ij)`` times the detection's distance from detection i); a hypothesis
-   whose boresight leaves the region is dropped (it belongs to another region);
+   whose boresight leaves the region is dropped (it belongs to another region). The scoring is
+   compiled (numba, :mod:`fusion.solve.match`) and finds the candidate stars through the pair
+   index rather than by projecting every hypothesis;
 4. decision, after each detection pair (so a clear case stops early): the best hypothesis
    so far (most matches) must be unique — no other hypothesis with as many matches at an
    attitude more than 0.5° away — and its chance of being a coincidence small:
    ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so far, n detections, s
    matches, p the chance that a random sky position has a catalog star within ``tol_px``)
    gives ``confidence = max(0, 1 - E_false)``; below ``min_confidence`` or fewer than
-   ``min_matches`` matches: next region, or a refusal;
+   ``min_matches`` matches: next region, or a refusal. H only grows, so once even ``s = n``
+   cannot reach ``min_confidence`` the search stops at once with a refusal (three stars over the
+   whole sky: after the first detection pair);
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
    Kabsch and the scale of a 2-D similarity between tangent-plane coordinates, k kept within
    1 ± s whichever pass found the hypothesis), re-matched at ``tol_px`` until the matches
@@ -57,13 +62,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .base import Detections, Refusal, Solution, rotation_angle_deg, solution_from_matrix
+from .match import anchor_hypotheses, partner_table
+from .pairs import load_or_build
 
 
 @dataclass(frozen=True)
@@ -93,23 +99,18 @@ def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndar
     return radii + spacing
 
 
-def _triad(u0, u1, s0, s1) -> np.ndarray:
-    """Rotations (P, 3, 3) taking camera vectors u0 -> s0 exactly and the u0->u1 plane onto s0->s1."""
-    def frame(a, b):
-        t2 = np.cross(a, b)
-        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
-        return np.stack([a, t2, np.cross(a, t2)], axis=-1)
-    fu = frame(np.broadcast_to(u0, s0.shape), np.broadcast_to(u1, s0.shape))
-    fs = frame(s0, s1)
-    return fs @ np.swapaxes(fu, -1, -2)
-
-
 def _unit_at(t: np.ndarray, k) -> np.ndarray:
     """Unit camera vectors of tangent-plane points ``t`` (n, 2) at focal-length factor(s) ``k`` (scalar or (P,))."""
     k = np.asarray(k, np.float64)
     tk = t / k[..., None, None] if k.ndim else t / k
     v = np.concatenate([tk, np.ones(tk.shape[:-1] + (1,))], axis=-1)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _angle_at(ti: np.ndarray, tk: np.ndarray, f: float) -> float:
+    """Angle between two tangent-plane points seen at focal-length factor ``f``."""
+    a, b = np.append(ti / f, 1.0), np.append(tk / f, 1.0)
+    return math.acos(min(1.0, float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))))
 
 
 def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -126,11 +127,11 @@ class CoarseToFineSolver:
     def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
                  stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
                  min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
-                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, pair_cache: int = 64):
+                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
-        self.focal_tol, self.pair_cache = float(focal_tol), int(pair_cache)
+        self.focal_tol = float(focal_tol)
         self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
@@ -152,8 +153,9 @@ class CoarseToFineSolver:
         self.half_diag_rad = math.atan(math.hypot(cam.width_px, cam.height_px) / 2 / cam.f_px)
         # chance that a random direction has a catalog star within tol
         self.p_chance = min(1.0, len(self.vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)
-        self._pairs: OrderedDict = OrderedDict()     # LRU: a region's pairs, built on demand
-        self._all = None
+        # every catalog pair closer than the field's diagonal (at the longest focal length searched), by separation
+        max_sep = (2 * self.half_diag_rad + 2 * self.tol_rad) * (1 + self.focal_tol)
+        self.pairs = load_or_build(self.vec, max_sep, getattr(tetra, "db_folder", None), getattr(tetra, "log", None))
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
 
     # ---------------------------------------------------------------- regions
@@ -165,66 +167,57 @@ class CoarseToFineSolver:
         order = np.argsort(-np.asarray(probs), kind="stable")[: self.top_k]
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
-    def _region_pairs(self, region: Region) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Catalog pairs (ordered both ways) with first star in the widened cap, sorted by separation."""
-        key = (region.index, round(region.radius_deg, 6), tuple(np.round(region.center, 9)))
-        if key in self._pairs:
-            self._pairs.move_to_end(key)
-        else:
-            cap = min(np.pi, np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol))
-            inside = np.flatnonzero(self.vec @ region.center >= np.cos(cap)) if cap < np.pi else np.arange(len(self.vec))
-            all_pairs, all_sep = self._global_pairs()
-            sel = np.isin(all_pairs[:, 0], inside)
-            self._pairs[key] = (all_pairs[sel], all_sep[sel], np.cos(np.radians(region.radius_deg)))
-            while len(self._pairs) > self.pair_cache:
-                self._pairs.popitem(last=False)
-        return self._pairs[key]
-
-    def _global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every ordered catalog pair closer than the field's diagonal, sorted by separation (built once)."""
-        if self._all is None:
-            max_sep = (2 * self.half_diag_rad + 2 * self.tol_rad) * (1 + self.focal_tol)
-            pairs = self.tree.query_pairs(2 * math.sin(max_sep / 2), output_type="ndarray")
-            pairs = np.concatenate([pairs, pairs[:, ::-1]])
-            sep = np.arccos(np.clip(np.sum(self.vec[pairs[:, 0]] * self.vec[pairs[:, 1]], axis=1), -1, 1))
-            order = np.argsort(sep, kind="stable")
-            self._all = (pairs[order], sep[order])
-        return self._all
-
     # ---------------------------------------------------------------- search
     def _hypotheses(self, u: np.ndarray, region: Region, s: float):
-        """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) in ``region``."""
-        pairs, sep, cos_r = self._region_pairs(region)
+        """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) of the
+        hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`)."""
+        idx, tol = self.pairs, self.tol_rad
+        cap = np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol)
+        star_ok = (self.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(self.vec), bool)
+        cos_r = math.cos(math.radians(region.radius_deg))
         n = len(u)
         m = min(n, self.max_pair_detections)
-        tol = self.tol_rad
-        t = u[:, :2] / u[:, 2:3]                    # tangent-plane coordinates at the nominal focal length
+        t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])      # tangent-plane coordinates at the nominal focal length
+        tables: dict = {}
         for i in range(m):
             for j in range(i + 1, m):
                 d = math.acos(min(1.0, float(u[i] @ u[j])))
-                lo, hi = np.searchsorted(sep, [d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol])
+                lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
                 if hi <= lo:
                     continue
-                cand = pairs[lo:hi]
-                if s > 0:
-                    k = np.clip(d / np.maximum(sep[lo:hi], 1e-12), 1 - s, 1 + s)    # focal factor each pair implies
-                    up = _unit_at(t, k)                                              # (P, n, 3)
-                    ui, uj = up[:, i], up[:, j]
-                    # what the pair leaves uncertain of the scale, times the distance from detection i
+                if s > 0:   # what the pair leaves uncertain of the scale, times the distance from detection i
                     tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
                 else:
-                    k, up, ui, uj = np.ones(len(cand)), u, u[i], u[j]
                     tol_n = np.full(n, tol)
-                r = _triad(ui, uj, self.vec[cand[:, 0]], self.vec[cand[:, 1]])
-                inside = r[:, :, 2] @ region.center >= cos_r - 1e-12                 # boresight inside the region
-                r, k = r[inside], k[inside]
-                if not len(r):
-                    yield r, k, np.zeros(0, np.int64), len(cand)
-                    continue
-                sky = np.einsum("pab,pnb->pna", r, up[inside]) if s > 0 else np.einsum("pab,nb->pna", r, u)
-                bound = 2 * np.sin(tol_n / 2)
-                dist, _ = self.tree.query(sky.reshape(-1, 3), distance_upper_bound=float(bound.max()))
-                yield r, k, (dist.reshape(len(r), n) <= bound).sum(axis=1), len(cand)
+                offs, partner, psep = self._partners(i, j, t, s, tables)
+                tried, _, _, ks, scores, rots = anchor_hypotheses(
+                    i, j, t, lo, hi, idx.first, idx.second, idx.sep, self.vec, star_ok, s, tol_n, offs, partner,
+                    psep, region.center, cos_r, 3)
+                yield rots, ks, scores, tried
+
+    def _partners(self, i: int, j: int, t: np.ndarray, s: float, tables: dict):
+        """The partner tables of detection pairs (i, k) for every k but i and j, concatenated (see
+        :func:`fusion.solve.match.partner_table`); per-k tables are built once per solve."""
+        idx, tol, n, n_stars = self.pairs, self.tol_rad, len(t), len(self.vec)
+        offs = np.zeros((n, n_stars + 1), np.int64)
+        parts, seps, base = [], [], 0
+        for k in range(n):
+            if k in (i, j):
+                continue
+            if (i, k) not in tables:
+                # the separation of i and k over the focal factors 1 -s .. 1 + s, widened by k's largest tolerance
+                near = [_angle_at(t[i], t[k], f) for f in (1 + s, 1 - s)]
+                tk = tol + s * float(np.hypot(*(t[k] - t[i])))
+                lo, hi = idx.range(min(near) - tk, max(near) + tk)
+                tables[(i, k)] = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
+            o, p, q = tables[(i, k)]
+            offs[k] = o + base
+            parts.append(p)
+            seps.append(q)
+            base += len(p)
+        partner = np.concatenate(parts) if parts else np.zeros(0, np.int32)
+        psep = np.concatenate(seps) if seps else np.zeros(0)
+        return offs, partner, psep
 
     def _matches(self, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dist, idx = self.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
@@ -280,6 +273,12 @@ class CoarseToFineSolver:
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t in self._hypotheses(u, region, s):
                     tried += t
+                    best_possible = self.confidence(tried, n, n)
+                    if best_possible < self.min_confidence:
+                        # H only grows: not even all n detections matched could pass any more, so stop here
+                        return Refusal(f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
+                                       f"{n} of {n} detections matched would give confidence {best_possible:.3g} "
+                                       f"< {self.min_confidence}", self.name, ms(), {"hypotheses": tried})
                     if not len(sc):
                         continue
                     rots, ks, scores = np.concatenate([rots, r]), np.concatenate([ks, k]), np.concatenate([scores, sc])

@@ -109,7 +109,7 @@ class Tetra3Solver:
     def __init__(self, camera, *, match_threshold: float = 1e-5, db_folder: str | Path | None = None,
                  max_patterns_checked: int = 1_000_000, timeout_ms: int = 5000, log=None):
         self.t3 = _tetra3rs()
-        self.camera = camera
+        self.camera, self.db_folder, self.log = camera, db_folder, log
         self.fov_deg = camera.fov_deg[0]
         self.db = load_database(self.fov_deg, db_folder, log)
         self.match_threshold = match_threshold

@@ -1,0 +1,106 @@
+"""The fine stage's pair index and compiled scoring: against brute force, cached safely, refusing early."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from fusion.solve import pairs as pairs_mod
+from fusion.solve.match import anchor_hypotheses, partner_table, triad
+from fusion.solve.pairs import build_index, load_or_build
+
+
+def random_catalogue(n=400, seed=0):
+    v = np.random.default_rng(seed).standard_normal((n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_pair_index_holds_every_close_pair_once_sorted():
+    vec, max_sep = random_catalogue(), 0.35
+    idx = build_index(vec, max_sep)
+    sep = np.arccos(np.clip(vec @ vec.T, -1, 1))
+    iu = np.triu_indices(len(vec), 1)
+    want = {(a, b) for a, b, d in zip(*iu, sep[iu]) if d < max_sep}
+    got = list(zip(idx.first.tolist(), idx.second.tolist()))
+    assert len(got) == len(set(got)) == len(want) and set(got) == want
+    assert np.all(np.diff(idx.sep) >= 0) and np.all(idx.first < idx.second)
+    np.testing.assert_allclose(idx.sep, sep[idx.first, idx.second], atol=1e-12)
+    lo, hi = idx.range(0.1, 0.12)                              # a range is exactly the pairs in it
+    assert set(got[lo:hi]) == {(a, b) for a, b in want if 0.1 <= sep[a, b] <= 0.12}
+
+
+def test_pair_index_cache_is_reused_never_confused_and_rebuilt_when_damaged(tmp_path, monkeypatch):
+    vec = random_catalogue(200)
+    first = load_or_build(vec, 0.3, tmp_path)
+    files = list(tmp_path.glob("pairs-*.npz"))
+    assert len(files) == 1
+    real_build = pairs_mod.build_index
+    monkeypatch.setattr(pairs_mod, "build_index", lambda *a: pytest.fail("rebuilt although cached"))
+    again = load_or_build(vec, 0.3, tmp_path)
+    np.testing.assert_array_equal(again.sep, first.sep)
+    monkeypatch.setattr(pairs_mod, "build_index", real_build)
+    other = load_or_build(random_catalogue(200, seed=1), 0.3, tmp_path)          # another catalogue cut
+    assert other.key != first.key and len(list(tmp_path.glob("pairs-*.npz"))) == 2
+    files[0].write_bytes(b"not a zip")                                          # damaged
+    lines = []
+    fixed = load_or_build(vec, 0.3, tmp_path, log=lines.append)
+    np.testing.assert_array_equal(fixed.sep, first.sep)
+    assert len(lines) == 2 and "unreadable" in lines[0] and "rebuilding" in lines[0]
+
+
+def brute_force_scores(t, i, j, a, b, kf, vec, tol_n):
+    """Score of hypothesis (i is a, j is b) by projecting every detection and searching the nearest star."""
+    u = np.column_stack([t / kf, np.ones(len(t))])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = triad(u[i], u[j], vec[a], vec[b])
+    sky = u @ r.T
+    dist, idx = cKDTree(vec).query(sky)
+    ang = 2 * np.arcsin(np.clip(dist / 2, 0, 1))
+    score = 1 + int(np.arccos(np.clip(sky[j] @ vec[b], -1, 1)) <= tol_n[j])
+    others = [k for k in range(len(t)) if k not in (i, j)]
+    return score + int(sum(ang[k] <= tol_n[k] for k in others)), r
+
+
+@pytest.mark.parametrize("s", [0.0, 0.02])
+def test_compiled_scores_equal_brute_force(s):
+    """Every hypothesis of an anchor pair scores as projecting all detections would (j through B)."""
+    rng = np.random.default_rng(3)
+    vec = random_catalogue(3000, seed=2)
+    f_px, tol = 2900.0, 2.0 / 2900.0
+    # a true attitude, the catalogue stars in its 20 deg field as detections (+ 2 false ones), at focal factor 1.01
+    boresight = vec[7]
+    cam_z = boresight
+    cam_x = np.cross([0, 0, 1.0], cam_z); cam_x /= np.linalg.norm(cam_x)
+    cam_y = np.cross(cam_z, cam_x)
+    rot = np.column_stack([cam_x, cam_y, cam_z])                 # camera -> sky
+    cam = vec @ rot
+    inside = np.flatnonzero((cam[:, 2] > 0) & (np.abs(cam[:, 0] / cam[:, 2]) < 0.17) &
+                            (np.abs(cam[:, 1] / cam[:, 2]) < 0.17))[:6]
+    t = cam[inside, :2] / cam[inside, 2:3] * (1.01 if s else 1.0) + rng.normal(0, 0.05 * tol, (len(inside), 2))
+    t = np.vstack([t, rng.uniform(-0.17, 0.17, (2, 2))])
+    n = len(t)
+    idx = build_index(vec, 0.7)
+    i, j = 0, 1
+    u = np.column_stack([t, np.ones(n)]); u /= np.linalg.norm(u, axis=1, keepdims=True)
+    d = math.acos(u[i] @ u[j])
+    lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
+    tol_n = (tol + min(s, 2 * tol / d) * np.hypot(*(t - t[i]).T)) if s else np.full(n, tol)
+    offs = np.zeros((n, len(vec) + 1), np.int64)
+    parts, seps, base = [], [], 0
+    for k in range(n):
+        if k in (i, j):
+            continue
+        o, p, q = partner_table(0, len(idx), idx.first, idx.second, idx.sep, len(vec))   # every pair: a superset
+        offs[k] = o + base
+        parts.append(p); seps.append(q); base += len(p)
+    tried, A, B, K, S, R = anchor_hypotheses(i, j, t, lo, hi, idx.first, idx.second, idx.sep, vec,
+                                             np.ones(len(vec), bool), s, tol_n, offs, np.concatenate(parts),
+                                             np.concatenate(seps), np.array([0, 0, 1.0]), -1.0, 0)
+    assert tried == 2 * (hi - lo) == len(A) > 0
+    for a, b, kf, score, r in zip(A, B, K, S, R):
+        want, r_want = brute_force_scores(t, i, j, a, b, kf, vec, tol_n)
+        assert score == want, (a, b)
+        np.testing.assert_allclose(r, r_want, atol=1e-12)
+    truth = np.flatnonzero((A == inside[0]) & (B == inside[1]))
+    assert len(truth) == 1 and S[truth[0]] == len(inside)          # the true hypothesis matches every real star
