@@ -156,8 +156,10 @@ def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     assert isinstance(res, Refusal) and "cannot reach the confidence bar" in res.reason
     d = Detections.from_table(f.detections).brightest(3)
     u = renderer.camera.unproject(d.x_px, d.y_px)
-    first_pair = 2 * np.diff(c2f.pairs.range(np.arccos(u[0] @ u[1]) - 2 * c2f.tol_rad,
-                                             np.arccos(u[0] @ u[1]) + 2 * c2f.tol_rad))[0]
+    counts = [2 * np.diff(c2f.pairs.range(np.arccos(u[a] @ u[b]) - 2 * c2f.tol_rad,
+                                          np.arccos(u[a] @ u[b]) + 2 * c2f.tol_rad))[0]
+              for a, b in ((0, 1), (0, 2), (1, 2))]
+    first_pair = min(counts)                                        # the pair with the fewest candidates goes first
     assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
     assert c2f.confidence(first_pair, 3, 3) < c2f.min_confidence
 

@@ -27,7 +27,9 @@ For one region (a cap around a region centroid, :class:`Region`):
    whose boresight leaves the region is dropped (it belongs to another region). The scoring is
    compiled (numba, :mod:`fusion.solve.match`) and finds the candidate stars through the pair
    index rather than by projecting every hypothesis;
-4. decision, after each detection pair (so a clear case stops early): the best hypothesis
+4. decision, after each detection pair (so a clear case stops early; by default the pairs with the
+   fewest catalogue candidates go first, ``anchor_order="fewest"``: fewer hypotheses to score, and a
+   smaller H behind the first decision; ``"brightest"`` keeps the brightest-first order): the best hypothesis
    so far (most matches) must be unique — no other hypothesis with as many matches at an
    attitude more than 0.5° away — and its chance of being a coincidence small:
    ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so far, n detections, s
@@ -127,11 +129,14 @@ class CoarseToFineSolver:
     def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
                  stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
                  min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
-                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0):
+                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest"):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
         self.focal_tol = float(focal_tol)
+        if anchor_order not in ("fewest", "brightest"):
+            raise ValueError(f"anchor_order={anchor_order!r}: 'fewest' or 'brightest'")
+        self.anchor_order = anchor_order
         self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
@@ -168,7 +173,7 @@ class CoarseToFineSolver:
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
     # ---------------------------------------------------------------- search
-    def _hypotheses(self, u: np.ndarray, region: Region, s: float):
+    def _hypotheses(self, u: np.ndarray, region: Region, s: float, tables: dict):
         """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) of the
         hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`)."""
         idx, tol = self.pairs, self.tol_rad
@@ -178,39 +183,44 @@ class CoarseToFineSolver:
         n = len(u)
         m = min(n, self.max_pair_detections)
         t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])      # tangent-plane coordinates at the nominal focal length
-        tables: dict = {}
+        anchors = []
         for i in range(m):
             for j in range(i + 1, m):
                 d = math.acos(min(1.0, float(u[i] @ u[j])))
                 lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
-                if hi <= lo:
-                    continue
-                if s > 0:   # what the pair leaves uncertain of the scale, times the distance from detection i
-                    tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
-                else:
-                    tol_n = np.full(n, tol)
-                offs, partner, psep = self._partners(i, j, t, s, tables)
-                tried, _, _, ks, scores, rots = anchor_hypotheses(
-                    i, j, t, lo, hi, idx.first, idx.second, idx.sep, self.vec, star_ok, s, tol_n, offs, partner,
-                    psep, region.center, cos_r, 3)
-                yield rots, ks, scores, tried
+                anchors.append((hi - lo, i, j, d, lo, hi))
+        if self.anchor_order == "fewest":
+            anchors.sort()
+        for _, i, j, d, lo, hi in anchors:
+            if hi <= lo:
+                continue
+            if s > 0:   # what the pair leaves uncertain of the scale, times the distance from detection i
+                tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
+            else:
+                tol_n = np.full(n, tol)
+            offs, partner, psep = self._partners(i, j, t, s, tables)
+            tried, _, _, ks, scores, rots = anchor_hypotheses(
+                i, j, t, lo, hi, idx.first, idx.second, idx.sep, self.vec, star_ok, s, tol_n, offs, partner,
+                psep, region.center, cos_r, 3)
+            yield rots, ks, scores, tried
 
     def _partners(self, i: int, j: int, t: np.ndarray, s: float, tables: dict):
         """The partner tables of detection pairs (i, k) for every k but i and j, concatenated (see
-        :func:`fusion.solve.match.partner_table`); per-k tables are built once per solve."""
+        :func:`fusion.solve.match.partner_table`); each (i, k) table is built once per solve and pass,
+        whatever the number of regions searched (``tables``)."""
         idx, tol, n, n_stars = self.pairs, self.tol_rad, len(t), len(self.vec)
         offs = np.zeros((n, n_stars + 1), np.int64)
         parts, seps, base = [], [], 0
         for k in range(n):
             if k in (i, j):
                 continue
-            if (i, k) not in tables:
+            if (i, k, s) not in tables:
                 # the separation of i and k over the focal factors 1 -s .. 1 + s, widened by k's largest tolerance
                 near = [_angle_at(t[i], t[k], f) for f in (1 + s, 1 - s)]
                 tk = tol + s * float(np.hypot(*(t[k] - t[i])))
                 lo, hi = idx.range(min(near) - tk, max(near) + tk)
-                tables[(i, k)] = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
-            o, p, q = tables[(i, k)]
+                tables[(i, k, s)] = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
+            o, p, q = tables[(i, k, s)]
             offs[k] = o + base
             parts.append(p)
             seps.append(q)
@@ -267,11 +277,12 @@ class CoarseToFineSolver:
         # and the hypotheses of both count towards H
         passes = (0.0, self.focal_tol) if self.focal_tol > 0 else (0.0,)
         regions = self.regions(probabilities, centroids)
+        tables: dict = {}
         for s in passes:
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
-                for r, k, sc, t in self._hypotheses(u, region, s):
+                for r, k, sc, t in self._hypotheses(u, region, s, tables):
                     tried += t
                     best_possible = self.confidence(tried, n, n)
                     if best_possible < self.min_confidence:

@@ -109,6 +109,13 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
     ui = np.empty(3)
     uj = np.empty(3)
     uk = np.empty(3)
+    r = np.empty((3, 3))
+    u1 = np.empty((n, 3))              # the nominal focal length's unit vectors, and i's separations from them
+    d1 = np.empty(n)
+    for k in range(n):
+        u1[k, 0], u1[k, 1], u1[k, 2] = _unit(t[k, 0], t[k, 1], 1.0)
+    for k in range(n):
+        d1[k] = _angle(u1[i, 0], u1[i, 1], u1[i, 2], u1[k, 0], u1[k, 1], u1[k, 2])
     for q in range(lo, hi):
         for orient in range(2):
             a = first[q] if orient == 0 else second[q]
@@ -124,12 +131,15 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
             delta = abs(_angle(ui[0], ui[1], ui[2], uj[0], uj[1], uj[2]) - sep[q])
             score = 1 + (1 if delta <= tol_n[j] else 0)
             have_r = False
-            r = np.empty((3, 3))
             for k in range(n):
                 if k == i or k == j or offs[k, a] == offs[k, a + 1]:
                     continue                               # no star at the right distance from A: k cannot match
-                uk[0], uk[1], uk[2] = _unit(t[k, 0], t[k, 1], kf)
-                dik = _angle(ui[0], ui[1], ui[2], uk[0], uk[1], uk[2])
+                if s > 0:
+                    uk[0], uk[1], uk[2] = _unit(t[k, 0], t[k, 1], kf)
+                    dik = _angle(ui[0], ui[1], ui[2], uk[0], uk[1], uk[2])
+                else:
+                    uk[0], uk[1], uk[2] = u1[k, 0], u1[k, 1], u1[k, 2]
+                    dik = d1[k]
                 tk = tol_n[k]
                 lo_b = hi_b = -2.0                         # cosine bounds of sep(B, C), computed on first use
                 for p in range(offs[k, a], offs[k, a + 1]):
@@ -146,8 +156,10 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                     if not have_r:
                         r = triad(ui, uj, vec[a], vec[b])
                         have_r = True
-                    x = r @ uk
-                    if _angle(x[0], x[1], x[2], vec[c, 0], vec[c, 1], vec[c, 2]) <= tk:
+                    x0 = r[0, 0] * uk[0] + r[0, 1] * uk[1] + r[0, 2] * uk[2]
+                    x1 = r[1, 0] * uk[0] + r[1, 1] * uk[1] + r[1, 2] * uk[2]
+                    x2 = r[2, 0] * uk[0] + r[2, 1] * uk[1] + r[2, 2] * uk[2]
+                    if _angle(x0, x1, x2, vec[c, 0], vec[c, 1], vec[c, 2]) <= tk:
                         score += 1
                         break
             if score < min_score:
