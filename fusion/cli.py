@@ -249,7 +249,13 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="the training dataset of a checkpoint written before checkpoints carried "
                                      "their camera")
     p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
-                   "as prior of the fine stage; tetra3rs lost-in-space without a checkpoint")
+                   "as prior of the fine stage; without a checkpoint tetra3rs lost-in-space and, where it refuses, "
+                   "the whole-sky fine stage")
+    from .solve.registry import SOLVERS
+    p.add_argument("--solver", metavar="NAME", choices=[n for n, sp in SOLVERS.items() if sp.prior != "oracle"],
+                   help="--solve with this registered solver instead of the default chain: "
+                        + ", ".join(n for n, sp in SOLVERS.items() if sp.prior != "oracle")
+                        + " (learned ones need --checkpoint)")
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
     add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
@@ -271,7 +277,8 @@ def _run_predict(args: argparse.Namespace) -> int:
     _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
                         top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
                         max_frames=args.max_frames, search=args.search, search_k=args.search_k,
-                        focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first)
+                        focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first,
+                        solver=args.solver)
     return 1 if failed else 0
 
 

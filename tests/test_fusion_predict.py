@@ -203,3 +203,21 @@ def test_search_options_are_checked(checkpoint, frame_and_truth, capsys):
     assert "--focal-tol 0.5" in capsys.readouterr().err
     assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--solve", "--search-k", "0"]) == 2
     assert "--search-k 0" in capsys.readouterr().err
+
+
+def test_predict_without_a_model_chains_lost_in_space_and_the_whole_sky_fine_stage(tmp_path):
+    """--solve without a checkpoint: tetra3rs, then the whole-sky fine stage; --solver picks any registered one."""
+    import yaml
+    from fusion.errors import ConfigError
+    from fusion.solve.predict import Predictor
+    from skygen.datasets import open_dataset
+    with open_dataset(small_dataset("smoke")) as ds:
+        (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
+    cam = str(tmp_path / "cam.yaml")
+    chain = Predictor(camera=cam, solve=True).solver
+    assert [chain.first.name, chain.second.name] == ["tetra3rs-lis", "whole-sky"]
+    assert Predictor(camera=cam, solve=True, solver="whole-sky").solver.name == "whole-sky"
+    with pytest.raises(ConfigError, match="needs a learned prior"):
+        Predictor(camera=cam, solve=True, solver="learned+fine")
+    with pytest.raises(SystemExit):                                     # a benchmark reference is not offered
+        main(["predict", "x.npy", "--camera", cam, "--solve", "--solver", "oracle-prior"])

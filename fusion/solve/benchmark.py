@@ -129,7 +129,7 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
                       if a else None)
     return {"frames": n, "correct": ok / n, "wrong": wrong / n, "refused": refused / n,
             "boresight_error_arcsec": stat(bore), "roll_error_arcsec": stat(roll),
-            "ms_per_frame": 1e3 * float(np.mean(secs))}
+            "ms_per_frame": 1e3 * float(np.mean(secs)), "ms_per_frame_median": 1e3 * float(np.median(secs))}
 
 
 def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
@@ -295,7 +295,7 @@ def markdown(r: dict) -> str:
              f"{_search_text(r)}; tetra3rs {r['tetra3rs_version']}; {r['hardware']}; "
              f"{r['wall_time_s']:.0f} s in all.", "",
              f"**correct** = {r['correct_definition']}; **wrong** = any other returned attitude; **refused** = no "
-             "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame.", ""]
+             "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame (mean; median).", ""]
     lines += [f"- {n}" for n in r["notes"]] + ([""] if r["notes"] else [])
     head = "| cell | N | mean det. | " + " | ".join(full) + (" | learned top-1 / top-3 |" if "learned" in r["solvers"]
                                                             else "")
@@ -304,8 +304,9 @@ def markdown(r: dict) -> str:
         cols = []
         for name in full:
             s = row["solvers"][name]
+            med = s.get("ms_per_frame_median")
             cols.append(f"{100 * s['correct']:.0f} / {100 * s['wrong']:.0f} / {100 * s['refused']:.0f} "
-                        f"({s['ms_per_frame']:.1f} ms)")
+                        f"({s['ms_per_frame']:.1f} ms" + ("" if med is None else f"; median {med:.1f}") + ")")
         if "learned" in r["solvers"]:
             s = row["solvers"]["learned"]
             k = [key for key in s if key.startswith("top") and key != "top1"][0]

@@ -2,7 +2,8 @@
 
     fusion predict FRAME... --checkpoint CK [--solve] [--overlay DIR] [--top-k 3] [--out FILE.jsonl]
                             [--search fine|coarse] [--search-k N] [--focal-tol 0.02]
-    fusion predict FRAME... --camera configs/cameras/NAME.yaml --solve      # no model: tetra3rs only
+    fusion predict FRAME... --camera configs/cameras/NAME.yaml --solve      # no model: tetra3rs, then whole sky
+    fusion predict FRAME... --camera C.yaml --solve --solver whole-sky       # any registered solver
 
 Frames: PNG, TIFF (8 or 16 bit), FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
 or a skygen dataset folder (its stored detections and images; ``--max-frames``). Each frame
@@ -25,7 +26,9 @@ Per frame:
    model's regions as prior — by default its fine regions (``--search fine``, the 20 most
    probable, ``--search-k``), and a focal length known to ±2 % (``--focal-tol``; fitted and
    reported as ``focal_factor`` / ``fov_deg``); ``--lis-first`` tries tetra3rs lost-in-space
-   first and the learned path only where it refuses; without a checkpoint, tetra3rs lost-in-space. A full attitude
+   first and the learned path only where it refuses; without a checkpoint, tetra3rs lost-in-space and the
+   whole-sky fine stage where it refuses (``tetra3rs>whole-sky``); ``--solver NAME`` picks any registered
+   solver (:mod:`fusion.solve.registry`). A full attitude
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
    confidence) or an explicit refusal with its reason.
 
@@ -67,12 +70,12 @@ class Predictor:
     def __init__(self, checkpoint: str | Path | None = None, *, camera: str | Path | None = None,
                  dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
                  search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
-                 background_box: int = 0, lis_first: bool = False, log=None):
+                 background_box: int = 0, lis_first: bool = False, solver: str | None = None, log=None):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
         if (checkpoint is None) == (camera is None):
             raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
-                              "(tetra3rs only), exactly one of them")
+                              "(prior-free solvers only), exactly one of them")
         render_config = None
         if dataset is not None:
             from skygen.datasets.shards import open_dataset
@@ -98,10 +101,11 @@ class Predictor:
         check_search_options(focal_tol, search_k)
         self.solver, self.search_level = None, None
         if solve:
-            if self.prior is None:
-                name = "tetra3rs"
-            else:
-                name = "tetra3rs>learned+fine" if lis_first else "learned+fine"
+            # the default chains: with a model, its prior and the fine stage; without one, the best prior-free
+            # chain (tetra3rs lost-in-space, and the whole-sky fine stage where it refuses)
+            name = solver or ("tetra3rs>whole-sky" if self.prior is None else
+                              "tetra3rs>learned+fine" if lis_first else "learned+fine")
+            if self.prior is not None:
                 self.search_level = self.prior.at_level(search).level
             self.solver = build_solver(name, self.camera, prior=self.prior, search=search, search_k=search_k,
                                        focal_tol=focal_tol, log=log)
@@ -188,12 +192,12 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
 def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
             detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
             err=None, search="fine", search_k=None, focal_tol=0.02, background_box=0,
-            lis_first=False) -> tuple[list[dict], int]:
+            lis_first=False, solver=None) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
-                     lis_first=lis_first, log=lambda m: err(m))
+                     lis_first=lis_first, solver=solver, log=lambda m: err(m))
     sink = open(out, "w") if out else None
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
