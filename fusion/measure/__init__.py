@@ -6,8 +6,9 @@ measures) may import :mod:`fusion.train`; nothing here imports :mod:`fusion.solv
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from .._lazy import lazy_attributes
 
 _LAZY = {"evaluate_checkpoint": ".evaluate", "run_sweep": ".robustness", "robustness": ".robustness",
          "run_timing": ".timing", "export_onnx": ".export", "run_experiment": ".experiment"}
@@ -20,10 +21,7 @@ if TYPE_CHECKING:
     from .timing import run_timing
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = list(_LAZY)

@@ -15,8 +15,9 @@ This package imports none of :mod:`fusion.train`, :mod:`fusion.measure` or :mod:
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from .._lazy import lazy_attributes
 
 _LAZY = {"FrameGeometry": ".inputs", "Sample": ".inputs", "Preprocessor": ".inputs",
          "Regions": ".regions", "Checkpoint": ".checkpoint", "load_checkpoint": ".checkpoint",
@@ -31,10 +32,7 @@ if TYPE_CHECKING:
     from .regions import Regions
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = list(_LAZY)

@@ -15,8 +15,9 @@ Names that need torch (priors, the predictor) load on first use, so ``import fus
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from .._lazy import lazy_attributes
 
 from .base import Detections, FallbackSolver, Refusal, Solution, Solver
 from .registry import SOLVERS, SolverContext, build_solver, register_solver
@@ -34,10 +35,7 @@ if TYPE_CHECKING:
     from .tetra import Tetra3Solver
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = ["Detections", "FallbackSolver", "Refusal", "Solution", "Solver", "SOLVERS", "SolverContext",

@@ -11,8 +11,9 @@ Imports :mod:`fusion.model`, never :mod:`fusion.measure` or :mod:`fusion.solve`.
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from .._lazy import lazy_attributes
 
 _LAZY = {"train": ".run", "prepare_data": ".data", "StreamBatches": ".stream"}
 
@@ -22,10 +23,7 @@ if TYPE_CHECKING:
     from .stream import StreamBatches
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = list(_LAZY)
