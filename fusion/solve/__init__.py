@@ -18,7 +18,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from .._lazy import lazy_attributes
-
 from .base import Detections, FallbackSolver, Refusal, Solution, Solver
 from .registry import SOLVERS, SolverContext, build_solver, register_solver
 
