@@ -134,8 +134,9 @@ def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
     f = renderer.render(2)
     p = prior.probabilities_for(f.unit_vector, 2)
     three = Detections.from_table(f.detections).brightest(3)
-    res = c2f.solve(three, renderer.camera, probabilities=p)      # one triangle: chance matches abound
-    assert isinstance(res, Refusal)
+    res = c2f.solve(three, renderer.camera, probabilities=p)      # one triangle in the right region: the bright
+    if isinstance(res, Solution):                                 # tier may identify it, but never wrongly
+        assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
     rng = np.random.default_rng(5)
     noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
     assert isinstance(c2f.solve(noise, renderer.camera, probabilities=p), Refusal)
@@ -162,6 +163,27 @@ def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     first_pair = min(counts)                                        # the pair with the fewest candidates goes first
     assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
     assert c2f.confidence(first_pair, 3, 3) < c2f.min_confidence
+
+
+def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(renderer, tetra, regions):
+    """Three detections: over the whole sky no attitude passes the bar; inside the true region the bright
+    catalogue tier identifies most of them, and none wrongly."""
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
+    prior = OraclePrior(regions)
+    c2f = CoarseToFineSolver(tetra, prior, top_k=1, focal_tol=0.02)
+    single = CoarseToFineSolver(tetra, prior, top_k=1, focal_tol=0.02, bright_stars_per_fov=None)
+    solved = solved_full_cut = 0
+    for i in range(12):
+        f = renderer.render(i)
+        three = Detections.from_table(f.detections).brightest(3)
+        p = prior.probabilities_for(f.unit_vector, i)
+        res = c2f.solve(three, renderer.camera, probabilities=p)
+        if isinstance(res, Solution):
+            assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
+            solved += 1
+        solved_full_cut += isinstance(single.solve(three, renderer.camera, probabilities=p), Solution)
+    assert solved_full_cut == 0 and solved >= 3
 
 
 def test_confidence_falls_with_hypotheses(tetra):

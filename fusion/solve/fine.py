@@ -10,7 +10,12 @@ For one region (a cap around a region centroid, :class:`Region`):
 
 1. catalog: tetra3rs's own catalog stars (Gaia DR3 + Hipparcos gap-fill, the stars its
    database verifies with) inside the cap widened by the camera's half-diagonal, the
-   brightest ``stars_per_fov`` per field of view (a global magnitude cut);
+   brightest ``stars_per_fov`` per field of view (a global magnitude cut; 60). With at most
+   ``bright_max_detections`` (3) detections a brighter tier is searched instead,
+   ``bright_stars_per_fov`` (12): three bright detections are nearly always among the brightest
+   dozen stars of their field, and a chance triangle of three such stars is ~25x rarer (H falls
+   with the square of the star count, p with the count), which is what lets a region prior
+   identify three stars at all; over the whole sky they still cannot reach the bar;
 2. hypotheses: every catalog pair whose separation matches that of two bright detections
    (i, j) within ``tol_px`` (both orders; a range of the catalogue pair index,
    :mod:`fusion.solve.pairs`, built once per camera and catalogue cut and cached on disk) — and, with ``focal_tol`` = s > 0, within a focal
@@ -123,13 +128,34 @@ def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
     return vt.T @ np.diag([1.0, 1.0, d]) @ uu.T
 
 
+@dataclass
+class _Tier:
+    """One catalogue cut: the brightest ``stars_per_fov`` stars per field, their index and chance rate."""
+    stars_per_fov: float
+    vec: np.ndarray
+    ids: np.ndarray
+    mag: np.ndarray
+    tree: cKDTree
+    pairs: object
+    p_chance: float
+
+
+def _chance_sum(p: float, n_det: int, score: int) -> float:
+    """P(at least ``score - 2`` of the ``n_det - 2`` other detections land on a star by chance)."""
+    extra = score - 2
+    if extra <= 0:
+        return 1.0
+    return sum(math.comb(n_det - 2, k) * p ** k * (1 - p) ** (n_det - 2 - k) for k in range(extra, n_det - 1))
+
+
 class CoarseToFineSolver:
     """Region prior -> region-restricted identification -> tetra3rs verification. See the module docstring."""
 
     def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
                  stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
                  min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
-                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest"):
+                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest",
+                 bright_stars_per_fov: float | None = 12.0, bright_max_detections: int = 3):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
@@ -140,6 +166,7 @@ class CoarseToFineSolver:
         self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
+        self.bright_max_detections = int(bright_max_detections)
         cam = tetra.camera
         db = tetra.db
         stars = [db.get_star(i) for i in range(db.num_stars)]
@@ -149,19 +176,31 @@ class CoarseToFineSolver:
         ids = np.array([s.id for s in stars], np.int64)
         fov_sr = 4 * math.atan(cam.width_px * cam.height_px / (2 * cam.f_px * math.hypot(
             cam.width_px, cam.height_px, 2 * cam.f_px)))            # solid angle of the rectangular pinhole field
-        n_keep = int(min(len(stars), stars_per_fov * 4 * math.pi / fov_sr))
-        keep = np.argsort(mag, kind="stable")[:n_keep]
-        self.vec = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=1)[keep]
-        self.ids, self.mag = ids[keep], mag[keep]
-        self.tree = cKDTree(self.vec)
         self.tol_rad = tol_px / cam.f_px
         self.half_diag_rad = math.atan(math.hypot(cam.width_px, cam.height_px) / 2 / cam.f_px)
-        # chance that a random direction has a catalog star within tol
-        self.p_chance = min(1.0, len(self.vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)
         # every catalog pair closer than the field's diagonal (at the longest focal length searched), by separation
         max_sep = (2 * self.half_diag_rad + 2 * self.tol_rad) * (1 + self.focal_tol)
-        self.pairs = load_or_build(self.vec, max_sep, getattr(tetra, "db_folder", None), getattr(tetra, "log", None))
+        unit = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=1)
+        order = np.argsort(mag, kind="stable")
+        self.tiers = []
+        for spf in (stars_per_fov,) + ((bright_stars_per_fov,) if bright_stars_per_fov else ()):
+            keep = order[: int(min(len(stars), spf * 4 * math.pi / fov_sr))]
+            vec = unit[keep]
+            self.tiers.append(_Tier(spf, vec, ids[keep], mag[keep], cKDTree(vec),
+                                    load_or_build(vec, max_sep, getattr(tetra, "db_folder", None),
+                                                  getattr(tetra, "log", None)),
+                                    # chance that a random direction has a catalog star within tol
+                                    min(1.0, len(vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)))
+        self.tier = self.tiers[0]
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
+
+    # the catalogue of the tier being searched
+    vec = property(lambda self: self.tier.vec)
+    ids = property(lambda self: self.tier.ids)
+    mag = property(lambda self: self.tier.mag)
+    tree = property(lambda self: self.tier.tree)
+    pairs = property(lambda self: self.tier.pairs)
+    p_chance = property(lambda self: self.tier.p_chance)
 
     # ---------------------------------------------------------------- regions
     def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None) -> list[Region]:
@@ -235,13 +274,11 @@ class CoarseToFineSolver:
         return np.flatnonzero(ok), idx[ok]
 
     def confidence(self, n_hypotheses: int, n_det: int, score: int) -> float:
-        """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc)."""
-        extra = score - 2
-        if extra <= 0:
+        """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc),
+        with the chance rate of the catalogue tier being searched."""
+        if score - 2 <= 0:
             return 0.0
-        e = sum(math.comb(n_det - 2, k) * self.p_chance ** k * (1 - self.p_chance) ** (n_det - 2 - k)
-                for k in range(extra, n_det - 1))
-        return float(max(0.0, 1.0 - n_hypotheses * e))
+        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(self.p_chance, n_det, score)))
 
     def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | Refusal:
         """Index of the accepted hypothesis, or a refusal saying why none is accepted yet."""
@@ -271,6 +308,9 @@ class CoarseToFineSolver:
                 raise ValueError("probabilities given but the solver has no prior with centroids")
         u = camera.unproject(detections.x_px, detections.y_px)
         n = len(u)
+        # three detections: the bright tier (a chance triangle needs three bright stars, so H and p both
+        # shrink); more: the full cut, where four or more stars leave few look-alikes anyway
+        self.tier = self.tiers[-1] if n <= self.bright_max_detections else self.tiers[0]
         tried, last = 0, Refusal("no catalog pair matches the detections in the prior's regions", self.name)
         # strict first (the nominal focal length, every region), then within +-focal_tol: a wider
         # search finds more coincidences, so it runs only where the strict one found nothing,
