@@ -195,10 +195,7 @@ def _add_export(p: argparse.ArgumentParser) -> None:
 def _run_export(args: argparse.Namespace) -> int:
     from .measure.export import export_onnx, summary_text
     r = export_onnx(args.checkpoint, args.onnx, opset=args.opset, exporter=args.exporter, tolerance=args.tolerance,
-                    data=args.data, mask_dtype=args.mask_dtype)
-    if args.report:
-        from skygen.runtime import write_json
-        write_json(args.report, r)
+                    data=args.data, mask_dtype=args.mask_dtype, report=args.report)
     print(summary_text(r))
     return 0
 
