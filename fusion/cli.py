@@ -195,10 +195,7 @@ def _add_export(p: argparse.ArgumentParser) -> None:
 def _run_export(args: argparse.Namespace) -> int:
     from .measure.export import export_onnx, summary_text
     r = export_onnx(args.checkpoint, args.onnx, opset=args.opset, exporter=args.exporter, tolerance=args.tolerance,
-                    data=args.data, mask_dtype=args.mask_dtype)
-    if args.report:
-        from skygen.runtime import write_json
-        write_json(args.report, r)
+                    data=args.data, mask_dtype=args.mask_dtype, report=args.report)
     print(summary_text(r))
     return 0
 
@@ -243,7 +240,8 @@ def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k")
 
 def _add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME",
-                   help="image files (.png, .tif/.tiff 8/16-bit, .fits, .npy) or skygen dataset folders")
+                   help="image files (.png, .tif/.tiff 8/16-bit, .fits, .npy), folders of them (sorted by name), "
+                        "or skygen dataset folders; NaN/inf pixels are replaced by the frame's median (bad_pixels)")
     p.add_argument("--checkpoint", help="a fusion checkpoint (best.pt): its camera, detector and model")
     p.add_argument("--camera", help="a skygen camera preset (configs/cameras/*.yaml) when no checkpoint is given")
     p.add_argument("--dataset", help="the training dataset of a checkpoint written before checkpoints carried "
@@ -256,11 +254,12 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
                    help="--solve with this registered solver instead of the default chain: "
                         + ", ".join(n for n, sp in SOLVERS.items() if sp.prior != "oracle")
                         + " (learned ones need --checkpoint)")
-    p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported (default 3)")
+    p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
     p.add_argument("--out", metavar="FILE.jsonl", help="write the JSON lines here instead of stdout")
-    p.add_argument("--max-frames", type=int, help="dataset inputs: only the first N frames")
+    p.add_argument("--max-frames", type=int, help="folder and dataset inputs: only the first N frames of each "
+                   "(N >= 1)")
     p.add_argument("--lis-first", action="store_true",
                    help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
                         "stars) and the learned prior's fine stage only where it refuses; `solver` says which answered")

@@ -11,6 +11,7 @@ import torch
 from fusion import cli as fcli
 from fusion.measure import export as exp
 from fusion.errors import CheckpointError, FusionError
+from fusion.model.checkpoint import load_checkpoint
 from skygen.errors import SkygenError
 
 onnx = pytest.importorskip("onnx")
@@ -115,3 +116,79 @@ def test_bad_arguments_are_clear_errors(ckpt, tmp_path):
     with pytest.raises(SkygenError, match="--opset"):
         exp.export_onnx(ckpt, tmp_path / "m.onnx", opset=3)
     assert not (tmp_path / "m.onnx").exists()
+
+
+def _cpu_yaml_model(fine: int = 60):
+    """The architecture of configs/cpu.yaml (what `make demo` trains), small widths, random weights."""
+    from fusion.config import load_config
+    from fusion.model.networks import create_model
+    torch.manual_seed(0)
+    cfg = load_config("configs/cpu.yaml", ["model.transformer.dim=16", "model.coord_hidden=32", f"labels.fine_k={fine}"])
+    assert (cfg.model.coord_encoder, cfg.model.canonical.mode) == ("transformer", "brightest")
+    model = create_model("star_fusion", 15, cfg.model, image_size=64, max_stars=cfg.data.max_stars,
+                         fine_classes=fine).eval()
+    with torch.no_grad():
+        model.fine_groups.copy_(torch.arange(fine) % 15)
+    return model, cfg
+
+
+@pytest.fixture(scope="module")
+def cpu_yaml_ckpt(tmp_path_factory):
+    from fusion.config import config_dict
+    from fusion.model.checkpoint import Checkpoint
+    model, cfg = _cpu_yaml_model()
+    path = tmp_path_factory.mktemp("cpu") / "best.pt"
+    Checkpoint(model=model.state_dict(), config=config_dict(cfg), centroids=np.eye(3)[np.arange(15) % 3],
+               num_classes=15, image_size=64, max_stars=cfg.data.max_stars, model_name="star_fusion",
+               branches=model.branches, fine_centroids=np.eye(3)[np.arange(60) % 3]).save(path)
+    return path
+
+
+@pytest.mark.parametrize("exporter,opset", [("legacy", 17), ("dynamo", 18)])
+def test_the_cpu_yaml_model_exports_and_matches(cpu_yaml_ckpt, exporter, opset, tmp_path):
+    """Fine regions summed per region, roll canonicalisation and the masked transformer all survive
+    the export, at every batch size (1 included), also for a sample without any detection."""
+    r = exp.export_onnx(cpu_yaml_ckpt, tmp_path / "cpu.onnx", exporter=exporter, opset=opset)
+    assert r["verification"]["passed"] and r["inputs"] == {"coords": ["batch", 16, 3], "mask": ["batch", 16]}
+    model = load_checkpoint(cpu_yaml_ckpt).build_model()
+    wrapper = exp.ExportWrapper(model)
+    empty = exp.random_inputs(3, 64, 16, np.random.default_rng(2))
+    empty["mask"][1] = False
+    empty["coords"][1] = -0.0            # the padding of a sample without detections
+    assert exp.verify(tmp_path / "cpu.onnx", wrapper, {"with_empty": empty})["max_abs_diff"] <= 1e-4
+
+
+def test_a_fine_region_model_needs_opset_16_with_the_legacy_exporter(cpu_yaml_ckpt, tmp_path):
+    with pytest.raises(SkygenError, match="--opset 15: .* opset 16"):
+        exp.export_onnx(cpu_yaml_ckpt, tmp_path / "m.onnx", opset=15)
+
+
+def test_export_safe_operations_give_the_same_logits_bit_for_bit():
+    """scatter_add sums what index_add summed in the same order, and the guarded atan2 gives
+    atan2's angle (signed zeros and ±pi included): trained models keep their exact outputs."""
+    from fusion.model.canonical import angles_of
+    model, _ = _cpu_yaml_model(fine=1000)
+    with torch.no_grad():
+        model.fine_groups.copy_(torch.randint(0, 15, (1000,), generator=torch.Generator().manual_seed(1)))
+    fine = torch.randn(64, 1000, generator=torch.Generator().manual_seed(2)) * 8
+    x = fine.float()
+    m = x.max(dim=1, keepdim=True).values
+    s = x.new_zeros(64, 15).index_add(1, model.fine_groups, torch.exp(x - m))
+    assert torch.equal(model.coarse_logits(fine), torch.log(s.clamp_min(1e-38)) + m)
+    xy = torch.tensor([[0.0, 0.0], [-0.0, 0.0], [0.0, -0.0], [-0.0, -0.0], [0.3, -0.0], [-0.3, 0.0], [0.0, 0.2],
+                       [0.1, -0.7]])
+    coords = torch.cat([xy, torch.ones(len(xy), 1)], dim=1)[:, None, :]          # (B, 1, 3)
+    got = angles_of(coords, torch.zeros(len(xy), 1, dtype=torch.long))[:, 0]
+    want = torch.atan2(xy[:, 1], xy[:, 0])
+    assert torch.equal(got.view(torch.int32), want.view(torch.int32))
+
+
+def test_an_unwritable_output_is_one_line_before_any_work(ckpt, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert cli(["--checkpoint", str(ckpt), "--onnx", str(blocker / "model.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--onnx" in err and "cannot write" in err
+    assert cli(["--checkpoint", str(ckpt), "--onnx", str(tmp_path / "m.onnx"), "--report", str(blocker / "r.json")]) == 2
+    assert "--report" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]

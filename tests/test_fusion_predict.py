@@ -13,6 +13,7 @@ import torch
 from fusion.cli import main
 from fusion.solve.frames import FrameError, read_frame
 from fusion.testing import small_dataset
+from skygen.errors import SkygenError
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = Path("/work/shared/real-frames/tetra3-blackfly")
@@ -221,3 +222,86 @@ def test_predict_without_a_model_chains_lost_in_space_and_the_whole_sky_fine_sta
         Predictor(camera=cam, solve=True, solver="learned+fine")
     with pytest.raises(SystemExit):                                     # a benchmark reference is not offered
         main(["predict", "x.npy", "--camera", cam, "--solve", "--solver", "oracle-prior"])
+
+
+def _strict(line: str) -> dict:
+    def refuse(token):
+        raise ValueError(f"non-strict JSON token {token}")
+    return json.loads(line, parse_constant=refuse)
+
+
+def test_non_finite_pixels_are_bad_pixels_and_the_frame_still_solves(frame_and_truth, tmp_path, recwarn):
+    from skygen.datasets.shards import open_dataset
+    import yaml
+    paths, f = frame_and_truth
+    with open_dataset(small_dataset("smoke")) as ds:
+        (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
+    img = np.load(paths["npy"]).astype(np.float32)
+    img[5, 7], img[100, 3], img[200, 250] = np.nan, np.inf, -np.inf
+    np.save(tmp_path / "nan.npy", img)
+    out = tmp_path / "p.jsonl"
+    assert main(["predict", str(paths["npy"]), str(tmp_path / "nan.npy"), "--camera", str(tmp_path / "cam.yaml"),
+                 "--solve", "--out", str(out)]) == 0
+    clean, bad = (_strict(line) for line in out.read_text().splitlines())
+    assert (clean["bad_pixels"], bad["bad_pixels"]) == (0, 3)
+    assert bad["n_detections"] == clean["n_detections"] >= 5
+    assert bad["solution"]["status"] == "solved"
+    assert abs(bad["solution"]["dec_deg"] - f.dec_deg) < 0.05
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+    np.save(tmp_path / "all-nan.npy", np.full(img.shape, np.nan, np.float32))
+    assert main(["predict", str(tmp_path / "all-nan.npy"), "--camera", str(tmp_path / "cam.yaml"),
+                 "--out", str(out)]) == 1
+    assert "no finite pixel" in _strict(out.read_text())["error"]
+
+
+def test_a_folder_of_frames_is_read_in_name_order(checkpoint, frame_and_truth, tmp_path, capsys):
+    paths, _ = frame_and_truth
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for name in ("b.tiff", "a.npy", "c.fits"):
+        (folder / name).write_bytes(paths[name.split(".")[1]].read_bytes())
+    (folder / "notes.txt").write_text("not a frame")
+    out = tmp_path / "p.jsonl"
+    assert main(["predict", str(folder), "--checkpoint", str(checkpoint), "--out", str(out)]) == 0
+    recs = _lines(out)
+    assert [Path(r["frame"]).name for r in recs] == ["a.npy", "b.tiff", "c.fits"]
+    assert recs[0]["detections"] == recs[1]["detections"] == recs[2]["detections"]
+    assert main(["predict", str(folder), "--checkpoint", str(checkpoint), "--max-frames", "1", "--out", str(out)]) == 0
+    assert len(_lines(out)) == 1
+    (tmp_path / "empty").mkdir()
+    capsys.readouterr()
+    assert main(["predict", str(tmp_path / "empty"), "--checkpoint", str(checkpoint), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds no frame files" in err[0] and "no such file" not in err[0]
+
+
+@pytest.mark.parametrize("option,value", [("--top-k", "0"), ("--top-k", "-1"), ("--max-frames", "0")])
+def test_nonsense_counts_are_refused_in_one_line(checkpoint, frame_and_truth, option, value, capsys):
+    from fusion.solve.predict import predict
+    paths, _ = frame_and_truth
+    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), option, value]) == 2
+    err = capsys.readouterr()
+    assert err.out == "" and len(err.err.strip().splitlines()) == 1 and f"{option} {value}" in err.err
+    kw = {"top_k": int(value)} if option == "--top-k" else {"max_frames": int(value)}
+    with pytest.raises(SkygenError, match=f"{option} {value}"):
+        predict([str(paths["npy"])], str(checkpoint), **kw)
+
+
+def test_a_truncated_tiff_is_one_line(capfd, tmp_path):
+    """OpenCV's libtiff warnings (written by C code to stderr) are silenced; our line remains."""
+    img = (np.arange(300 * 400, dtype=np.uint32).reshape(300, 400) % 65536).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "full.tiff"), img)
+    data = (tmp_path / "full.tiff").read_bytes()
+    (tmp_path / "cut.tiff").write_bytes(data[: len(data) // 3])
+    capfd.readouterr()
+    with pytest.raises(FrameError, match="not a readable TIFF"):
+        read_frame(tmp_path / "cut.tiff")
+    assert capfd.readouterr().err == ""
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="real frames not present (../shared/real-frames)")
+def test_real_16_bit_frames_read_as_the_decoder_gives_them():
+    for path in sorted(REAL.glob("*.tiff")):
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16
+        np.testing.assert_array_equal(read_frame(path), raw.astype(np.float32))

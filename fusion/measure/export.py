@@ -16,7 +16,10 @@ heatmap is rasterised inside the graph, so preprocessing stops at the coordinate
 
 Exporters: ``legacy`` (TorchScript-based ``torch.onnx.export(dynamo=False)``, default) at
 opset 17 suits the TensorRT of JetPack 5 / 6.0; ``dynamo`` (``torch.export``-based) is the
-newer path. Both were checked on SwinV2-T.
+newer path (opset 18 and up). Both were checked on SwinV2-T and on the geometry-only model of
+``configs/cpu.yaml`` (transformer set encoder, roll canonicalisation, 1000 fine regions;
+``tests/test_fusion_export.py``). A model with fine regions sums them per region with
+``ScatterElements(reduction="add")``, which the legacy exporter has from opset 16 on.
 
 Verification: onnxruntime (CPU) runs the file on random inputs at batch 1 and 3 (the
 dynamic axis) and on real-looking inputs — a dark frame with Gaussian stars at the
@@ -32,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import os
 import time
 import warnings
 from pathlib import Path
@@ -40,7 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from skygen.runtime import atomic_path
+from skygen.runtime import atomic_path, write_json
 
 from ..errors import ConfigError, FusionError
 from ..model.checkpoint import load_checkpoint
@@ -153,7 +157,11 @@ def verify(path: str | Path, wrapper: ExportWrapper, checks: dict[str, dict[str,
     for name, inputs in checks.items():
         feeds = wrapper.feeds(inputs)
         ref = _torch_logits(wrapper, feeds)
-        got = onnxruntime_logits(path, feeds)
+        try:
+            got = onnxruntime_logits(path, feeds)
+        except Exception as exc:  # onnxruntime raises its own types (bad shapes, missing kernels)
+            raise ExportError(f"onnxruntime cannot run the exported graph on the '{name}' inputs "
+                              f"(batch {len(ref)}): {_first_line(exc)}; no file was written") from None
         if got.shape != ref.shape:
             raise ExportError(f"{name}: onnxruntime returned logits of shape {got.shape}, PyTorch {ref.shape}")
         diffs[name] = float(np.max(np.abs(got.astype(np.float64) - ref))) if ref.size else 0.0
@@ -183,6 +191,24 @@ def _quiet():
     finally:
         for lg, lvl in zip(loggers, levels):
             lg.setLevel(lvl)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+def _check_writable(path: Path, option: str, example: str) -> None:
+    """Refuse an output file that cannot be written before the minutes of export and verification."""
+    if path.is_dir():
+        raise ConfigError(f"{option} {path} is a folder; give a file name (such as {path / example})")
+    probe = path.with_name(f".{path.name}.write-test{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise ExportError(f"{option} {path}: cannot write there ({exc.strerror or exc})") from None
 
 
 def written_opset(path: str | Path) -> int:
@@ -219,8 +245,12 @@ def _sha256(path: Path) -> str:
 
 def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 17, exporter: str = "legacy",
                 tolerance: float = DEFAULT_TOLERANCE, data: str | Path | None = None, seed: int = 0,
-                mask_dtype: str = "bool") -> dict:
-    """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place."""
+                mask_dtype: str = "bool", report: str | Path | None = None) -> dict:
+    """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place.
+
+    ``report``: also write the returned record there as strict JSON. Both output paths are
+    checked for writing before the export starts.
+    """
     if exporter not in EXPORTERS:
         raise ConfigError(f"--exporter: {exporter!r}; expected one of {', '.join(EXPORTERS)}")
     if not 7 <= opset <= 23:
@@ -230,6 +260,9 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
     t0 = time.perf_counter()
     ckpt = load_checkpoint(checkpoint)
     model, cfg = ckpt.build_model(), ckpt.fusion_config
+    if model.fine_classes and exporter == "legacy" and opset < 16:
+        raise ConfigError(f"--opset {opset}: this model sums its {model.fine_classes} fine regions per region "
+                          "(ScatterElements with reduction=add), which ONNX has from opset 16; use --opset 16 or later")
     wrapper = ExportWrapper(model.float(), mask_dtype)
     size, stars = ckpt.image_size, ckpt.max_stars
     rng = np.random.default_rng(seed)
@@ -238,17 +271,19 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
     if data is not None:
         checks["dataset_frames"] = dataset_inputs(data, cfg)
     out = Path(onnx_path)
-    if out.is_dir():
-        raise ConfigError(f"--onnx {out} is a folder; give a file name such as model.onnx")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    _check_writable(out, "--onnx", "model.onnx")
+    if report is not None:
+        _check_writable(Path(report), "--report", "export.json")
     with atomic_path(out) as tmp:
         try:
-            _export(wrapper, checks["random_batch1"], tmp, opset, exporter)
+            # traced at batch 3: torch.export specialises a batch of 1 to a constant in places
+            # (the transformer's key-padding mask), and the graph then refuses other batch sizes
+            _export(wrapper, checks["random_batch3"], tmp, opset, exporter)
             import onnx
             onnx.checker.check_model(str(tmp))
         except Exception as exc:  # exporters raise many types; the user needs the reason, not the trace
             raise ExportError(f"ONNX export of {checkpoint} failed with the {exporter} exporter at opset {opset}: "
-                              f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}")
+                              f"{_first_line(exc)}") from None
         got = written_opset(tmp)
         if got != opset:
             raise ExportError(f"the {exporter} exporter wrote opset {got}, not the requested {opset} (it cannot convert "
@@ -256,7 +291,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
                               "runtime supports it")
         result = verify(tmp, wrapper, checks, tolerance)
     import onnxruntime
-    return {"onnx": str(out), "checkpoint": str(checkpoint), "exporter": exporter, "opset": opset,
+    r = {"onnx": str(out), "checkpoint": str(checkpoint), "exporter": exporter, "opset": opset,
             "inputs": {k: _shape(k, size, stars) for k in wrapper.input_names},
             "input_types": {k: ("bool" if k == "mask" and mask_dtype == "bool" else "float32")
                             for k in wrapper.input_names},
@@ -264,6 +299,9 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
             "branches": model.branches, "verification": result, "bytes": out.stat().st_size,
             "sha256": _sha256(out), "onnxruntime": onnxruntime.__version__, "torch": str(torch.__version__),
             "time_s": time.perf_counter() - t0}
+    if report is not None:
+        write_json(report, r)
+    return r
 
 
 def _shape(name: str, size: int, stars: int) -> list:

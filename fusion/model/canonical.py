@@ -61,10 +61,19 @@ def reference_rows(coords: torch.Tensor, mask: torch.Tensor, n_refs: int, min_ra
 
 
 def angles_of(coords: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Angle (rad) of the reference rows: (B, R)."""
+    """Angle (rad) of the reference rows: (B, R).
+
+    A reference at exactly (0, 0) (a sample with no detection: the padding row) has x
+    replaced by 1 / x = ±inf of the same sign. ``atan2`` gives the same angle for both
+    (IEEE 754: atan2(±0, ±0) = atan2(±0, ±inf)), so PyTorch's result does not change; but
+    ONNX has no Atan2, exporters build it from ``Atan(y / x)``, and 0 / 0 = NaN spread
+    through the whole sample's logits.
+    """
     idx = rows[..., None].expand(-1, -1, coords.shape[-1])
     ref = torch.gather(coords, 1, idx)                                # (B, R, F)
-    return torch.atan2(ref[..., 1], ref[..., 0])
+    x, y = ref[..., 0], ref[..., 1]
+    x = torch.where((x == 0) & (y == 0), torch.reciprocal(x), x)
+    return torch.atan2(y, x)
 
 
 def rotate_rows(coords: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:

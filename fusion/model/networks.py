@@ -320,12 +320,16 @@ class StarFusion(nn.Module):
 
     def coarse_logits(self, fine_logits: torch.Tensor) -> torch.Tensor:
         """Region logits from fine-region logits: log-sum-exp over each region's fine regions."""
-        # O(B F): the fine probabilities scaled by the row maximum, summed per region with index_add
+        # O(B F): the fine probabilities scaled by the row maximum, summed per region with scatter_add
         # (a (B, K, F) masked log-sum-exp cost ~100x more at F = 1000); clamped where a region's
-        # sum underflows float32 (probabilities below 1e-38, which no metric can see)
+        # sum underflows float32 (probabilities below 1e-38, which no metric can see). scatter_add,
+        # not index_add: the same sums in the same order, but ONNX exports index_add as a plain
+        # Scatter that keeps one fine region per region instead of their sum; scatter_add becomes
+        # ScatterElements(reduction="add") (opset 16+)
         x = fine_logits.float()
         m = x.max(dim=1, keepdim=True).values.detach()
-        s = x.new_zeros(x.shape[0], self.num_classes).index_add(1, self.fine_groups, torch.exp(x - m))
+        groups = self.fine_groups.expand(x.shape[0], -1)
+        s = x.new_zeros(x.shape[0], self.num_classes).scatter_add(1, groups, torch.exp(x - m))
         return (torch.log(s.clamp_min(1e-38)) + m).to(fine_logits.dtype)
 
     def forward(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,

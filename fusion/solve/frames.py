@@ -1,8 +1,13 @@
-"""Reading a user's frames: PNG, TIFF (8 or 16 bit), FITS and ``.npy`` files, or a skygen dataset's stored frames.
+"""Reading a user's frames: PNG, TIFF (8 or 16 bit), FITS and ``.npy`` files, folders of them, or a skygen
+dataset's stored frames.
 
 :func:`read_frame` returns one monochrome float32 image ``[y, x]`` in the file's own linear
 units, or raises :class:`FrameError` with the reason (unreadable, empty, colour, non-numeric).
-:func:`iter_inputs` walks the arguments of ``fusion predict``.
+PNG and TIFF are decoded by OpenCV with its log silenced: a damaged file gives our one line,
+not libtiff's warnings first. :func:`mask_bad_pixels` replaces non-finite pixels (NaN, ±inf:
+flagged pixels in float FITS or ``.npy`` frames) before detection. :func:`iter_inputs` walks
+the arguments of ``fusion predict``: files, skygen dataset folders (a ``manifest.json``) and
+other folders (their frame files, sorted by name).
 """
 
 from __future__ import annotations
@@ -18,6 +23,18 @@ FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
 
 class FrameError(FusionError):
     """A frame file cannot be used (unreadable, empty, colour, wrong size)."""
+
+
+def _imread_quiet(path: Path):
+    """``cv2.imread`` (unchanged depth) with OpenCV's log silenced; None when it cannot decode the file."""
+    import cv2
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)     # libtiff's and libpng's warnings go through it
+    try:
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    finally:
+        log.setLogLevel(level)
 
 
 def read_frame(path: str | Path) -> np.ndarray:
@@ -40,10 +57,9 @@ def read_frame(path: str | Path) -> np.ndarray:
             if img is None:
                 raise FrameError(f"{path}: no image HDU with 2-D data")
         else:
-            import cv2
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            img = _imread_quiet(path)
             if img is None:
-                raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image")
+                raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
             if img.ndim == 3 and img.shape[2] in (3, 4):
                 img = img[:, :, :3]
                 if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]):
@@ -65,8 +81,35 @@ def read_frame(path: str | Path) -> np.ndarray:
     return img.astype(np.float32)
 
 
+def mask_bad_pixels(img: np.ndarray, source: str = "frame") -> tuple[np.ndarray, int]:
+    """``(image, n_bad)``: non-finite pixels replaced by the median of the finite ones.
+
+    One NaN would otherwise make the frame's background and noise NaN and the detector find
+    nothing. The median stands in for the sky background, so a bad pixel is neither a star
+    nor a hole. A frame without a finite pixel raises :class:`FrameError`.
+    """
+    bad = ~np.isfinite(img)
+    n = int(np.count_nonzero(bad))
+    if n == 0:
+        return img, 0
+    if n == img.size:
+        raise FrameError(f"{source}: no finite pixel (all {n} are NaN or infinite)")
+    out = img.copy()
+    out[bad] = np.median(img[~bad])
+    return out, n
+
+
+def frame_files(folder: Path) -> list[Path]:
+    """The frame files directly in ``folder`` (suffixes :data:`FRAME_SUFFIXES`, hidden ones skipped), by name."""
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith("."))
+
+
 def iter_inputs(paths: list[str], max_frames: int | None):
-    """(source name, full image or None, detections table or None, stored image or None, error) per frame."""
+    """(source name, full image or None, detections table or None, stored image or None, error) per frame.
+
+    A skygen dataset folder gives its first ``max_frames`` stored frames; any other folder its
+    first ``max_frames`` frame files by name (an error entry when it holds none)."""
     for p in paths:
         path = Path(p)
         if path.is_dir() and (path / "manifest.json").exists():
@@ -75,7 +118,19 @@ def iter_inputs(paths: list[str], max_frames: int | None):
                 for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
                     yield f"{path}#{int(ds.frames['index'][pos])}", None, ds.detections(pos), ds.image(pos), None
             continue
-        try:
-            yield str(path), read_frame(path), None, None, None
-        except FrameError as exc:
-            yield str(path), None, None, None, str(exc)
+        if path.is_dir():
+            files = frame_files(path)
+            if not files:
+                yield str(path), None, None, None, (f"{path}: folder holds no frame files "
+                                                    f"({', '.join(FRAME_SUFFIXES)}) and is not a skygen dataset")
+            for f in files[:max_frames]:
+                yield from _one_file(f)
+            continue
+        yield from _one_file(path)
+
+
+def _one_file(path: Path):
+    try:
+        yield str(path), read_frame(path), None, None, None
+    except FrameError as exc:
+        yield str(path), None, None, None, str(exc)

@@ -6,9 +6,11 @@
     fusion predict FRAME... --camera C.yaml --solve --solver whole-sky       # any registered solver
 
 Frames: PNG, TIFF (8 or 16 bit), FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
-or a skygen dataset folder (its stored detections and images; ``--max-frames``). Each frame
-must be one full-resolution sensor read-out of the checkpoint's (or ``--camera``'s) camera,
-rows = height, in ADU or any linear unit.
+a folder of such files (sorted by name), or a skygen dataset folder (its stored detections and
+images); ``--max-frames N`` takes the first N of each folder. Each frame must be one
+full-resolution sensor read-out of the checkpoint's (or ``--camera``'s) camera, rows = height,
+in ADU or any linear unit. Non-finite pixels (NaN, ±inf) are bad pixels: replaced by the median
+of the finite ones before detection and counted in the record as ``bad_pixels``.
 
 Per frame:
 
@@ -62,7 +64,7 @@ from skygen.runtime import atomic_write_bytes, dumps_json
 from ..errors import ConfigError
 from ..model.inputs import downsample
 from .base import Detections
-from .frames import FrameError, iter_inputs
+from .frames import FrameError, iter_inputs, mask_bad_pixels
 
 class Predictor:
     """Detector + (optional) region prior + (optional) solver for one camera."""
@@ -73,6 +75,8 @@ class Predictor:
                  background_box: int = 0, lis_first: bool = False, solver: str | None = None, log=None):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
+        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+            raise ConfigError(f"--top-k {top_k}: the number of regions reported must be at least 1")
         if (checkpoint is None) == (camera is None):
             raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
                               "(prior-free solvers only), exactly one of them")
@@ -195,6 +199,8 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
             lis_first=False, solver=None) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames)."""
     err = err or (lambda m: print(m, file=sys.stderr))
+    if max_frames is not None and max_frames < 1:
+        raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
                      lis_first=lis_first, solver=solver, log=lambda m: err(m))
@@ -210,9 +216,11 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
                     raise FrameError(error)
                 if img is not None:
                     pred.check_shape(img, source)
+                    img, bad = mask_bad_pixels(img, source)
                     det, bg, sigma = pred.detect(img)
                     stored = pred.stored_image(img)
-                    extra = {"shape": [int(img.shape[0]), int(img.shape[1])], "background_adu": bg, "noise_adu": sigma}
+                    extra = {"shape": [int(img.shape[0]), int(img.shape[1])], "background_adu": bg, "noise_adu": sigma,
+                             "bad_pixels": bad}
                 else:
                     det, extra = Detections.from_table(table), {"detections_from": "dataset"}
                 rec = pred.run(source, det, stored, extra)
