@@ -27,6 +27,8 @@ Multi-GPU: ``torchrun --nproc_per_node N -m fusion.cli train ...``.
 from __future__ import annotations
 
 import argparse
+import shlex
+import signal
 import sys
 from pathlib import Path
 from typing import Callable
@@ -86,8 +88,34 @@ def _run_train(args: argparse.Namespace) -> int:
         base = read_yaml(args.config) if args.config else {}
     cfg = build_config(merge_overrides(base, overrides))
     from .train.run import train
-    train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+    previous = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
+    try:
+        train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+    except KeyboardInterrupt:
+        print(f"fusion train: interrupted; {resume_hint(args.out)}", file=sys.stderr)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _interrupt(signum, frame):
+    """SIGTERM (a scheduler's stop, `kill`) ends a training like Ctrl-C: files closed, lock released, a hint."""
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    import threading
+    return threading.current_thread() is threading.main_thread()
+
+
+def resume_hint(out: str) -> str:
+    """What to run after an interrupted training into ``out``: resume from last.pt (the run folder's
+    config.yaml holds the resolved config), or start again when no epoch had finished."""
+    if (Path(out) / "last.pt").exists():
+        return f"continue it with: fusion train --out {shlex.quote(str(out))} --resume"
+    return "no epoch had finished (no last.pt), so there is nothing to resume; run the same command again"
 
 
 # --------------------------------------------------------------------------- evaluate
