@@ -162,7 +162,7 @@ def _add_robustness(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="auto (default): the first CUDA device if one is visible, else the CPU")
     p.add_argument("--out", required=True, help="folder for the tables and plots (created; files replaced "
-                   "only when the whole sweep has finished)")
+                   "only when the whole sweep has finished; locked while it runs)")
 
 
 def _run_robustness(args: argparse.Namespace) -> int:
