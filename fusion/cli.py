@@ -27,6 +27,8 @@ Multi-GPU: ``torchrun --nproc_per_node N -m fusion.cli train ...``.
 from __future__ import annotations
 
 import argparse
+import shlex
+import signal
 import sys
 from pathlib import Path
 from typing import Callable
@@ -86,8 +88,34 @@ def _run_train(args: argparse.Namespace) -> int:
         base = read_yaml(args.config) if args.config else {}
     cfg = build_config(merge_overrides(base, overrides))
     from .train.run import train
-    train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+    previous = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
+    try:
+        train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+    except KeyboardInterrupt:
+        print(f"fusion train: interrupted; {resume_hint(args.out)}", file=sys.stderr)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _interrupt(signum, frame):
+    """SIGTERM (a scheduler's stop, `kill`) ends a training like Ctrl-C: files closed, lock released, a hint."""
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    import threading
+    return threading.current_thread() is threading.main_thread()
+
+
+def resume_hint(out: str) -> str:
+    """What to run after an interrupted training into ``out``: resume from last.pt (the run folder's
+    config.yaml holds the resolved config), or start again when no epoch had finished."""
+    if (Path(out) / "last.pt").exists():
+        return f"continue it with: fusion train --out {shlex.quote(str(out))} --resume"
+    return "no epoch had finished (no last.pt), so there is nothing to resume; run the same command again"
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -134,7 +162,7 @@ def _add_robustness(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="auto (default): the first CUDA device if one is visible, else the CPU")
     p.add_argument("--out", required=True, help="folder for the tables and plots (created; files replaced "
-                   "only when the whole sweep has finished)")
+                   "only when the whole sweep has finished; locked while it runs)")
 
 
 def _run_robustness(args: argparse.Namespace) -> int:
@@ -287,30 +315,36 @@ def _add_benchmark(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="folder for benchmark.json, benchmark.md and the plots")
     p.add_argument("--checkpoint", help="a fusion checkpoint: adds the 'learned' and 'learned+fine' solvers")
     p.add_argument("--split", default="test", choices=("train", "val", "test"))
-    p.add_argument("--frames", type=int, help="first N frames of the split (default 200; 30 with --grid small)")
+    p.add_argument("--frames", type=int, help="first N frames of the split, N >= 1 (default 200; 30 with --grid small)")
     p.add_argument("--grid", choices=("small", "full"), default="full",
-                   help="small: N in 4 6 10, corruptions at N=6, two severities each (a CPU minute or two); "
-                        "full: N in 3..20, every sweep severity at N=6 and N=10")
-    p.add_argument("--n", type=int, nargs="+", metavar="N", help="brightest-N values of the clean cells (overrides --grid)")
-    p.add_argument("--corruption-n", type=int, nargs="+", metavar="N", help="N values of the corruption cells")
+                   help="small: N in 4 6 10, corruptions at N=6, two severities each (about 3.5 min with a "
+                        "checkpoint on a 2-core CPU: 217 s measured); full: N in 3..20, every sweep severity at "
+                        "N=6 and N=10 (42 cells of 200 frames: about 25 times the small grid's work)")
+    p.add_argument("--n", type=int, nargs="+", metavar="N",
+                   help="brightest-N values of the clean cells, each >= 1 (overrides --grid)")
+    p.add_argument("--corruption-n", type=int, nargs="+", metavar="N", help="N values of the corruption cells, each >= 1")
     p.add_argument("--corruptions", nargs="*", default=list(DETECTION_CORRUPTIONS), metavar="NAME",
                    help=f"detection-level corruptions (default all: {', '.join(DETECTION_CORRUPTIONS)}); none: clean only")
     p.add_argument("--solvers", nargs="+", metavar="NAME", default=list(DEFAULT_SOLVERS),
                    help=f"solvers to score, from: {', '.join(SOLVERS)} (default: {' '.join(DEFAULT_SOLVERS)})")
-    p.add_argument("--correct-deg", type=float, default=0.1, help="boresight error counted as correct (default 0.1 deg)")
-    p.add_argument("--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct (default 1 deg)")
+    p.add_argument("--correct-deg", type=float, default=0.1,
+                   help="boresight error counted as correct, in (0, 180] (default 0.1 deg)")
+    p.add_argument("--correct-roll-deg", type=float, default=1.0,
+                   help="roll error counted as correct, in (0, 180] (default 1 deg)")
     add_search_arguments(p, "--top-k")                 # the fine-stage solvers run as fusion predict --solve does
 
 
 def _run_benchmark(args: argparse.Namespace) -> int:
-    from skygen import corruptions as corr
-    from .solve.benchmark import FULL_N, SMALL_N, run_benchmark
+    from .solve.benchmark import FULL_N, SMALL_N, run_benchmark, small_severities
     small = args.grid == "small"
-    severities = {c: [s for s in corr.get(c).sweep if s > 0][:2] for c in args.corruptions} if small else None
+
+    def default(value, if_small, if_full):          # 0 is a value (refused by the library), not "unset"
+        return value if value is not None else (if_small if small else if_full)
     run_benchmark(args.data, args.out, checkpoint=args.checkpoint, split=args.split,
-                  frames=args.frames or (30 if small else 200), n_values=args.n or (SMALL_N if small else FULL_N),
-                  corruption_n=args.corruption_n or ((6,) if small else (6, 10)), corruptions=args.corruptions,
-                  severities=severities, solvers=args.solvers, correct_deg=args.correct_deg,
+                  frames=default(args.frames, 30, 200), n_values=default(args.n, SMALL_N, FULL_N),
+                  corruption_n=default(args.corruption_n, (6,), (6, 10)), corruptions=args.corruptions,
+                  severities=small_severities(args.corruptions) if small else None,
+                  solvers=args.solvers, correct_deg=args.correct_deg,
                   correct_roll_deg=args.correct_roll_deg, top_k=args.search_k, search=args.search,
                   focal_tol=args.focal_tol)
     return 0

@@ -99,3 +99,46 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
     assert both["correct"] >= t3["correct"] and (t3["wrong"] > 0 or both["correct"] >= lf["correct"])
     assert both["ms_per_frame"] >= t3["ms_per_frame"]
     assert r["region_count"] == 4 and "learned top-1" in (out / "benchmark.md").read_text()
+
+
+@pytest.mark.parametrize("args,words", [
+    (["--frames", "0"], "--frames 0"), (["--n", "0"], "--n 0"), (["--n", "4", "-2"], "--n -2"),
+    (["--corruption-n", "0"], "--corruption-n 0"), (["--correct-deg", "-1"], "--correct-deg -1"),
+    (["--correct-roll-deg", "0"], "--correct-roll-deg 0"), (["--correct-deg", "200"], "(0, 180]"),
+    (["--corruptions", "none", "dropout"], "cannot be combined"),
+])
+def test_nonsense_grids_are_refused_before_any_work(small_dataset, tmp_path, capsys, args, words):
+    from fusion.cli import main
+    from fusion.solve.benchmark import run_benchmark
+    from skygen.errors import ConfigError
+    out = tmp_path / "bench"
+    assert main(["benchmark", "--data", str(small_dataset), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0]
+    assert not out.exists()
+    if args[0] == "--frames":                                  # Python callers get the same check
+        with pytest.raises(ConfigError, match="--frames 0"):
+            run_benchmark(small_dataset, out, frames=0)
+
+
+def test_corruptions_none_scores_the_clean_cells_only(small_dataset, tmp_path, monkeypatch):
+    from fusion.cli import main
+    monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "bench"
+    assert main(["benchmark", "--data", str(small_dataset), "--out", str(out), "--split", "train", "--frames", "2",
+                 "--grid", "small", "--corruptions", "none", "--solvers", "tetra3rs"]) == 0
+    r = json.loads((out / "benchmark.json").read_text())
+    assert [(c["corruption"], c["n"]) for c in r["cells"]] == [(None, 4), (None, 6), (None, 10)]
+    assert r["dataset"]["frames"] == 2
+
+
+def test_a_second_benchmark_into_a_busy_folder_is_refused(small_dataset, tmp_path, capsys):
+    from fusion.cli import main
+    from skygen.lock import FolderLock
+    out = tmp_path / "bench"
+    out.mkdir()
+    with FolderLock(out, what="fusion benchmark"):
+        assert main(["benchmark", "--data", str(small_dataset), "--out", str(out), "--frames", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "in use by fusion benchmark (PID" in err[0]
+    assert list(out.iterdir()) == []

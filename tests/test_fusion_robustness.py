@@ -189,3 +189,21 @@ def test_damage_grows_with_severity_for_every_registered_corruption(data):
                 damage.append(float(np.mean(d)))
             assert damage[0] == 0, name
             assert all(b >= a for a, b in zip(damage, damage[1:])) and damage[-1] > 0, (name, damage)
+
+
+def test_a_sweep_says_where_it_is_and_holds_its_out_folder(ckpts, data, tmp_path, capsys):
+    from skygen.errors import FolderInUseError
+    from skygen.lock import FolderLock
+    out, lines = tmp_path / "out", []
+    rob.robustness([ckpts["full"], ckpts["geometry"]], data, "dropout", out, levels="0,0.5", n=3, progress=False,
+                   log=lines.append)
+    progress = [line for line in lines if line.startswith("[")]
+    assert [p.split(":")[0] for p in progress] == ["[1/2] dropout 0 (probability)",
+                                                 "[2/2] dropout 0.5 (probability)"]
+    assert all("3 frames in" in p and p.count("%") == 2 for p in progress)
+    with FolderLock(out, what="fusion robustness"):
+        with pytest.raises(FolderInUseError, match="in use by fusion robustness"):
+            rob.robustness([ckpts["full"]], data, "dropout", out, levels="0", n=3, progress=False)
+        assert cli(["--corruption", "dropout", "--levels", "0", "--n", "3", "--checkpoint", str(ckpts["full"]),
+                    "--data", str(data), "--out", str(out)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1

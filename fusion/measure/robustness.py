@@ -34,7 +34,10 @@ Outputs (in ``--out``; ``STEM`` is ``robustness-<corruption>`` or ``robustness-a
 ``STEM.json``, ``STEM.csv``, ``STEM.md`` and one ``robustness-<corruption>.png`` per
 corruption (top-1 and median angular error against severity, one line per checkpoint).
 They are written into a temporary folder once every result exists and then moved into
-place, so a failed or interrupted sweep leaves nothing half-written.
+place, so a failed or interrupted sweep leaves nothing half-written. A sweep holds the
+lock of ``--out`` (:class:`skygen.lock.FolderLock`): a second one into the same folder is
+refused with one line naming the first. One progress line per corruption and severity
+goes to the log as it finishes.
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ from skygen import corruptions as corr
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import Dataset as SkyDataset
 from skygen.datasets.shards import open_dataset
+from skygen.lock import FolderLock
 from skygen.perturb import perturbed_frames
 
 from skygen.runtime import atomic_write_bytes, atomic_write_text, pick_device, write_json
@@ -244,10 +248,11 @@ def _bar(total: int, enabled: bool):
 def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str] = "all", *,
               split: str = "test", levels: str | Sequence[float] | None = None, n: int | None = None,
               workers: int = 1, seed: int = 0, batch_size: int = 64, device: str = "auto",
-              progress: bool = True) -> dict:
+              progress: bool = True, log=None) -> dict:
     """Evaluate ``checkpoints`` on ``split`` of ``data`` under each corruption and severity.
 
-    Everything the user gave is checked before any frame is rendered. Returns the report:
+    Everything the user gave is checked before any frame is rendered. ``log`` (default:
+    silent) receives one line per corruption and severity as it finishes. Returns the report:
     settings, checkpoints, the dataset's own corruption levels and ``rows`` (one per
     checkpoint x corruption x severity, in that nesting, with the fields of
     :data:`CSV_COLUMNS` plus ``pred``, the predicted class of each frame).
@@ -275,10 +280,13 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
         rows: list[dict] = []
         per_model: dict[int, list[dict]] = {j: [] for j in range(len(models))}
         bar = _bar(len(pos) * sum(len(lv) for lv in plan.values()), progress)
+        say = (bar.write if not bar.disable else log) if log is not None else None
+        steps, step = sum(len(lv) for lv in plan.values()), 0
         try:
             for name in names:
                 c = corr.REGISTRY[name]
                 for lvl in plan[name]:
+                    t_step, step = time.perf_counter(), step + 1
                     bar.set_description(f"{name} {lvl:g}")
                     done = bar.n
                     frames = perturbed_frames(ds, name, lvl, pos, workers=max(workers, 1),
@@ -294,6 +302,11 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
                         per_model[j].append({"checkpoint": str(m.path), "label": m.label, "model": m.model_name,
                                              "branches": m.branch_text, "num_classes": m.num_classes,
                                              **common, **metrics})
+                    if say is not None:
+                        top1 = ", ".join(f"{m.label} {100 * per_model[j][-1]['top1']:.1f}%"
+                                         for j, m in enumerate(models))
+                        say(f"[{step}/{steps}] {name} {lvl:g} ({c.unit}): {len(pos)} frames in "
+                            f"{time.perf_counter() - t_step:.1f} s; top-1 {top1}")
         finally:
             bar.close()
         for j in range(len(models)):
@@ -429,12 +442,25 @@ def write_outputs(report: dict, out: str | Path) -> list[Path]:
 
 def robustness(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str], out: str | Path,
                log=print, **kw) -> dict:
-    """:func:`run_sweep` then :func:`write_outputs`; returns the report (with predictions)."""
+    """:func:`run_sweep` (a progress line per corruption and severity to ``log``) then :func:`write_outputs`,
+    holding ``out``'s lock throughout (a second sweep into the same folder is refused, naming the first);
+    returns the report (with predictions)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a folder")
-    report = run_sweep(checkpoints, data, corruption, **kw)
-    written = write_outputs(report, out)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
+    try:
+        with FolderLock(out, what="fusion robustness"):
+            report = run_sweep(checkpoints, data, corruption, log=log, **kw)
+            written = write_outputs(report, out)
+    except BaseException:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()                 # a failed sweep leaves no empty folder behind
+        raise
     log(summary_text(report))
     log(f"wrote {', '.join(str(p) for p in written)}")
     return report

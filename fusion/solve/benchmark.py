@@ -49,7 +49,8 @@ solver call on one core. A region is correct when it is the max-cosine region of
 boresight (as ``fusion evaluate`` labels frames).
 
 Outputs in ``--out``: ``benchmark.json`` (every cell, every solver), ``benchmark.md``
-(tables), ``success_vs_n.png`` and ``success_vs_<corruption>.png``.
+(tables), ``success_vs_n.png`` and ``success_vs_<corruption>.png``. A benchmark holds the
+lock of ``--out`` (:class:`skygen.lock.FolderLock`) while it runs.
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from skygen import corruptions as corr
 from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import open_dataset
+from skygen.lock import FolderLock
 
 from skygen.runtime import atomic_write_text, hardware_line, write_json
 
@@ -95,6 +97,40 @@ def corrupt(det: dict, name: str | None, severity: float, seed: int, frame_index
     corr.get(name)
     out, _ = corr.apply_detection_corruptions(det, {name: float(severity)}, seed, frame_index, stream="/benchmark")
     return Detections.from_table(out)
+
+
+def resolve_corruptions(names) -> tuple[str, ...]:
+    """The detection-level corruptions named by ``--corruptions``: ``none`` (or nothing) is clean only."""
+    names = tuple(names)
+    if "none" in names:
+        if len(names) > 1:
+            raise ConfigError(f"--corruptions: 'none' (clean cells only) cannot be combined with {names}")
+        return ()
+    for c in names:
+        if c not in DETECTION_CORRUPTIONS:
+            raise ConfigError(f"--corruptions: {c!r} is not a detection-level corruption; choose from "
+                              f"{', '.join(DETECTION_CORRUPTIONS)}, or none (clean only)")
+    return names
+
+
+def small_severities(corruptions) -> dict[str, list[float]]:
+    """``--grid small``: the two lowest nonzero severities of each corruption's sweep."""
+    return {c: [s for s in corr.get(c).sweep if s > 0][:2] for c in resolve_corruptions(corruptions)}
+
+
+def check_grid(frames: int, n_values, corruption_n, correct_deg: float, correct_roll_deg: float) -> None:
+    """Refuse counts and thresholds that would measure nothing (one line naming the option and its range)."""
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise ConfigError(f"--frames {frames}: give at least 1 frame")
+    for flag, values in (("--n", n_values), ("--corruption-n", corruption_n)):
+        bad = [n for n in values if n < 1]
+        if bad:
+            raise ConfigError(f"{flag} {bad[0]}: each N (detections kept, brightest first) must be at least 1")
+    if not len(n_values):
+        raise ConfigError("--n: give at least one N")
+    for flag, value in (("--correct-deg", correct_deg), ("--correct-roll-deg", correct_roll_deg)):
+        if not 0 < value <= 180:
+            raise ConfigError(f"{flag} {value:g}: the error counted as correct must be in (0, 180] degrees")
 
 
 def grid(n_values, corruption_n, corruptions, severities: dict | None = None) -> list[dict]:
@@ -139,19 +175,35 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
                   severities=None, solvers=DEFAULT_SOLVERS,
                   correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
                   search: str = "fine", focal_tol: float = 0.02, log=print) -> dict:
-    from .priors import OraclePrior, load_prior
-    from .registry import check_search_options, get, make_context
-    from .tetra import Tetra3Solver
+    """Score ``solvers`` on every cell of the grid (module docstring) and write the outputs into ``out``.
+
+    Arguments are checked first (ConfigError naming the option); ``out`` is locked while the
+    benchmark runs (a second one into it is refused, naming the first)."""
+    from .registry import check_search_options
     check_search_options(focal_tol, top_k, "--top-k")
+    check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
         raise ConfigError(f"--solvers: unknown {sorted(unknown)}; choose from {', '.join(SOLVERS)}")
-    for c in corruptions:
-        if c not in DETECTION_CORRUPTIONS:
-            raise ConfigError(f"--corruptions: {c!r} is not a detection-level corruption; choose from "
-                              f"{', '.join(DETECTION_CORRUPTIONS)}")
+    corruptions = resolve_corruptions(corruptions)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
+    with FolderLock(out, what="fusion benchmark"):
+        return _run_benchmark(data, out, checkpoint, split, frames, n_values, corruption_n, corruptions, severities,
+                              solvers, correct_deg, correct_roll_deg, top_k, search, focal_tol, log)
+
+
+def _run_benchmark(data, out: Path, checkpoint, split, frames, n_values, corruption_n, corruptions, severities,
+                   solvers, correct_deg, correct_roll_deg, top_k, search, focal_tol, log) -> dict:
+    """run_benchmark once its arguments are checked and it holds the lock of ``out``."""
+    from .priors import OraclePrior, load_prior
+    from .registry import get, make_context
+    from .tetra import Tetra3Solver
     t_start = time.perf_counter()
     with open_dataset(data) as ds:
         rcfg = build_render_config(ds.config)

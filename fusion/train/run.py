@@ -45,8 +45,8 @@ from . import distributed as D
 from .data import PreparedData, prepare_data
 from .losses import FocalLoss
 from .loop import WarmupCosine, build_optimizer, planned_lr, train_one_epoch, validate
-from .runfolder import (check_resume_config, prepare_run_folder, rng_state, set_rng_state, write_config_yaml,
-                        write_metrics_csv)
+from .runfolder import (check_resume_config, lock_run_folder, prepare_run_folder, rng_state, set_rng_state,
+                        write_config_yaml, write_metrics_csv)
 
 
 def train(cfg: FusionConfig, out: str | Path, *, resume: bool = False, force: bool = False, log=print) -> dict:
@@ -54,8 +54,12 @@ def train(cfg: FusionConfig, out: str | Path, *, resume: bool = False, force: bo
     out = Path(out)
     info, device = D.init(cfg.train.device)
     say = log if info.is_main else (lambda *a, **k: None)
+    lock = None
     try:
         cfg = replace(cfg, model=resolve_model_config(cfg.model))
+        # rank 0 holds the run folder's lock for the whole run: a second `fusion train --out` into it
+        # (which would interleave checkpoints, or --force-delete them) is refused, naming this one
+        lock = _broadcast_error(lambda: lock_run_folder(out), info)
         _broadcast_error(lambda: prepare_run_folder(out, resume=resume, force=force, epochs=cfg.train.epochs), info)
         D.barrier(info)
         ckpt = None
@@ -64,6 +68,8 @@ def train(cfg: FusionConfig, out: str | Path, *, resume: bool = False, force: bo
             cfg = check_resume_config(cfg, ckpt)
         return run(cfg, out, ckpt, info, device, say)
     finally:
+        if lock is not None:
+            lock.release()
         D.shutdown(info)
 
 

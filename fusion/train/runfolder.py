@@ -4,7 +4,9 @@ A run folder holds :data:`RUN_FILES`. A finished run (``summary.json``) is never
 overwritten without ``--force``; an unfinished one (``last.pt``, no summary) needs
 ``--resume`` (continue) or ``--force`` (start over); a finished run is *extended* by
 ``--resume`` with more epochs than it ran. ``--force`` deletes only the files a run writes,
-nothing else in the folder.
+nothing else in the folder. A training holds the folder's lock (:class:`RunFolderLock`) from
+before these checks until it ends, so a second training into a busy folder is refused before
+it reads or deletes anything.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import torch
 import yaml
 
 from skygen.configlib import flatten
+from skygen.lock import FolderLock
 from skygen.runtime import atomic_write_text
 
 from ..config import FusionConfig, build_config, config_dict
@@ -63,6 +66,45 @@ def run_status(out: Path) -> tuple[str, Checkpoint | None]:
     if last.exists():
         return "unfinished", load_checkpoint(last)
     return "empty", None
+
+
+class RunFolderLock:
+    """The lock of run folder ``out`` (:class:`skygen.lock.FolderLock`, "fusion train"): one training
+    writes a run folder at a time; a second is refused with one line naming the first.
+
+    The folder is created for the lock; :meth:`release` removes it again if it was created here
+    and the run left nothing in it (a refused ``--resume`` into a new name leaves no folder)."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        if out.exists() and not out.is_dir():
+            raise RunFolderError(f"--out {out} exists and is not a folder")
+        self.created = not out.exists()
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RunFolderError(f"cannot create run folder {out}: {exc.strerror or exc}") from None
+        try:
+            self.lock = FolderLock(out, what="fusion train").acquire()
+        except BaseException:
+            self._remove_if_new()
+            raise
+
+    def release(self) -> None:
+        self.lock.release()
+        self._remove_if_new()
+
+    def _remove_if_new(self) -> None:
+        if self.created:
+            try:
+                self.out.rmdir()        # only when empty
+            except OSError:
+                pass
+
+
+def lock_run_folder(out: str | Path) -> RunFolderLock:
+    """Create ``out`` if needed and hold its lock (see :class:`RunFolderLock`)."""
+    return RunFolderLock(Path(out))
 
 
 def prepare_run_folder(out: str | Path, *, resume: bool, force: bool, epochs: int | None = None) -> Checkpoint | None:
