@@ -3,7 +3,7 @@
     python benchmarks/real_vs_sim.py [--real DIR] [--camera configs/cameras/blackfly-s-imx265-35mm.yaml]
                                      [--sim-frames 50] [--out results/real-frames]
 
-For every real frame (ESA tetra3 test data, ../shared/real-frames/tetra3-blackfly) and every
+For every real frame (ESA tetra3 test data, real-frames/tetra3-blackfly) and every
 rendered frame: background level and noise (skygen's sigma-clipped estimator), detections
 per frame (skygen's detector with the preset's settings; tetra3rs's own extractor, with
 local background and a matched filter, for reference), star width (intensity-weighted
@@ -31,16 +31,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-LISTED = {  # ../shared/real-frames/README.md: ra, dec, fov, tetra3rs roll (+y east of north)
-    "2019-07-29T204726_Alt40_Azi-135_Try1.tiff": (230.6676, 11.0358, 11.4206, -152.278),
-    "2019-07-29T204726_Alt40_Azi-45_Try1.tiff": (172.3667, 57.6494, 11.4243, -123.426),
-    "2019-07-29T204726_Alt40_Azi135_Try1.tiff": (296.7571, 11.3140, 11.4289, 155.109),
-    "2019-07-29T204726_Alt40_Azi45_Try1.tiff": (355.2049, 58.1518, 11.4246, 126.690),
-    "2019-07-29T204726_Alt60_Azi-135_Try1.tiff": (240.4640, 28.9401, 11.4238, -149.041),
-    "2019-07-29T204726_Alt60_Azi-45_Try1.tiff": (212.2125, 64.2007, 11.4262, -88.321),
-    "2019-07-29T204726_Alt60_Azi135_Try1.tiff": (286.4356, 28.9442, 11.4224, 151.367),
-    "2019-07-29T204726_Alt60_Azi45_Try1.tiff": (314.6943, 64.2250, 11.4300, 90.616),
-}
+REAL = ROOT / "real-frames" / "tetra3-blackfly"
+
+
+def listed_solutions(folder: Path = REAL) -> dict:
+    """file name -> (ra, dec, fov, tetra3rs roll (+y east of north)) from solutions.csv."""
+    import csv
+    with open(folder / "solutions.csv", newline="") as f:
+        return {r["file"]: (float(r["ra_deg"]), float(r["dec_deg"]), float(r["fov_deg"]),
+                            float(r["tetra3rs_roll_deg"])) for r in csv.DictReader(f)}
+
+
+LISTED = listed_solutions()
 
 
 def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> float:
@@ -80,7 +82,7 @@ def frame_stats(img: np.ndarray, cfg, saturation: float, box: int) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--real", default=str(ROOT.parent / "shared" / "real-frames" / "tetra3-blackfly"))
+    p.add_argument("--real", default=str(REAL))
     p.add_argument("--camera", default=str(ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml"))
     p.add_argument("--sim-frames", type=int, default=50)
     p.add_argument("--out", default=str(ROOT / "results" / "real-frames"))
@@ -228,7 +230,7 @@ def markdown(r: dict) -> str:
     ratio = lambda k: s[k]["real_median"] / s[k]["sim_median"]
     lines = ["# Real Blackfly S frames vs skygen frames of the same camera", "",
              f"`python benchmarks/real_vs_sim.py` ({r['hardware']}, {r['created_utc']}): the 8 real frames of "
-             "`../shared/real-frames/tetra3-blackfly` (ESA tetra3 test data, Apache-2.0; ground-based, through the "
+             "`real-frames/tetra3-blackfly` (ESA tetra3 test data, Apache-2.0; ground-based, through the "
              f"atmosphere) against {len(r['sim'])} frames rendered from `{r['camera_preset']}` (uniform random "
              "boresights). Real TIFF values are divided by 16 (12-bit data stored ×16).", "",
              "| quantity | real median (range) | skygen median (range) |", "|---|---|---|"]
@@ -283,10 +285,10 @@ def markdown(r: dict) -> str:
                  f"{np.median([x['n_matched'] for x in ok]):.0f} matched stars." if ok else ".")]
     if r.get("learned"):
         lines += _learned_markdown(r["learned"])
-    lines += ["", "Commands for the same from the CLI: `fusion predict ../shared/real-frames/tetra3-blackfly/*.tiff "
+    lines += ["", "Commands for the same from the CLI: `fusion predict real-frames/tetra3-blackfly/*.tiff "
               "--camera configs/cameras/blackfly-s-imx265-35mm.yaml --solve [--background-box 64 | --detector "
               "tetra3rs] --overlay DIR` (tetra3rs lost-in-space) and `fusion predict "
-              "../shared/real-frames/tetra3-blackfly/*.tiff --checkpoint runs/blackfly/best.pt --solve "
+              "real-frames/tetra3-blackfly/*.tiff --checkpoint runs/blackfly/best.pt --solve "
               "--background-box 64` (the learned path).",
               "", "![real vs sim](real_vs_sim.png)", ""]
     return "\n".join(lines)

@@ -16,7 +16,7 @@ from fusion.testing import small_dataset
 from skygen.errors import SkygenError
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL = Path("/work/shared/real-frames/tetra3-blackfly")
+REAL = ROOT / "real-frames" / "tetra3-blackfly"   # shipped with the project (real-frames/README.md)
 
 
 def _write_all(folder: Path, img16: np.ndarray) -> dict[str, Path]:
@@ -147,7 +147,6 @@ def test_old_checkpoint_gets_one_clear_line(checkpoint, frame_and_truth, tmp_pat
                  "--out", str(tmp_path / "o.jsonl")]) == 0
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real frames not present (../shared/real-frames)")
 def test_real_blackfly_frame_solves_to_the_listed_attitude(tmp_path):
     """One real frame (ESA tetra3 test data): tetra3rs via the camera preset agrees with the listed plate solution."""
     out = tmp_path / "r.jsonl"
@@ -162,7 +161,6 @@ def test_real_blackfly_frame_solves_to_the_listed_attitude(tmp_path):
     assert abs((sol["roll_deg"] - (151.367 + 180.0) + 180) % 360 - 180) < 0.05   # listed roll is tetra3rs's (+y)
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real frames not present (../shared/real-frames)")
 def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extractor(tmp_path):
     frame = REAL / "2019-07-29T204726_Alt40_Azi-45_Try1.tiff"        # sky gradient: skygen's detector finds 4 stars
     cam = str(ROOT / "configs/cameras/blackfly-s-imx265-35mm.yaml")
@@ -299,7 +297,6 @@ def test_a_truncated_tiff_is_one_line(capfd, tmp_path):
     assert capfd.readouterr().err == ""
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real frames not present (../shared/real-frames)")
 def test_real_16_bit_frames_read_as_the_decoder_gives_them():
     for path in sorted(REAL.glob("*.tiff")):
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
