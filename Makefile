@@ -1,6 +1,7 @@
 # Two commands on a fresh machine (Python >= 3.11):
 #   make demo   install everything, render 4,000 frames, look at them, train the CPU preset, evaluate
 #   make test   install everything and run the test suite (what CI runs)
+# tests/test_readme.py runs the demo recipe at small size (DEMO_N, DEMO_TRAIN) so it cannot drift.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -8,6 +9,8 @@ STAMP  := $(VENV)/.installed
 DEMO   ?= data/demo
 RUN    ?= runs/demo
 WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
+DEMO_N ?= 4000
+DEMO_TRAIN ?=
 
 .PHONY: install demo test test-all bench clean-demo
 
@@ -21,11 +24,11 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/skygen render --n 4000 --workers $(WORKERS) --out $(DEMO)
+	$(BIN)/skygen render --n $(DEMO_N) --workers $(WORKERS) --out $(DEMO)
 	$(BIN)/skygen inspect $(DEMO)
 	$(BIN)/skygen preview $(DEMO) --out $(DEMO)/preview.png
 	$(BIN)/skygen validate $(DEMO)
-	$(BIN)/fusion train --data $(DEMO) --out $(RUN) --config configs/cpu.yaml --force
+	$(BIN)/fusion train --data $(DEMO) --out $(RUN) --config configs/cpu.yaml --force $(DEMO_TRAIN)
 	$(BIN)/fusion evaluate --checkpoint $(RUN)/best.pt --data $(DEMO) --split test --out $(RUN)/eval-test
 	@echo "dataset: $(DEMO) (preview: $(DEMO)/preview.png)  run: $(RUN)  report: $(RUN)/eval-test/eval-test.md"
 
