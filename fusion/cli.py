@@ -92,8 +92,15 @@ def _run_train(args: argparse.Namespace) -> int:
     try:
         train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
     except KeyboardInterrupt:
+        _quiet_worker_teardown()
         print(f"fusion train: interrupted; {resume_hint(args.out)}", file=sys.stderr)
         return 130
+    except RuntimeError as exc:      # a loader worker killed (by the same Ctrl-C/SIGTERM, or out of memory)
+        if "DataLoader worker" not in str(exc):
+            raise
+        _quiet_worker_teardown()
+        print(f"fusion train: stopped: {one_line(exc)}; {resume_hint(args.out)}", file=sys.stderr)
+        return 130 if "Terminated" in str(exc) or "Interrupt" in str(exc) else 1
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -103,6 +110,21 @@ def _run_train(args: argparse.Namespace) -> int:
 def _interrupt(signum, frame):
     """SIGTERM (a scheduler's stop, `kill`) ends a training like Ctrl-C: files closed, lock released, a hint."""
     raise KeyboardInterrupt
+
+
+def _quiet_worker_teardown() -> None:
+    """After Ctrl-C or SIGTERM the DataLoader's workers die of the same signal, and torch reports it
+    from a destructor as "Exception ignored ... DataLoader worker (pid N) is killed by signal" with a
+    traceback: expected here, so that one report is dropped; any other goes to the usual hook."""
+    default = sys.unraisablehook
+
+    def hook(unraisable):
+        exc = unraisable.exc_value
+        if isinstance(exc, RuntimeError) and "DataLoader worker" in str(exc) and "killed by signal" in str(exc):
+            return
+        default(unraisable)
+
+    sys.unraisablehook = hook
 
 
 def _main_thread() -> bool:
@@ -389,6 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    for stream in (sys.stdout, sys.stderr):     # progress lines reach a log or a pipe as they happen
+        if hasattr(stream, "reconfigure") and not stream.isatty():
+            stream.reconfigure(line_buffering=True)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:

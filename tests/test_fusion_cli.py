@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from fusion.cli import main
 from fusion.testing import small_dataset
@@ -107,3 +108,29 @@ def test_cli_choices_match_the_library():
     assert cli.PRECISIONS == tuple(timing.PRECISIONS) and cli.TIMING_MODES == timing.MODES
     assert cli.EXPORTERS == export.EXPORTERS and cli.MASK_DTYPES == export.MASK_DTYPES
     assert cli.EXPERIMENT_SECTIONS == experiment.SECTIONS
+
+
+def test_a_run_too_large_for_a_cpu_says_so_with_its_size_and_pace():
+    from fusion.train.run import loader_workers, pace_line
+    big = torch.nn.Linear(5000, 4000)                       # 20 M parameters
+    line = pace_line(2.0, 1000, 10, 64, big, torch.device("cpu"))
+    assert "2.00 s per step of 64 samples" in line and "~33.3 min per epoch" in line and "~5.6 h" in line
+    assert "20.0 M-parameter model is a GPU recipe" in line and "configs/cpu.yaml" in line
+    assert "GPU recipe" not in pace_line(0.01, 100, 10, 64, big, torch.device("cpu"))
+    said = []
+    assert loader_workers(10_000, said.append) < 10_000 and "core(s)" in said[0]
+    assert loader_workers(0, said.append) == 0 and len(said) == 1
+
+
+def test_after_an_interrupt_only_the_dataloader_worker_report_is_dropped(monkeypatch):
+    import sys as _sys
+    from types import SimpleNamespace
+
+    from fusion.cli import _quiet_worker_teardown
+    seen = []
+    monkeypatch.setattr(_sys, "unraisablehook", lambda u: seen.append(u.exc_value))
+    _quiet_worker_teardown()
+    _sys.unraisablehook(SimpleNamespace(exc_value=RuntimeError("DataLoader worker (pid 7) is killed by signal: Terminated. ")))
+    other = RuntimeError("something else")
+    _sys.unraisablehook(SimpleNamespace(exc_value=other))
+    assert seen == [other]

@@ -302,3 +302,12 @@ def test_real_16_bit_frames_read_as_the_decoder_gives_them():
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         assert raw.dtype == np.uint16
         np.testing.assert_array_equal(read_frame(path), raw.astype(np.float32))
+
+
+def test_top_k_above_the_models_regions_says_it_reports_all(checkpoint, frame_and_truth, tmp_path, capsys):
+    paths, _ = frame_and_truth
+    out = tmp_path / "p.jsonl"
+    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--top-k", "50",
+                 "--out", str(out)]) == 0
+    assert "--top-k 50: the model has 4 regions; reporting all 4" in capsys.readouterr().err
+    assert len(_lines(out)[0]["regions"]) == 4

@@ -207,3 +207,10 @@ def test_a_sweep_says_where_it_is_and_holds_its_out_folder(ckpts, data, tmp_path
         assert cli(["--corruption", "dropout", "--levels", "0", "--n", "3", "--checkpoint", str(ckpts["full"]),
                     "--data", str(data), "--out", str(out)]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_n_above_the_split_says_it_sweeps_the_whole_split(ckpts, data):
+    said = []
+    report = rob.run_sweep([ckpts["full"]], data, "dropout", levels="0", n=10_000, progress=False, log=said.append)
+    n = report["rows"][0]["n_frames"]
+    assert n < 10_000 and f"--n 10000: the test split holds {n} frames; sweeping all {n}" in said

@@ -190,13 +190,15 @@ def _label(models: list[SweepModel]) -> None:
 
 
 # --------------------------------------------------------------------------- frames -> inputs
-def select_frames(ds: SkyDataset, split: str, n: int | None, seed: int) -> np.ndarray:
+def select_frames(ds: SkyDataset, split: str, n: int | None, seed: int, log=None) -> np.ndarray:
     """Positions of the sweep's frames: the whole split, or ``n`` of them drawn with ``seed`` (sorted)."""
     pos = split_positions(ds, split)
-    if n is None or n >= len(pos):
-        return pos
-    if n < 1:
+    if n is not None and n < 1:
         raise ConfigError(f"--n: {n} frames; give at least 1")
+    if n is None or n >= len(pos):
+        if n is not None and n > len(pos) and log is not None:
+            log(f"--n {n}: the {split} split holds {len(pos)} frames; sweeping all {len(pos)}")
+        return pos
     pick = np.random.default_rng([seed, 0x5EED]).choice(len(pos), size=n, replace=False)
     return pos[np.sort(pick)]
 
@@ -273,7 +275,7 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
         _label(models)
         for m in models:
             m.model.to(dev)
-        pos = select_frames(ds, split, n, seed)
+        pos = select_frames(ds, split, n, seed, log)
         v = boresight_vectors(ds, pos)
         geo = FrameGeometry.from_render_config(ds.config)
         own = corr.levels_of(build_render_config(ds.config))

@@ -91,6 +91,9 @@ class Predictor:
         self.prior = load_prior(checkpoint, render_config) if checkpoint is not None else None
         if self.prior is not None:
             render_config = self.prior.render_config
+            k = len(getattr(self.prior, "coarse_centroids", self.prior.centroids))
+            if top_k > k and log is not None:
+                log(f"--top-k {top_k}: the model has {k} regions; reporting all {k}")
         self.cfg = build_render_config(render_config)
         self.camera = Camera.from_config(self.cfg.camera)
         self.factor = self.cfg.camera.width_px // self.cfg.output.image_size_px

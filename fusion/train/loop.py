@@ -49,8 +49,11 @@ def planned_lr(schedule: WarmupCosine, lr: float) -> np.ndarray:
 def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, optimizer, scheduler, scaler,
                     device: torch.device, *, amp_dtype: torch.dtype | None = None,
                     grad_clip_norm: float | None = None, soft: bool = False, progress: bool = False,
-                    desc: str = "train") -> dict:
-    """One pass over ``loader``; returns mean loss, top-1 on the (augmented) batches, last lr, time."""
+                    desc: str = "train", pace=None) -> dict:
+    """One pass over ``loader``; returns mean loss, top-1 on the (augmented) batches, last lr, time.
+
+    ``pace``: called once as ``pace(seconds_per_step)`` after the second step (the first, which
+    pays for warm-up, is not counted), so a run can say early what it will cost."""
     model.train()
     t0 = time.perf_counter()
     total_loss, n, hits = 0.0, 0, 0
@@ -83,6 +86,11 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         total_loss += float(loss.detach()) * b   # .item()-like sync once per step: cheap next to the step
         hits += int((logits.detach().argmax(1).cpu() == batch["label"]).sum())
         n += b
+        if pace is not None and step in (0, 1):
+            if step == 0:
+                t_first = time.perf_counter()
+            else:
+                pace(time.perf_counter() - t_first)
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{total_loss / n:.3f}", top1=f"{hits / n:.3f}",
                             samples_s=f"{n / (time.perf_counter() - t0):.0f}")

@@ -105,6 +105,27 @@ def setup_torch(cfg: FusionConfig, info: D.DistInfo, device: torch.device) -> No
     np.random.seed(tc.seed)
 
 
+def loader_workers(asked: int, say=None) -> int:
+    """``train.workers``, but no more than the cores this process may use (more only thrash)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if asked > cores and say is not None:
+        say(f"train.workers={asked} but this machine gives the process {cores} core(s): {cores} loader worker(s)")
+    return min(asked, cores)
+
+
+def pace_line(step_s: float, steps: int, epochs_left: int, batch: int, model, device) -> str:
+    """What the run will cost at the measured pace; a model too large for a CPU is named with its size."""
+    epoch_s = step_s * steps
+    total_h = epoch_s * epochs_left / 3600
+    n_params = sum(p.numel() for p in model.parameters()) / 1e6
+    line = (f"pace: {step_s:.2f} s per step of {batch} samples -> ~{epoch_s / 60:.1f} min per epoch, "
+            f"~{total_h:.1f} h for the {epochs_left} epoch(s) to go on {device.type}")
+    if device.type == "cpu" and total_h > 1.0:
+        line += (f"; a {n_params:.1f} M-parameter model is a GPU recipe: on a CPU use configs/cpu.yaml "
+                 "(minutes) or configs/smoke.yaml (seconds)")
+    return line
+
+
 def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> StarFusion:
     """The model for ``data``'s regions and image size; a warm start (``model.init_from``) for a fresh run."""
     if (cfg.model.branches.image and data.ds.image_shape[0] != data.ds.image_shape[1]
@@ -112,6 +133,8 @@ def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> Star
         raise ConfigError(f"model.image_backbone={cfg.model.image_backbone} takes square images, but this dataset "
                           f"stores {data.ds.image_shape[1]} x {data.ds.image_shape[0]} (a non-square sensor); use "
                           "model.image_backbone=tiny_cnn or switch the image branch off")
+    if cfg.model.branches.image:
+        say(f"building {cfg.model.name} with the {cfg.model.image_backbone} image backbone ...")
     model = create_model(cfg.model.name, cfg.labels.k, cfg.model, image_size=data.ds.image_shape[0],
                          max_stars=cfg.data.max_stars, fine_classes=cfg.labels.fine_k)
     if data.regions.fine is not None and model.fine_classes:
@@ -128,13 +151,13 @@ def train_loader(cfg: FusionConfig, data: PreparedData, info: D.DistInfo, device
     """The training batches: the shards' training split (``stream.kind=none``) or a skygen stream."""
     tc, sc = cfg.train, cfg.stream
     per_rank = tc.batch_size // info.world
+    workers = loader_workers(tc.workers, say if info.is_main else None)
     if sc.kind == "none":
-        return make_loader(data.train, per_rank, shuffle=True, seed=tc.seed, workers=tc.workers, rank=info.rank,
+        return make_loader(data.train, per_rank, shuffle=True, seed=tc.seed, workers=workers, rank=info.rank,
                            world=info.world, pad=True, pin_memory=device.type == "cuda")
     from .stream import StreamBatches, make_stream_loader
     batches = StreamBatches.from_config(cfg, data.ds.config, data.regions, rank=info.rank, world=info.world,
                                         device=device)
-    workers = tc.workers
     if sc.render_backend == "torch" and device.type == "cuda" and workers:
         say("stream.render_backend=torch renders on the GPU in the training process: train.workers set to 0")
         workers = 0
@@ -204,6 +227,9 @@ def log_start(cfg: FusionConfig, data: PreparedData, steps: int, counts: dict, d
             f"{np.bincount(data.train.labels, minlength=k).tolist()}")
     say(f"model {cfg.model.name} ({cfg.model.image_backbone if cfg.model.branches.image else 'no image branch'}), "
         f"parameters {counts}; device {device}, {info.world} process(es), amp {amp_dtype}")
+    if device.type == "cpu" and counts["total"] > 10e6:
+        say(f"{counts['total'] / 1e6:.1f} M parameters on a CPU: expect seconds per step; the pace of this run "
+            "follows after its second step (configs/cpu.yaml trains in minutes)")
 
 
 def write_epoch(out: Path, ckpt: Checkpoint, improved: bool, opt: Optimisation, steps: int, lr: float) -> None:
@@ -229,7 +255,7 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
     loss_fn = FocalLoss(torch.as_tensor(data.alpha, dtype=torch.float32), cfg.loss.gamma).to(device)
     loader = train_loader(cfg, data, info, device, say)
     val_loader = make_loader(data.val, tc.eval_batch_size or 2 * (tc.batch_size // info.world), shuffle=False,
-                             workers=tc.workers, rank=info.rank, world=info.world, pad=False,
+                             workers=loader_workers(tc.workers), rank=info.rank, world=info.world, pad=False,
                              pin_memory=device.type == "cuda")
     steps = len(loader)
     opt = build_optimisation(cfg, model, steps, device)
@@ -254,9 +280,12 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
         torch.manual_seed(tc.seed * 1_000_003 + epoch)
         (loader.dataset if hasattr(loader.dataset, "set_epoch") else loader.sampler).set_epoch(epoch)
         t0 = time.perf_counter()
+        pace = (lambda s: say(pace_line(s, steps, tc.epochs - epoch, tc.batch_size, model, device))) \
+            if epoch == start_epoch and info.is_main else None
         tr = train_one_epoch(net, loader, loss_fn, opt.optimizer, opt.scheduler, opt.scaler, device,
                              amp_dtype=opt.amp_dtype, grad_clip_norm=cfg.optim.grad_clip_norm, soft=soft,
-                             progress=tc.progress and info.is_main, desc=f"epoch {epoch + 1}/{tc.epochs}")
+                             progress=tc.progress and info.is_main, desc=f"epoch {epoch + 1}/{tc.epochs}",
+                             pace=pace)
         # the unwrapped model: ranks see different numbers of validation batches, and a DDP
         # forward may broadcast buffers (a collective every rank must join)
         va = validate(model, val_loader, loss_fn, device, info, amp_dtype=opt.amp_dtype, soft=soft,
