@@ -52,6 +52,9 @@ class CameraConfig:
     k3: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^6 coefficient")
     p1: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p1")
     p2: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p2")
+    pixel_aspect: float = param(1.0, lo=0.1, hi=10, doc="pixel height / pixel width, dimensionless (1: square; 2: "
+                                "rows twice as tall as columns are wide, e.g. interlaced frames stored at half "
+                                "height); pixel_pitch_um and fov_deg are along x")
 
 
 @dataclass(frozen=True)
@@ -179,6 +182,9 @@ def check_consistency(cfg: RenderConfig) -> None:
         raise ConfigError(f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
                           f"2**sensor.bit_depth = {2 ** cfg.sensor.bit_depth}")
     r = cfg.render
+    if cam.pixel_aspect != 1.0 and r.backend == "torch":
+        raise ConfigError(f"camera.pixel_aspect={cam.pixel_aspect:g} needs render.backend=numpy (the torch backend "
+                          "draws square pixels only)")
     if not re.fullmatch(r"cpu|cuda(:\d+)?", r.device):
         raise ConfigError(f"render.device: {r.device!r} is not allowed; expected cpu, cuda or cuda:N")
     if r.backend == "numpy" and r.device != "cpu":
