@@ -44,24 +44,7 @@ def listed_solutions(folder: Path = REAL) -> dict:
 
 LISTED = listed_solutions()
 
-
-def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> float:
-    sig = []
-    h, w = img.shape
-    for x, y, peak in zip(det["x_px"][:n], det["y_px"][:n], det["peak_adu"][:n]):
-        if peak + bg >= 0.9 * saturation:
-            continue
-        xi, yi = int(round(x)), int(round(y))
-        if not (4 <= xi < w - 4 and 4 <= yi < h - 4):
-            continue
-        st = np.clip(img[yi - 4:yi + 5, xi - 4:xi + 5] - bg, 0, None)
-        yy, xx = np.mgrid[-4:5, -4:5]
-        tot = st.sum()
-        if tot <= 0:
-            continue
-        mx, my = (st * xx).sum() / tot, (st * yy).sum() / tot
-        sig.append(np.sqrt(((st * ((xx - mx) ** 2 + (yy - my) ** 2)).sum() / tot) / 2))
-    return float(np.median(sig)) if sig else float("nan")
+from skygen.framestats import star_width_px  # noqa: E402  (one measurement for this and skygen fit-camera)
 
 
 def frame_stats(img: np.ndarray, cfg, saturation: float, box: int) -> dict:

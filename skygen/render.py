@@ -386,7 +386,7 @@ class Renderer:
         log = {**scene.log, **(log or {})}
         stars = scene.stars
         d = cfg.detection
-        det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections)
+        det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections, d.background_box_px)
         inside = self.camera.inside(stars["x_px"], stars["y_px"])
         true = {k: v[inside] for k, v in stars.items() if k != "paths"}
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
