@@ -85,11 +85,11 @@ def read_frames(paths: list[str], log) -> tuple[list[str], list[np.ndarray], lis
 
 def usable(img: np.ndarray, saturation: float) -> str:
     """'' or why a frame cannot be used (blank, saturated)."""
-    if float(img.max()) == float(img.min()):
-        return f"blank frame (every pixel {float(img.min()):g})"
     at_top = float(np.mean(img >= saturation))
     if at_top > 0.25:
-        return f"saturated frame ({100 * at_top:.0f} % of pixels at the top of the range)"
+        return f"saturated frame ({100 * at_top:.0f} % of pixels at the top of the range, {saturation:g})"
+    if float(img.max()) == float(img.min()):
+        return f"blank frame (every pixel {float(img.min()):g})"
     return ""
 
 
@@ -176,8 +176,8 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
             log(f"fit-camera: dropped {n}: {why}")
     solved = [fs for fs in frames if fs.solved]
     if not solved:
-        raise FitError(f"no frame solved ({len(frames)} tried): " + "; ".join(
-            f"{Path(fs.name).name}: {fs.reason}" for fs in frames[:3]))
+        raise FitError(f"no frame solved ({len(dropped)} dropped): " + "; ".join(
+            f"{Path(n).name}: {why}" for n, why in dropped[:3]) + (" ..." if len(dropped) > 3 else ""))
     t_solve = time.perf_counter() - t0
     start_cam = cam0
     if fov_range is not None:                       # the field the solver found is the fit's start

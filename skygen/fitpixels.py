@@ -9,8 +9,9 @@ divided by 16); electrons only through the fitted gain; pixel positions in skyge
   and ``level = centre + gx x + gy y - drop r^2`` fitted to the box levels (``r^2`` normalised to 1 at
   the corner, as skygen's ``optics.vignetting``): the level at the centre, the large-scale gradient
   (ADU from the dark edge to the bright edge, and its direction) and the vignetting drop at the corner.
-* :func:`gain_from_mean_variance` — the background's noise variance against its level over all
-  boxes of all frames: ``var = a + level / gain`` (shot noise of the sky and dark charge); the
+* :func:`gain_from_mean_variance` — the background's noise variance (from differences of neighbouring
+  pixels, so a gradient inside a box does not count as noise) against its level over all boxes of all
+  frames: ``var = a + level / gain`` (shot noise of the sky and dark charge); the
   intercept holds read noise, quantisation and FPN minus ``bias / gain``, so one of bias and read
   noise must be known (the start camera's read noise is kept, the bias follows from the intercept;
   where that makes the bias negative, the bias is set to 0 and the read noise follows instead).
@@ -55,7 +56,9 @@ def background(img: np.ndarray, box_px: int = 64) -> dict:
     ys = np.arange(box_px // 2, h, box_px)
     xs = np.arange(box_px // 2, w, box_px)
     ly, lx = np.meshgrid(ys, xs, indexing="ij")
-    lv, sv = level[ly, lx].ravel(), sigma[ly, lx].ravel()
+    lv = level[ly, lx].ravel()
+    sv = np.array([_difference_sigma(img[y - box_px // 2:y + box_px // 2, x - box_px // 2:x + box_px // 2])
+                   for y, x in zip(ly.ravel(), lx.ravel())])
     bx, by = lx.ravel() - (w - 1) / 2, ly.ravel() - (h - 1) / 2
     r2 = (bx ** 2 + by ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)     # as skygen's vignetting: 1 at the corner
     A = np.column_stack([np.ones(lv.size), bx, by, r2])
@@ -66,6 +69,15 @@ def background(img: np.ndarray, box_px: int = 64) -> dict:
             "level_adu": float(np.median(level)), "noise_adu": float(np.median(sigma)), "centre_adu": float(c[0]),
             "corner_drop_adu": float(-c[3]), "gradient_adu": float(amp),
             "gradient_angle_deg": float(np.degrees(np.arctan2(c[2], c[1]))), "residual_std_adu": float(resid.std())}
+
+
+def _difference_sigma(box: np.ndarray) -> float:
+    """Pixel noise of a box from differences of horizontal neighbours (a smooth gradient cancels), clipped
+    against stars: 1.4826 MAD / sqrt(2), then a 3-sigma clipped standard deviation."""
+    d = np.diff(box.astype(np.float64), axis=1).ravel()
+    s = 1.4826 * np.median(np.abs(d - np.median(d)))
+    keep = d[np.abs(d - np.median(d)) < 3 * max(s, 1e-6)]
+    return float(keep.std() / 0.98657 / np.sqrt(2)) if keep.size > 10 else float(s / np.sqrt(2))
 
 
 def gain_from_mean_variance(levels: np.ndarray, variances: np.ndarray, read_noise_e: float, fpn_adu: float,
