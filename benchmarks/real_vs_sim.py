@@ -273,7 +273,9 @@ def markdown(r: dict) -> str:
               "tetra3rs] --overlay DIR` (tetra3rs lost-in-space) and `fusion predict "
               "real-frames/tetra3-blackfly/*.tiff --checkpoint runs/blackfly/best.pt --solve "
               "--background-box 64` (the learned path).",
-              "", "![real vs sim](real_vs_sim.png)", ""]
+              "", "![real vs sim](real_vs_sim.png)", "",
+              "The gap closed by fitting a camera to these frames (`skygen fit-camera`): [FIT_CAMERA.md](FIT_CAMERA.md) "
+              "(`configs/cameras/blackfly-fitted.yaml`).", ""]
     return "\n".join(lines)
 
 

@@ -184,9 +184,10 @@ def cmd_fit_camera(args) -> int:
     import shlex
     from .fitcam import fit_camera
     command = "skygen fit-camera " + " ".join(shlex.quote(a) for a in (args.argv or []))
+    report = args.report or str(Path(args.out).with_suffix("")) + "-report"
     rec = fit_camera(args.frames, args.out, camera=args.camera, fov_range=args.fov_range,
                      pixel_pitch_um=args.pixel_pitch, pixel_aspect=args.pixel_aspect, epoch_yr=args.epoch,
-                     report_dir=args.report, command=command, log=lambda m: print(m, file=sys.stderr))
+                     report_dir=report, command=command, log=lambda m: print(m, file=sys.stderr))
     g, c = rec["geometry"], rec["compare"]
     print(f"wrote {args.out}: {len(rec['solved'])} of {len(rec['frames'])} frames solved"
           + (f" ({len(rec['dropped'])} dropped: see above)" if rec["dropped"] else "")
@@ -198,8 +199,7 @@ def cmd_fit_camera(args) -> int:
           f"{c['detections']['fitted']:.0f} / {c['detections']['real']:.0f}, star width "
           f"{c['star_sigma_px']['fitted']:.2f} / {c['star_sigma_px']['real']:.2f} px, zero point "
           f"{c['zero_point_mag']['fitted']:.2f} / {c['zero_point_mag']['real']:.2f} mag")
-    if args.report:
-        print(f"report: {args.report}/REPORT.md")
+    print(f"report: {report}/REPORT.md")
     print(f"use it:  skygen render --config {args.out} ...   |   fusion predict FRAME... --camera {args.out} --solve")
     return 0
 
@@ -345,13 +345,16 @@ def build_parser() -> argparse.ArgumentParser:
     fc.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
     fc.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
     fc.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
-                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees")
-    fc.add_argument("--pixel-pitch", type=float, metavar="UM", help="with --fov-range: pixel width, micrometres")
+                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
+                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~20 s)")
+    fc.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
+                    "(default 5.5; only the written focal_length_mm depends on it)")
     fc.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
                     "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height")
     fc.add_argument("--epoch", type=float, metavar="YEAR", help="when the frames were taken, Julian year (catalogue "
                     "proper motions; default the camera file's epoch_yr)")
-    fc.add_argument("--report", metavar="DIR", help="also write DIR/REPORT.md, DIR/fit.json, DIR/fit.png")
+    fc.add_argument("--report", metavar="DIR", help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png "
+                    "(default: beside --out, OUT-report/)")
     fc.set_defaults(func=cmd_fit_camera)
 
     st = sub.add_parser("stream", help="synthesise training samples on the fly; print throughput and statistics",

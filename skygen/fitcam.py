@@ -1,6 +1,6 @@
 """``skygen fit-camera``: a camera file fitted to a real sensor from its own frames.
 
-    skygen fit-camera FRAME... --out camera.yaml [--camera START.yaml | --fov-range LO HI --pixel-pitch UM]
+    skygen fit-camera FRAME... --out camera.yaml [--camera START.yaml | --fov-range LO HI] [--pixel-pitch UM]
                       [--pixel-aspect A] [--epoch YEAR] [--report DIR]
 
 1. Read the frames (:mod:`skygen.frames`); all must have one size. Values are divided by the scale
@@ -8,7 +8,8 @@
    Blank (constant) and saturated frames, colour and unreadable files are dropped with the reason.
 2. Detect stars (skygen's detector, 5 sigma, >= 3 px, a background per 64 px box) and solve each
    frame lost-in-space with tetra3rs (:mod:`skygen.platesolve`): from the start camera, or, with
-   ``--fov-range``, searching the horizontal field in that range. Unsolved frames are dropped with
+   ``--fov-range`` (default without a camera file: 5-30 deg), searching the horizontal field in that
+   range (the first search of a range builds and caches a database: ~20 s for 5-30 deg). Unsolved frames are dropped with
    the solver's reason.
 3. Geometry (:mod:`skygen.fitgeom`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted
@@ -46,6 +47,8 @@ from .errors import ConfigError, SkygenError
 BOX_PX = 64                 # background box of detection and pixel statistics
 DETECT = {"threshold_sigma": 5.0, "min_area_px": 3}
 THRESHOLDS = (3.0, 4.0, 5.0, 6.0, 8.0)
+DEFAULT_FOV_RANGE = (5.0, 30.0)     # searched when neither a camera file nor a range is given
+PITCH_DEFAULT_UM = 5.5              # skygen's default camera's pixel pitch
 BOXES = (0, BOX_PX)
 
 
@@ -107,15 +110,11 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
             raise ConfigError(f"{camera}: camera is {cfg.camera.width_px} x {cfg.camera.height_px} px but the frames "
                               f"are {w} x {h} px (width x height); give the camera of these frames")
         return cfg
-    if fov_range is None:
-        raise ConfigError("give --camera START.yaml (a camera file to start from) or --fov-range LO HI "
-                          "--pixel-pitch UM (the horizontal field of view is searched between LO and HI degrees)")
     lo, hi = fov_range
     if not 0 < lo < hi < 120:
         raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
-    if pixel_pitch_um is None or not 0 < pixel_pitch_um <= 100:
-        raise ConfigError("--fov-range needs --pixel-pitch UM (pixel width in micrometres, > 0 and <= 100) to "
-                          "turn the fitted field into a focal length")
+    if not 0 < pixel_pitch_um <= 100:
+        raise ConfigError(f"--pixel-pitch {pixel_pitch_um:g}: pixel width in micrometres, > 0 and <= 100")
     data = {"camera": {"width_px": w, "height_px": h, "pixel_pitch_um": pixel_pitch_um, "fov_deg": 0.5 * (lo + hi),
                        "pixel_aspect": pixel_aspect or 1.0},
             "output": {"image_size_px": _image_size(w, h)}}
@@ -142,6 +141,17 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
     t0 = time.perf_counter()
     if pixel_aspect is not None and not 0.1 <= pixel_aspect <= 10:
         raise ConfigError(f"--pixel-aspect {pixel_aspect:g}: pixel height / width between 0.1 and 10")
+    notes = []
+    if camera is None and fov_range is None:
+        fov_range = DEFAULT_FOV_RANGE
+        notes.append(f"no --camera or --fov-range: the horizontal field was searched in {fov_range[0]:g}-"
+                     f"{fov_range[1]:g} deg")
+    if camera is None and pixel_pitch_um is None:
+        pixel_pitch_um = PITCH_DEFAULT_UM
+        notes.append(f"no --pixel-pitch: {pixel_pitch_um:g} um assumed (only camera.focal_length_mm depends on it; "
+                     "the field, and so every render, does not)")
+    for n in notes:
+        log(f"fit-camera: {n}")
     names, raw, dropped = read_frames(paths, log)
     scale, bits, sat = P.value_scale(raw)
     imgs = [im / scale for im in raw]
@@ -235,6 +245,7 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
     record = _record(names, dropped, solved, g, cam0, cam, mv, meas, zp_real, exposure, real_stats, before, after,
                      cfg, scale, sat, fov_range, camera, command, {"solve_s": t_solve, "geometry_s": t_geom,
                                                                "total_s": t_total}, epoch)
+    record["notes"] = notes
     from .fitreport import write_camera_yaml, write_report
     write_camera_yaml(out, cfg, record, command)
     if report_dir is not None:

@@ -30,8 +30,10 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
             f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
             f"# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
             "and QE; photometry.sky_mag_arcsec2 the measured background; corruptions.stray_light its gradient.",
-            "# The report (residuals, real vs rendered statistics) is written with --report DIR."]
+            "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
+            "OUT-report/ beside this file."]
     text = "\n".join(head) + "\n" + yaml.safe_dump(body, sort_keys=False)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
     load_config(path)              # refuses anything skygen render / fusion predict would refuse
 
@@ -43,13 +45,16 @@ def _fmt(v, nd=2):
 def markdown(r: dict) -> str:
     g, mv, px = r["geometry"], r["mean_variance"], r["pixels"]
     hw = r["hardware"]
-    cpu = hw.get("cpu", "CPU") if isinstance(hw, dict) else str(hw)
+    cpu = (f"{hw.get('cpu_model', 'CPU')}, {hw.get('machine', '')}, {hw.get('usable_cores')} usable cores, "
+           f"load {hw.get('load_average_1m', float('nan')):.1f}") if isinstance(hw, dict) else str(hw)
     lines = ["# skygen fit-camera report", "",
              f"`{r['command'] or 'skygen.fitcam.fit_camera(...)'}` ({cpu}, {r['created_utc']}): "
              f"{len(r['frames'])} usable frames, {len(r['solved'])} solved; {r['timing_s']['total_s']:.1f} s in all "
              f"(solving {r['timing_s']['solve_s']:.1f} s, geometry done at {r['timing_s']['geometry_s']:.1f} s). "
              f"Frame values divided by {r['value_scale']} (the scale they carry); saturation {r['saturation_adu']:.0f} ADU.",
              ""]
+    if r.get("notes"):
+        lines += [f"Note: {n}." for n in r["notes"]] + [""]
     if r["dropped"]:
         lines += ["Dropped frames:", ""] + [f"- `{d['frame']}`: {d['reason']}" for d in r["dropped"]] + [""]
     st = r["start"]
