@@ -180,7 +180,7 @@ def main(argv=None) -> int:
              f"[fit-camera-fov-range/REPORT.md](fit-camera-fov-range/REPORT.md).", "",
              "| target | measured (fitted / real, medians over frames) | met |", "|---|---|---|"]
     lines += [f"| {t} | {m} | {'yes' if ok else '**no**'} |" for t, m, ok in targets]
-    lines += ["", f"Real against rendered, medians over frames (renders at the fitted attitudes; start = the "
+    lines += ["", "Real against rendered, medians over frames (renders at the fitted attitudes; start = the "
               "datasheet preset `blackfly-s-imx265-35mm.yaml`):", "",
               "| quantity | real | start preset | fitted |", "|---|---|---|---|"]
     lab = {"background_adu": "background (ADU)", "noise_adu": "noise σ (ADU)", "detections": "detections / frame",

@@ -28,7 +28,7 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
             f"#   {command}" if command else "#   (from Python: skygen.fitcam.fit_camera)",
             f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
             f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
-            f"# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
+            "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
             "and QE; photometry.sky_mag_arcsec2 the measured background; corruptions.stray_light its gradient.",
             "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
             "OUT-report/ beside this file."]

@@ -63,7 +63,6 @@ import numpy as np
 
 from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
-from skygen.config import load_config as load_render_config
 from skygen.detect import detect
 
 from skygen.runtime import atomic_write_bytes, dumps_json
