@@ -92,7 +92,7 @@ def threshold_electrons(renderer) -> float:
     from .psf import peak_fraction
     o = renderer.cfg.optics
     return float(renderer.cfg.detection.threshold_sigma * renderer.noise_e()
-                 / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta))
+                 / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect))
 
 
 @dataclass(frozen=True)

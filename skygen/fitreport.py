@@ -131,7 +131,10 @@ def _plot(path, record, real_example, g) -> None:
     import matplotlib.pyplot as plt
     from .runtime import atomic_path
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
-    names = [f["frame"][:28] for f in record["solved"]]
+    import os
+    full = [f["frame"] for f in record["solved"]]
+    cut = len(os.path.commonprefix(full)) if len(full) > 1 else 0
+    names = [n[cut:][:28] for n in full]
     ax[0].bar(range(len(names)), [f["rms_px"] for f in record["solved"]])
     ax[0].set_xticks(range(len(names)), names, rotation=70, fontsize=6)
     ax[0].set_ylabel("residual rms (px)")
