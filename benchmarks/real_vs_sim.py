@@ -44,22 +44,22 @@ def listed_solutions(folder: Path = REAL) -> dict:
 
 LISTED = listed_solutions()
 
-from skygen.framestats import star_width_px  # noqa: E402  (one measurement for this and skygen fit-camera)
-
 
 def frame_stats(img: np.ndarray, cfg, saturation: float, box: int) -> dict:
+    """skygen.framestats.frame_stats (the measurements skygen fit-camera reports too, one background per frame),
+    plus detections with a background per ``box`` px box and tetra3rs's extractor."""
     import tetra3rs
     from skygen.detect import detect
+    from skygen.framestats import frame_stats as shared_stats
     d = cfg.detection
-    det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, 100_000)     # count them all
+    st, det = shared_stats(img, d.threshold_sigma, d.min_area_px, 0, saturation)     # counts them all
     local, _, _ = detect(img, d.threshold_sigma, d.min_area_px, 100_000, background_box_px=box)
     t3 = tetra3rs.extract_centroids(img.astype(np.float32), sigma_threshold=d.threshold_sigma, threads=1)
     h, w = img.shape
     t3det = {"x_px": np.array([c.x for c in t3.centroids]) + (w - 1) / 2,
              "y_px": np.array([c.y for c in t3.centroids]) + (h - 1) / 2,
              "flux_adu": np.array([c.brightness or 0.0 for c in t3.centroids])}
-    return {"background_adu": bg, "noise_adu": sigma, "detections": int(len(det["x_px"])),
-            "detections_local": int(len(local["x_px"])), "tetra3rs_centroids": int(len(t3.centroids)), "star_sigma_px": star_width_px(img, det, bg, saturation),
+    return {**st, "detections_local": int(len(local["x_px"])), "tetra3rs_centroids": int(len(t3.centroids)),
             "_det": det, "_t3": t3det, "_local": local}
 
 
