@@ -29,9 +29,13 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
             f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
             f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
             "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
-            "and QE; photometry.sky_mag_arcsec2 the measured background; corruptions.stray_light its gradient.",
+            "and QE; photometry.sky_mag_arcsec2 the measured background, optics.vignetting its fall to the corners, "
+            "corruptions.stray_light its gradient;",
+            "# corruptions.false_stars the detections per frame that renders from the catalogue alone lack (fainter "
+            "stars than the catalogue holds).",
             "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
             "OUT-report/ beside this file."]
+    head += [f"# note: {n}." for n in record.get("notes", [])]
     text = "\n".join(head) + "\n" + yaml.safe_dump(body, sort_keys=False)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
