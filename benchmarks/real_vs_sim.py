@@ -45,38 +45,21 @@ def listed_solutions(folder: Path = REAL) -> dict:
 LISTED = listed_solutions()
 
 
-def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> float:
-    sig = []
-    h, w = img.shape
-    for x, y, peak in zip(det["x_px"][:n], det["y_px"][:n], det["peak_adu"][:n]):
-        if peak + bg >= 0.9 * saturation:
-            continue
-        xi, yi = int(round(x)), int(round(y))
-        if not (4 <= xi < w - 4 and 4 <= yi < h - 4):
-            continue
-        st = np.clip(img[yi - 4:yi + 5, xi - 4:xi + 5] - bg, 0, None)
-        yy, xx = np.mgrid[-4:5, -4:5]
-        tot = st.sum()
-        if tot <= 0:
-            continue
-        mx, my = (st * xx).sum() / tot, (st * yy).sum() / tot
-        sig.append(np.sqrt(((st * ((xx - mx) ** 2 + (yy - my) ** 2)).sum() / tot) / 2))
-    return float(np.median(sig)) if sig else float("nan")
-
-
 def frame_stats(img: np.ndarray, cfg, saturation: float, box: int) -> dict:
+    """skygen.framestats.frame_stats (the measurements skygen fit-camera reports too, one background per frame),
+    plus detections with a background per ``box`` px box and tetra3rs's extractor."""
     import tetra3rs
     from skygen.detect import detect
+    from skygen.framestats import frame_stats as shared_stats
     d = cfg.detection
-    det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, 100_000)     # count them all
+    st, det = shared_stats(img, d.threshold_sigma, d.min_area_px, 0, saturation)     # counts them all
     local, _, _ = detect(img, d.threshold_sigma, d.min_area_px, 100_000, background_box_px=box)
     t3 = tetra3rs.extract_centroids(img.astype(np.float32), sigma_threshold=d.threshold_sigma, threads=1)
     h, w = img.shape
     t3det = {"x_px": np.array([c.x for c in t3.centroids]) + (w - 1) / 2,
              "y_px": np.array([c.y for c in t3.centroids]) + (h - 1) / 2,
              "flux_adu": np.array([c.brightness or 0.0 for c in t3.centroids])}
-    return {"background_adu": bg, "noise_adu": sigma, "detections": int(len(det["x_px"])),
-            "detections_local": int(len(local["x_px"])), "tetra3rs_centroids": int(len(t3.centroids)), "star_sigma_px": star_width_px(img, det, bg, saturation),
+    return {**st, "detections_local": int(len(local["x_px"])), "tetra3rs_centroids": int(len(t3.centroids)),
             "_det": det, "_t3": t3det, "_local": local}
 
 
@@ -290,7 +273,9 @@ def markdown(r: dict) -> str:
               "tetra3rs] --overlay DIR` (tetra3rs lost-in-space) and `fusion predict "
               "real-frames/tetra3-blackfly/*.tiff --checkpoint runs/blackfly/best.pt --solve "
               "--background-box 64` (the learned path).",
-              "", "![real vs sim](real_vs_sim.png)", ""]
+              "", "![real vs sim](real_vs_sim.png)", "",
+              "The gap closed by fitting a camera to these frames (`skygen fit-camera`): [FIT_CAMERA.md](FIT_CAMERA.md) "
+              "(`configs/cameras/blackfly-fitted.yaml`).", ""]
     return "\n".join(lines)
 
 

@@ -293,7 +293,12 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
                    help="image files (.png, .tif/.tiff 8/16-bit, .fits, .npy), folders of them (sorted by name), "
                         "or skygen dataset folders; NaN/inf pixels are replaced by the frame's median (bad_pixels)")
     p.add_argument("--checkpoint", help="a fusion checkpoint (best.pt): its camera, detector and model")
-    p.add_argument("--camera", help="a skygen camera preset (configs/cameras/*.yaml) when no checkpoint is given")
+    p.add_argument("--camera", help="a skygen camera file (configs/cameras/*.yaml, or one `skygen fit-camera` wrote) "
+                   "when no checkpoint is given; any sensor size, no storage settings needed")
+    p.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="no checkpoint: the horizontal field is unknown, between LO and HI degrees; tetra3rs "
+                        "lost-in-space searches it and reports the field found (sensor size from --camera or the "
+                        "first frame)")
     p.add_argument("--dataset", help="the training dataset of a checkpoint written before checkpoints carried "
                                      "their camera")
     p.add_argument("--solve", action="store_true", help="return a full attitude (or a refusal): the model's regions "
@@ -313,9 +318,10 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lis-first", action="store_true",
                    help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
                         "stars) and the learned prior's fine stage only where it refuses; `solver` says which answered")
-    p.add_argument("--background-box", type=int, default=0, metavar="PX",
+    p.add_argument("--background-box", type=int, default=None, metavar="PX",
                    help="skygen detector: background per PX x PX box (e.g. 64; for ground frames with sky glow or "
-                        "gradients) instead of one level per frame (default 0, as the renders and the training)")
+                        "gradients); 0: one level per frame (default: the camera's detection.background_box_px, "
+                        "0 unless set, as the renders and the training)")
     p.add_argument("--detector", choices=("skygen", "tetra3rs"), default="skygen",
                    help="skygen (default; what models are trained on) or tetra3rs's extractor (local background, "
                         "matched filter: more stars on ground frames with sky gradients; without --checkpoint only)")
@@ -327,7 +333,7 @@ def _run_predict(args: argparse.Namespace) -> int:
                         top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
                         max_frames=args.max_frames, search=args.search, search_k=args.search_k,
                         focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first,
-                        solver=args.solver)
+                        solver=args.solver, fov_range=tuple(args.fov_range) if args.fov_range else None)
     return 1 if failed else 0
 
 

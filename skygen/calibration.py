@@ -219,11 +219,12 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
         xa, ya = xx.ravel() + rng.uniform(-0.5, 0.5, n), yy.ravel() + rng.uniform(-0.5, 0.5, n)
         xb, yb = xa + sep * np.cos(ang), ya + sep * np.sin(ang)
         xs, ys, es = np.concatenate([xa, xb]), np.concatenate([ya, yb]), np.concatenate([e[:, 0], e[:, 1]])
-        boxes = [add_patch(img, *stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta))
+        boxes = [add_patch(img, *stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta,
+                                       renderer.camera.aspect))
                  for x, y, f in zip(xs, ys, es)]
         full, _ = read_out(Exposure(img, None, [b for b in boxes if b], renderer.background_e, None), cfg.sensor,
                            renderer.maps, rng, renderer.levels["read_noise"])
-        det, _, _ = detect(full, d.threshold_sigma, d.min_area_px, 4 * n + 64)
+        det, _, _ = detect(full, d.threshold_sigma, d.min_area_px, 4 * n + 64, d.background_box_px)
         sidx = match(det["x_px"], det["y_px"], xs, ys, es, d.match_radius_px)
         found = np.zeros(2 * n, bool)
         found[sidx[sidx >= 0]] = True

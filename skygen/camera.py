@@ -4,6 +4,13 @@ Units: focal length in mm and pixel pitch in micrometres in the config; internal
 focal length in pixels ``f_px = focal_length_mm * 1000 / pixel_pitch_um``. Pixel
 coordinates follow :mod:`skygen.conventions` (centre of the top-left pixel at (0, 0)).
 
+Non-square pixels: ``aspect`` = pixel height / pixel width (1: square; 2: each pixel twice
+as tall as wide, e.g. an interlaced read-out stored as half-height frames). ``f_px`` and
+``pixel_pitch_um`` are along x (columns); along y (rows) the focal length in pixels is
+``f_px / aspect``::
+
+    x_px = cx + f_px * x_d            y_px = cy + (f_px / aspect) * y_d
+
 Distortion (Brown-Conrady) acts on normalised image coordinates (X/Z, Y/Z) with
 r^2 = x^2 + y^2::
 
@@ -30,6 +37,7 @@ class Camera:
     k3: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    aspect: float = 1.0          # pixel height / width
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -40,7 +48,7 @@ class Camera:
         cx = (cfg.width_px - 1) / 2.0 if cfg.principal_x_px is None else cfg.principal_x_px
         cy = (cfg.height_px - 1) / 2.0 if cfg.principal_y_px is None else cfg.principal_y_px
         return cls(cfg.width_px, cfg.height_px, float(f_px), float(cx), float(cy),
-                   cfg.k1, cfg.k2, cfg.k3, cfg.p1, cfg.p2)
+                   cfg.k1, cfg.k2, cfg.k3, cfg.p1, cfg.p2, float(getattr(cfg, "pixel_aspect", 1.0)))
 
     @property
     def has_distortion(self) -> bool:
@@ -48,14 +56,19 @@ class Camera:
 
     @property
     def pixel_scale_arcsec(self) -> float:
-        """Angular size of one pixel at the centre, arcseconds."""
+        """Angular width (along x) of one pixel at the centre, arcseconds; its height is ``aspect`` times that."""
         return float(np.degrees(1.0 / self.f_px) * 3600.0)
+
+    @property
+    def fy_px(self) -> float:
+        """Focal length in rows (pixels along y): ``f_px / aspect``."""
+        return self.f_px / self.aspect
 
     @property
     def fov_deg(self) -> tuple[float, float]:
         """Full field of view (horizontal, vertical) of the pinhole, degrees."""
         return (float(np.degrees(2 * np.arctan(self.width_px / 2 / self.f_px))),
-                float(np.degrees(2 * np.arctan(self.height_px / 2 / self.f_px))))
+                float(np.degrees(2 * np.arctan(self.height_px / 2 / self.fy_px))))
 
     def corner_radius_rad(self) -> float:
         """Largest angle between the boresight and a sensor corner (distortion included)."""
@@ -94,12 +107,12 @@ class Camera:
         front = z > 1e-9
         zs = np.where(front, z, 1.0)
         xd, yd = self.distort(v_cam[:, 0] / zs, v_cam[:, 1] / zs)
-        return self.cx_px + self.f_px * xd, self.cy_px + self.f_px * yd, front
+        return self.cx_px + self.f_px * xd, self.cy_px + self.fy_px * yd, front
 
     def unproject(self, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
         """Camera-frame unit vectors (N, 3) seen at pixel positions."""
         xd = (np.asarray(x_px, dtype=np.float64) - self.cx_px) / self.f_px
-        yd = (np.asarray(y_px, dtype=np.float64) - self.cy_px) / self.f_px
+        yd = (np.asarray(y_px, dtype=np.float64) - self.cy_px) / self.fy_px
         x, y = self.undistort(xd, yd)
         v = np.stack([x, y, np.ones_like(x)], axis=-1)
         return v / np.linalg.norm(v, axis=-1, keepdims=True)

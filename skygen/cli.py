@@ -1,4 +1,4 @@
-"""``skygen`` command line: render, inspect, preview, validate, merge, calibrate, stream, catalog, config.
+"""``skygen`` command line: render, inspect, preview, validate, merge, calibrate, fit-camera, stream, catalog, config.
 
 Each subcommand is a thin wrapper over a library function; ``main(argv) -> int``.
 Exit codes: 0 success, 1 validation found problems, 2 bad input (message on stderr),
@@ -28,6 +28,8 @@ EPILOG = """examples:
   skygen config --keys                          # every config key, default, range and unit
   skygen stream --kind detections --n 100000     # training samples on the fly: throughput + statistics
   skygen calibrate --out detector.json           # fit the detector emulator for a config
+  skygen fit-camera real-frames/tetra3-blackfly/*.tiff --camera configs/cameras/blackfly-s-imx265-35mm.yaml \
+      --out my-camera.yaml --report my-camera-report   # a camera file fitted to your own frames
 """
 
 
@@ -178,6 +180,30 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_fit_camera(args) -> int:
+    import shlex
+    from .fitcam import fit_camera
+    command = "skygen fit-camera " + " ".join(shlex.quote(a) for a in (args.argv or []))
+    report = args.report or str(Path(args.out).with_suffix("")) + "-report"
+    rec = fit_camera(args.frames, args.out, camera=args.camera, fov_range=args.fov_range,
+                     pixel_pitch_um=args.pixel_pitch, pixel_aspect=args.pixel_aspect, epoch_yr=args.epoch,
+                     report_dir=report, command=command, log=lambda m: print(m, file=sys.stderr))
+    g, c = rec["geometry"], rec["compare"]
+    print(f"wrote {args.out}: {len(rec['solved'])} of {len(rec['frames'])} frames solved"
+          + (f" ({len(rec['dropped'])} dropped: see above)" if rec["dropped"] else "")
+          + f"; field {g['fov_deg']:.4f} deg, aspect {g['aspect']:.4f}, {g['n_matched']} stars at {g['rms_px']:.3f} px rms; "
+          f"fitted {', '.join(g['fitted'])}" + (f", fixed {', '.join(g['fixed'])}" if g["fixed"] else "")
+          + f"; in {rec['timing_s']['total_s']:.1f} s")
+    print(f"renders vs real (medians): background {c['background_adu']['fitted']:.1f} / {c['background_adu']['real']:.1f} "
+          f"ADU, noise {c['noise_adu']['fitted']:.2f} / {c['noise_adu']['real']:.2f} ADU, detections "
+          f"{c['detections']['fitted']:.0f} / {c['detections']['real']:.0f}, star width "
+          f"{c['star_sigma_px']['fitted']:.2f} / {c['star_sigma_px']['real']:.2f} px, zero point "
+          f"{c['zero_point_mag']['fitted']:.2f} / {c['zero_point_mag']['real']:.2f} mag")
+    print(f"report: {report}/REPORT.md")
+    print(f"use it:  skygen render --config {args.out} ...   |   fusion predict FRAME... --camera {args.out} --solve")
+    return 0
+
+
 def cmd_stream(args) -> int:
     import json
     import time
@@ -305,6 +331,32 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("--quiet", action="store_true", help="no progress bar")
     ca.set_defaults(func=cmd_calibrate)
 
+    fc = sub.add_parser("fit-camera", help="fit a camera file to a real sensor from its own star frames",
+                        description="Solve real star frames (tetra3rs lost-in-space), then fit the camera to all of "
+                        "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
+                        "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
+                        "noise (background mean-variance), sky level, gradient and vignetting, PSF (Gaussian or "
+                        "Moffat), hot pixels, the photometric zero point (as exposure x throughput) and the "
+                        "detector settings. Writes a camera YAML that `skygen render --config` and `fusion predict "
+                        "--camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
+                        "already described.")
+    fc.add_argument("frames", nargs="+", metavar="FRAME", help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
+                    "monochrome full-resolution read-out each, all of one size) or folders of them")
+    fc.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
+    fc.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
+    fc.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
+                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
+                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~20 s)")
+    fc.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
+                    "(default 5.5; only the written focal_length_mm depends on it)")
+    fc.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
+                    "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height")
+    fc.add_argument("--epoch", type=float, metavar="YEAR", help="when the frames were taken, Julian year (catalogue "
+                    "proper motions; default the camera file's epoch_yr)")
+    fc.add_argument("--report", metavar="DIR", help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png "
+                    "(default: beside --out, OUT-report/)")
+    fc.set_defaults(func=cmd_fit_camera)
+
     st = sub.add_parser("stream", help="synthesise training samples on the fly; print throughput and statistics",
                         description="Make --n samples of an endless stream (sample i is a pure function of "
                         "config, seed, kind and i) and print what a model would see. 'detections' uses the "
@@ -333,6 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[2:] if argv is None else argv[1:])
     try:
         return args.func(args)
     except SkygenError as exc:

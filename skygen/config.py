@@ -52,6 +52,9 @@ class CameraConfig:
     k3: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^6 coefficient")
     p1: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p1")
     p2: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p2")
+    pixel_aspect: float = param(1.0, lo=0.1, hi=10, doc="pixel height / pixel width, dimensionless (1: square; 2: "
+                                "rows twice as tall as columns are wide, e.g. interlaced frames stored at half "
+                                "height); pixel_pitch_um and fov_deg are along x")
 
 
 @dataclass(frozen=True)
@@ -114,6 +117,7 @@ class DetectionConfig:
     threshold_sigma: float = param(5.0, lo=1, hi=1000, doc="detection threshold above background, in background sigma")
     min_area_px: int = param(3, lo=1, hi=10000, doc="smallest connected component kept, pixels")
     max_detections: int = param(64, lo=1, hi=100000, doc="keep at most this many detections (brightest first)")
+    background_box_px: int = param(0, lo=0, hi=4096, doc="0: one background level and noise per frame; B >= 8: a local background per B x B px box, interpolated (frames with sky glow or gradients), px")
     match_radius_px: float = param(2.0, lo=0, lo_open=True, hi=100, doc="detection-to-true-star match radius, px")
 
 
@@ -173,12 +177,18 @@ def check_consistency(cfg: RenderConfig) -> None:
         raise ConfigError(f"camera.height_px ({cam.height_px}) must be a multiple of the downsampling factor "
                           f"camera.width_px / output.image_size_px = {factor}: stored frames are "
                           f"{out.image_size_px} x height_px/{factor}")
+    if 0 < cfg.detection.background_box_px < 8:
+        raise ConfigError(f"detection.background_box_px={cfg.detection.background_box_px}: 0 (one background per "
+                          "frame) or a box of at least 8 px, e.g. 64")
     if abs(sum(out.split_fractions) - 1.0) > 1e-6:
         raise ConfigError(f"output.split_fractions {list(out.split_fractions)} must sum to 1")
     if cfg.sensor.bias_adu >= 2 ** cfg.sensor.bit_depth:
         raise ConfigError(f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
                           f"2**sensor.bit_depth = {2 ** cfg.sensor.bit_depth}")
     r = cfg.render
+    if cam.pixel_aspect != 1.0 and r.backend == "torch":
+        raise ConfigError(f"camera.pixel_aspect={cam.pixel_aspect:g} needs render.backend=numpy (the torch backend "
+                          "draws square pixels only)")
     if not re.fullmatch(r"cpu|cuda(:\d+)?", r.device):
         raise ConfigError(f"render.device: {r.device!r} is not allowed; expected cpu, cuda or cuda:N")
     if r.backend == "numpy" and r.device != "cpu":

@@ -83,7 +83,8 @@ def calibration_key(config: dict) -> dict:
     for name in KEY_CORRUPTIONS:
         key[f"corruptions.{name}"] = config["corruptions"][name]
     key["detection.max_detections"] = config["detection"]["max_detections"]
-    return key
+    from .identity import NEUTRAL_DEFAULTS
+    return {k: v for k, v in key.items() if not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])}
 
 
 def threshold_electrons(renderer) -> float:
@@ -91,7 +92,7 @@ def threshold_electrons(renderer) -> float:
     from .psf import peak_fraction
     o = renderer.cfg.optics
     return float(renderer.cfg.detection.threshold_sigma * renderer.noise_e()
-                 / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta))
+                 / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect))
 
 
 @dataclass(frozen=True)

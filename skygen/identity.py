@@ -32,6 +32,21 @@ STORAGE_KEYS = ("n_frames", "output.shard_size", "output.compression", "output.c
                 "output.full_res", "output.split_fractions")
 
 
+# keys added after datasets and calibrations were made, with the value that reproduces the frames made
+# before them: at that value they are left out of content ids and calibration keys, so older datasets
+# keep their ids and the shipped detector calibration still matches
+NEUTRAL_DEFAULTS = {"camera.pixel_aspect": 1.0, "detection.background_box_px": 0}
+
+
+def drop_neutral(config: dict) -> dict:
+    """``config`` (nested, modified in place) without the :data:`NEUTRAL_DEFAULTS` keys at their neutral value."""
+    for key, neutral in NEUTRAL_DEFAULTS.items():
+        sec, name = key.split(".")
+        if sec in config and name in config[sec] and config[sec][name] == neutral:
+            config[sec].pop(name)
+    return config
+
+
 def content_config(config: dict) -> dict:
     """``config`` without :data:`STORAGE_KEYS` (a new dict); the ``render`` section counts
     only when it selects the torch backend (the NumPy renderer's frames do not depend on it)."""
@@ -43,7 +58,7 @@ def content_config(config: dict) -> dict:
         for p in parts[:-1]:
             node = node.get(p, {})
         node.pop(parts[-1], None)
-    return out
+    return drop_neutral(out)
 
 
 def content_id(config: dict) -> str:

@@ -16,6 +16,10 @@ at every 1/16-pixel phase); a star's stamp is then read from that table by bilin
 interpolation in its sub-pixel phase. Centroids of these stamps are true to < 0.005 px
 (Moffat) and < 0.01 px (Airy, whose slowly falling wings are cut at 8 FWHM).
 
+Non-square pixels (``aspect`` = pixel height / width, see :mod:`skygen.camera`): the PSF is
+round on the sky, so in pixels it is ``aspect`` times narrower along y (Gaussian: sigma_y =
+sigma / aspect); ``sigma`` is always measured in pixel widths (along x).
+
 Every stamp is normalised to sum to ``flux``: a Gaussian stamp reaches far enough
 that the flux beyond its edge would be below 0.01 e- (4 to 6.5 sigma, see
 :func:`gaussian_radius_px`), so the renormalisation moves nothing measurable; for Moffat and Airy the wings beyond the stamp radius
@@ -53,18 +57,18 @@ def gaussian_radius_px(flux: np.ndarray, sigma: float) -> np.ndarray:
     return (np.ceil(np.maximum(z, 3.0) * sigma) + 1).astype(int)
 
 
-def gaussian_stamps(xs: np.ndarray, ys: np.ndarray, fluxes: np.ndarray, sigma: float) -> list:
+def gaussian_stamps(xs: np.ndarray, ys: np.ndarray, fluxes: np.ndarray, sigma: float, aspect: float = 1.0) -> list:
     """Vectorised :func:`stamp` for many Gaussian point sources: [(y0, x0, patch)]."""
     out = []
+    sigma_y = sigma / aspect
     radii = gaussian_radius_px(fluxes, sigma)
-    for r in np.unique(radii):
-        sel = np.flatnonzero(radii == r)
-        n = 2 * r + 1
+    radii_y = gaussian_radius_px(fluxes, sigma_y)
+    for r, ry in np.unique(np.column_stack([radii, radii_y]), axis=0):
+        sel = np.flatnonzero((radii == r) & (radii_y == ry))
         x0 = np.floor(xs[sel] + 0.5).astype(int) - r
-        y0 = np.floor(ys[sel] + 0.5).astype(int) - r
-        steps = np.arange(n + 1) - 0.5
-        gx = np.diff(erf((x0[:, None] + steps - xs[sel, None]) / (_SQRT2 * sigma)), axis=1)
-        gy = np.diff(erf((y0[:, None] + steps - ys[sel, None]) / (_SQRT2 * sigma)), axis=1)
+        y0 = np.floor(ys[sel] + 0.5).astype(int) - ry
+        gx = np.diff(erf((x0[:, None] + np.arange(2 * r + 2) - 0.5 - xs[sel, None]) / (_SQRT2 * sigma)), axis=1)
+        gy = np.diff(erf((y0[:, None] + np.arange(2 * ry + 2) - 0.5 - ys[sel, None]) / (_SQRT2 * sigma_y)), axis=1)
         norm = fluxes[sel] / (gx.sum(1) * gy.sum(1))
         patches = gy[:, :, None] * gx[:, None, :] * norm[:, None, None]
         out += [(int(a), int(b), p) for a, b, p in zip(y0, x0, patches)]
@@ -86,31 +90,40 @@ def _radial_profile(psf: str, r: np.ndarray, sigma: float, beta: float) -> np.nd
     return (2.0 * j1(v) / v) ** 2
 
 
-@lru_cache(maxsize=8)
-def _pixel_integral_table(psf: str, sigma: float, beta: float) -> np.ndarray:
-    """Pixel integrals of the profile for pixel centres on a 1/PHASES grid (see module doc)."""
+def _table_radius_px(psf: str, sigma: float, aspect: float) -> int:
+    """Half-size of a Moffat/Airy stamp: the stamp radius, in rows too when pixels are short (aspect < 1)."""
     r = stamp_radius_px(psf, sigma)
+    return r if aspect >= 1 else int(np.ceil(r / aspect))
+
+
+@lru_cache(maxsize=8)
+def _pixel_integral_table(psf: str, sigma: float, beta: float, aspect: float = 1.0) -> np.ndarray:
+    """Pixel integrals of the profile for pixel centres on a 1/PHASES grid (see module doc)."""
+    r = _table_radius_px(psf, sigma, aspect)
     m = (2 * r + 2) * PHASES + 1
     # fine samples at offsets (k + 0.5)/P - R - 1 ... covering the stamp plus one pixel margin
     off = (np.arange(m + PHASES) + 0.5) / PHASES - (r + 1.0)
-    prof = _radial_profile(psf, np.hypot(off[:, None], off[None, :]), sigma, beta)
+    prof = _radial_profile(psf, np.hypot(off[:, None] * aspect, off[None, :]), sigma, beta)   # rows: y
     c = np.cumsum(np.cumsum(np.pad(prof, ((1, 0), (1, 0))), 0), 1)
     box = c[PHASES:, PHASES:] - c[:-PHASES, PHASES:] - c[PHASES:, :-PHASES] + c[:-PHASES, :-PHASES]
     return box / PHASES ** 2
 
 
 def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float = 1.0,
-          beta: float = 3.0) -> tuple[int, int, np.ndarray]:
-    """Pixel-integrated image of one point source at (x, y) carrying ``flux`` in total."""
-    r = int(gaussian_radius_px(flux, sigma)) if psf == "gaussian" else stamp_radius_px(psf, sigma)
+          beta: float = 3.0, aspect: float = 1.0) -> tuple[int, int, np.ndarray]:
+    """Pixel-integrated image of one point source at (x, y) carrying ``flux`` in total
+    (``aspect``: pixel height / width; the PSF is round on the sky)."""
+    if psf == "gaussian":
+        r, ry = int(gaussian_radius_px(flux, sigma)), int(gaussian_radius_px(flux, sigma / aspect))
+        x0, y0 = int(np.floor(x + 0.5)) - r, int(np.floor(y + 0.5)) - ry
+        patch = np.outer(_gaussian_1d(y, y0, 2 * ry + 1, sigma / aspect), _gaussian_1d(x, x0, 2 * r + 1, sigma))
+        patch *= flux / patch.sum()
+        return y0, x0, patch
+    r = _table_radius_px(psf, sigma, aspect)
     x0, y0 = int(np.floor(x + 0.5)) - r, int(np.floor(y + 0.5)) - r
     n = 2 * r + 1
-    if psf == "gaussian":
-        gy = _gaussian_1d(y, y0, n, sigma)
-        gx = _gaussian_1d(x, x0, n, sigma)
-        patch = np.outer(gy, gx)
-    else:
-        table = _pixel_integral_table(psf, float(sigma), float(beta))
+    if True:                                  # (block kept for a small diff)
+        table = _pixel_integral_table(psf, float(sigma), float(beta), float(aspect))
         # table[a, b] = pixel integral for a pixel centred (a/P - R - 0.5, b/P - R - 0.5) px from the star
         fy = (y0 - y + r + 0.5) * PHASES
         fx = (x0 - x + r + 0.5) * PHASES
@@ -128,11 +141,11 @@ def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float =
 
 
 def streak(xs: np.ndarray, ys: np.ndarray, flux: float, psf: str = "gaussian", sigma: float = 1.0,
-           beta: float = 3.0) -> tuple[int, int, np.ndarray]:
+           beta: float = 3.0, aspect: float = 1.0) -> tuple[int, int, np.ndarray]:
     """Sum of stamps at positions (xs, ys), each with flux/len(xs): a motion-blurred star."""
     if len(xs) == 1:
-        return stamp(float(xs[0]), float(ys[0]), flux, psf, sigma, beta)
-    r = stamp_radius_px(psf, sigma)
+        return stamp(float(xs[0]), float(ys[0]), flux, psf, sigma, beta, aspect)
+    r = _table_radius_px(psf, sigma, aspect) if psf != "gaussian" else stamp_radius_px(psf, max(sigma, sigma / aspect))
     x0 = int(np.floor(xs.min() + 0.5)) - r
     y0 = int(np.floor(ys.min() + 0.5)) - r
     w = int(np.floor(xs.max() + 0.5)) + r + 1 - x0
@@ -140,14 +153,14 @@ def streak(xs: np.ndarray, ys: np.ndarray, flux: float, psf: str = "gaussian", s
     out = np.zeros((h, w))
     share = flux / len(xs)
     for x, y in zip(xs, ys):
-        sy, sx, p = stamp(float(x), float(y), share, psf, sigma, beta)
+        sy, sx, p = stamp(float(x), float(y), share, psf, sigma, beta, aspect)
         out[sy - y0:sy - y0 + p.shape[0], sx - x0:sx - x0 + p.shape[1]] += p
     return y0, x0, out
 
 
-def peak_fraction(psf: str, sigma: float, beta: float = 3.0) -> float:
+def peak_fraction(psf: str, sigma: float, beta: float = 3.0, aspect: float = 1.0) -> float:
     """Fraction of a star's flux in its brightest pixel when centred on a pixel."""
-    return float(stamp(0.0, 0.0, 1.0, psf, sigma, beta)[2].max())
+    return float(stamp(0.0, 0.0, 1.0, psf, sigma, beta, aspect)[2].max())
 
 
 def add_patch(image: np.ndarray, y0: int, x0: int, patch: np.ndarray) -> tuple[int, int, int, int] | None:

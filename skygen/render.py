@@ -108,8 +108,10 @@ class Renderer:
         s, o = cfg.sensor, cfg.optics
         self.camera = Camera.from_config(cfg.camera)
         self.photometry = Photometry.from_config(o, cfg.photometry, s)
+        # a pixel covers pixel_scale^2 * aspect arcsec^2 of sky (non-square pixels: taller rows see more sky)
         self.sky_e = self.photometry.sky_electrons_per_px_s(cfg.photometry.sky_mag_arcsec2,
-                                                            self.camera.pixel_scale_arcsec) * s.exposure_s
+                                                            self.camera.pixel_scale_arcsec) * s.exposure_s \
+            * self.camera.aspect
         self.dark_e = dark_current_e_s(s) * s.exposure_s
         self.background_e = self.dark_e + self.sky_e
         self.levels = corr.levels_of(cfg)
@@ -127,7 +129,7 @@ class Renderer:
         self.maps = sensor_maps(cfg.camera.height_px, cfg.camera.width_px, s.sensor_seed, s.prnu_frac,
                                 s.fpn_adu, s.bias_adu, cfg.corruptions.hotpixels, s.hot_pixel_dark_e_s,
                                 s.dead_pixel_fraction)
-        self.psf_radius = stamp_radius_px(o.psf, o.psf_sigma_px)
+        self.psf_radius = stamp_radius_px(o.psf, o.psf_sigma_px / min(self.camera.aspect, 1.0))
         self.split_bounds = split_bounds(cfg.n_frames, cfg.output.split_fractions)
         self.factor = cfg.camera.width_px // cfg.output.image_size_px
         self._corner = self.camera.corner_radius_rad()
@@ -161,7 +163,7 @@ class Renderer:
     def _detection_limit(self) -> float:
         """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold."""
         o = self.cfg.optics
-        peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta)
+        peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
         e_needed = self.cfg.detection.threshold_sigma * self.noise_e() / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
 
@@ -259,12 +261,12 @@ class Renderer:
         o, s = self.cfg.optics, self.cfg.sensor
         flux = np.asarray(stars["electrons"], dtype=np.float64)
         if stars["paths"] is None and o.psf == "gaussian":
-            stamps = gaussian_stamps(stars["x_px"], stars["y_px"], flux, o.psf_sigma_px)
+            stamps = gaussian_stamps(stars["x_px"], stars["y_px"], flux, o.psf_sigma_px, self.camera.aspect)
         elif stars["paths"] is None:
-            stamps = [stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta)
+            stamps = [stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
                       for x, y, f in zip(stars["x_px"], stars["y_px"], flux)]
         else:
-            stamps = [streak(xs, ys, float(f), o.psf, o.psf_sigma_px, o.moffat_beta)
+            stamps = [streak(xs, ys, float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
                       for xs, ys, f in zip(stars["paths"][0], stars["paths"][1], flux)]
         boxes = []
         fw, h = s.full_well_e, star_e.shape[0]
@@ -384,7 +386,7 @@ class Renderer:
         log = {**scene.log, **(log or {})}
         stars = scene.stars
         d = cfg.detection
-        det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections)
+        det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections, d.background_box_px)
         inside = self.camera.inside(stars["x_px"], stars["y_px"])
         true = {k: v[inside] for k, v in stars.items() if k != "paths"}
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)

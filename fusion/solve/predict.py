@@ -4,6 +4,13 @@
                             [--search fine|coarse] [--search-k N] [--focal-tol 0.02]
     fusion predict FRAME... --camera configs/cameras/NAME.yaml --solve      # no model: tetra3rs, then whole sky
     fusion predict FRAME... --camera C.yaml --solve --solver whole-sky       # any registered solver
+    fusion predict FRAME... --fov-range 10 30 --solve                        # unknown field: searched (tetra3rs)
+
+Without a checkpoint nothing about storage matters: a camera file of any sensor size is taken as it is
+(``output.image_size_px`` is set to the sensor width). ``--fov-range LO HI`` (no checkpoint): the
+horizontal field is not known, only bounded; tetra3rs lost-in-space searches it (a multi-scale
+database) and every solution reports the field it found (``fov_deg``); the sensor size comes from
+``--camera`` (whose focal length is then not used) or, without it, from the first frame.
 
 Frames: PNG, TIFF (8 or 16 bit), FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
 a folder of such files (sorted by name), or a skygen dataset folder (its stored detections and
@@ -56,7 +63,6 @@ import numpy as np
 
 from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
-from skygen.config import load_config as load_render_config
 from skygen.detect import detect
 
 from skygen.runtime import atomic_write_bytes, dumps_json
@@ -72,7 +78,8 @@ class Predictor:
     def __init__(self, checkpoint: str | Path | None = None, *, camera: str | Path | None = None,
                  dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
                  search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
-                 background_box: int = 0, lis_first: bool = False, solver: str | None = None, log=None):
+                 background_box: int | None = None, lis_first: bool = False, solver: str | None = None, log=None,
+                 fov_range: tuple[float, float] | None = None):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
@@ -80,14 +87,23 @@ class Predictor:
         if (checkpoint is None) == (camera is None):
             raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
                               "(prior-free solvers only), exactly one of them")
+        if fov_range is not None:
+            if checkpoint is not None:
+                raise ConfigError("--fov-range: a checkpoint's camera has a known field; give --fov-range with "
+                                  "--camera or alone")
+            lo, hi = fov_range
+            if not 0 < lo < hi < 120:
+                raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
+            if solver not in (None, "tetra3rs"):
+                raise ConfigError(f"--fov-range searches the field with tetra3rs lost-in-space; --solver {solver} "
+                                  "needs a known focal length (give --camera without --fov-range)")
         render_config = None
         if dataset is not None:
             from skygen.datasets.shards import open_dataset
             with open_dataset(dataset) as ds:
                 render_config = dict(ds.config)
         if camera is not None:
-            from skygen.config import config_dict
-            render_config = config_dict(load_render_config(camera))
+            render_config = camera_render_config(camera)
         self.prior = load_prior(checkpoint, render_config) if checkpoint is not None else None
         if self.prior is not None:
             render_config = self.prior.render_config
@@ -101,6 +117,8 @@ class Predictor:
         if detector == "tetra3rs" and self.prior is not None:
             raise ConfigError("--detector tetra3rs: the model was trained on skygen's detector; use it only "
                               "without --checkpoint")
+        if background_box is None:            # the camera's own setting (a fitted camera may use a local background)
+            background_box = self.cfg.detection.background_box_px
         if background_box and background_box < 8:
             raise ConfigError(f"--background-box {background_box}: 0 (one background per frame) or a box of at "
                               "least 8 px, e.g. 64")
@@ -114,8 +132,15 @@ class Predictor:
                               "tetra3rs>learned+fine" if lis_first else "learned+fine")
             if self.prior is not None:
                 self.search_level = self.prior.at_level(search).level
+            context = None
+            if fov_range is not None:
+                from .registry import make_context
+                from .tetra import Tetra3Solver
+                name = "tetra3rs"
+                context = make_context(self.camera, tetra=Tetra3Solver(self.camera, log=log, fov_range=fov_range),
+                                       focal_tol=focal_tol, search_k=search_k)
             self.solver = build_solver(name, self.camera, prior=self.prior, search=search, search_k=search_k,
-                                       focal_tol=focal_tol, log=log)
+                                       focal_tol=focal_tol, log=log, context=context)
 
     def check_shape(self, img: np.ndarray, source: str) -> None:
         want = (self.cfg.camera.height_px, self.cfg.camera.width_px)
@@ -167,6 +192,20 @@ class Predictor:
         return rec
 
 
+def camera_render_config(camera) -> dict:
+    """The render config of a camera file (or of a dict of config data) for prediction without a model: storage
+    does not matter, so ``output.image_size_px`` is the sensor width (any sensor size is taken)."""
+    from skygen import configlib
+    from skygen.config import check_camera_section, config_dict
+    data = dict(camera) if isinstance(camera, dict) else configlib.read_yaml(camera)
+    width = (data.get("camera") or {}).get("width_px") if isinstance(data.get("camera"), dict) else None
+    if not isinstance(camera, dict):
+        check_camera_section(data, f"camera file {camera}")
+    if isinstance(width, int) and width > 0:
+        data = {**data, "output": {**(data.get("output") or {}), "image_size_px": width}}
+    return config_dict(build_render_config(data))
+
+
 def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
     """The frame (log-stretched to 8 bit) with numbered detections; matched ones green."""
     import cv2
@@ -198,15 +237,19 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
 
 def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
             detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
-            err=None, search="fine", search_k=None, focal_tol=0.02, background_box=0,
-            lis_first=False, solver=None) -> tuple[list[dict], int]:
+            err=None, search="fine", search_k=None, focal_tol=0.02, background_box=None,
+            lis_first=False, solver=None, fov_range=None) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
+    if fov_range is not None and not 0 < fov_range[0] < fov_range[1] < 120:
+        raise ConfigError(f"--fov-range {fov_range[0]:g} {fov_range[1]:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
+    if fov_range is not None and camera is None and checkpoint is None:
+        camera = _camera_of_first_frame(frames, fov_range)
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
-                     lis_first=lis_first, solver=solver, log=lambda m: err(m))
+                     lis_first=lis_first, solver=solver, log=lambda m: err(m), fov_range=fov_range)
     sink = open(out, "w") if out else None
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
@@ -242,3 +285,15 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
         if sink:
             sink.close()
     return records, failed
+
+
+def _camera_of_first_frame(frames: list[str], fov_range) -> dict:
+    """Config data of a camera the size of the first readable frame, its field the middle of ``fov_range``
+    (``--fov-range`` without ``--camera``: the field is searched; pixel pitch is irrelevant to solving)."""
+    for _, img, _, _, error in iter_inputs(frames, 1):
+        if img is not None:
+            h, w = img.shape
+            return {"camera": {"width_px": int(w), "height_px": int(h), "pixel_pitch_um": 5.5,
+                               "fov_deg": 0.5 * (fov_range[0] + fov_range[1])}}
+    raise FrameError("--fov-range without --camera takes the sensor size from the first frame, but no frame could "
+                     "be read")

@@ -21,84 +21,30 @@ Conventions (checked on rendered frames by ``tests/test_solvers.py``)
     * matched catalog ids are tetra3rs's (Gaia DR3 source ids; negative = Hipparcos
       gap-fill stars), not HIP numbers.
 
-Database: ``SolverDatabase.generate_from_gaia`` for the camera's horizontal field of view,
-cached on disk (``$FUSION_CACHE`` or ``~/.cache/fusion``) under a name that holds the
-field of view, the build parameters and the tetra3rs version; a database for a 20° field
-builds in about a second.
+Database and centroid conversion: :mod:`skygen.platesolve` (shared with ``skygen fit-camera``):
+``SolverDatabase.generate_from_gaia`` for the camera's horizontal field of view (or a range of
+fields, ``fov_range``), cached on disk (``$FUSION_CACHE`` or ``~/.cache/fusion``); a database for
+a 20° field builds in about a second.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
-from skygen.runtime import atomic_path
+from skygen import platesolve
+from skygen.platesolve import DB_PARAMS, SolverUnavailable, cache_dir, database_path, load_database  # noqa: F401
 
-from ..errors import FusionError
 from .base import Detections, Refusal, Solution, solution_from_matrix
 
-DB_PARAMS = {"pattern_max_error": 0.001, "lattice_field_oversampling": 100, "patterns_per_lattice_field": 50,
-             "verification_stars_per_fov": 150, "epoch_proper_motion_year": 2025.0}
-
-
-class SolverUnavailable(FusionError):
-    """tetra3rs (or its catalog) is not installed."""
-
-
-def _tetra3rs():
-    try:
-        import tetra3rs
-    except ImportError as exc:
-        raise SolverUnavailable(f"tetra3rs is not installed ({exc}); pip install tetra3rs") from None
-    return tetra3rs
-
-
-def cache_dir() -> Path:
-    return Path(os.environ.get("FUSION_CACHE") or Path.home() / ".cache" / "fusion")
-
-
-def database_path(fov_deg: float, folder: str | Path | None = None) -> Path:
-    t3 = _tetra3rs()
-    key = json.dumps({"fov": round(float(fov_deg), 3), **DB_PARAMS, "tetra3rs": t3.__version__}, sort_keys=True)
-    name = f"tetra3rs-fov{fov_deg:.2f}-{hashlib.sha256(key.encode()).hexdigest()[:12]}.bin"
-    return Path(folder or cache_dir() / "tetra3rs") / name
-
-
-_DB_MEMO: dict = {}
-
-
-def load_database(fov_deg: float, folder: str | Path | None = None, log=None):
-    """The tetra3rs database for a horizontal FOV: from memory, the disk cache, or built and cached."""
-    t3 = _tetra3rs()
-    path = database_path(fov_deg, folder)
-    if path in _DB_MEMO:
-        return _DB_MEMO[path]
-    if path.is_file():
-        db = t3.SolverDatabase.load_from_file(str(path))
-    else:
-        t0 = time.perf_counter()
-        db = t3.SolverDatabase.generate_from_gaia(max_fov_deg=float(fov_deg), min_fov_deg=float(fov_deg),
-                                                  **DB_PARAMS)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            db.save_to_file(str(tmp))
-        if log:
-            log(f"tetra3rs: built database for a {fov_deg:.2f} deg field in {time.perf_counter() - t0:.1f} s "
-                f"({db.num_stars} stars) -> {path}")
-    _DB_MEMO[path] = db
-    return db
+_tetra3rs = platesolve.tetra3rs
 
 
 def ideal_centroids(det: Detections, camera) -> np.ndarray:
     """(N, 3) tetra3rs centroids: undistorted pinhole pixels relative to the principal point, + flux."""
-    v = camera.unproject(det.x_px, det.y_px)
-    return np.column_stack([camera.f_px * v[:, 0] / v[:, 2], camera.f_px * v[:, 1] / v[:, 2],
-                            np.maximum(np.asarray(det.flux_adu, np.float64), 0.0)])
+    return platesolve.ideal_centroids(det.x_px, det.y_px, det.flux_adu, camera)
 
 
 class Tetra3Solver:
@@ -107,22 +53,31 @@ class Tetra3Solver:
     name = "tetra3rs-lis"
 
     def __init__(self, camera, *, match_threshold: float = 1e-5, db_folder: str | Path | None = None,
-                 max_patterns_checked: int = 1_000_000, timeout_ms: int = 5000, log=None):
+                 max_patterns_checked: int = 1_000_000, timeout_ms: int = 5000, log=None,
+                 fov_range: tuple[float, float] | None = None):
+        """``fov_range`` (lo, hi) degrees: the horizontal field is not known, only bounded; lost-in-space then
+        searches it (a multi-scale database) and each solution reports the field it found (``fov_deg``);
+        the camera's own focal length is not used (its distortion must be none)."""
         self.t3 = _tetra3rs()
         self.camera, self.db_folder, self.log = camera, db_folder, log
-        self.fov_deg = camera.fov_deg[0]
-        self.db = load_database(self.fov_deg, db_folder, log)
+        self.fov_range = None if fov_range is None else (float(fov_range[0]), float(fov_range[1]))
+        self.fov_deg = camera.fov_deg[0] if fov_range is None else 0.5 * sum(self.fov_range)
+        if fov_range is None:
+            self.db = load_database(self.fov_deg, db_folder, log)
+        else:
+            self.db = load_database(self.fov_range[0], db_folder, log, fov_max_deg=self.fov_range[1])
         self.match_threshold = match_threshold
         self.max_patterns_checked = max_patterns_checked
         self.timeout_ms = timeout_ms
         self._models: dict = {}
 
     def _model(self, camera):
-        key = (camera.f_px, camera.width_px, camera.height_px)
+        # ideal centroids are square pixels of width 1: a sensor of tall pixels is height * aspect of them high
+        key = (camera.f_px, camera.width_px, int(round(camera.height_px * camera.aspect)))
         if key not in self._models:
             if len(self._models) >= 32:           # the coarse-to-fine stage passes fitted focal lengths
                 self._models.clear()
-            self._models[key] = self.t3.CameraModel(float(camera.f_px), int(camera.width_px), int(camera.height_px))
+            self._models[key] = self.t3.CameraModel(float(key[0]), key[1], key[2])
         return self._models[key]
 
     def solve(self, detections: Detections, camera=None, image=None) -> Solution | Refusal:
@@ -140,7 +95,14 @@ class Tetra3Solver:
         if len(det) < 3:
             return Refusal(f"too few detections ({len(det)})", name, (time.perf_counter() - t0) * 1e3)
         cents = ideal_centroids(det, camera)
-        res = self.db.solve_from_centroids(cents, camera_model=self._model(camera),
+        if self.fov_range is not None and "attitude_hint" not in kw:
+            # unknown field: without distortion the ideal centroids do not depend on the focal length
+            lo, hi = self.fov_range
+            geometry = {"fov_estimate_deg": 0.5 * (lo + hi), "fov_max_error_deg": 0.5 * (hi - lo),
+                        "image_width": int(camera.width_px), "image_height": int(round(camera.height_px * camera.aspect))}
+        else:
+            geometry = {"camera_model": self._model(camera)}
+        res = self.db.solve_from_centroids(cents, **geometry,
                                            match_threshold=self.match_threshold, solve_timeout_ms=self.timeout_ms,
                                            max_patterns_checked=self.max_patterns_checked, **kw)
         ms = (time.perf_counter() - t0) * 1e3

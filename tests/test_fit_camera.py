@@ -1,0 +1,168 @@
+"""skygen fit-camera: recovery of a camera skygen rendered, the real Blackfly frames, bad input."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from skygen.cli import main
+from skygen.config import load_config
+
+pytest.importorskip("tetra3rs")
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT / "real-frames" / "tetra3-blackfly"
+BLACKFLY = ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml"
+
+# the truth of the synthetic check: tall pixels, barrel distortion, a strong gradient
+TRUTH = {"camera": {"width_px": 512, "height_px": 256, "pixel_pitch_um": 11.0, "fov_deg": 16.0, "pixel_aspect": 2.0,
+                    "k1": 0.6},
+         "optics": {"psf_sigma_px": 1.3},
+         "sensor": {"exposure_s": 0.4, "gain_e_per_adu": 3.3, "read_noise_e": 5.0, "bias_adu": 100},
+         "corruptions": {"stray_light": 2500.0, "cosmic_rays": 0.0, "hotpixels": 2e-4},
+         "detection": {"max_detections": 200}, "output": {"image_size_px": 128}}
+
+
+def _write_truth(folder: Path, n: int = 5) -> Path:
+    from skygen.config import build_config
+    from skygen.render import Renderer
+    cfg = build_config({**TRUTH, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
+    r = Renderer(cfg)
+    for i in range(n):
+        cv2.imwrite(str(folder / f"frame{i}.png"), r.render(i).image_full.astype(np.uint16))
+    start = {"camera": {**TRUTH["camera"], "fov_deg": 16.0 * 1.01, "k1": 0.0},    # 1 % off, no distortion
+             "sensor": {"read_noise_e": 5.0}, "corruptions": {"cosmic_rays": 0.0}, "output": {"image_size_px": 128}}
+    (folder / "start.yaml").write_text(yaml.safe_dump(start))
+    return folder
+
+
+def test_recovers_a_camera_skygen_rendered(tmp_path):
+    """About 12 s on one core: five 512 x 256 frames, tall pixels, k1 = 0.6, a 1000 e- gradient."""
+    folder = _write_truth(tmp_path)
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out),
+                 "--report", str(tmp_path / "rep")]) == 0
+    fit = load_config(out)
+    c = fit.camera
+    from skygen.camera import Camera
+    fov = Camera.from_config(c).fov_deg[0]
+    # the fitted pinhole field against the true one; the fit sees distortion and focal length together
+    assert fov == pytest.approx(16.0, rel=0.003)
+    assert c.pixel_aspect == pytest.approx(2.0, rel=0.002)
+    assert c.k1 == pytest.approx(0.6, abs=0.15)
+    assert fit.sensor.gain_e_per_adu == pytest.approx(3.3, rel=0.15)
+    assert fit.sensor.bias_adu == pytest.approx(100, abs=15)
+    assert fit.optics.psf_sigma_px == pytest.approx(1.3, rel=0.15) or fit.optics.psf == "moffat"
+    assert fit.corruptions.stray_light == pytest.approx(2500.0, rel=0.2)
+    assert fit.corruptions.hotpixels == pytest.approx(2e-4, rel=0.3)
+    rep = (tmp_path / "rep" / "REPORT.md").read_text()
+    assert "residual" in rep and (tmp_path / "rep" / "fit.png").is_file()
+    import json
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    assert rec["geometry"]["rms_px"] < 0.3
+    cmp = rec["compare"]
+    assert cmp["background_adu"]["fitted"] == pytest.approx(cmp["background_adu"]["real"], rel=0.1)
+    assert cmp["zero_point_mag"]["fitted"] == pytest.approx(cmp["zero_point_mag"]["real"], abs=0.2)
+    assert cmp["star_sigma_px"]["fitted"] == pytest.approx(cmp["star_sigma_px"]["real"], rel=0.15)
+    assert cmp["detections"]["fitted"] == pytest.approx(cmp["detections"]["real"], rel=0.25)
+
+
+def _listed():
+    with open(REAL / "solutions.csv", newline="") as f:
+        return {r["file"]: float(r["fov_deg"]) for r in csv.DictReader(f)}
+
+
+@pytest.mark.slow
+def test_two_real_frames(tmp_path):
+    """Loose tolerances (two frames); the full numbers on eight: results/real-frames/FIT_CAMERA.md."""
+    names = sorted(_listed())[2:4]
+    out = tmp_path / "bf.yaml"
+    assert main(["fit-camera", *[str(REAL / n) for n in names], "--camera", str(BLACKFLY), "--out", str(out),
+                 "--report", str(tmp_path / "rep")]) == 0
+    import json
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    assert len(rec["solved"]) == 2
+    assert rec["geometry"]["fov_deg"] == pytest.approx(np.mean([_listed()[n] for n in names]), abs=0.05)
+    assert rec["geometry"]["rms_px"] < 0.5
+    cmp = rec["compare"]
+    assert cmp["background_adu"]["fitted"] == pytest.approx(cmp["background_adu"]["real"], rel=0.25)
+    assert cmp["noise_adu"]["fitted"] == pytest.approx(cmp["noise_adu"]["real"], rel=0.35)
+    assert cmp["zero_point_mag"]["fitted"] == pytest.approx(cmp["zero_point_mag"]["real"], abs=0.4)
+    assert load_config(out).camera.width_px == 1024
+
+
+# ------------------------------------------------------------------------------ bad input
+def _frame(path: Path, img: np.ndarray) -> str:
+    cv2.imwrite(str(path), img)
+    return str(path)
+
+
+def test_frames_of_different_sizes_are_refused(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    a = _frame(tmp_path / "a.png", rng.integers(0, 60000, (64, 80)).astype(np.uint16))
+    b = _frame(tmp_path / "b.png", rng.integers(0, 60000, (64, 96)).astype(np.uint16))
+    assert main(["fit-camera", a, b, "--fov-range", "10", "20", "--pixel-pitch", "5", "--out", str(tmp_path / "c.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "different sizes" in err[0]
+
+
+def test_blank_saturated_colour_and_starless_frames_are_dropped_with_reasons(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    blank = _frame(tmp_path / "blank.png", np.full((96, 128), 500, np.uint16))
+    s = np.full((96, 128), 65535, np.uint16)
+    s[:10] = rng.integers(1000, 2000, (10, 128))
+    sat = _frame(tmp_path / "sat.png", s)
+    colour = _frame(tmp_path / "colour.png", rng.integers(0, 255, (96, 128, 3)).astype(np.uint8))
+    noise = _frame(tmp_path / "noise.png", (rng.normal(1000, 20, (96, 128))).astype(np.uint16))
+    start = tmp_path / "start.yaml"
+    start.write_text(yaml.safe_dump({"camera": {"width_px": 128, "height_px": 96, "pixel_pitch_um": 5.0,
+                                                "fov_deg": 10.0}, "output": {"image_size_px": 32}}))
+    assert main(["fit-camera", blank, sat, colour, noise, "--camera", str(start), "--out", str(tmp_path / "c.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "colour" in err and "blank frame" in err and "saturated frame" in err and "too few stars" in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("skygen fit-camera: error: no frame solved (4 dropped)")
+
+
+def test_fov_range_and_pixel_pitch_bounds(tmp_path, capsys):
+    f = _frame(tmp_path / "a.png", np.random.default_rng(2).integers(0, 4000, (64, 64)).astype(np.uint16))
+    assert main(["fit-camera", f, "--fov-range", "20", "10", "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "LO < HI" in capsys.readouterr().err
+    assert main(["fit-camera", f, "--fov-range", "10", "20", "--pixel-pitch", "0", "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "--pixel-pitch 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_field_range_without_the_solution_says_so(tmp_path, capsys):
+    name = sorted(_listed())[6]
+    assert main(["fit-camera", str(REAL / name), "--fov-range", "25", "30", "--pixel-pitch", "6.9",
+                 "--out", str(tmp_path / "c.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "no lost-in-space solution" in err[-1] and "field-of-view range" in err[-1]
+
+
+def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
+    """Distortion and principal point from one frame are fixed, with the reason, not over-fitted."""
+    from skygen import fitgeom as G
+    from skygen.attitude import attitude_matrix
+    from skygen.camera import Camera
+    from skygen.catalog import SkyIndex, load_catalog
+    cam = Camera(640, 480, 2400.0, 319.5, 239.5)
+    sky = SkyIndex(load_catalog(), 2024.0, 7.0)
+    R = attitude_matrix(83.0, -5.0, 10.0)
+    idx = sky.cone(R[:, 2], cam.corner_radius_rad())
+    x, y, front = cam.project(sky.vectors[idx] @ R)
+    ok = front & cam.inside(x, y)
+    rng = np.random.default_rng(0)
+    det = {"x_px": x[ok] + rng.normal(0, 0.1, ok.sum()), "y_px": y[ok] + rng.normal(0, 0.1, ok.sum()),
+           "flux_adu": np.ones(ok.sum())}
+    assert ok.sum() >= 8
+    fs = G.FrameSolution("one", det, R @ G._rotvec(np.array([1e-4, -2e-4, 3e-4])))
+    g = G.fit_geometry([fs], cam, sky, 3.0)
+    assert {"k1", "k2", "cx", "cy"} <= set(g.fixed) and "at least" in g.fixed["k1"]
+    assert g.camera.f_px == pytest.approx(2400.0, rel=2e-3) and g.rms_px < 0.3
