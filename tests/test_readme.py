@@ -19,7 +19,7 @@ MADE_BY_DEMO = ("data/demo", "runs/demo")          # the Makefile's DEMO and RUN
 # flags whose value is written, not read
 OUTPUT_FLAGS = {"--out", "--onnx", "--overlay", "--report", "--write-config", "--engine"}
 # tokens that stand for the user's own files in examples
-PLACEHOLDER = re.compile(r"^(FRAME|CK|DIR|D|FILE|PATH|frame|sky|cube|grid|detector|star_fusion|mine|sets)\b"
+PLACEHOLDER = re.compile(r"^(FRAME|CK|DIR|D|FILE|PATH|frame|sky|cube|grid|detector|star_fusion|mine|sets|my-|your)\b"
                          r"|\.\.\.|^/scratch/|^\$")
 
 
