@@ -148,10 +148,10 @@ def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
 
 
 def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
-    """Three detections over the whole sky cannot reach the confidence bar (~10^4 chance triangles): the
-    search stops after the first detection pair instead of trying every pair in both passes."""
+    """Three detections over the whole sky, geometry alone, cannot reach the confidence bar (~10^4 chance
+    triangles): the search stops after the first detection pair instead of trying every pair in both passes."""
     from fusion.solve.fine import CoarseToFineSolver
-    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02, photometric_mag=None)
     f = renderer.render(1)
     res = c2f.solve(Detections.from_table(f.detections).brightest(3), renderer.camera)
     assert isinstance(res, Refusal) and "cannot reach the confidence bar" in res.reason
@@ -163,6 +163,46 @@ def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     first_pair = min(counts)                                        # the pair with the fewest candidates goes first
     assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
     assert c2f.confidence(first_pair, 3, 3) < c2f.min_confidence
+
+
+def test_photometry_identifies_three_stars_that_geometry_alone_cannot(renderer, tetra):
+    """Over the whole sky, three stars whose catalogue magnitudes follow their fluxes are evidence that a
+    chance triangle rarely matches: some frames solve (all correctly) that geometry alone refuses. With the
+    fluxes shuffled the photometric test fails, and the answer falls back to geometry's (a refusal)."""
+    from fusion.solve.fine import CoarseToFineSolver
+    both = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    geometry = CoarseToFineSolver(tetra, None, focal_tol=0.02, photometric_mag=None)
+    solved = 0
+    for i in range(12):
+        f = renderer.render(i)
+        three = Detections.from_table(f.detections).brightest(3)
+        assert isinstance(geometry.solve(three, renderer.camera), Refusal)
+        res = both.solve(three, renderer.camera)
+        if isinstance(res, Solution):
+            assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
+            assert res.extra["evidence"] == "geometry and photometry" and res.extra["magnitude_scatter"] <= 0.5
+            solved += 1
+            flux = three.flux_adu.copy()
+            shuffled = Detections(three.x_px, three.y_px, np.array([flux[2], flux[0], flux[1]]) * [1, 30, 0.03])
+            assert isinstance(both.solve(shuffled, renderer.camera), Refusal)
+    assert solved >= 2
+
+
+def test_photometric_chance_rate_is_a_conservative_monte_carlo(tetra):
+    from fusion.solve.fine import CoarseToFineSolver, magnitude_scatter
+    np.testing.assert_allclose(magnitude_scatter(np.array([3.0, 4.0, 5.5]), 10 ** (-0.4 * np.array([1.0, 2.0, 3.5]))),
+                               0.0, atol=1e-12)                    # a common zero point is no scatter
+    c2f = CoarseToFineSolver(tetra, None)
+    c2f.tier = c2f.tiers[-1]
+    flux = np.array([5000.0, 2000.0, 900.0])
+    q = c2f._photometric_q(flux)
+    rng = np.random.default_rng(11)                                 # an independent estimate of the same chance
+    mags = c2f.mag[rng.integers(0, len(c2f.mag), (20000, 3))]
+    direct = float(np.mean(magnitude_scatter(mags, flux) <= c2f.photometric_mag))
+    assert 0.05 < direct < 0.5 and direct < q < direct + 0.05
+    c2f.photometric_mag = 0.2
+    assert c2f._photometric_q(flux) < q
+    assert c2f._photometric_q(np.array([5000.0, -1.0, 900.0])) == 1.0    # no usable flux: no evidence
 
 
 def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(renderer, tetra, regions):

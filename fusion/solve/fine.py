@@ -29,7 +29,9 @@ For one region (a cap around a region centroid, :class:`Region`):
 3. score: every detection is mapped to the sky with that rotation and counts if a
    catalog star lies within ``tol_px`` plus what the pair leaves uncertain of the scale
    (``min(s, 2 tol / d_ij)`` times the detection's distance from detection i); a hypothesis
-   whose boresight leaves the region is dropped (it belongs to another region). The scoring is
+   whose boresight leaves the region is dropped before it is scored or counted (it belongs to another
+   region: it could never be accepted here, so it cannot be a false match of this region, and the
+   widened catalogue caps of neighbouring regions do not count it twice). The scoring is
    compiled (numba, :mod:`fusion.solve.match`) and finds the candidate stars through the pair
    index rather than by projecting every hypothesis;
 4. decision, after each detection pair (so a clear case stops early; by default the pairs with the
@@ -39,7 +41,14 @@ For one region (a cap around a region centroid, :class:`Region`):
    attitude more than 0.5° away — and its chance of being a coincidence small:
    ``E_false = H * C(n - 2, s - 2) * p^(s - 2)`` (H hypotheses tried so far, n detections, s
    matches, p the chance that a random sky position has a catalog star within ``tol_px``)
-   gives ``confidence = max(0, 1 - E_false)``; below ``min_confidence`` or fewer than
+   gives ``confidence = max(0, 1 - E_false)``. Where geometry alone falls short, **photometry** is
+   further evidence: if the matched stars' catalogue magnitudes follow the detections'
+   instrumental magnitudes (-2.5 log10 flux) to within ``photometric_mag`` (0.5 mag scatter about a
+   fitted zero point; true matches pass ~96 % of the time on rendered frames, ``results/benchmark``),
+   a coincidence must pass that test too, which random stars of the tier do with chance q (a Monte
+   Carlo over the tier's magnitudes against these fluxes, ~0.15-0.25 for 3-4 stars), so
+   ``E_false = H * C(..) * p^(s-2) * q``. It only ever adds evidence: a failed test (magnitude
+   noise, a variable star) leaves the geometric confidence as it was; below ``min_confidence`` or fewer than
    ``min_matches`` matches: next region, or a refusal. H only grows, so once even ``s = n``
    cannot reach ``min_confidence`` the search stops at once with a refusal (three stars over the
    whole sky: after the first detection pair);
@@ -52,7 +61,11 @@ For one region (a cap around a region centroid, :class:`Region`):
    re-matches every detection against its catalog, tests the match against its own
    false-positive budget and refines the attitude. A candidate tetra3rs does not confirm is
    returned (as the least-squares rotation of our own matches) only if its confidence
-   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched.
+   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched. A
+   confirmation whose refined attitude leaves more than ``max_residual_px`` (1.5 px rms) over its
+   matched stars took in a star beyond any centroid error (a bright star missing from the
+   catalogue tier, matched to a neighbour) and is pulled off by it: the identification stands,
+   the attitude returned is the least-squares fit of our own matches within ``tol_px``.
 
 Regions are tried in order of prior probability (``top_k`` at most) — the prior's coarse
 regions, or, for a checkpoint trained with fine regions, its fine regions (a few degrees
@@ -140,6 +153,15 @@ class _Tier:
     p_chance: float
 
 
+def magnitude_scatter(mag: np.ndarray, flux: np.ndarray) -> np.ndarray:
+    """Scatter (mag) of catalogue magnitudes about the detections' instrumental magnitudes
+    -2.5 log10(flux) once their common zero point is removed: the sample standard deviation of
+    ``mag - inst`` along the last axis (``mag`` (..., m), ``flux`` (m,))."""
+    inst = -2.5 * np.log10(np.maximum(np.asarray(flux, np.float64), 1e-12))
+    d = np.asarray(mag, np.float64) - inst
+    return np.std(d, axis=-1, ddof=1)
+
+
 def _chance_sum(p: float, n_det: int, score: int) -> float:
     """P(at least ``score - 2`` of the ``n_det - 2`` other detections land on a star by chance)."""
     extra = score - 2
@@ -155,7 +177,8 @@ class CoarseToFineSolver:
                  stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
                  min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
                  verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest",
-                 bright_stars_per_fov: float | None = 12.0, bright_max_detections: int = 3):
+                 bright_stars_per_fov: float | None = 12.0, bright_max_detections: int = 3,
+                 photometric_mag: float | None = 0.5, max_residual_px: float = 1.5):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
@@ -167,6 +190,12 @@ class CoarseToFineSolver:
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
         self.bright_max_detections = int(bright_max_detections)
+        if photometric_mag is not None and not photometric_mag > 0:
+            raise ValueError(f"photometric_mag={photometric_mag}: a positive magnitude scatter, or None (off)")
+        self.photometric_mag = photometric_mag
+        if not max_residual_px > 0:
+            raise ValueError(f"max_residual_px={max_residual_px}: a positive residual (px)")
+        self.max_residual_px = float(max_residual_px)
         cam = tetra.camera
         db = tetra.db
         stars = [db.get_star(i) for i in range(db.num_stars)]
@@ -273,21 +302,50 @@ class CoarseToFineSolver:
         ok = np.isfinite(dist)
         return np.flatnonzero(ok), idx[ok]
 
-    def confidence(self, n_hypotheses: int, n_det: int, score: int) -> float:
+    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0) -> float:
         """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc),
-        with the chance rate of the catalogue tier being searched."""
+        with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
+        match also passes the photometric test (1: not tested)."""
         if score - 2 <= 0:
             return 0.0
-        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(self.p_chance, n_det, score)))
+        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(self.p_chance, n_det, score) * q))
 
-    def _decide(self, rots: np.ndarray, scores: np.ndarray, tried: int, n: int) -> int | Refusal:
-        """Index of the accepted hypothesis, or a refusal saying why none is accepted yet."""
+    # ---------------------------------------------------------------- photometry
+    def _photometric_q(self, flux: np.ndarray, samples: int = 4000) -> float:
+        """Chance that random stars of the tier, one per detection of ``flux``, pass the photometric test
+        against these detections: a Monte Carlo over the tier's magnitudes (fixed seed), plus two
+        standard errors and 1/samples, so the bound errs on the side of less confidence."""
+        if self.photometric_mag is None or len(flux) < 3 or np.any(flux <= 0):
+            return 1.0
+        rng = np.random.default_rng(0x9407)
+        mags = self.mag[rng.integers(0, len(self.mag), (samples, len(flux)))]
+        q = float(np.mean(magnitude_scatter(mags, flux) <= self.photometric_mag))
+        return min(1.0, q + 2 * math.sqrt(q * (1 - q) / samples) + 1.0 / samples)
+
+    def _photometric_pass(self, cat_rows: np.ndarray, det_rows: np.ndarray, flux: np.ndarray) -> bool:
+        """Do the matched stars' catalogue magnitudes follow the detections' fluxes within
+        ``photometric_mag`` (after a common zero point)? At least three matched stars with positive flux."""
+        if self.photometric_mag is None or len(det_rows) < 3 or np.any(flux[det_rows] <= 0):
+            return False
+        return bool(magnitude_scatter(self.mag[cat_rows], flux[det_rows]) <= self.photometric_mag)
+
+    def _decide(self, rots: np.ndarray, ks: np.ndarray, scores: np.ndarray, tried: int, u: np.ndarray,
+                flux: np.ndarray) -> int | Refusal:
+        """Index of the accepted hypothesis, or a refusal saying why none is accepted yet. Geometry alone
+        decides where it can; where it cannot, catalogue magnitudes that follow the detected fluxes
+        (:meth:`_photometric_pass`) are further evidence: a coincidental match passes that test only
+        with chance q (:meth:`_photometric_q`), so its expected number shrinks by q."""
+        n = len(u)
         best = int(np.argmax(scores))
         s = int(scores[best])
         rivals = np.flatnonzero(scores == s)
         if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
             return Refusal(f"ambiguous: several attitudes match {s} of {n} detections", self.name)
         conf = self.confidence(tried, n, s)
+        if s >= self.min_matches and conf < self.min_confidence and self.photometric_mag is not None:
+            det_rows, cat_rows = self._matches(rots[best], _unit_at(u[:, :2] / u[:, 2:3], ks[best]))
+            if self._photometric_pass(cat_rows, det_rows, flux):
+                conf = self.confidence(tried, n, s, self._photometric_q(flux[det_rows]))
         if s < self.min_matches or conf < self.min_confidence:
             return Refusal(f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}", self.name)
         return best
@@ -308,6 +366,7 @@ class CoarseToFineSolver:
                 raise ValueError("probabilities given but the solver has no prior with centroids")
         u = camera.unproject(detections.x_px, detections.y_px)
         n = len(u)
+        flux = np.asarray(detections.flux_adu, np.float64)
         # three detections: the bright tier (a chance triangle needs three bright stars, so H and p both
         # shrink); more: the full cut, where four or more stars leave few look-alikes anyway
         self.tier = self.tiers[-1] if n <= self.bright_max_detections else self.tiers[0]
@@ -318,13 +377,16 @@ class CoarseToFineSolver:
         passes = (0.0, self.focal_tol) if self.focal_tol > 0 else (0.0,)
         regions = self.regions(probabilities, centroids)
         tables: dict = {}
+        q_all = None
         for s in passes:
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t in self._hypotheses(u, region, s, tables):
                     tried += t
-                    best_possible = self.confidence(tried, n, n)
+                    if q_all is None:             # photometry's best case: every detection matched and passing
+                        q_all = self._photometric_q(flux)
+                    best_possible = self.confidence(tried, n, n, q_all)
                     if best_possible < self.min_confidence:
                         # H only grows: not even all n detections matched could pass any more, so stop here
                         return Refusal(f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
@@ -333,7 +395,7 @@ class CoarseToFineSolver:
                     if not len(sc):
                         continue
                     rots, ks, scores = np.concatenate([rots, r]), np.concatenate([ks, k]), np.concatenate([scores, sc])
-                    verdict = self._decide(rots, scores, tried, n)
+                    verdict = self._decide(rots, ks, scores, tried, u, flux)
                     if isinstance(verdict, int):
                         sol = self._finish(rots[verdict], float(ks[verdict]), u, detections, camera, region, tried,
                                            t0)
@@ -383,23 +445,41 @@ class CoarseToFineSolver:
         rot, k, det_rows, cat_rows, uk = self.refine(rot, k, u, self.focal_tol)
         score = len(det_rows)
         conf = self.confidence(tried, len(u), score)
+        flux = np.asarray(detections.flux_adu, np.float64)
+        evidence = "geometry"
+        if score >= self.min_matches and conf < self.unverified_confidence \
+                and self._photometric_pass(cat_rows, det_rows, flux):
+            conf_p = self.confidence(tried, len(u), score, self._photometric_q(flux[det_rows]))
+            if conf_p > conf:
+                conf, evidence = conf_p, "geometry and photometry"
         if score < self.min_matches or conf < self.min_confidence:
             return Refusal(f"weak evidence after refinement: {score} of {len(u)} detections matched, "
                            f"confidence {conf:.3g}", self.name)
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
         extra = {"region": region.index, "region_probability": region.probability, "hypotheses": tried,
-                 "refined_by": "own least squares", "focal_factor": k, "fov_deg": list(cam_k.fov_deg)}
+                 "refined_by": "own least squares", "focal_factor": k, "fov_deg": list(cam_k.fov_deg),
+                 "evidence": evidence}
+        if len(det_rows) >= 2:
+            extra["magnitude_scatter"] = float(magnitude_scatter(self.mag[cat_rows], flux[det_rows]))
         if self.verify:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines
             res = self.tetra.solve_with_hint(detections, cam_k, rot, 1.0, name=self.name)
-            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0:
+            resid_px = (res.residual_arcsec / cam_k.pixel_scale_arcsec) if isinstance(res, Solution) else None
+            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0 \
+                    and resid_px > self.max_residual_px:
+                # confirmed, but tetra3rs's refinement took in a star beyond any centroid error (a bright
+                # star missing from the tier, matched to a neighbour) and is pulled off by it: keep the
+                # identification, and the least-squares attitude of our own matches within tol_px
+                extra["refined_by"] = (f"own least squares (tetra3rs confirmed, but its refinement left "
+                                       f"{resid_px:.2f} px rms: a mismatched star)")
+            elif isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0:
                 extra["refined_by"] = "tetra3rs tracking"
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 extra["fov_deg"] = [res.extra.get("fov_deg", cam_k.fov_deg[0]), cam_k.fov_deg[1]]
                 return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
                                 res.residual_arcsec, conf, self.name, (time.perf_counter() - t0) * 1e3, extra)
-            if conf < self.unverified_confidence:
+            elif conf < self.unverified_confidence:
                 return Refusal("best candidate not confirmed by tetra3rs tracking and evidence below the unverified "
                                "bar", self.name)
         resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * self.vec[cat_rows], axis=1), -1, 1))

@@ -52,8 +52,9 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
                     desc: str = "train", pace=None) -> dict:
     """One pass over ``loader``; returns mean loss, top-1 on the (augmented) batches, last lr, time.
 
-    ``pace``: called once as ``pace(seconds_per_step)`` after the second step (the first, which
-    pays for warm-up, is not counted), so a run can say early what it will cost."""
+    ``pace``: called once as ``pace(seconds_per_step)``, measured over steps 1-10 (or fewer if they
+    take over 30 s; the first step, which pays for warm-up, is not counted), so a run can say early
+    what it will cost."""
     model.train()
     t0 = time.perf_counter()
     total_loss, n, hits = 0.0, 0, 0
@@ -86,11 +87,12 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         total_loss += float(loss.detach()) * b   # .item()-like sync once per step: cheap next to the step
         hits += int((logits.detach().argmax(1).cpu() == batch["label"]).sum())
         n += b
-        if pace is not None and step in (0, 1):
+        if pace is not None:              # steps 1..10 (or 30 s of them): the loader's prefetched batches used up
             if step == 0:
                 t_first = time.perf_counter()
-            else:
-                pace(time.perf_counter() - t_first)
+            elif step >= 10 or time.perf_counter() - t_first >= 30:
+                pace((time.perf_counter() - t_first) / step)
+                pace = None
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{total_loss / n:.3f}", top1=f"{hits / n:.3f}",
                             samples_s=f"{n / (time.perf_counter() - t0):.0f}")

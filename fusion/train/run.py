@@ -229,7 +229,7 @@ def log_start(cfg: FusionConfig, data: PreparedData, steps: int, counts: dict, d
         f"parameters {counts}; device {device}, {info.world} process(es), amp {amp_dtype}")
     if device.type == "cpu" and counts["total"] > 10e6:
         say(f"{counts['total'] / 1e6:.1f} M parameters on a CPU: expect seconds per step; the pace of this run "
-            "follows after its second step (configs/cpu.yaml trains in minutes)")
+            "follows after its first steps (configs/cpu.yaml trains in minutes)")
 
 
 def write_epoch(out: Path, ckpt: Checkpoint, improved: bool, opt: Optimisation, steps: int, lr: float) -> None:
