@@ -136,26 +136,76 @@ def unsupported_reason(renderer) -> str | None:
 
 
 # ---------------------------------------------------------------------------------- kernels
-# Sensor-size arrays are kept *block-major*: pixel (y, x) at ((y // s) * wb + x // s) * s^2 +
-# (y % s) * s + x % s, so a stored pixel's s^2 sensor pixels are contiguous in memory.
+# Static sensor-size maps are kept *block-major*: pixel (y, x) at b * s^2 + (y % s) * s + x % s,
+# b = (y // s) * wb + x // s, so a stored pixel's s^2 sensor pixels are contiguous. A frame's
+# light lives in *compact* buffers: only the blocks its sources touch get a slot, entry
+# slot[b] * s^2 + (y % s) * s + x % s, so the per-frame memory is small and read in order.
 @njit(cache=True)
-def _bm(y, x, f, wb):
-    return ((y // f) * wb + x // f) * f * f + (y % f) * f + x % f
+def _mark_boxes(mark, boxes, f, wb):
+    for i in range(len(boxes)):
+        ya, yb, xa, xb = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+        if ya < 0:
+            continue
+        for by in range(ya // f, (yb - 1) // f + 1):
+            for bx in range(xa // f, (xb - 1) // f + 1):
+                mark[by * wb + bx] = 1
 
 
 @njit(cache=True)
-def _paint_gauss(buf, mark, paint, xs, ys, flux, radii, sigma, f, h, w):
-    """Add Gaussian stamps (exactly as :func:`skygen.psf.gaussian_stamps`) into ``buf``;
-    mark their stored blocks in ``mark`` and their pixels in ``paint``; return each stamp's
-    clipped box (y0, y1, x0, x1; -1 when off the sensor) and peak pixel."""
+def _slots(mark, slot, blocks):
+    """Give every marked block a compact slot (in block order); unmark; return the count."""
+    m = 0
+    for b in range(len(mark)):
+        if mark[b]:
+            slot[b] = m
+            blocks[m] = b
+            m += 1
+            mark[b] = 0
+        else:
+            slot[b] = -1
+    return m
+
+
+@njit(cache=True)
+def _add(buf, paint, slot, f, wb, yy, xa, xb, vals, v0):
+    """Add vals[v0 + (x - xa)] to row ``yy``, columns [xa, xb), of the compact buffer."""
+    n = f * f
+    by, ry = yy // f, yy % f
+    bx, rx = xa // f, xa % f
+    k = slot[by * wb + bx] * n + ry * f + rx
+    pk = 0.0
+    for xx in range(xa, xb):
+        v = vals[v0 + xx - xa]
+        buf[k] += v
+        paint[k] = True
+        pk = max(pk, v)
+        rx += 1
+        if rx == f:
+            rx = 0
+            bx += 1
+            if xx + 1 < xb:
+                k = slot[by * wb + bx] * n + ry * f
+        else:
+            k += 1
+    return pk
+
+
+@njit(cache=True)
+def _paint_gauss(buf, paint, slot, xs, ys, flux, radii, sigma, f, h, w):
+    """Add Gaussian stamps (exactly as :func:`skygen.psf.gaussian_stamps`: erf differences,
+    normalised to the flux) into the compact buffer; return each stamp's peak pixel."""
     wb = w // f
-    boxes = np.full((len(xs), 4), -1, np.int64)
     peaks = np.zeros(len(xs))
+    row = np.empty(64)
     for i in range(len(xs)):
         r = radii[i]
         n = 2 * r + 1
         x0 = int(math.floor(xs[i] + 0.5)) - r
         y0 = int(math.floor(ys[i] + 0.5)) - r
+        ya, xa = max(y0, 0), max(x0, 0)
+        yb, xb = min(y0 + n, h), min(x0 + n, w)
+        if ya >= yb or xa >= xb:
+            continue
         gx = np.empty(n)
         gy = np.empty(n)
         ex0 = math.erf((x0 - 0.5 - xs[i]) / (_SQRT2 * sigma))
@@ -172,41 +222,22 @@ def _paint_gauss(buf, mark, paint, xs, ys, flux, radii, sigma, f, h, w):
             ex0 = ex1
             ey0 = ey1
         norm = flux[i] / (sx * sy)
-        ya, xa = max(y0, 0), max(x0, 0)
-        yb, xb = min(y0 + n, h), min(x0 + n, w)
-        if ya >= yb or xa >= xb:
-            continue
+        if len(row) < n:
+            row = np.empty(n)
         pk = 0.0
-        nn = f * f
         for yy in range(ya, yb):
-            row = (yy // f) * wb * nn + (yy % f) * f
-            k = row + (xa // f) * nn + xa % f
-            rx = xa % f
-            gyv = gy[yy - y0] * norm
+            a = gy[yy - y0] * norm
             for xx in range(xa, xb):
-                v = gyv * gx[xx - x0]
-                buf[k] += v
-                paint[k] = True
-                pk = max(pk, v)
-                rx += 1
-                if rx == f:
-                    rx = 0
-                    k += nn - f + 1
-                else:
-                    k += 1
-        for by in range(ya // f, (yb - 1) // f + 1):
-            for bx in range(xa // f, (xb - 1) // f + 1):
-                mark[by * wb + bx] = 1
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = ya, yb, xa, xb
+                row[xx - xa] = a * gx[xx - x0]
+            pk = max(pk, _add(buf, paint, slot, f, wb, yy, xa, xb, row, 0))
         peaks[i] = pk
-    return boxes, peaks
+    return peaks
 
 
 @njit(cache=True)
-def _paint_patches(buf, mark, paint, y0s, x0s, hs, ws, starts, flat, f, h, w):
-    """Generic stamps (Moffat, Airy, streaks, cosmic-ray charge) into ``buf``; like _paint_gauss."""
+def _paint_patches(buf, paint, slot, y0s, x0s, hs, ws, starts, flat, f, h, w):
+    """Generic stamps (Moffat, Airy, streaks, cosmic-ray charge) into the compact buffer."""
     wb = w // f
-    boxes = np.full((len(y0s), 4), -1, np.int64)
     peaks = np.zeros(len(y0s))
     for i in range(len(y0s)):
         y0, x0, ph, pw = y0s[i], x0s[i], hs[i], ws[i]
@@ -216,39 +247,58 @@ def _paint_patches(buf, mark, paint, y0s, x0s, hs, ws, starts, flat, f, h, w):
             continue
         pk = 0.0
         for yy in range(ya, yb):
-            for xx in range(xa, xb):
-                v = flat[starts[i] + (yy - y0) * pw + (xx - x0)]
-                k = _bm(yy, xx, f, wb)
-                buf[k] += v
-                paint[k] = True
-                pk = max(pk, v)
-        for by in range(ya // f, (yb - 1) // f + 1):
-            for bx in range(xa // f, (xb - 1) // f + 1):
-                mark[by * wb + bx] = 1
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = ya, yb, xa, xb
+            pk = max(pk, _add(buf, paint, slot, f, wb, yy, xa, xb, flat, starts[i] + (yy - y0) * pw + (xa - x0)))
         peaks[i] = pk
-    return boxes, peaks
+    return peaks
+
+
+@njit(cache=True)
+def _next(state):
+    """Next 64-bit output of the SplitMix64 stream ``state[0]`` (as :mod:`skygen.hashrng`)."""
+    s = state[0] + np.uint64(0x9E3779B97F4A7C15)
+    state[0] = s
+    z = (s ^ (s >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True)
+def _uniforms_sum(state, k):
+    """Sum of ``k`` independent uniforms on [0, 1) (53-bit, SplitMix64 stream ``state[0]``):
+    the quantisation of k separate ADC conversions; faster than k calls of numba's MT19937."""
+    acc = 0.0
+    for _ in range(k):
+        acc += np.float64(_next(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    return acc
+
+
+@njit(cache=True)
+def _round(total, n, even, max_adu):
+    q = total // n
+    r = total - q * n
+    if 2 * r > n or (2 * r == n and (not even or q % 2 == 1)):
+        q += 1
+    return min(max(q, 0), max_adu)
 
 
 @njit(cache=True)
 def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_special, bg, bg_bm, use_map,
-                  sigma, g, offset_sum, limit, even, max_adu, seed, out, risky, lam_out):
-    """Stored values of the listed blocks by the block-sum model (module doc), drawn from
-    numba's generator seeded with ``seed``, written into ``out`` (which holds the
-    background-only draw of every block).
+                  sigma, g, offset_sum, limit, even, max_adu, state, out, risky, lam_out):
+    """Stored values of the marked blocks (slot i = ``blocks[i]``) by the block-sum model (module
+    doc), drawn from numba's generator (seeded by the caller), written into ``out`` (which
+    holds the background-only draw of every block).
 
     A block of uniform background whose only extra light is starlight (no hot, dead or
     cosmic-ray pixel) first draws its star photons M ~ Poisson(sum of star light): the
     Poisson splits into background + star, so with M = 0 the block *is* a background-only
     block and keeps its table draw; otherwise its electrons are Poisson(background) + M.
     A block where a pixel may reach ``limit`` (full well or ADC top) is flagged in
-    ``risky`` (expected electrons in ``lam_out``) for the per-pixel path. The scratch
-    buffers are read, not cleared."""
-    np.random.seed(seed)
+    ``risky`` (expected electrons in ``lam_out``) for the per-pixel path."""
     sn = sigma * math.sqrt(n)
     for i in range(len(blocks)):
         b = blocks[i]
-        base = b * n
+        bs = b * n                      # static maps (block-major)
+        bc = i * n                      # this frame's compact buffers
         lam_bg = 0.0
         lam_star = 0.0
         chg = 0.0
@@ -256,15 +306,14 @@ def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static
         special = use_map or static_special[b]
         if has_charge:
             for j in range(n):
-                if charge[base + j] > 0:
+                if charge[bc + j] > 0:
                     special = True
         if special:
             for j in range(n):
-                k = base + j
-                if live[k]:
-                    bk = (bg_bm[k] if use_map else bg) + hot_e[k]
-                    v = star[k] * prnu[k]
-                    c = charge[k] if has_charge else 0.0
+                if live[bs + j]:
+                    bk = (bg_bm[bs + j] if use_map else bg) + hot_e[bs + j]
+                    v = star[bc + j] * prnu[bs + j]
+                    c = charge[bc + j] if has_charge else 0.0
                     lam_bg += bk
                     lam_star += v
                     chg += c
@@ -272,7 +321,7 @@ def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static
         else:
             vmax = 0.0
             for j in range(n):
-                v = star[base + j] * prnu[base + j]
+                v = star[bc + j] * prnu[bs + j]
                 lam_star += v
                 vmax = max(vmax, v)
             lam_bg = n * bg
@@ -285,26 +334,122 @@ def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static
         if m == 0 and not special:
             continue
         t = np.random.poisson(lam_bg) + m + chg + sn * np.random.standard_normal()
-        ih = 0.0
-        for _ in range(n - 1):
-            ih += np.random.random()
-        total = np.int64(math.floor(t / g - ih)) + offset_sum[b]
-        q = total // n
-        r = total - q * n
-        if 2 * r > n or (2 * r == n and (not even or q % 2 == 1)):
-            q += 1
-        out[b] = min(max(q, 0), max_adu)
+        ih = _uniforms_sum(state, n - 1)
+        out[b] = _round(np.int64(math.floor(t / g - ih)) + offset_sum[b], n, even, max_adu)
 
 
 @njit(cache=True)
-def _background_draw(u32, cls, lut8, thr, nthr, vmin, amb):
-    """Stored values of background-only blocks: class ``cls[i]`` (its offset sum) resolved by
-    the top byte of ``u32[i]`` where that decides, else by the 32-bit thresholds."""
-    out = np.empty(len(u32), np.uint16)
-    for i in range(len(u32)):
+def _bloom_column(col, full_well):
+    """:func:`skygen.sensor.bloom` on one column (in place)."""
+    h = len(col)
+    first, last = -1, -1
+    excess = 0.0
+    for r in range(h):
+        if col[r] > full_well:
+            excess += col[r] - full_well
+            col[r] = full_well
+            if first < 0:
+                first = r
+            last = r
+    if first < 0:
+        return
+    for direction, start in ((-1, first - 1), (1, last + 1)):
+        q = excess / 2.0
+        r = start
+        while q > 0 and 0 <= r < h:
+            take = min(full_well - col[r], q)
+            col[r] += take
+            q -= take
+            r += direction
+
+
+@njit(cache=True)
+def _exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, prnu, live, hot_e, static_px, bg,
+                  bg_bm, use_map, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
+    """Blocks drawn pixel by pixel as :func:`skygen.sensor.read_out` draws them: Poisson,
+    cosmic charge, dead pixels, blooming (spilled charge kept only on pixels the full renderer
+    draws exactly: source boxes, their blooming extensions, hot and dead pixels), full well,
+    read noise, ADC with offset and clipping; the stored value of each block into ``out``."""
+    m = len(exact)
+    e = np.zeros(m * n)
+    on = np.zeros(m * n, np.bool_)
+    ys = np.empty(m * n, np.int64)
+    xs = np.empty(m * n, np.int64)
+    any_over = False
+    for i in range(m):
+        b = exact[i]
+        sl = slot[b]
+        for j in range(n):
+            k, bs = i * n + j, b * n + j
+            ys[k] = (b // wb) * f + j // f
+            xs[k] = (b % wb) * f + j % f
+            lam = (bg_bm[bs] if use_map else bg) + hot_e[bs]
+            c = 0.0
+            if sl >= 0:
+                lam += star[sl * n + j] * prnu[bs]
+                on[k] = paint[sl * n + j]
+                if has_charge:
+                    c = charge[sl * n + j]
+            on[k] = on[k] or static_px[bs]
+            for q in range(len(bloom_boxes)):
+                if (bloom_boxes[q, 0] <= ys[k] < bloom_boxes[q, 1]) and (bloom_boxes[q, 2] <= xs[k] < bloom_boxes[q, 3]):
+                    on[k] = True
+            v = np.random.poisson(lam) + c
+            if not live[bs]:
+                v = 0.0
+            e[k] = v
+            if v > full_well:
+                any_over = True
+    if blooming and any_over:
+        done = np.zeros(0, np.int64)
+        for k in range(m * n):
+            if e[k] > full_well and on[k]:
+                c = xs[k]
+                seen = False
+                for d in done:
+                    if d == c:
+                        seen = True
+                if seen:
+                    continue
+                done = np.append(done, c)
+                col = np.zeros(h)
+                for k2 in range(m * n):
+                    if xs[k2] == c and on[k2]:
+                        col[ys[k2]] = e[k2]
+                _bloom_column(col, full_well)
+                for k2 in range(m * n):
+                    if xs[k2] == c and on[k2]:
+                        e[k2] = col[ys[k2]]
+    for i in range(m):
+        total = np.int64(0)
+        for j in range(n):
+            k = i * n + j
+            v = min(e[k], full_well) + sigma * np.random.standard_normal()
+            a = np.int64(math.floor(v / g)) + offset[exact[i] * n + j]
+            total += min(max(a, 0), max_adu)
+        out[exact[i]] = _round(total, n, even, max_adu)
+
+
+@njit(cache=True)
+def _seed(seed):
+    np.random.seed(seed)
+
+
+@njit(cache=True)
+def _background_draw(state, cls, lut8, thr, nthr, vmin, amb):
+    """Stored values of background-only blocks: a 32-bit uniform u each (two per SplitMix64
+    output), class ``cls[i]`` (its offset sum) resolved by the top byte of u where that
+    decides, else by the 32-bit thresholds (the renderer's own table scheme)."""
+    out = np.empty(len(cls), np.uint16)
+    z = np.uint64(0)
+    for i in range(len(cls)):
         c = cls[i]
-        u = u32[i]
-        j = lut8[c, u >> 24]
+        if i % 2 == 0:
+            z = _next(state)
+            u = z >> np.uint64(32)
+        else:
+            u = z & np.uint64(0xFFFFFFFF)
+        j = lut8[c, u >> np.uint64(24)]
         if j == amb:
             lo, hi = 0, nthr[c] - 1
             while lo < hi:                      # first j with u < thr[c, j]
@@ -318,25 +463,15 @@ def _background_draw(u32, cls, lut8, thr, nthr, vmin, amb):
     return out
 
 
-@njit(cache=True)
-def _clear(blocks, n, star, charge, paint, has_charge):
-    for i in range(len(blocks)):
-        base = blocks[i] * n
-        for j in range(n):
-            star[base + j] = 0.0
-            paint[base + j] = False
-            if has_charge:
-                charge[base + j] = 0.0
-
-
 # ---------------------------------------------------------------------------------- renderer
 class BinnedRenderer:
     """Stored-size uint16 frames of a :class:`skygen.render.Renderer`'s scenes (module doc).
 
     Construct once per process (static maps are binned here). :meth:`image` is a pure
-    function of (config, scene, numba version): its draws come from the scene's own
-    generator, stage ``"binned_noise"`` (never the full renderer's draws), which also seeds
-    numba's generator for the block-sum model."""
+    function of (config, scene, seed, numba version): one 64-bit seed starts a SplitMix64
+    stream (uniforms) and numba's generator (Poisson and Gaussian draws); by default it comes
+    from the scene's generator of stage ``"binned_noise"`` (never the full renderer's draws);
+    the frames stream passes counter-based seeds (:mod:`skygen.hashrng`)."""
 
     def __init__(self, renderer):
         reason = unsupported_reason(renderer)
@@ -363,16 +498,11 @@ class BinnedRenderer:
         self.static_px = bm((maps.hot_map > 0) | maps.dead_mask)
         self.static_special = self.static_px.reshape(-1, n).any(1)
         self.static_blocks = np.flatnonzero(self.static_special)
-        dy, dx = np.divmod(np.arange(n), f)
-        by, bx = np.divmod(np.arange(hb * wb), wb)
-        self.px_y = bm(np.repeat(np.arange(h)[:, None], w, 1))            # sensor row of each entry
-        self.px_x = bm(np.repeat(np.arange(w)[None, :], h, 0))
         self.max_adu = 2 ** s.bit_depth - 1
         self.off_max = int(maps.offset_adu.max())
-        self._star = np.zeros(h * w)             # scratch: expected star electrons per sensor pixel
-        self._charge = np.zeros(h * w)           # scratch: cosmic-ray charge per sensor pixel
-        self._paint = np.zeros(h * w, bool)      # scratch: pixels the full renderer draws exactly
-        self._mark = np.zeros(hb * wb, np.uint8)
+        self._mark = np.zeros(hb * wb, np.uint8)     # scratch: blocks a source touches
+        self._slot = np.full(hb * wb, -1, np.int64)  # their compact slots (-1: none)
+        self._blocks = np.zeros(hb * wb, np.int64)
         self._tables: dict = {}
 
     def to_block_major(self, a: np.ndarray) -> np.ndarray:
@@ -416,96 +546,125 @@ class BinnedRenderer:
                                   np.array([sm.kmin for sm in samplers], np.int64))}
         return self._tables[key]
 
-    def _stamps(self, stars: dict):
-        """Paint every light source into the scratch buffer; return (boxes, peaks, fluxes)."""
+    def _boxes(self, y0, x0, hh, ww) -> np.ndarray:
+        """Clipped half-open boxes (y0, y1, x0, x1) of patches; -1 rows for patches off the sensor."""
+        h, w = self.sensor_shape
+        box = np.stack([np.maximum(y0, 0), np.minimum(y0 + hh, h), np.maximum(x0, 0), np.minimum(x0 + ww, w)], 1)
+        box = box.astype(np.int64)
+        box[(box[:, 0] >= box[:, 1]) | (box[:, 2] >= box[:, 3])] = -1
+        return box
+
+    def _sources(self, stars: dict):
+        """(boxes, painter) of the scene's light sources: the painter adds them to a compact buffer
+        once slots exist and returns each source's peak pixel."""
         o = self.r.cfg.optics
         h, w = self.sensor_shape
         flux = np.asarray(stars["electrons"], np.float64)
-        if len(flux) == 0:
-            return np.zeros((0, 4), np.int64), np.zeros(0), flux
         if stars["paths"] is None and o.psf == "gaussian":
-            radii = gaussian_radius_px(flux, o.psf_sigma_px).astype(np.int64)
-            boxes, peaks = _paint_gauss(self._star, self._mark, self._paint, np.asarray(stars["x_px"], np.float64),
-                                        np.asarray(stars["y_px"], np.float64), flux, radii,
-                                        float(o.psf_sigma_px), self.f, h, w)
-            return boxes, peaks, flux
+            x, y = np.asarray(stars["x_px"], np.float64), np.asarray(stars["y_px"], np.float64)
+            radii = gaussian_radius_px(flux, o.psf_sigma_px).astype(np.int64) if len(flux) else np.zeros(0, np.int64)
+            boxes = self._boxes(np.floor(y + 0.5).astype(np.int64) - radii, np.floor(x + 0.5).astype(np.int64) - radii,
+                                2 * radii + 1, 2 * radii + 1)
+            return boxes, lambda buf, paint: _paint_gauss(buf, paint, self._slot, x, y, flux, radii,
+                                                          float(o.psf_sigma_px), self.f, h, w)
         if stars["paths"] is None:
             st = [stamp(float(x), float(y), float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
                   for x, y, fl in zip(stars["x_px"], stars["y_px"], flux)]
         else:
             st = [streak(xs, ys, float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
                   for xs, ys, fl in zip(stars["paths"][0], stars["paths"][1], flux)]
-        boxes, peaks = self._paint_list(self._star, st)
-        return boxes, peaks, flux
+        return self._patches(st)
 
-    def _paint_list(self, buf, patches):
+    def _patches(self, patches):
         h, w = self.sensor_shape
-        sizes = np.array([p.size for _, _, p in patches], np.int64)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        flat = np.concatenate([p.ravel() for _, _, p in patches]).astype(np.float64)
-        return _paint_patches(buf, self._mark, self._paint, np.array([p[0] for p in patches], np.int64),
-                              np.array([p[1] for p in patches], np.int64),
-                              np.array([p[2].shape[0] for p in patches], np.int64),
-                              np.array([p[2].shape[1] for p in patches], np.int64), starts, flat, self.f, h, w)
+        if not patches:
+            return np.zeros((0, 4), np.int64), lambda buf, paint: np.zeros(0)
+        y0 = np.array([p[0] for p in patches], np.int64)
+        x0 = np.array([p[1] for p in patches], np.int64)
+        hh = np.array([p[2].shape[0] for p in patches], np.int64)
+        ww = np.array([p[2].shape[1] for p in patches], np.int64)
+        starts = np.concatenate([[0], np.cumsum(hh * ww)[:-1]]).astype(np.int64)
+        flat = np.concatenate([p[2].ravel() for p in patches]).astype(np.float64)
+        return self._boxes(y0, x0, hh, ww), lambda buf, paint: _paint_patches(buf, paint, self._slot, y0, x0, hh, ww,
+                                                                               starts, flat, self.f, h, w)
 
     # ------------------------------------------------------------------ frame
-    def image(self, scene, rng: np.random.Generator | None = None) -> np.ndarray:
-        """The stored-size uint16 ADU image (h/s, w/s) of ``scene``."""
+    def image(self, scene, seed: int | None = None) -> np.ndarray:
+        """The stored-size uint16 ADU image (h/s, w/s) of ``scene``; every draw comes from the
+        64-bit ``seed`` (default: from the scene's generator of stage ``binned_noise``)."""
         from . import corruptions as corr
         r, cfg = self.r, self.r.cfg
         s = cfg.sensor
         f, n, (hb, wb) = self.f, self.n, self.shape
-        if rng is None:
-            rng = corr.stage_rng(cfg.seed, scene.rng_key, "binned_noise" + r.rng_tag)
+        if seed is None:
+            seed = int(corr.stage_rng(cfg.seed, scene.rng_key, "binned_noise" + r.rng_tag).bit_generator.random_raw())
+        state = np.array([seed], np.uint64)
+        _seed(int(seed & 0xFFFFFFFF))
         sigma = self.sigma_e()
         g = float(s.gain_e_per_adu)
         bg_map = r.background_map(scene)
-        bg_bm = self.to_block_major(bg_map.astype(np.float64)) if bg_map is not None else np.zeros(1)
-        # 1. light sources and charge into the sensor-size scratch buffers, their blocks marked
-        boxes, peaks, flux = self._stamps(scene.stars)
-        bloom_boxes = []
-        if s.blooming and len(flux):
-            fw = s.full_well_e
-            for k in np.flatnonzero((boxes[:, 0] >= 0) & (peaks > 0.5 * fw)):   # as Renderer._deposit extends them
-                ya, yb, xa, xb = (int(v) for v in boxes[k])
-                extra = int(np.ceil(flux[k] / fw)) + 2
-                bloom_boxes.append((max(ya - extra, 0), min(yb + extra, cfg.camera.height_px), xa, xb))
+        use_map = bg_map is not None
+        bg_bm = self.to_block_major(bg_map.astype(np.float64)) if use_map else np.zeros(1)
+        # 1. the blocks light sources, cosmic rays, hot and dead pixels touch get compact slots
+        boxes, paint_stars = self._sources(scene.stars)
         has_charge = bool(scene.cosmic_rays)
-        if has_charge:
-            self._paint_list(self._charge, scene.cosmic_rays)
+        cboxes, paint_charge = self._patches(scene.cosmic_rays)
         mark = self._mark
-        # 2. background-only blocks: the exact n-fold convolution, per offset class (every block
-        #    is drawn; marked ones are overwritten below, so two draws never mix)
-        if bg_map is None:
+        _mark_boxes(mark, boxes, f, wb)
+        _mark_boxes(mark, cboxes, f, wb)
+        if use_map:
+            mark[:] = 1
+        mark[self.static_blocks] = 1
+        m = _slots(mark, self._slot, self._blocks)
+        blocks = self._blocks[:m]
+        star, paint = np.zeros(m * n), np.zeros(m * n, bool)
+        charge = np.zeros(m * n) if has_charge else np.zeros(1)
+        peaks = paint_stars(star, paint)
+        if has_charge:
+            paint_charge(charge, paint)
+        flux = np.asarray(scene.stars["electrons"], np.float64)
+        bloom_boxes = np.zeros((0, 4), np.int64)
+        if s.blooming and len(flux):           # as Renderer._deposit extends a bright star's box
+            big = np.flatnonzero((boxes[:, 0] >= 0) & (peaks > 0.5 * s.full_well_e))
+            if len(big):
+                extra = np.ceil(flux[big] / s.full_well_e).astype(np.int64) + 2
+                bloom_boxes = boxes[big].copy()
+                bloom_boxes[:, 0] = np.maximum(bloom_boxes[:, 0] - extra, 0)
+                bloom_boxes[:, 1] = np.minimum(bloom_boxes[:, 1] + extra, cfg.camera.height_px)
+        # 2. every block from the exact n-fold convolution of the background, per offset class
+        #    (marked blocks are overwritten below, so two draws never mix)
+        if not use_map:
             lut8, thr, nthr, vmin = self.background_tables(float(r.background_e), sigma)
-            u32 = rng.bit_generator.random_raw((hb * wb + 1) // 2).view(np.uint32)[:hb * wb]
-            out = _background_draw(u32, self.offset_class, lut8, thr, nthr, vmin, 255)
-            mark[self.static_blocks] = 1
-            blocks = np.flatnonzero(mark)
+            out = _background_draw(state, self.offset_class, lut8, thr, nthr, vmin, 255)
         else:
             out = np.empty(hb * wb, np.uint16)
-            blocks = np.arange(hb * wb)
-        mark[:] = 0
         # 3. marked blocks: the block-sum model, unless a pixel may saturate or clip
         limit = min(s.full_well_e, g * (self.max_adu - self.off_max))
-        risky = np.zeros(len(blocks), bool)
-        lam = np.empty(len(blocks))
-        _model_blocks(blocks, n, self._star, self._charge, has_charge, self.prnu, self.live, self.hot_e,
-                      self.static_special, float(r.background_e), bg_bm, bg_map is not None, sigma, g,
-                      self.offset_sum, limit, self.rule == "half_even", self.max_adu, int(rng.integers(2 ** 32)),
-                      out, risky, lam)
-        # 4. risky blocks (and as far along their columns as blooming reaches): every sensor
-        #    pixel as sensor.read_out draws it
+        risky = np.zeros(m, bool)
+        lam = np.empty(m)
+        even = self.rule == "half_even"
+        _model_blocks(blocks, n, star, charge, has_charge, self.prnu, self.live, self.hot_e, self.static_special,
+                      float(r.background_e), bg_bm, use_map, sigma, g, self.offset_sum, limit, even, self.max_adu,
+                      state, out, risky, lam)
+        # 4. risky blocks, and as far along their columns as blooming reaches: pixel by pixel
         if risky.any():
             exact = self._exact_region(blocks[risky], lam[risky], bloom_boxes)
-            total = self._exact_sums(exact, bloom_boxes, bg_bm if bg_map is not None else None, sigma, rng)
-            out[exact] = np.clip(round_block_sums(total, n, self.rule), 0, self.max_adu)
-            _clear(exact, n, self._star, self._charge, self._paint, has_charge)
-        _clear(blocks, n, self._star, self._charge, self._paint, has_charge)
+            hit = [bb for bb in bloom_boxes if self._touches(bb, exact)]
+            _exact_blocks(exact, self._slot, n, f, wb, self.sensor_shape[0], star, charge, has_charge, paint,
+                          self.prnu, self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
+                          np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
+                          self.offset, self.max_adu, even, out)
         return out.reshape(hb, wb)
 
-    def _exact_region(self, risky_blocks: np.ndarray, risky_lam: np.ndarray, bloom_boxes: list) -> np.ndarray:
-        """Risky blocks, extended along their columns as far as blooming can carry charge."""
+    def _touches(self, box, exact: np.ndarray) -> bool:
+        f, wb = self.f, self.shape[1]
+        by, bx = exact // wb, exact % wb
+        return bool(((by >= box[0] // f) & (by <= (box[1] - 1) // f) & (bx >= box[2] // f)
+                     & (bx <= (box[3] - 1) // f)).any())
+
+    def _exact_region(self, risky_blocks: np.ndarray, risky_lam: np.ndarray, bloom_boxes: np.ndarray) -> np.ndarray:
+        """Risky blocks, extended along their columns as far as blooming can carry charge, and
+        the whole (extended) box of a bloom-capable star that reaches them."""
         f, (hb, wb) = self.f, self.shape
         fw = self.r.cfg.sensor.full_well_e
         sel = np.zeros((hb, wb), bool)
@@ -513,40 +672,10 @@ class BinnedRenderer:
             by, bx = divmod(int(b), wb)
             reach = int(np.ceil((lam / fw + 2) / f)) if self.r.cfg.sensor.blooming else 0
             sel[max(by - reach, 0):by + reach + 1, bx] = True
-        for ya, yb, xa, xb in bloom_boxes:       # a bloom-capable star: its whole (extended) box
+        for ya, yb, xa, xb in bloom_boxes:
             if sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1].any():
                 sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1] = True
         return np.flatnonzero(sel)
-
-    def _exact_sums(self, exact, bloom_boxes, bg_bm, sigma, rng) -> np.ndarray:
-        """Block sums of ``exact`` blocks from per-pixel draws (the model of sensor.read_out)."""
-        s = self.r.cfg.sensor
-        n = self.n
-        h, w = self.sensor_shape
-        idx = (exact[:, None] * n + np.arange(n)[None, :]).ravel()      # block-major entries
-        yy, xx = self.px_y[idx], self.px_x[idx]
-        lam = bg_bm[idx].copy() if bg_bm is not None else np.full(idx.size, float(self.r.background_e))
-        lam += self._star[idx] * self.prnu[idx] + self.hot_e[idx]
-        e = rng.poisson(lam).astype(np.float64) + self._charge[idx]
-        e[~self.live[idx]] = 0.0
-        if s.blooming and (e > s.full_well_e).any():
-            # charge spills only onto pixels the full renderer draws exactly (its "painted" set)
-            on_px = self._paint[idx] | self.static_px[idx]
-            for ya, yb, xa, xb in bloom_boxes:
-                on_px |= (yy >= ya) & (yy < yb) & (xx >= xa) & (xx < xb)
-            cols = np.unique(xx[e > s.full_well_e])
-            charge = np.zeros((h, len(cols)))
-            col_of = np.full(w, -1)
-            col_of[cols] = np.arange(len(cols))
-            on = (col_of[xx] >= 0) & on_px
-            charge[yy[on], col_of[xx[on]]] = e[on]
-            bloom(charge, s.full_well_e)
-            e[on] = charge[yy[on], col_of[xx[on]]]
-        np.minimum(e, s.full_well_e, out=e)
-        if sigma > 0:
-            e += sigma * rng.standard_normal(e.size)
-        k = np.floor(e / s.gain_e_per_adu).astype(np.int64) + self.offset[idx]
-        return np.clip(k, 0, self.max_adu).reshape(len(exact), n).sum(1)
 
 
 __all__ = ["BinnedRenderer", "unsupported_reason", "area_rounding", "round_block_sums", "aliasing_bound"]

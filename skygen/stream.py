@@ -71,6 +71,7 @@ STAR_KEYS = ("hip_id", "x_px", "y_px", "mag", "electrons")
 _D_ATT = 0            # 0..2
 _D_LEVEL = 8          # one per RANGED corruption
 _D_NFALSE = 16
+_D_IMAGE = 17         # frames stream (binned): the seed of the image's noise
 _D_SPUR = 1 << 40
 _D_CORR = 1 << 44     # detection-level corruptions: + 4 * source id
 _FALSE_ID = 1 << 30   # source ids of false stars: _FALSE_ID + k (catalog rows are below)
@@ -297,10 +298,11 @@ class SampleStream:
         levels = self.levels_of(idx)
         per = [{k: float(v[j]) for k, v in levels.items()} for j in range(B)] if self.level_ranges else [None] * B
         scenes, images, trues = [], [], []
-        for i, lv in zip(idx, per):
+        seeds = hashrng.bits(key, idx, _D_IMAGE)
+        for i, lv, seed in zip(idx, per, seeds):
             with r.with_levels(lv):
                 sc = r.scene(int(i))
-                images.append(self.binned.image(sc))
+                images.append(self.binned.image(sc, int(seed)))
             st = sc.stars
             inside = cam.inside(st["x_px"], st["y_px"])
             scenes.append(sc)
