@@ -7,8 +7,10 @@ same samples. Two kinds:
 
 ``frames``
     Image at the stored size, detections, true stars, labels. Two renderers of the same
-    scene (:meth:`skygen.render.Renderer.scene` of sample ``i``), chosen by
-    ``frames_renderer``:
+    scene, chosen by ``frames_renderer``:
+
+    The scenes of a batch come from :class:`skygen.scenes.SceneBuilder` (counter-based,
+    vectorised; distributed as ``Renderer.scene`` draws them).
 
     * ``"binned"`` (default): :class:`skygen.binned.BinnedRenderer` draws the stored pixels
       directly, equal in distribution to render-then-downsample (its module docstring has
@@ -31,10 +33,10 @@ same samples. Two kinds:
 
 Sample identity
     A stream never reproduces a dataset's frames, even with the same seed: frame-stream
-    sample ``i`` draws from generators tagged ``@stream-frames`` (a dataset's frame ``i``
-    uses untagged ones), and the detection stream draws counter-based numbers keyed by
-    (seed, ``"@stream-detections"``) (:mod:`skygen.hashrng`). ``tests/test_stream.py``
-    checks both.
+    sample ``i`` draws counter-based numbers keyed by (seed, ``"@stream-frames"``) and
+    generators tagged ``@stream-frames`` (a dataset's frame ``i`` uses untagged generators),
+    and the detection stream counter-based numbers keyed by (seed, ``"@stream-detections"``)
+    (:mod:`skygen.hashrng`). ``tests/test_stream.py`` checks both.
 
 Corruption-aware training
     ``level_ranges={"dropout": (0, 0.3), ...}`` draws each sample's severity of the named
@@ -161,8 +163,11 @@ class SampleStream:
         self.model = None
         self.binned = None
         self.frames_renderer = frames_renderer if kind == "frames" else None
-        if kind == "frames" and frames_renderer == "binned":
-            self._setup_binned(calibration)
+        if kind == "frames":
+            from .scenes import SceneBuilder
+            self.scene_builder = SceneBuilder(self.renderer, self.key)
+            if frames_renderer == "binned":
+                self._setup_binned(calibration)
         if kind == "detections":
             self.model = _load_calibration(calibration, cfg)
             r = self.renderer
@@ -233,8 +238,13 @@ class SampleStream:
             raise ConfigError("frame() needs a stream of kind 'frames'")
         if self.binned is not None:
             return self.binned_frames([i])[0]
-        levels = {k: float(v[0]) for k, v in self.levels_of(np.array([i])).items()} if self.level_ranges else None
-        fr = self.renderer.render(i, levels)
+        r = self.renderer
+        arrays = self.levels_of(np.array([i]))
+        levels = {k: float(v[0]) for k, v in arrays.items()} if self.level_ranges else None
+        scene = self.scene_builder.scenes(np.array([i]), arrays)[0]
+        with r.with_levels(levels):
+            full, log = r.rasterise(scene)
+            fr = r.finish(scene, full, log=log)
         fr.split = -1
         return fr
 
@@ -265,10 +275,7 @@ class SampleStream:
             self._torch = TorchRenderer(self.cfg, device, renderer=self.renderer)
         levels = self.levels_of(np.array(idx))
         per = [{k: float(v[j]) for k, v in levels.items()} for j in range(len(idx))] if self.level_ranges else [None] * len(idx)
-        scenes = []
-        for i, lv in zip(idx, per):
-            with self.renderer.with_levels(lv):
-                scenes.append(self.renderer.scene(i))
+        scenes = self.scene_builder.scenes(np.array(idx), levels)
         gen = torch.Generator(device=self._torch.device)
         gen.manual_seed(int(hashrng.bits(self.key, idx[0], 7) >> np.uint64(1)))
         batch = self._torch.rasterise(scenes, gen, full_res=True)
@@ -297,15 +304,13 @@ class SampleStream:
         r, cam, key, B = self.renderer, self.renderer.camera, self.key, len(idx)
         levels = self.levels_of(idx)
         per = [{k: float(v[j]) for k, v in levels.items()} for j in range(B)] if self.level_ranges else [None] * B
-        scenes, images, trues = [], [], []
+        scenes, images, trues = self.scene_builder.scenes(idx, levels), [], []
         seeds = hashrng.bits(key, idx, _D_IMAGE)
-        for i, lv, seed in zip(idx, per, seeds):
+        for sc, lv, seed in zip(scenes, per, seeds):
             with r.with_levels(lv):
-                sc = r.scene(int(i))
                 images.append(self.binned.image(sc, int(seed)))
             st = sc.stars
             inside = cam.inside(st["x_px"], st["y_px"])
-            scenes.append(sc)
             trues.append({k: v[inside] for k, v in st.items() if k != "paths"})
         n_src = np.array([len(t["x_px"]) for t in trues], np.int64)
         fr = np.repeat(np.arange(B), n_src)

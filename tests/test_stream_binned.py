@@ -303,3 +303,26 @@ def test_frames_stream_uses_binned_renderer_with_emulated_detections():
                               d["y_px"][ok] - one.stars["y_px"][d["star_index"][ok]])) < 0.5
     with pytest.raises(Exception, match="frames renderer"):
         SampleStream(cfg, "frames", frames_renderer="fast")
+
+
+def test_scene_builder_draws_scenes_like_the_renderer(renderer):
+    """The stream's vectorised scenes (skygen.scenes) against Renderer.scene: same distribution of
+    stars per scene, their electrons, declination, false stars and cosmic-ray hits (two-sample KS,
+    p > 1e-3); the same stars, projected and sized alike, for a given attitude."""
+    from skygen import hashrng
+    from skygen.scenes import SceneBuilder
+    cfg = load_config(overrides=["corruptions.false_stars=1.5", "corruptions.cosmic_rays=200"])
+    r = Renderer(cfg, rng_tag="@stream-frames")
+    built = SceneBuilder(r, hashrng.stream_key(cfg.seed, "@stream-frames")).scenes(np.arange(400), {})
+    ref = [r.scene(i) for i in range(400)]
+    for stat in (lambda sc: (sc.stars["hip_id"] >= 0).sum(), lambda sc: sc.stars["electrons"].sum(),
+                 lambda sc: sc.dec_deg, lambda sc: (sc.stars["hip_id"] < 0).sum(), lambda sc: len(sc.cosmic_rays)):
+        a, b = [stat(sc) for sc in built], [stat(sc) for sc in ref]
+        assert stats.ks_2samp(a, b).pvalue > 1e-3, (np.mean(a), np.mean(b))
+    # same attitude -> the renderer's own star selection and projection
+    sc = built[7]
+    with r.with_levels({}):
+        stars = r._stars(sc.rotation, np.zeros(3), np.zeros(1))
+    cat = sc.stars["hip_id"] >= 0
+    np.testing.assert_array_equal(np.sort(stars["hip_id"]), np.sort(sc.stars["hip_id"][cat]))
+    np.testing.assert_allclose(np.sort(stars["electrons"]), np.sort(sc.stars["electrons"][cat]), rtol=1e-6)
