@@ -283,7 +283,7 @@ def _round(total, n, even, max_adu):
 
 @njit(cache=True)
 def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_special, bg, bg_bm, use_map,
-                  sigma, g, offset_sum, limit, even, max_adu, state, out, risky, lam_out):
+                  sigma, g, offset_sum, limit, even, max_adu, state, bg_thr, out, risky, lam_out):
     """Stored values of the marked blocks (slot i = ``blocks[i]``) by the block-sum model (module
     doc), drawn from numba's generator (seeded by the caller), written into ``out`` (which
     holds the background-only draw of every block).
@@ -333,7 +333,19 @@ def _model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static
         m = np.random.poisson(lam_star)
         if m == 0 and not special:
             continue
-        t = np.random.poisson(lam_bg) + m + chg + sn * np.random.standard_normal()
+        if special:
+            e_bg = np.random.poisson(lam_bg)
+        else:                            # Poisson(n * background) from its 2^-32 table
+            u = _next(state) >> np.uint64(32)
+            lo, hi = 0, len(bg_thr) - 1
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if u < bg_thr[mid]:
+                    hi = mid
+                else:
+                    lo = mid + 1
+            e_bg = lo
+        t = e_bg + m + chg + sn * np.random.standard_normal()
         ih = _uniforms_sum(state, n - 1)
         out[b] = _round(np.int64(math.floor(t / g - ih)) + offset_sum[b], n, even, max_adu)
 
@@ -444,11 +456,10 @@ def _background_draw(state, cls, lut8, thr, nthr, vmin, amb):
     z = np.uint64(0)
     for i in range(len(cls)):
         c = cls[i]
-        if i % 2 == 0:
+        if i & 1 == 0:
             z = _next(state)
-            u = z >> np.uint64(32)
-        else:
-            u = z & np.uint64(0xFFFFFFFF)
+        u = z & np.uint64(0xFFFFFFFF)
+        z = z >> np.uint64(32)
         j = lut8[c, u >> np.uint64(24)]
         if j == amb:
             lo, hi = 0, nthr[c] - 1
@@ -489,7 +500,7 @@ class BinnedRenderer:
         maps = self.maps = renderer.maps
         bm = self.to_block_major
         self.live = bm(~maps.dead_mask)
-        self.prnu = bm(maps.prnu.astype(np.float64))
+        self.prnu = bm(maps.prnu)                                   # float32, as the renderer's
         self.hot_e = bm(maps.hot_map.astype(np.float64) * s.exposure_s)
         self.offset = bm(maps.offset_adu.astype(np.int64))
         self.offset_sum = self.offset.reshape(-1, n).sum(1)                              # O_b
@@ -545,6 +556,18 @@ class BinnedRenderer:
                                   np.array([len(sm.thresholds) for sm in samplers], np.int64),
                                   np.array([sm.kmin for sm in samplers], np.int64))}
         return self._tables[key]
+
+    def poisson_table(self, lam: float) -> np.ndarray:
+        """32-bit CDF thresholds of Poisson(``lam``) (the background electrons of a whole block),
+        resolved to 2^-32 like the renderer's background tables."""
+        key = round(lam, 9)
+        if getattr(self, "_poisson_key", None) != key:
+            from scipy.stats import poisson
+            k = np.arange(0, int(lam + 14 * np.sqrt(lam) + 30))
+            cdf = np.minimum(np.rint(poisson.cdf(k, lam) * 2.0 ** 32), 2.0 ** 32).astype(np.uint64)
+            cdf[-1] = 2 ** 32
+            self._poisson_key, self._poisson_thr = key, cdf
+        return self._poisson_thr
 
     def _boxes(self, y0, x0, hh, ww) -> np.ndarray:
         """Clipped half-open boxes (y0, y1, x0, x1) of patches; -1 rows for patches off the sensor."""
@@ -645,7 +668,7 @@ class BinnedRenderer:
         even = self.rule == "half_even"
         _model_blocks(blocks, n, star, charge, has_charge, self.prnu, self.live, self.hot_e, self.static_special,
                       float(r.background_e), bg_bm, use_map, sigma, g, self.offset_sum, limit, even, self.max_adu,
-                      state, out, risky, lam)
+                      state, self.poisson_table(n * float(r.background_e)), out, risky, lam)
         # 4. risky blocks, and as far along their columns as blooming reaches: pixel by pixel
         if risky.any():
             exact = self._exact_region(blocks[risky], lam[risky], bloom_boxes)
