@@ -377,11 +377,12 @@ def _bloom_column(col, full_well):
 
 @njit(cache=True)
 def _exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, prnu, live, hot_e, static_px, bg,
-                  bg_bm, use_map, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
+                  bg_bm, use_map, all_on, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
     """Blocks drawn pixel by pixel as :func:`skygen.sensor.read_out` draws them: Poisson,
     cosmic charge, dead pixels, blooming (spilled charge kept only on pixels the full renderer
-    draws exactly: source boxes, their blooming extensions, hot and dead pixels), full well,
-    read noise, ADC with offset and clipping; the stored value of each block into ``out``."""
+    draws exactly: source boxes, their blooming extensions, hot and dead pixels; every pixel
+    when ``all_on``, i.e. when the full renderer draws every pixel exactly), full well, read
+    noise, ADC with offset and clipping; the stored value of each block into ``out``."""
     m = len(exact)
     e = np.zeros(m * n)
     on = np.zeros(m * n, np.bool_)
@@ -402,7 +403,7 @@ def _exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, prn
                 on[k] = paint[sl * n + j]
                 if has_charge:
                     c = charge[sl * n + j]
-            on[k] = on[k] or static_px[bs]
+            on[k] = on[k] or static_px[bs] or all_on
             for q in range(len(bloom_boxes)):
                 if (bloom_boxes[q, 0] <= ys[k] < bloom_boxes[q, 1]) and (bloom_boxes[q, 2] <= xs[k] < bloom_boxes[q, 3]):
                     on[k] = True
@@ -675,7 +676,7 @@ class BinnedRenderer:
             hit = [bb for bb in bloom_boxes if self._touches(bb, exact)]
             _exact_blocks(exact, self._slot, n, f, wb, self.sensor_shape[0], star, charge, has_charge, paint,
                           self.prnu, self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
-                          np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
+                          use_map or s.sampler == "exact", np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
                           self.offset, self.max_adu, even, out)
         return out.reshape(hb, wb)
 
