@@ -16,7 +16,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from skygen.binned import BinnedRenderer, aliasing_bound, area_rounding, round_block_sums, unsupported_reason
+from skygen.binned import (
+    BinnedRenderer,
+    aliasing_bound,
+    area_rounding,
+    round_block_sums,
+    unsupported_reason,
+)
 from skygen.config import load_config
 from skygen.render import Renderer
 from skygen.stream import SampleStream
@@ -197,7 +203,7 @@ def test_same_index_same_stars_at_same_stored_positions(renderer, pair):
             u, v = (x + 0.5) / F - 0.5, (y + 0.5) / F - 0.5
             c = []
             for im in (binned[i, 0], full[i, 0]):
-                a, b = int(round(u)), int(round(v))
+                a, b = round(u), round(v)
                 cut = im[b - 2:b + 3, a - 2:a + 3] - np.median(im)
                 cut = np.clip(cut, 0, None)
                 yy, xx = np.mgrid[b - 2:b + 3, a - 2:a + 3]
