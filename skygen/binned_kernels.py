@@ -151,6 +151,23 @@ def _uniforms_sum(state, k):
 
 
 @njit(cache=True)
+def _poisson(state, lam):
+    """Poisson(lam): inversion with one 53-bit uniform below lam = 10 (a block's star photons are
+    mostly a fraction of one), numba's PTRS sampler above."""
+    if lam >= 10.0:
+        return np.random.poisson(lam)
+    u = np.float64(_next(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    p = math.exp(-lam)
+    cdf = p
+    k = 0
+    while u >= cdf and k < 200:
+        k += 1
+        p *= lam / k
+        cdf += p
+    return k
+
+
+@njit(cache=True)
 def _round(total, n, even, max_adu):
     q = total // n
     r = total - q * n
@@ -208,7 +225,7 @@ def model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_
         if top + 8.0 * math.sqrt(top) + 8.0 * sigma >= limit:
             risky[i] = True
             continue
-        m = np.random.poisson(lam_star)
+        m = _poisson(state, lam_star)
         if m == 0 and not special:
             continue
         if special:
