@@ -163,7 +163,7 @@ class BinnedRenderer:
         self.offset = bm(maps.offset_adu.astype(np.int64))
         self.offset_sum = self.offset.reshape(-1, n).sum(1)                              # O_b
         self.offset_values, cls = np.unique(self.offset_sum, return_inverse=True)
-        self.offset_class = cls.astype(np.int32)
+        self.offset_class = cls.astype(np.uint8 if len(self.offset_values) <= 256 else np.int32)
         self.static_px = bm((maps.hot_map > 0) | maps.dead_mask)
         self.static_special = self.static_px.reshape(-1, n).any(1)
         self.static_blocks = np.flatnonzero(self.static_special)
