@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)), help="processes for 'all cores'")
     p.add_argument("--write", action="store_true", help="write results/skygen/stream_bench.{json,md}")
     a = p.parse_args(argv)
+    load_before = os.getloadavg()[0]
     rows = []
     for row, n, batch in (("detections", a.detections, a.batch), ("frames (full)", a.frames, 1),
                           ("frames (binned)", a.binned, a.frames_batch)):
@@ -94,8 +95,10 @@ def main(argv=None) -> int:
             rows.append(measure(row, n, batch, a.workers))
     host = f"{platform.machine()}{(' ' + platform.processor()) if platform.processor() else ''}, {os.cpu_count()} logical CPUs"
     threads = os.environ.get("OMP_NUM_THREADS", "unset")
+    load = (load_before, os.getloadavg()[0])
     lines = [f"stream throughput ({host}; OMP_NUM_THREADS={threads}; default camera 1024² stored at 256², "
-             "corruptions at defaults)", "",
+             f"corruptions at defaults; 1-min load average {load[0]:.1f} before, {load[1]:.1f} after: "
+             "other work shares the CPUs when it exceeds the processes used here)", "",
              "| kind | processes | samples | samples/s (wall) | samples per CPU-second | ms per sample per core |",
              "|---|---:|---:|---:|---:|---:|"]
     for r in rows:
@@ -106,7 +109,8 @@ def main(argv=None) -> int:
     if a.write:
         out = Path(__file__).resolve().parents[1] / "results" / "skygen"
         out.mkdir(parents=True, exist_ok=True)
-        (out / "stream_bench.json").write_text(json.dumps({"host": host, "rows": rows}, indent=2))
+        (out / "stream_bench.json").write_text(json.dumps({"host": host, "load_average_1min": load, "rows": rows},
+                                                         indent=2))
         (out / "stream_bench.md").write_text(text + "\n\nCommand: `OMP_NUM_THREADS=1 python benchmarks/stream_bench.py "
                                              "--write`\n")
     return 0

@@ -330,7 +330,7 @@ class BinnedRenderer:
         # 4. risky blocks, and as far along their columns as blooming reaches: pixel by pixel
         if risky.any():
             exact = self._exact_region(blocks[risky], lam[risky], bloom_boxes)
-            hit = [bb for bb in bloom_boxes if self._touches(bb, exact)]
+            hit = [bb for bb in bloom_boxes if self._touches(bb, exact)] if len(bloom_boxes) else []
             kern.exact_blocks(exact, self._slot, n, f, wb, self.sensor_shape[0], star, charge, has_charge, paint,
                           self.prnu, self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
                           use_map or s.sampler == "exact", np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
@@ -348,15 +348,22 @@ class BinnedRenderer:
         the whole (extended) box of a bloom-capable star that reaches them."""
         f, (hb, wb) = self.f, self.shape
         fw = self.r.cfg.sensor.full_well_e
+        reach = (np.ceil((risky_lam / fw + 2) / f).astype(np.int64) if self.r.cfg.sensor.blooming
+                 else np.zeros(len(risky_blocks), np.int64))
+        key = (risky_blocks.tobytes(), reach.tobytes())
+        if not len(bloom_boxes) and getattr(self, "_region_key", None) == key:
+            return self._region              # the usual case: the same saturating hot pixels as before
         sel = np.zeros((hb, wb), bool)
-        for b, lam in zip(risky_blocks, risky_lam):
+        for b, rb in zip(risky_blocks, reach):
             by, bx = divmod(int(b), wb)
-            reach = int(np.ceil((lam / fw + 2) / f)) if self.r.cfg.sensor.blooming else 0
-            sel[max(by - reach, 0):by + reach + 1, bx] = True
+            sel[max(by - rb, 0):by + rb + 1, bx] = True
         for ya, yb, xa, xb in bloom_boxes:
             if sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1].any():
                 sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1] = True
-        return np.flatnonzero(sel)
+        region = np.flatnonzero(sel)
+        if not len(bloom_boxes):
+            self._region_key, self._region = key, region
+        return region
 
 
 __all__ = ["BinnedRenderer", "aliasing_bound", "area_rounding", "round_block_sums", "unsupported_reason"]

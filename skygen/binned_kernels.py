@@ -168,6 +168,14 @@ def _poisson(state, lam):
 
 
 @njit(cache=True)
+def _normal(state):
+    """A standard normal draw (Box-Muller on two 53-bit uniforms of the SplitMix64 stream)."""
+    u1 = (np.float64(_next(state) >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
+    u2 = np.float64(_next(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+@njit(cache=True)
 def _round(total, n, even, max_adu):
     q = total // n
     r = total - q * n
@@ -240,7 +248,7 @@ def model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_
                 else:
                     lo = mid + 1
             e_bg = lo
-        t = e_bg + m + chg + sn * np.random.standard_normal()
+        t = e_bg + m + chg + sn * _normal(state)
         ih = _uniforms_sum(state, n - 1)
         out[b] = _round(np.int64(math.floor(t / g - ih)) + offset_sum[b], n, even, max_adu)
 
