@@ -158,7 +158,7 @@ class BinnedRenderer:
         maps = self.maps = renderer.maps
         bm = self.to_block_major
         self.live = bm(~maps.dead_mask)
-        self.prnu = bm(maps.prnu)                                   # float32, as the renderer's
+        self.prnu = bm(maps.prnu * ~maps.dead_mask)                 # float32; 0 on dead pixels
         self.hot_e = bm(maps.hot_map.astype(np.float64) * s.exposure_s)
         self.offset = bm(maps.offset_adu.astype(np.int64))
         self.offset_sum = self.offset.reshape(-1, n).sum(1)                              # O_b
@@ -246,7 +246,7 @@ class BinnedRenderer:
             radii = gaussian_radius_px(flux, o.psf_sigma_px).astype(np.int64) if len(flux) else np.zeros(0, np.int64)
             boxes = self._boxes(np.floor(y + 0.5).astype(np.int64) - radii, np.floor(x + 0.5).astype(np.int64) - radii,
                                 2 * radii + 1, 2 * radii + 1)
-            return boxes, lambda buf, paint: kern.paint_gauss(buf, paint, self._slot, x, y, flux, radii,
+            return boxes, lambda buf, paint: kern.paint_gauss(buf, paint, self._slot, self.prnu, x, y, flux, radii,
                                                           float(o.psf_sigma_px), self.f, h, w)
         if stars["paths"] is None:
             st = [stamp(float(x), float(y), float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
@@ -254,9 +254,9 @@ class BinnedRenderer:
         else:
             st = [streak(xs, ys, float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
                   for xs, ys, fl in zip(stars["paths"][0], stars["paths"][1], flux)]
-        return self._patches(st)
+        return self._patches(st, True)
 
-    def _patches(self, patches):
+    def _patches(self, patches, weighted: bool):
         h, w = self.sensor_shape
         if not patches:
             return np.zeros((0, 4), np.int64), lambda buf, paint: np.zeros(0)
@@ -266,8 +266,9 @@ class BinnedRenderer:
         ww = np.array([p[2].shape[1] for p in patches], np.int64)
         starts = np.concatenate([[0], np.cumsum(hh * ww)[:-1]]).astype(np.int64)
         flat = np.concatenate([p[2].ravel() for p in patches]).astype(np.float64)
-        return self._boxes(y0, x0, hh, ww), lambda buf, paint: kern.paint_patches(buf, paint, self._slot, y0, x0, hh, ww,
-                                                                               starts, flat, self.f, h, w)
+        painter = lambda buf, paint: kern.paint_patches(buf, paint, self._slot, self.prnu, weighted,  # noqa: E731
+                                                        y0, x0, hh, ww, starts, flat, self.f, h, w)
+        return self._boxes(y0, x0, hh, ww), painter
 
     # ------------------------------------------------------------------ frame
     def image(self, scene, seed: int | None = None) -> np.ndarray:
@@ -289,7 +290,7 @@ class BinnedRenderer:
         # 1. the blocks light sources, cosmic rays, hot and dead pixels touch get compact slots
         boxes, paint_stars = self._sources(scene.stars)
         has_charge = bool(scene.cosmic_rays)
-        cboxes, paint_charge = self._patches(scene.cosmic_rays)
+        cboxes, paint_charge = self._patches(scene.cosmic_rays, False)
         mark = self._mark
         kern.mark_boxes(mark, boxes, f, wb)
         kern.mark_boxes(mark, cboxes, f, wb)
@@ -324,7 +325,7 @@ class BinnedRenderer:
         risky = np.zeros(m, bool)
         lam = np.empty(m)
         even = self.rule == "half_even"
-        kern.model_blocks(blocks, n, star, charge, has_charge, self.prnu, self.live, self.hot_e, self.static_special,
+        kern.model_blocks(blocks, n, star, charge, has_charge, self.live, self.hot_e, self.static_special,
                       float(r.background_e), bg_bm, use_map, sigma, g, self.offset_sum, limit, even, self.max_adu,
                       state, self.poisson_table(n * float(r.background_e)), out, risky, lam)
         # 4. risky blocks, and as far along their columns as blooming reaches: pixel by pixel
@@ -332,7 +333,7 @@ class BinnedRenderer:
             exact = self._exact_region(blocks[risky], lam[risky], bloom_boxes)
             hit = [bb for bb in bloom_boxes if self._touches(bb, exact)] if len(bloom_boxes) else []
             kern.exact_blocks(exact, self._slot, n, f, wb, self.sensor_shape[0], star, charge, has_charge, paint,
-                          self.prnu, self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
+                          self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
                           use_map or s.sampler == "exact", np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
                           self.offset, self.max_adu, even, out)
         return out.reshape(hb, wb)

@@ -45,16 +45,19 @@ def slots(mark, slot, blocks):
 
 
 @njit(cache=True)
-def _add(buf, paint, slot, f, wb, yy, xa, xb, vals, v0):
-    """Add vals[v0 + (x - xa)] to row ``yy``, columns [xa, xb), of the compact buffer."""
+def _add(buf, paint, slot, weight, use_weight, f, wb, yy, xa, xb, vals, v0):
+    """Add vals[v0 + (x - xa)] (times the static ``weight`` of the pixel, block-major, when
+    ``use_weight``) to row ``yy``, columns [xa, xb), of the compact buffer; return the largest
+    unweighted value."""
     n = f * f
     by, ry = yy // f, yy % f
     bx, rx = xa // f, xa % f
     k = slot[by * wb + bx] * n + ry * f + rx
+    ks = (by * wb + bx) * n + ry * f + rx
     pk = 0.0
     for xx in range(xa, xb):
         v = vals[v0 + xx - xa]
-        buf[k] += v
+        buf[k] += v * weight[ks] if use_weight else v
         paint[k] = True
         pk = max(pk, v)
         rx += 1
@@ -63,15 +66,18 @@ def _add(buf, paint, slot, f, wb, yy, xa, xb, vals, v0):
             bx += 1
             if xx + 1 < xb:
                 k = slot[by * wb + bx] * n + ry * f
+                ks = (by * wb + bx) * n + ry * f
         else:
             k += 1
+            ks += 1
     return pk
 
 
 @njit(cache=True)
-def paint_gauss(buf, paint, slot, xs, ys, flux, radii, sigma, f, h, w):
+def paint_gauss(buf, paint, slot, weight, xs, ys, flux, radii, sigma, f, h, w):
     """Add Gaussian stamps (exactly as :func:`skygen.psf.gaussian_stamps`: erf differences,
-    normalised to the flux) into the compact buffer; return each stamp's peak pixel."""
+    normalised to the flux), times the pixels' ``weight`` (PRNU, 0 on dead pixels), into the
+    compact buffer; return each stamp's peak pixel (unweighted, as Renderer._deposit sees it)."""
     wb = w // f
     peaks = np.zeros(len(xs))
     row = np.empty(64)
@@ -107,14 +113,15 @@ def paint_gauss(buf, paint, slot, xs, ys, flux, radii, sigma, f, h, w):
             a = gy[yy - y0] * norm
             for xx in range(xa, xb):
                 row[xx - xa] = a * gx[xx - x0]
-            pk = max(pk, _add(buf, paint, slot, f, wb, yy, xa, xb, row, 0))
+            pk = max(pk, _add(buf, paint, slot, weight, True, f, wb, yy, xa, xb, row, 0))
         peaks[i] = pk
     return peaks
 
 
 @njit(cache=True)
-def paint_patches(buf, paint, slot, y0s, x0s, hs, ws, starts, flat, f, h, w):
-    """Generic stamps (Moffat, Airy, streaks, cosmic-ray charge) into the compact buffer."""
+def paint_patches(buf, paint, slot, weight, use_weight, y0s, x0s, hs, ws, starts, flat, f, h, w):
+    """Generic stamps (Moffat, Airy, streaks: weighted like paint_gauss; cosmic-ray charge:
+    ``use_weight`` False) into the compact buffer."""
     wb = w // f
     peaks = np.zeros(len(y0s))
     for i in range(len(y0s)):
@@ -125,7 +132,8 @@ def paint_patches(buf, paint, slot, y0s, x0s, hs, ws, starts, flat, f, h, w):
             continue
         pk = 0.0
         for yy in range(ya, yb):
-            pk = max(pk, _add(buf, paint, slot, f, wb, yy, xa, xb, flat, starts[i] + (yy - y0) * pw + (xa - x0)))
+            pk = max(pk, _add(buf, paint, slot, weight, use_weight, f, wb, yy, xa, xb, flat,
+                              starts[i] + (yy - y0) * pw + (xa - x0)))
         peaks[i] = pk
     return peaks
 
@@ -185,7 +193,7 @@ def _round(total, n, even, max_adu):
 
 
 @njit(cache=True)
-def model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_special, bg, bg_bm, use_map,
+def model_blocks(blocks, n, star, charge, has_charge, live, hot_e, static_special, bg, bg_bm, use_map,
                   sigma, g, offset_sum, limit, even, max_adu, state, bg_thr, out, risky, lam_out):
     """Stored values of the marked blocks (slot i = ``blocks[i]``) by the block-sum model (module
     doc), drawn from numba's generator (seeded by the caller), written into ``out`` (which
@@ -215,7 +223,7 @@ def model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_
             for j in range(n):
                 if live[bs + j]:
                     bk = (bg_bm[bs + j] if use_map else bg) + hot_e[bs + j]
-                    v = star[bc + j] * prnu[bs + j]
+                    v = star[bc + j]
                     c = charge[bc + j] if has_charge else 0.0
                     lam_bg += bk
                     lam_star += v
@@ -224,7 +232,7 @@ def model_blocks(blocks, n, star, charge, has_charge, prnu, live, hot_e, static_
         else:
             vmax = 0.0
             for j in range(n):
-                v = star[bc + j] * prnu[bs + j]
+                v = star[bc + j]
                 lam_star += v
                 vmax = max(vmax, v)
             lam_bg = n * bg
@@ -279,7 +287,7 @@ def _bloom_column(col, full_well):
 
 
 @njit(cache=True)
-def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, prnu, live, hot_e, static_px, bg,
+def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, live, hot_e, static_px, bg,
                   bg_bm, use_map, all_on, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
     """Blocks drawn pixel by pixel as :func:`skygen.sensor.read_out` draws them: Poisson,
     cosmic charge, dead pixels, blooming (spilled charge kept only on pixels the full renderer
@@ -302,7 +310,7 @@ def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, prnu
             lam = (bg_bm[bs] if use_map else bg) + hot_e[bs]
             c = 0.0
             if sl >= 0:
-                lam += star[sl * n + j] * prnu[bs]
+                lam += star[sl * n + j]
                 on[k] = paint[sl * n + j]
                 if has_charge:
                     c = charge[sl * n + j]
