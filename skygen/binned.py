@@ -57,7 +57,8 @@ same stars at the same stored positions as render-then-downsample.
 What is not reproduced (and so refused by :func:`unsupported_reason`, the stream then
 falls back to render-then-downsample): a stored width that does not divide the sensor by
 an integer factor, a rounding rule OpenCV does not follow at that factor, too little
-read noise per ADU (above), an offset so low that a pixel could clip at 0 ADU.
+read noise per ADU (above), an offset so low that a pixel could clip at 0 ADU, a background
+that fills the full well or is too noisy for the 8-bit tables (over ~9 ADU rms per stored pixel).
 """
 
 from __future__ import annotations
@@ -129,6 +130,8 @@ def unsupported_reason(renderer) -> str | None:
     top = min(s.full_well_e, s.gain_e_per_adu * (2 ** s.bit_depth - 1 - int(renderer.maps.offset_adu.max())))
     if bg + 12 * np.sqrt(bg) + 12 * sigma >= top:
         return f"the background ({bg:.4g} e-/px) reaches the full well or the ADC top"
+    if np.sqrt(bg + sigma ** 2) / (s.gain_e_per_adu * f) > 9:
+        return "the stored background is too noisy for the binned renderer's 8-bit tables"
     return None
 
 
@@ -204,7 +207,7 @@ class BinnedRenderer:
                 v = np.clip(round_block_sums(S + O, self.n, self.rule), 0, self.max_adu)
                 vals = np.arange(v.min(), v.max() + 1)
                 samplers.append(BackgroundSampler.from_pmf(vals, np.bincount(v - v.min(), weights=pmf)))
-            if any(sm.lut8 is None for sm in samplers):
+            if any(sm.lut8 is None for sm in samplers):      # unsupported_reason keeps this away
                 raise ValueError("stored background too noisy for the 8-bit table")
             L = max(len(sm.thresholds) for sm in samplers)
             thr = np.full((len(samplers), L), 2 ** 32, np.uint64)
