@@ -6,20 +6,18 @@ workers or DDP ranks (:func:`partition`), or asked for one sample or a batch giv
 same samples. Two kinds:
 
 ``frames``
-    Image at the stored size, detections, true stars, labels. Two renderers of the same
-    scene, chosen by ``frames_renderer``:
-
-    The scenes of a batch come from :class:`skygen.scenes.SceneBuilder` (counter-based,
-    vectorised; distributed as ``Renderer.scene`` draws them).
+    Image at the stored size, detections, true stars, labels. The scenes of a batch come
+    from :class:`skygen.scenes.SceneBuilder` (counter-based, vectorised; distributed as
+    ``Renderer.scene`` draws them); ``frames_renderer`` chooses what rasterises them:
 
     * ``"binned"`` (default): :class:`skygen.binned.BinnedRenderer` draws the stored pixels
       directly, equal in distribution to render-then-downsample (its module docstring has
       the derivation, ``tests/test_stream_binned.py`` the two-sample tests), and the
       detections come from the calibrated :mod:`skygen.emulator` run on the scene's light
-      sources, as the ``detections`` stream makes them. ~1-2 ms per sample per core.
+      sources, as the ``detections`` stream makes them. ~1.2 ms per sample per core.
     * ``"full"``: the full render of :class:`skygen.render.Renderer` — every sensor pixel,
       area-averaged, detections from the real detector: exactly what ``skygen render``
-      writes, without writing it. ~12-18 ms per sample per core.
+      writes, without writing it. ~12-17 ms per sample per core.
 
     A config the binned renderer cannot reproduce exactly (see
     :func:`skygen.binned.unsupported_reason`), or one the emulator's calibration was not
