@@ -58,7 +58,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
                         "(default: train from scratch)")
     p.add_argument("--stream", choices=("none", "detections", "frames"),
                    help="train on samples synthesised on the fly from the render config of --data (sets "
-                        "stream.kind); validation and test stay on --data's rendered frames")
+                        "stream.kind; frames: stored-size images drawn directly, stream.frames_renderer=binned, or "
+                        "full renders with =full); validation and test stay on --data's rendered frames")
     p.add_argument("--help-config", action="store_true", help="list every config key with its range and exit")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set_overrides",
                    help="override one config key, e.g. --set train.epochs=5 (repeatable; as in skygen)")

@@ -360,8 +360,10 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("stream", help="synthesise training samples on the fly; print throughput and statistics",
                         description="Make --n samples of an endless stream (sample i is a pure function of "
                         "config, seed, kind and i) and print what a model would see. 'detections' uses the "
-                        "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' renders and detects "
-                        "like `skygen render`.")
+                        "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' adds the stored-size "
+                        "image, drawn directly at that size (skygen.binned, equal in distribution to `skygen "
+                        "render`'s), with emulated detections; a config it cannot reproduce renders and detects "
+                        "like `skygen render` (with a warning).")
     config_args(st, with_n=False)
     st.add_argument("--kind", choices=("detections", "frames"), default="detections", help="sample kind")
     st.add_argument("--n", type=int, default=10000, help="samples to make (default 10000)")

@@ -152,12 +152,19 @@ def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, 
 
 
 # ---------------------------------------------------------------- image level
-def cosmic_ray_charge(shape: tuple[int, int], pitch_um: float, exposure_s: float, flux_cm2_s: float,
-                      rng: np.random.Generator) -> tuple[list, list[tuple[int, int, int, int]], int]:
-    """Cosmic-ray tracks as charge patches: ([(y0, x0, patch)], boxes, number of hits)."""
+def cosmic_ray_rate(shape: tuple[int, int], pitch_um: float, exposure_s: float, flux_cm2_s: float) -> float:
+    """Expected cosmic-ray hits on the sensor over one exposure."""
     h, w = shape
-    area_cm2 = (h * pitch_um * 1e-4) * (w * pitch_um * 1e-4)
-    n = int(rng.poisson(flux_cm2_s * area_cm2 * exposure_s))
+    return flux_cm2_s * (h * pitch_um * 1e-4) * (w * pitch_um * 1e-4) * exposure_s
+
+
+def cosmic_ray_charge(shape: tuple[int, int], pitch_um: float, exposure_s: float, flux_cm2_s: float,
+                      rng: np.random.Generator, n: int | None = None) -> tuple[list, list[tuple[int, int, int, int]], int]:
+    """Cosmic-ray tracks as charge patches: ([(y0, x0, patch)], boxes, number of hits).
+    ``n``: the number of hits when already drawn (Poisson with :func:`cosmic_ray_rate`)."""
+    h, w = shape
+    if n is None:
+        n = int(rng.poisson(cosmic_ray_rate(shape, pitch_um, exposure_s, flux_cm2_s)))
     patches, boxes = [], []
     for _ in range(n):
         x, y = rng.uniform(-0.5, w - 0.5), rng.uniform(-0.5, h - 0.5)

@@ -58,8 +58,8 @@ def gaussian_radius_px(flux: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def gaussian_stamps(xs: np.ndarray, ys: np.ndarray, fluxes: np.ndarray, sigma: float, aspect: float = 1.0) -> list:
-    """Vectorised :func:`stamp` for many Gaussian point sources: [(y0, x0, patch)]."""
-    out = []
+    """Vectorised :func:`stamp` for many Gaussian point sources: [(y0, x0, patch)], in input order."""
+    out = [None] * len(xs)
     sigma_y = sigma / aspect
     radii = gaussian_radius_px(fluxes, sigma)
     radii_y = gaussian_radius_px(fluxes, sigma_y)
@@ -71,7 +71,8 @@ def gaussian_stamps(xs: np.ndarray, ys: np.ndarray, fluxes: np.ndarray, sigma: f
         gy = np.diff(erf((y0[:, None] + np.arange(2 * ry + 2) - 0.5 - ys[sel, None]) / (_SQRT2 * sigma_y)), axis=1)
         norm = fluxes[sel] / (gx.sum(1) * gy.sum(1))
         patches = gy[:, :, None] * gx[:, None, :] * norm[:, None, None]
-        out += [(int(a), int(b), p) for a, b, p in zip(y0, x0, patches)]
+        for k, a, b, p in zip(sel, y0, x0, patches):
+            out[k] = (int(a), int(b), p)
     return out
 
 

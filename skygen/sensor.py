@@ -99,6 +99,20 @@ class BackgroundSampler:
             cdf = upper @ pe
         else:
             cdf = np.array([pe[e < gain * (kk + 1)].sum() for kk in k])
+        self._build_tables(k, cdf)
+
+    @classmethod
+    def from_pmf(cls, k: np.ndarray, pmf: np.ndarray) -> "BackgroundSampler":
+        """A sampler of any distribution on consecutive integers ``k`` (``pmf`` need not be
+        normalised): the same two-level table, value = ``kmin + j``. Used for the sum of a
+        stored pixel's full-resolution values (:mod:`skygen.binned`)."""
+        self = cls.__new__(cls)
+        self.lam = self.sigma = self.gain = float("nan")
+        self._build_tables(np.asarray(k), np.cumsum(np.asarray(pmf, np.float64)))
+        return self
+
+    def _build_tables(self, k: np.ndarray, cdf: np.ndarray) -> None:
+        kmin = int(k[0])
         cdf = np.maximum.accumulate(cdf / cdf[-1])
         self.kmin = kmin
         # u (uint32) maps to the first j with u < thresholds[j]

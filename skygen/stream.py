@@ -6,9 +6,22 @@ workers or DDP ranks (:func:`partition`), or asked for one sample or a batch giv
 same samples. Two kinds:
 
 ``frames``
-    The full render of :class:`skygen.render.Renderer` — image at the stored size,
-    detections from the real detector, true stars, labels: exactly what ``skygen render``
-    writes, without writing it. ~12 ms per sample per core.
+    Image at the stored size, detections, true stars, labels. The scenes of a batch come
+    from :class:`skygen.scenes.SceneBuilder` (counter-based, vectorised; distributed as
+    ``Renderer.scene`` draws them); ``frames_renderer`` chooses what rasterises them:
+
+    * ``"binned"`` (default): :class:`skygen.binned.BinnedRenderer` draws the stored pixels
+      directly, equal in distribution to render-then-downsample (its module docstring has
+      the derivation, ``tests/test_stream_binned.py`` the two-sample tests), and the
+      detections come from the calibrated :mod:`skygen.emulator` run on the scene's light
+      sources, as the ``detections`` stream makes them. ~1.2 ms per sample per core.
+    * ``"full"``: the full render of :class:`skygen.render.Renderer` — every sensor pixel,
+      area-averaged, detections from the real detector: exactly what ``skygen render``
+      writes, without writing it. ~12-17 ms per sample per core.
+
+    A config the binned renderer cannot reproduce exactly (see
+    :func:`skygen.binned.unsupported_reason`), or one the emulator's calibration was not
+    made for, falls back to ``"full"`` with one warning per process and reason.
 ``detections``
     The fast path: attitude, catalog cone search, projection and photometry (the
     renderer's own camera, catalog index and photometry), false stars, then the
@@ -18,10 +31,10 @@ same samples. Two kinds:
 
 Sample identity
     A stream never reproduces a dataset's frames, even with the same seed: frame-stream
-    sample ``i`` draws from generators tagged ``@stream-frames`` (a dataset's frame ``i``
-    uses untagged ones), and the detection stream draws counter-based numbers keyed by
-    (seed, ``"@stream-detections"``) (:mod:`skygen.hashrng`). ``tests/test_stream.py``
-    checks both.
+    sample ``i`` draws counter-based numbers keyed by (seed, ``"@stream-frames"``) and
+    generators tagged ``@stream-frames`` (a dataset's frame ``i`` uses untagged generators),
+    and the detection stream counter-based numbers keyed by (seed, ``"@stream-detections"``)
+    (:mod:`skygen.hashrng`). ``tests/test_stream.py`` checks both.
 
 Corruption-aware training
     ``level_ranges={"dropout": (0, 0.3), ...}`` draws each sample's severity of the named
@@ -33,6 +46,7 @@ Corruption-aware training
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -48,6 +62,7 @@ from .catalog import radec_to_vec
 from .errors import ConfigError
 
 KINDS = ("frames", "detections")
+FRAMES_RENDERERS = ("binned", "full")
 RANGED = ("false_stars", "dropout", "centroid_noise", "magnitude_noise")
 TAGS = {"frames": "@stream-frames", "detections": "@stream-detections"}
 DETECTION_KEYS = ("x_px", "y_px", "flux_adu", "peak_adu", "area_px", "hip_id", "star_index")
@@ -56,6 +71,7 @@ STAR_KEYS = ("hip_id", "x_px", "y_px", "mag", "electrons")
 _D_ATT = 0            # 0..2
 _D_LEVEL = 8          # one per RANGED corruption
 _D_NFALSE = 16
+_D_IMAGE = 17         # frames stream (binned): the seed of the image's noise
 _D_SPUR = 1 << 40
 _D_CORR = 1 << 44     # detection-level corruptions: + 4 * source id
 _FALSE_ID = 1 << 30   # source ids of false stars: _FALSE_ID + k (catalog rows are below)
@@ -131,22 +147,27 @@ class SampleStream:
     """Samples of one render configuration (see the module docstring)."""
 
     def __init__(self, cfg, kind: str = "detections", *, calibration=None, level_ranges: dict | None = None,
-                 catalog=None):
+                 catalog=None, frames_renderer: str = "binned"):
         from .render import Renderer
         self.kind = check_kind(kind)
         self.level_ranges = check_ranges(level_ranges)
+        if frames_renderer not in FRAMES_RENDERERS:
+            raise ConfigError(f"frames renderer {frames_renderer!r} is unknown; choose one of: "
+                              f"{', '.join(FRAMES_RENDERERS)}")
         self.cfg = cfg
         self.renderer = Renderer(cfg, catalog=catalog, rng_tag=TAGS[kind])
         self.key = hashrng.stream_key(cfg.seed, TAGS[kind])
         self._check_detectable()
         self.model = None
+        self.binned = None
+        self.frames_renderer = frames_renderer if kind == "frames" else None
+        if kind == "frames":
+            from .scenes import SceneBuilder
+            self.scene_builder = SceneBuilder(self.renderer, self.key)
+            if frames_renderer == "binned":
+                self._setup_binned(calibration)
         if kind == "detections":
-            from .config import config_dict
-            if calibration is None:
-                calibration = emu.default_calibration_path()
-            self.model = calibration if isinstance(calibration, emu.DetectorModel) else emu.load(calibration)
-            emu.check_compatible(self.model, config_dict(cfg),
-                                 f"detector calibration {calibration if not isinstance(calibration, emu.DetectorModel) else ''}".strip())
+            self.model = _load_calibration(calibration, cfg)
             r = self.renderer
             sky = r.sky
             e_star = (r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
@@ -161,6 +182,29 @@ class SampleStream:
             self._mag = sky.table.mag[visible].astype(np.float32)
             self._tree = cKDTree(self._vectors)
             self._cone = r._corner + 2.0 / r.camera.f_px
+
+    def _setup_binned(self, calibration) -> None:
+        """The binned renderer and the emulator for a ``frames`` stream, or the full renderer
+        with one warning when either cannot serve this config exactly."""
+        from .binned import BinnedRenderer, unsupported_reason
+        from .errors import SkygenError
+        torch = getattr(self.cfg, "render", None) is not None and self.cfg.render.backend == "torch"
+        reason = "render.backend=torch rasterises full frames on its device" if torch else \
+            unsupported_reason(self.renderer)
+        if reason is None:
+            try:
+                self.model = _load_calibration(calibration, self.cfg)
+            except SkygenError as exc:
+                if calibration is not None:       # the user's own file: a mistake to report
+                    raise
+                reason = f"the shipped detector-emulator calibration does not fit this config ({exc})"
+        if reason is not None:
+            self.frames_renderer = "full"
+            if not torch:
+                _warn_once(f"skygen frames stream: rendering full frames and downsampling (~15 ms per sample), "
+                           f"not the binned renderer: {reason}")
+            return
+        self.binned = BinnedRenderer(self.renderer)
 
     def _check_detectable(self) -> None:
         r = self.renderer
@@ -190,8 +234,15 @@ class SampleStream:
             raise ConfigError(f"stream index {i} must be >= 0")
         if self.kind != "frames":
             raise ConfigError("frame() needs a stream of kind 'frames'")
-        levels = {k: float(v[0]) for k, v in self.levels_of(np.array([i])).items()} if self.level_ranges else None
-        fr = self.renderer.render(i, levels)
+        if self.binned is not None:
+            return self.binned_frames([i])[0]
+        r = self.renderer
+        arrays = self.levels_of(np.array([i]))
+        levels = {k: float(v[0]) for k, v in arrays.items()} if self.level_ranges else None
+        scene = self.scene_builder.scenes(np.array([i]), arrays)[0]
+        with r.with_levels(levels):
+            full, log = r.rasterise(scene)
+            fr = r.finish(scene, full, log=log)
         fr.split = -1
         return fr
 
@@ -211,6 +262,8 @@ class SampleStream:
             raise ConfigError("frames_batch() needs a stream of kind 'frames'")
         if idx and min(idx) < 0:
             raise ConfigError(f"stream index {min(idx)} must be >= 0")
+        if self.binned is not None:
+            return self.binned_frames(idx), None
         if getattr(self.cfg, "render", None) is None or self.cfg.render.backend != "torch":
             return [self.frame(i) for i in idx], None
         import torch
@@ -220,10 +273,7 @@ class SampleStream:
             self._torch = TorchRenderer(self.cfg, device, renderer=self.renderer)
         levels = self.levels_of(np.array(idx))
         per = [{k: float(v[j]) for k, v in levels.items()} for j in range(len(idx))] if self.level_ranges else [None] * len(idx)
-        scenes = []
-        for i, lv in zip(idx, per):
-            with self.renderer.with_levels(lv):
-                scenes.append(self.renderer.scene(i))
+        scenes = self.scene_builder.scenes(np.array(idx), levels)
         gen = torch.Generator(device=self._torch.device)
         gen.manual_seed(int(hashrng.bits(self.key, idx[0], 7) >> np.uint64(1)))
         batch = self._torch.rasterise(scenes, gen, full_res=True)
@@ -234,6 +284,61 @@ class SampleStream:
         for f in frames:
             f.split = -1
         return frames, batch.images
+
+    def binned_frames(self, indices) -> list:
+        """Samples ``indices`` of a binned ``frames`` stream: :class:`skygen.render.Frame` objects whose
+        image is drawn at the stored size (:class:`skygen.binned.BinnedRenderer`) and whose
+        detections come from the emulator run on the same scene's sources (inside the
+        sensor), then the detector's cap and the detection-level corruptions, as in
+        :meth:`batch`. ``background_adu`` and ``noise_adu`` are the nominal values (no
+        detector ran). Sample ``i`` is the same alone or in any batch."""
+        from .attitude import matrix_to_quaternion
+        from .render import Frame
+        idx = np.asarray(indices, np.int64).ravel()
+        if self.binned is None:
+            raise ConfigError("binned_frames() needs a frames stream with the binned renderer")
+        if len(idx) and idx.min() < 0:
+            raise ConfigError(f"stream index {int(idx.min())} must be >= 0")
+        r, cam, key, B = self.renderer, self.renderer.camera, self.key, len(idx)
+        levels = self.levels_of(idx)
+        per = [{k: float(v[j]) for k, v in levels.items()} for j in range(B)] if self.level_ranges else [None] * B
+        scenes, images, trues = self.scene_builder.scenes(idx, levels), [], []
+        seeds = hashrng.bits(key, idx, _D_IMAGE)
+        for sc, lv, seed in zip(scenes, per, seeds):
+            with r.with_levels(lv):
+                images.append(self.binned.image(sc, int(seed)))
+            st = sc.stars
+            inside = cam.inside(st["x_px"], st["y_px"])
+            trues.append({k: v[inside] for k, v in st.items() if k != "paths"})
+        n_src = np.array([len(t["x_px"]) for t in trues], np.int64)
+        fr = np.repeat(np.arange(B), n_src)
+        row = np.arange(len(fr)) - np.repeat(np.cumsum(n_src) - n_src, n_src)      # row in the frame's table
+        cat = lambda k: np.concatenate([t[k] for t in trues]) if B else np.zeros(0)
+        x, y, e, hip = cat("x_px"), cat("y_px"), cat("electrons").astype(np.float64), cat("hip_id")
+        em = self.model.emulate(key, idx[fr], SOURCE_BASE + row, fr, x, y, e)
+        sp = self.model.spurious_detections(key, idx, _D_SPUR, cam.width_px, cam.height_px)
+        det_fr = np.concatenate([em["frame"], sp["frame"]]).astype(np.int64)
+        det = {k: np.concatenate([em[k], sp[k]]) for k in ("x_px", "y_px", "flux_adu", "peak_adu", "area_px")}
+        det["star_index"] = np.concatenate([row[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int32)
+        det["hip_id"] = np.concatenate([hip[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int64)
+        n_sp = np.bincount(sp["frame"], minlength=B)
+        k_sp = np.arange(len(sp["frame"])) - np.repeat(np.cumsum(n_sp) - n_sp, n_sp)
+        det_id = np.concatenate([row[em["src"]], (1 << 31) + k_sp])
+        det_fr, det, det_id = _cap(det_fr, det, det_id, B, self.cfg.detection.max_detections)
+        det_fr, det = _detection_corruptions(det_fr, det, det_id, idx, levels, key)
+        det_off = np.concatenate([[0], np.cumsum(np.bincount(det_fr, minlength=B))])
+        s = self.cfg.sensor
+        bg_adu = s.bias_adu + r.background_e / s.gain_e_per_adu
+        noise_adu = r.noise_e() / s.gain_e_per_adu
+        frames = []
+        for j, (sc, img, true, lv) in enumerate(zip(scenes, images, trues, per)):
+            d = {k: v[det_off[j]:det_off[j + 1]] for k, v in det.items()}
+            ra, dec = sc.ra_deg, sc.dec_deg
+            applied = {**r.levels, **(lv or {})}
+            frames.append(Frame(int(idx[j]), -1, ra, dec, sc.roll_deg, radec_to_vec(np.radians(ra), np.radians(dec)),
+                                matrix_to_quaternion(sc.rotation), img, None, r.factor, true, d, bg_adu, noise_adu,
+                                applied, {**sc.log, "renderer": "binned"}, sc.index_in_split, 0))
+        return frames
 
     # ------------------------------------------------------------------ detections
     def batch(self, indices) -> DetectionBatch:
@@ -319,6 +424,26 @@ class SampleStream:
 
 
 # ---------------------------------------------------------------------------------- helpers
+_WARNED: set = set()
+
+
+def _warn_once(message: str) -> None:
+    """One warning per process and message (DataLoader workers forked later inherit the set)."""
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def _load_calibration(calibration, cfg) -> "emu.DetectorModel":
+    from .config import config_dict
+    if calibration is None:
+        calibration = emu.default_calibration_path()
+    model = calibration if isinstance(calibration, emu.DetectorModel) else emu.load(calibration)
+    emu.check_compatible(model, config_dict(cfg),
+                         f"detector calibration {calibration if not isinstance(calibration, emu.DetectorModel) else ''}".strip())
+    return model
+
+
 def _one(batch, b: int):
     """Frame ``b`` of a torch-renderer batch as a batch of one (for per-frame detection levels)."""
     from dataclasses import replace as _replace

@@ -14,6 +14,11 @@ Determinism and resume
     sample, and DataLoader workers (worker ``w`` makes steps ``s = w mod workers``, which
     the DataLoader returns round-robin, i.e. in step order) change nothing.
 
+``--stream frames`` draws each image at the stored size (``stream.frames_renderer=binned``,
+:mod:`skygen.binned`: equal in distribution to render-then-downsample) with detections from the
+calibrated emulator, or renders full frames (``full``); both hand the same stored-size uint16
+image to the same :class:`fusion.model.inputs.Preprocessor`.
+
 Batches are the same dicts :class:`fusion.model.shards.FrameDataset` items collate to
 (``coords``, ``mask``, ``label``, ``index``, ``n_detections``, ``soft``; ``image`` for
 the ``frames`` kind), made by the same :class:`fusion.model.inputs.Preprocessor`, so the
@@ -103,7 +108,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
                  norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
                  calibration: str | None = None, device: str | None = None, render_backend: str | None = None,
                  fine_centroids: np.ndarray | None = None, few_prob: float = 0.0,
-                 few_stars: tuple[int, int] = (3, 8), brightness_mag: tuple[float, float] = (0.0, 0.0)):
+                 few_stars: tuple[int, int] = (3, 8), brightness_mag: tuple[float, float] = (0.0, 0.0),
+                 frames_renderer: str = "binned"):
         if steps < 1:
             raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
                               "to at least one global batch")
@@ -115,7 +121,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.soft_kappa, self.ranges, self.calibration = soft_kappa, ranges or {}, calibration
         self.pre = Preprocessor.from_configs(dataset_config, _DataSettings(max_stars, log_flux_offset, norm_scale_adu))
         self.geo = self.pre.geo
-        self.device, self.render_backend = device, render_backend
+        self.device, self.render_backend, self.frames_renderer = device, render_backend, frames_renderer
         self.few_prob, self.few_stars = float(few_prob), (int(few_stars[0]), int(few_stars[1]))
         self.brightness_mag = (float(brightness_mag[0]), float(brightness_mag[1]))
         self.epoch = 0
@@ -137,13 +143,13 @@ class StreamBatches(torch.utils.data.IterableDataset):
                    calibration=sc.calibration, fine_centroids=regions.fine if cfg.labels.fine_k else None,
                    few_prob=sc.few_prob, few_stars=sc.few_stars, brightness_mag=sc.brightness_mag,
                    device=str(device) if sc.render_backend == "torch" and device is not None else None,
-                   render_backend=sc.render_backend)
+                   render_backend=sc.render_backend, frames_renderer=sc.frames_renderer)
 
     def stream(self) -> SampleStream:
         if self._stream is None:
             self._stream = SampleStream(stream_render_config(self.config, self.seed, self.render_backend, self.device),
-                                        self.kind,
-                                        calibration=self.calibration, level_ranges=self.ranges)
+                                        self.kind, calibration=self.calibration, level_ranges=self.ranges,
+                                        frames_renderer=self.frames_renderer)
         return self._stream
 
     def __getstate__(self) -> dict:
