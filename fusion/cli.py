@@ -90,16 +90,15 @@ def _run_train(args: argparse.Namespace) -> int:
     cfg = build_config(merge_overrides(base, overrides))
     from .train.run import train
     previous = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
+    _quiet_worker_teardown()      # before anything can interrupt: torch reports dying workers from destructors
     try:
         train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
     except KeyboardInterrupt:
-        _quiet_worker_teardown()
         print(f"fusion train: interrupted; {resume_hint(args.out)}", file=sys.stderr)
         return 130
     except RuntimeError as exc:      # a loader worker killed (by the same Ctrl-C/SIGTERM, or out of memory)
         if "DataLoader worker" not in str(exc):
             raise
-        _quiet_worker_teardown()
         print(f"fusion train: stopped: {one_line(exc)}; {resume_hint(args.out)}", file=sys.stderr)
         return 130 if "Terminated" in str(exc) or "Interrupt" in str(exc) else 1
     finally:
@@ -434,6 +433,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"fusion {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:       # an unwritable --out, a full disk: one line, not a traceback
+        from skygen.runtime import describe_os_error
+        print(f"fusion {args.command}: error: {describe_os_error(exc)}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

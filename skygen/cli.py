@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SkygenError
+from .runtime import StopRequested as Terminated          # SIGTERM -> cleanup -> the resume hint
+from .runtime import request_stop as _raise_terminated
 
 EPILOG = """examples:
   skygen render --n 2000 --workers 2            # into data/sky-n2000-s0
@@ -61,12 +63,6 @@ def _load(args):
     return load_config(args.config, sets)
 
 
-class Terminated(Exception):
-    """Raised in the main process by SIGTERM so that cleanup runs and the resume hint is printed."""
-
-
-def _raise_terminated(signum, frame):
-    raise Terminated()
 
 
 def cmd_render(args) -> int:
@@ -405,6 +401,10 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0
+    except OSError as exc:       # an unwritable --out, a full disk: one line, not a traceback
+        from .runtime import describe_os_error
+        print(f"skygen {args.command}: error: {describe_os_error(exc)}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

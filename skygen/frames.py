@@ -59,6 +59,11 @@ def read_frame(path: str | Path) -> np.ndarray:
             img = _imread_quiet(path)
             if img is None:
                 raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
+            if suffix in (".tif", ".tiff"):
+                import cv2
+                pages = cv2.imcount(str(path))
+                if pages > 1:                     # reading page 1 alone would drop the others without a word
+                    raise FrameError(f"{path}: a multi-page TIFF ({pages} pages); give one frame per file")
             if img.ndim == 3 and img.shape[2] in (3, 4):
                 img = img[:, :, :3]
                 if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]):
@@ -71,12 +76,12 @@ def read_frame(path: str | Path) -> np.ndarray:
     if img.ndim == 3 and img.shape[0] == 1:
         img = img[0]
     if img.ndim != 2:
-        raise FrameError(f"{path}: colour or multi-plane image (shape {img.shape}); give one monochrome "
-                         "sensor read-out")
+        kind = "not an image" if img.ndim < 2 else "colour or multi-plane image"
+        raise FrameError(f"{path}: {kind} (shape {img.shape}); give one monochrome 2-D sensor read-out")
     if img.size == 0:
         raise FrameError(f"{path}: image has no pixels")
-    if not np.issubdtype(img.dtype, np.number):
-        raise FrameError(f"{path}: pixel type {img.dtype} is not numeric")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise FrameError(f"{path}: pixel type {img.dtype} is not a real number (integer or float pixels only)")
     return img.astype(np.float32)
 
 

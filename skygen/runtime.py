@@ -200,3 +200,42 @@ def pick_device(name: str = "auto", option: str = "--device", local_rank: int | 
     if dev.index is not None and dev.index >= torch.cuda.device_count():
         raise ConfigError(f"{option}={name}: only {torch.cuda.device_count()} CUDA device(s) here")
     return dev
+
+
+# --------------------------------------------------------------------------- stopping on SIGTERM
+class StopRequested(Exception):
+    """SIGTERM arrived: raised in the main process so that cleanup runs and the resume hint is printed."""
+
+
+_STOP = {"requested": False}
+
+
+def request_stop(signum=None, frame=None) -> None:
+    """SIGTERM handler: remember the request and raise :class:`StopRequested`. A signal that arrives
+    inside a destructor or a weakref callback has its exception swallowed by Python; the remembered
+    request is raised again by the next :func:`check_stop` of a long loop, so the job still stops."""
+    _STOP["requested"] = True
+    raise StopRequested()
+
+
+def check_stop() -> None:
+    """Raise :class:`StopRequested` if SIGTERM arrived (call between units of work)."""
+    if _STOP["requested"]:
+        raise StopRequested()
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for a file-system error a command met: what, which file, and what to do for a full disk."""
+    import errno as _errno
+    what = exc.strerror or str(exc)
+    where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+    if getattr(exc, "filename2", None):
+        where += f" -> {exc.filename2}"
+    hint = ""
+    if exc.errno == _errno.ENOSPC:
+        hint = "; free space (or choose another --out) and run the same command again"
+    elif exc.errno in (_errno.EACCES, _errno.EPERM, _errno.EROFS):
+        hint = "; choose a folder you can write to"
+    elif exc.errno in (_errno.ENOENT, _errno.ENOTDIR, _errno.EISDIR, _errno.EEXIST):
+        hint = "; check the path (its folder must exist and it must not be a folder or a file in the way)"
+    return f"{what}{where}{hint}"

@@ -198,8 +198,12 @@ def camera_render_config(camera) -> dict:
     from skygen import configlib
     from skygen.config import check_camera_section, config_dict
     data = dict(camera) if isinstance(camera, dict) else configlib.read_yaml(camera)
+    data = data if isinstance(data, dict) else {}
     width = (data.get("camera") or {}).get("width_px") if isinstance(data.get("camera"), dict) else None
     if not isinstance(camera, dict):
+        if "camera" not in data:     # a camera file that describes no camera would mean the default 20 deg one
+            raise ConfigError(f"camera file {camera}: no camera section; give camera: with width_px, height_px, "
+                              "pixel_pitch_um and focal_length_mm (or fov_deg), e.g. configs/cameras/default-20deg.yaml")
         check_camera_section(data, f"camera file {camera}")
     if isinstance(width, int) and width > 0:
         data = {**data, "output": {**(data.get("output") or {}), "image_size_px": width}}

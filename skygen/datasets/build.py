@@ -37,6 +37,7 @@ from ..identity import content_id
 from .shards import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
 from ..lock import FolderLock
+from ..runtime import check_stop
 
 
 def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
@@ -159,6 +160,7 @@ def _frames(start: int, stop: int):
     tr = _WORKER.get("torch")
     if tr is None:
         for i in range(start, stop):
+            check_stop()                   # a SIGTERM whose exception Python swallowed still stops the job
             yield r.render(i)
         return
     bs = r.cfg.render.batch_size
@@ -345,6 +347,7 @@ def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
         try:
             while pending:
                 time.sleep(0.2)
+                check_stop()
                 for res in [p for p in pending if p.ready()]:
                     pending.remove(res)
                     entry = res.get()          # re-raises a worker's exception
