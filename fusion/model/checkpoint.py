@@ -183,8 +183,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     try:
         d = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises many types for damaged or foreign files
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {exc}); "
-                              "it may be truncated or from another program") from None
+        # torch's own text ("re-running with weights_only=False will likely succeed") is advice to run
+        # untrusted code: not repeated
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}); it may be truncated, "
+                              "not a PyTorch file, or from another program") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         found = d.get("format") if isinstance(d, dict) else type(d).__name__
         raise CheckpointError(f"{path}: not a fusion checkpoint (format={found!r}); give a best.pt or last.pt "

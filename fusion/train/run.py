@@ -218,6 +218,9 @@ def log_start(cfg: FusionConfig, data: PreparedData, steps: int, counts: dict, d
     if sc.kind == "none":
         say(f"data: {len(data.train)} train / {len(data.val)} val frames, K={k}, "
             f"frames with <2 detections: {data.sparse_frames}")
+        if len(data.train) < 20 * k:
+            say(f"note: {len(data.train)} training frames for K={k} regions ({len(data.train) / k:.1f} per region): "
+                "too few to learn from; render more frames or train on the stream (stream.kind=detections)")
     else:
         say(f"data: {sc.kind} stream, {steps * cfg.train.batch_size} samples per epoch (never repeated), "
             f"validation on {len(data.val)} rendered {cfg.data.val_split} frames of {data.ds.root}, K={k}")

@@ -81,6 +81,12 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
     out = Path(out)
     if len(inputs) < 2:
         raise DatasetError("merge needs at least two dataset folders")
+    seen: dict = {}
+    for p in inputs:
+        key = p.resolve()
+        if key in seen:
+            raise DatasetError(f"{p}: given twice (as {seen[key]} too); each dataset folder once")
+        seen[key] = p
     loaded = _load_inputs(inputs)
     by_id: dict[str, list] = {}
     for folder, man, entries in loaded:

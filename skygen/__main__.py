@@ -1,0 +1,7 @@
+"""``python -m skygen`` = the ``skygen`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())
