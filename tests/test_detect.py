@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 
 from skygen.config import load_config
 from skygen.detect import detect, estimate_background, match
@@ -85,3 +86,18 @@ def test_local_background_follows_a_sky_gradient():
     ia, ib = (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) for d in (a, b))
     pos = lambda d, i: np.column_stack([d["x_px"], d["y_px"]])[np.argsort(i)]     # noqa: E731  (true-star order)
     np.testing.assert_allclose(pos(b, ib), pos(a, ia), atol=0.05)   # box levels differ by noise
+
+
+@pytest.mark.parametrize("shape", [(768, 1024), (100, 70), (65, 64)])
+def test_separable_background_interpolation_equals_bilinear_map_coordinates(shape):
+    """background_map interpolates its box mesh as weights @ mesh @ weights.T: the numbers of
+    ndimage.map_coordinates(order=1) at the same fractional indices."""
+    from scipy import ndimage
+    from skygen.detect import _linear_weights
+    rng = np.random.default_rng(1)
+    h, w = shape
+    pos_y = np.sort(rng.uniform(0, 9, h))
+    pos_x = np.sort(rng.uniform(0, 12, w))
+    mesh = rng.normal(100, 5, (10, 13))
+    ref = ndimage.map_coordinates(mesh, np.stack(np.meshgrid(pos_y, pos_x, indexing="ij")), order=1, mode="nearest")
+    np.testing.assert_allclose(_linear_weights(pos_y, 10) @ mesh @ _linear_weights(pos_x, 13).T, ref, atol=1e-10)
