@@ -227,8 +227,12 @@ def check_stop() -> None:
 def describe_os_error(exc: OSError) -> str:
     """One line for a file-system error a command met: what, which file, and what to do for a full disk."""
     import errno as _errno
+    import re
     what = exc.strerror or str(exc)
-    where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+    # a write goes through atomic_path's temporary ".NAME.tmpPID": name the file the user asked for
+    where = ""
+    if getattr(exc, "filename", None):
+        where = ": " + re.sub(r"(^|/)\.([^/]+)\.tmp\d+[^/]*$", r"\1\2", str(exc.filename))
     if getattr(exc, "filename2", None):
         where += f" -> {exc.filename2}"
     hint = ""

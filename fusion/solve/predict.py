@@ -55,6 +55,7 @@ training dataset.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -65,7 +66,7 @@ from skygen.camera import Camera
 from skygen.config import build_config as build_render_config
 from skygen.detect import detect
 
-from skygen.runtime import atomic_write_bytes, dumps_json
+from skygen.runtime import atomic_path, atomic_write_bytes, dumps_json
 
 from ..errors import ConfigError
 from ..model.inputs import downsample
@@ -254,11 +255,13 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
                      lis_first=lis_first, solver=solver, log=lambda m: err(m), fov_range=fov_range)
-    sink = open(out, "w") if out else None
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
     records, failed = [], 0
-    try:
+    with contextlib.ExitStack() as stack:
+        # --out is written beside its final name and renamed when every frame is done: an interrupted or
+        # failed run (a full disk) leaves no file with fewer lines than frames that looks whole
+        sink = stack.enter_context(open(stack.enter_context(atomic_path(out)), "w")) if out else None
         for source, img, table, stored, error in iter_inputs(frames, max_frames):
             t0 = time.perf_counter()
             try:
@@ -285,9 +288,6 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
             records.append(rec)
             line = dumps_json(rec)
             (sink.write(line + "\n") if sink else log(line))
-    finally:
-        if sink:
-            sink.close()
     return records, failed
 
 
