@@ -124,3 +124,20 @@ def test_relative_flux_models_ignore_the_flux_scale(encoder):
             torch.testing.assert_close(a, b, atol=2e-5, rtol=1e-5)
         else:
             assert (a - b).abs().max() > 1e-3
+
+
+def test_rotate_image_is_affine_grid_written_out():
+    """rotate_image builds F.affine_grid's grid itself (ONNX has affine_grid only from opset 20): same grid."""
+    import torch.nn.functional as F
+    from fusion.model.canonical import rotate_image
+    torch.manual_seed(0)
+    img, th = torch.randn(4, 2, 32, 48), torch.randn(4)
+    c, s = torch.cos(th), torch.sin(th)
+    mat = torch.stack([torch.stack([c, -s, torch.zeros_like(c)], -1), torch.stack([s, c, torch.zeros_like(c)], -1)], 1)
+    ref = F.grid_sample(img, F.affine_grid(mat, list(img.shape), align_corners=False), mode="bilinear",
+                        padding_mode="zeros", align_corners=False)
+    torch.testing.assert_close(rotate_image(img, th), ref, atol=1e-4, rtol=0)
+    smooth = torch.linspace(0, 1, 48).repeat(1, 1, 32, 1)               # a smooth image: grids differ by an ulp
+    torch.testing.assert_close(rotate_image(smooth, th[:1]),
+                               F.grid_sample(smooth, F.affine_grid(mat[:1], list(smooth.shape), align_corners=False),
+                                             align_corners=False), atol=1e-5, rtol=0)

@@ -87,11 +87,13 @@ def rotate_rows(coords: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
 
 def rotate_image(image: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     """Resample (B, C, H, W) images so that content at angle ``theta`` lands on +x (bilinear)."""
-    c, s = torch.cos(theta), torch.sin(theta)
-    # output pixel p samples the input at R(theta) p (align_corners=False normalised grid)
-    mat = torch.stack([torch.stack([c, -s, torch.zeros_like(c)], -1),
-                       torch.stack([s, c, torch.zeros_like(c)], -1)], 1)
-    grid = F.affine_grid(mat.to(image.dtype), list(image.shape), align_corners=False)
+    c, s = torch.cos(theta).to(image.dtype)[:, None, None], torch.sin(theta).to(image.dtype)[:, None, None]
+    # output pixel p samples the input at R(theta) p on the align_corners=False normalised grid: what
+    # F.affine_grid computes, written out because ONNX has affine_grid only from opset 20 (GridSample: 16)
+    h, w = image.shape[-2:]
+    xs = ((torch.arange(w, device=image.device, dtype=image.dtype) * 2 + 1) / w - 1)[None, None, :]
+    ys = ((torch.arange(h, device=image.device, dtype=image.dtype) * 2 + 1) / h - 1)[None, :, None]
+    grid = torch.stack([c * xs - s * ys, s * xs + c * ys], dim=-1)
     return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
