@@ -199,7 +199,7 @@ def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dat
     merge_datasets([tmp_path / "part0", tmp_path / "part1"], tmp_path / "all")
     assert same_data(small_dataset, tmp_path / "all")
     assert validate(tmp_path / "all").ok
-    with pytest.raises(DatasetError, match="incomplete"):
+    with pytest.raises(DatasetError, match="given twice"):
         merge_datasets([tmp_path / "part0", tmp_path / "part0"], tmp_path / "half")
 
 
