@@ -478,9 +478,9 @@ class CoarseToFineSolver:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines
             res = self.tetra.solve_with_hint(detections, cam_k, rot, 1.0, name=self.name)
-            resid_px = (res.residual_arcsec / cam_k.pixel_scale_arcsec) if isinstance(res, Solution) else None
-            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0 \
-                    and resid_px > self.max_residual_px and self._pulled_off(res.matrix, uk, det_rows, cat_rows):
+            confirmed = isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0
+            resid_px = res.residual_arcsec / cam_k.pixel_scale_arcsec if confirmed else 0.0
+            if confirmed and resid_px > self.max_residual_px and self._pulled_off(res.matrix, uk, det_rows, cat_rows):
                 # confirmed, but tetra3rs's refinement took in a star beyond any centroid error (a bright
                 # star missing from the tier, matched to a neighbour) and is pulled off by it, so far that
                 # our own matches no longer fit; their own least squares is no better (few stars, and the
@@ -488,7 +488,7 @@ class CoarseToFineSolver:
                 return Refusal(f"tetra3rs confirmed the stars, but its attitude leaves {resid_px:.2f} px rms and moves "
                                f"our matched stars beyond {self.tol_px} px: a mismatched star; no trustworthy attitude",
                                self.name)
-            if isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0:
+            if confirmed:
                 extra["refined_by"] = "tetra3rs tracking"
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 extra["fov_deg"] = [res.extra.get("fov_deg", cam_k.fov_deg[0]), cam_k.fov_deg[1]]
