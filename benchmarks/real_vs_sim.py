@@ -128,7 +128,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     learned = _learned(a.checkpoint, a.real, a.search, a.search_k, a.focal_tol, a.background_box) \
         if a.checkpoint else None
-    report = {"camera_preset": str(Path(a.camera).relative_to(ROOT)), "camera_config": config_dict(cfg)["camera"],
+    report = {"camera_preset": str(Path(a.camera).resolve().relative_to(ROOT)), "camera_config": config_dict(cfg)["camera"],
               "summary": summary, "background_box": a.background_box, "real": real_rows, "sim": sim_rows, "learned": learned,
               "hardware": f"{platform.machine()} CPU", "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     (out / "real_vs_sim.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
