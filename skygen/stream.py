@@ -315,17 +315,7 @@ class SampleStream:
         row = np.arange(len(fr)) - np.repeat(np.cumsum(n_src) - n_src, n_src)      # row in the frame's table
         cat = lambda k: np.concatenate([t[k] for t in trues]) if B else np.zeros(0)
         x, y, e, hip = cat("x_px"), cat("y_px"), cat("electrons").astype(np.float64), cat("hip_id")
-        em = self.model.emulate(key, idx[fr], SOURCE_BASE + row, fr, x, y, e)
-        sp = self.model.spurious_detections(key, idx, _D_SPUR, cam.width_px, cam.height_px)
-        det_fr = np.concatenate([em["frame"], sp["frame"]]).astype(np.int64)
-        det = {k: np.concatenate([em[k], sp[k]]) for k in ("x_px", "y_px", "flux_adu", "peak_adu", "area_px")}
-        det["star_index"] = np.concatenate([row[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int32)
-        det["hip_id"] = np.concatenate([hip[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int64)
-        n_sp = np.bincount(sp["frame"], minlength=B)
-        k_sp = np.arange(len(sp["frame"])) - np.repeat(np.cumsum(n_sp) - n_sp, n_sp)
-        det_id = np.concatenate([row[em["src"]], (1 << 31) + k_sp])
-        det_fr, det, det_id = _cap(det_fr, det, det_id, B, self.cfg.detection.max_detections)
-        det_fr, det = _detection_corruptions(det_fr, det, det_id, idx, levels, key)
+        det_fr, det = self._emulated(key, idx, fr, row, row, x, y, e, hip, levels)
         det_off = np.concatenate([[0], np.cumsum(np.bincount(det_fr, minlength=B))])
         s = self.cfg.sensor
         bg_adu = s.bias_adu + r.background_e / s.gain_e_per_adu
@@ -391,23 +381,29 @@ class SampleStream:
         star_offsets = np.concatenate([[0], np.cumsum(n_src)])
         row_in_frame = np.arange(len(fr)) - star_offsets[fr]
         # the emulated detector
-        em = self.model.emulate(key, idx[fr], SOURCE_BASE + src_id, fr, x, y, e)
-        sp = self.model.spurious_detections(key, idx, _D_SPUR, cam.width_px, cam.height_px)
-        det_fr = np.concatenate([em["frame"], sp["frame"]])
-        det = {k: np.concatenate([em[k], sp[k]]) for k in ("x_px", "y_px", "flux_adu", "peak_adu", "area_px")}
-        det["star_index"] = np.concatenate([row_in_frame[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int32)
-        det["hip_id"] = np.concatenate([hip[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int64)
-        n_sp = np.bincount(sp["frame"], minlength=B)
-        k_sp = np.arange(len(sp["frame"])) - np.repeat(np.cumsum(n_sp) - n_sp, n_sp)
-        det_id = np.concatenate([src_id[em["src"]], (1 << 31) + k_sp])
-        # the detector's own cap: brightest max_detections per frame
-        det_fr, det, det_id = _cap(det_fr, det, det_id, B, self.cfg.detection.max_detections)
-        det_fr, det = _detection_corruptions(det_fr, det, det_id, idx, levels, key)
+        det_fr, det = self._emulated(key, idx, fr, src_id, row_in_frame, x, y, e, hip, levels)
         n_det = np.bincount(det_fr, minlength=B)
         labels = {"ra_deg": ra, "dec_deg": dec, "roll_deg": roll,
                   "unit_vector": radec_to_vec(np.radians(ra), np.radians(dec)), "quaternion": matrices_to_quaternions(R)}
         stars = {"hip_id": hip, "x_px": x, "y_px": y, "mag": mag, "electrons": e.astype(np.float32)}
         return DetectionBatch(idx, np.concatenate([[0], np.cumsum(n_det)]), det, star_offsets, stars, labels, levels)
+
+    def _emulated(self, key, idx, fr, src_id, row, x, y, e, hip, levels):
+        """The calibrated emulator's detections of sources (frame ``fr``, stream id ``src_id``, row ``row`` in
+        its frame's star table, position, electrons, HIP id) plus spurious ones, capped at the detector's
+        brightest ``max_detections`` per frame and corrupted at ``levels``: (frame of each, table)."""
+        cam, B = self.cfg.camera, len(idx)
+        em = self.model.emulate(key, idx[fr], SOURCE_BASE + src_id, fr, x, y, e)
+        sp = self.model.spurious_detections(key, idx, _D_SPUR, cam.width_px, cam.height_px)
+        det_fr = np.concatenate([em["frame"], sp["frame"]]).astype(np.int64)
+        det = {k: np.concatenate([em[k], sp[k]]) for k in ("x_px", "y_px", "flux_adu", "peak_adu", "area_px")}
+        det["star_index"] = np.concatenate([row[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int32)
+        det["hip_id"] = np.concatenate([hip[em["src"]], np.full(len(sp["frame"]), -1)]).astype(np.int64)
+        n_sp = np.bincount(sp["frame"], minlength=B)
+        k_sp = np.arange(len(sp["frame"])) - np.repeat(np.cumsum(n_sp) - n_sp, n_sp)
+        det_id = np.concatenate([src_id[em["src"]], (1 << 31) + k_sp])
+        det_fr, det, det_id = _cap(det_fr, det, det_id, B, self.cfg.detection.max_detections)
+        return _detection_corruptions(det_fr, det, det_id, idx, levels, key)
 
     def sample(self, i: int) -> dict:
         """Sample ``i`` as a dict (labels, ``detections``, ``stars``; ``image`` for frames)."""
