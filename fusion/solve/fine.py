@@ -392,9 +392,11 @@ class CoarseToFineSolver:
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t in self._hypotheses(u, region, s, tables):
                     tried += t
-                    if q_all is None:             # photometry's best case: every detection matched and passing
-                        q_all = self._photometric_q(flux)
-                    best_possible = self.confidence(tried, n, n, q_all)
+                    best_possible = self.confidence(tried, n, n)
+                    if best_possible < self.min_confidence and self.photometric_mag is not None:
+                        if q_all is None:         # photometry's best case: every detection matched and passing
+                            q_all = self._photometric_q(flux)
+                        best_possible = self.confidence(tried, n, n, q_all)
                     if best_possible < self.min_confidence:
                         # H only grows: not even all n detections matched could pass any more, so stop here
                         return Refusal(f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "

@@ -129,9 +129,11 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                 kf = min(1.0 + s, max(1.0 - s, d_nom / max(sep[q], 1e-12)))
             ui[0], ui[1], ui[2] = _unit(t[i, 0], t[i, 1], kf)
             uj[0], uj[1], uj[2] = _unit(t[j, 0], t[j, 1], kf)
-            r = triad(ui, uj, vec[a], vec[b])
-            if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
-                continue                                   # its boresight lies in another region
+            have_r = cos_r > -1.0                          # a region, not the whole sky: place the boresight first
+            if have_r:
+                r = triad(ui, uj, vec[a], vec[b])
+                if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
+                    continue                               # its boresight lies in another region
             tried += 1
             delta = abs(_angle(ui[0], ui[1], ui[2], uj[0], uj[1], uj[2]) - sep[q])
             score = 1 + (1 if delta <= tol_n[j] else 0)
@@ -157,6 +159,9 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                     cbc = vec[b, 0] * vec[c, 0] + vec[b, 1] * vec[c, 1] + vec[b, 2] * vec[c, 2]
                     if cbc < lo_b or cbc > hi_b:
                         continue
+                    if not have_r:                         # whole sky: the rotation only when a partner fits
+                        r = triad(ui, uj, vec[a], vec[b])
+                        have_r = True
                     x0 = r[0, 0] * uk[0] + r[0, 1] * uk[1] + r[0, 2] * uk[2]
                     x1 = r[1, 0] * uk[0] + r[1, 1] * uk[1] + r[1, 2] * uk[2]
                     x2 = r[2, 0] * uk[0] + r[2, 1] * uk[1] + r[2, 2] * uk[2]
@@ -165,6 +170,8 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                         break
             if score < min_score:
                 continue
+            if not have_r:
+                r = triad(ui, uj, vec[a], vec[b])
             if m == cap:                                   # grow the outputs (rarely: few hypotheses score)
                 cap *= 2
                 out_a, out_b, out_k = _grow(out_a, cap), _grow(out_b, cap), _grow(out_k, cap)
