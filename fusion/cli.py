@@ -282,7 +282,7 @@ def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k")
                         "checkpoints trained with labels.fine_k, else its K regions) or its K regions")
     p.add_argument(k_flag, dest="search_k", type=int, metavar="K",
                    help="fine stage: regions searched, most probable first (default 20 fine regions or "
-                        "3 coarse ones)")
+                        "3 coarse ones; four times as many for three detections)")
     p.add_argument("--focal-tol", type=float, default=0.02,
                    help="fine stage: relative focal-length uncertainty it fits within (default 0.02; "
                         "0 = the camera's nominal focal length exactly)")
