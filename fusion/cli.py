@@ -117,6 +117,8 @@ def _quiet_worker_teardown() -> None:
     from a destructor as "Exception ignored ... DataLoader worker (pid N) is killed by signal" with a
     traceback: expected here, so that one report is dropped; any other goes to the usual hook."""
     default = sys.unraisablehook
+    if getattr(default, "_drops_dataloader_teardown", False):     # installed by an earlier call in this process
+        return
 
     def hook(unraisable):
         exc = unraisable.exc_value
@@ -124,6 +126,7 @@ def _quiet_worker_teardown() -> None:
             return
         default(unraisable)
 
+    hook._drops_dataloader_teardown = True
     sys.unraisablehook = hook
 
 
