@@ -155,6 +155,9 @@ def _add_evaluate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="auto (default): the first CUDA device if one is visible, else the CPU")
     p.add_argument("--max-frames", type=int, help="evaluate only the first N frames of the split (N >= 1)")
+    p.add_argument("--brightest", type=int, metavar="N",
+                   help="few-star frames: keep each frame's brightest N detections (the image untouched); "
+                        "writes eval-<split>-brightest<N>.*")
     p.add_argument("--allow-overlap", action="store_true",
                    help="score frames the checkpoint was trained on (refused by default) with a loud warning")
 
@@ -163,7 +166,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from .measure.evaluate import evaluate_checkpoint
     evaluate_checkpoint(args.checkpoint, args.data, args.split, args.out, batch_size=args.batch_size,
                         workers=args.workers, device=args.device, max_frames=args.max_frames,
-                        allow_overlap=args.allow_overlap)
+                        allow_overlap=args.allow_overlap, keep_brightest=args.brightest)
     return 0
 
 

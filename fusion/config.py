@@ -63,6 +63,18 @@ class HeatmapConfig:
 
 
 @dataclass(frozen=True)
+class PeaksConfig:
+    """The ``peak_set`` image backbone (:class:`fusion.model.networks.PeakSet`)."""
+    max_peaks: int = param(48, lo=1, hi=4096, doc="brightest local maxima of the image kept as tokens")
+    max_sharpness: float = param(0.9, lo=0, lo_open=True, hi=1, doc="a peak holding more than this share of its 3 x 3 sum in one pixel is a defect (hot pixel, cosmic-ray hit), not a star spread by the PSF, and is dropped (1: keep all)")
+    threshold_sigma: float = param(5.0, lo=0, hi=1000, doc="a local maximum is kept when it stands this many noise sigmas above the frame's median (noise: the clipped rms of the frame, see PeakSet)")
+    dim: int = param(64, lo=8, hi=4096, doc="token width of the peaks' transformer")
+    layers: int = param(2, lo=1, hi=64, doc="encoder layers of the peaks' transformer")
+    heads: int = param(4, lo=1, hi=64, doc="attention heads of the peaks' transformer")
+    out_dim: int = param(256, lo=1, hi=65536, doc="feature size of the image branch")
+
+
+@dataclass(frozen=True)
 class CanonicalConfig:
     """Roll handling (see :mod:`fusion.canonical`)."""
     mode: str = param("none", choices=("none", "brightest", "multi"), doc="rotate the detections about the centre so a reference star lies on +x: none (raw rows), brightest, or multi (n_refs references, probabilities averaged)")
@@ -83,8 +95,9 @@ class TransformerConfig:
 @dataclass(frozen=True)
 class ModelConfig:
     name: str = param("star_fusion", doc="registered model (fusion.models.MODELS): star_fusion, swinv2_tiny, resnet50")
-    image_backbone: Optional[str] = param(None, doc="image backbone override: a timm model name or 'tiny_cnn' (None: the model's own)")
+    image_backbone: Optional[str] = param(None, doc="image backbone override: a timm model name, 'tiny_cnn', 'grid_cnn' or 'peak_set' (None: the model's own)")
     in_chans: Optional[int] = param(None, choices=(None, 1, 3), doc="image channels (None: 1 from scratch, 3 replicated with ImageNet weights)")
+    image_px: Optional[int] = param(None, lo=1, hi=65536, doc="the image branch area-bins the (canonically rotated) stored image to this many columns, an integer divisor of the stored size (None: the stored size); 64 of a 256-px store is ~0.3 deg per pixel on a 20 deg camera")
     pretrained: Optional[str] = param(None, doc="ImageNet weights for the image backbone: a file or a hub name (None: from scratch)")
     init_from: Optional[str] = param(None, doc="warm start: a fusion checkpoint whose parameters of the same name and shape initialise this model (e.g. geometry branches trained on the detections stream, then fine-tuned on frames)")
     coord_encoder: str = param("mlp", choices=("mlp", "set", "transformer"), doc="coordinate branch: 3-layer MLP over the ordered list, permutation-invariant set encoder (deep sets), or transformer set encoder")
@@ -95,6 +108,7 @@ class ModelConfig:
     heatmap: HeatmapConfig = section(HeatmapConfig)
     canonical: CanonicalConfig = section(CanonicalConfig)
     transformer: TransformerConfig = section(TransformerConfig)
+    peaks: PeaksConfig = section(PeaksConfig)
 
 
 @dataclass(frozen=True)

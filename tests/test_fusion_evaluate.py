@@ -97,6 +97,28 @@ def test_evaluate_writes_json_markdown_and_png(trained, tmp_path):
     assert "| top-1 | top-3 | top-5 |" in md and "quantisation floor" in md and "Voronoi" in md
 
 
+def test_evaluate_brightest_n_cuts_the_detections_not_the_image(trained, tmp_path):
+    """--brightest N: each frame keeps its brightest N detection rows, the image is the same."""
+    from fusion.errors import ConfigError
+    from fusion.model.shards import FrameDataset, split_positions
+    from skygen.datasets.shards import open_dataset
+    with open_dataset(small_dataset("smoke")) as ds:
+        pos = split_positions(ds, "test")[:8]
+        whole = FrameDataset(ds, pos, np.zeros(len(pos)), max_stars=6)
+        cut = FrameDataset(ds, pos, np.zeros(len(pos)), max_stars=6, keep_brightest=2)
+        for j in range(len(pos)):
+            a, b = whole[j], cut[j]
+            assert (a["image"] == b["image"]).all()
+            n = int(a["mask"].sum())
+            assert int(b["mask"].sum()) == min(n, 2)
+            assert (b["coords"][:2] == a["coords"][:2]).all() and (b["coords"][2:] == 0).all()
+    r = evaluate_checkpoint(trained / "best.pt", small_dataset("smoke"), "test", tmp_path, keep_brightest=2, log=quiet)
+    assert r["keep_brightest"] == 2 and (tmp_path / "eval-test-brightest2.json").is_file()
+    assert "brightest 2 detections" in (tmp_path / "eval-test-brightest2.md").read_text()
+    with pytest.raises(ConfigError, match="--brightest"):
+        evaluate_checkpoint(trained / "best.pt", small_dataset("smoke"), "test", tmp_path, keep_brightest=0, log=quiet)
+
+
 def test_evaluate_refuses_a_dataset_with_another_image_size(trained, tmp_path):
     other = render_small(tmp_path / "ds", ["n_frames=6", "camera.width_px=256", "camera.height_px=256",
                                            "camera.fov_deg=20", "output.image_size_px=128",

@@ -90,16 +90,19 @@ def _camera_warning(ckpt: Checkpoint, ds, warn) -> None:
 
 def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "test", out: str | Path | None = None,
                         *, batch_size: int = 64, workers: int = 0, device: str = "auto",
-                        max_frames: int | None = None, allow_overlap: bool = False, log=print,
-                        warn=None) -> dict:
+                        max_frames: int | None = None, allow_overlap: bool = False, keep_brightest: int | None = None,
+                        log=print, warn=None) -> dict:
     """Evaluate ``checkpoint`` (a file or a run folder) on ``split`` of dataset ``data``; write and return the report.
 
     Refuses (DatasetError) frames the checkpoint was trained on unless ``allow_overlap``;
-    ``warn`` (default: print to stderr) receives the warnings.
+    ``warn`` (default: print to stderr) receives the warnings. ``keep_brightest`` = N scores
+    few-star frames: each frame keeps its brightest N detections (the image is untouched), and
+    the files are named ``eval-<split>-brightest<N>.*``.
     """
     import sys
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
-    for name, value, lo in (("--batch-size", batch_size, 1), ("--workers", workers, 0), ("--max-frames", max_frames, 1)):
+    for name, value, lo in (("--batch-size", batch_size, 1), ("--workers", workers, 0), ("--max-frames", max_frames, 1),
+                            ("--brightest", keep_brightest, 1)):
         if value is not None and value < lo:
             raise ConfigError(f"{name} {value}: must be at least {lo}")
     t0 = time.perf_counter()
@@ -122,7 +125,7 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
         labels = assign(v, centroids)
         d = cfg.data
         frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
-                              log_flux_offset=d.log_flux_offset)
+                              log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
         loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
         pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
         sparse = count_sparse_frames(ds, pos)
@@ -133,22 +136,24 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
     report = report_from_predictions(pred["logits"], labels, v, centroids)
     report.update({"checkpoint": str(checkpoint), "epoch": ckpt.epoch, "model": ckpt.model_name,
                    "branches": ckpt.branches, "dataset": dataset_info, "frames_with_lt2_detections": sparse,
-                   "device": str(dev), "wall_time_s": time.perf_counter() - t0})
+                   "device": str(dev), "wall_time_s": time.perf_counter() - t0, "keep_brightest": keep_brightest})
     out = Path(out) if out is not None else checkpoint.parent
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / f"eval-{split}.json", report)
-    atomic_write_text(out / f"eval-{split}.md", markdown_report(report))
-    plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{split}.png",
-                   f"{ckpt.model_name} on {split} (K={report['num_classes']})")
+    stem = split if keep_brightest is None else f"{split}-brightest{keep_brightest}"
+    write_json(out / f"eval-{stem}.json", report)
+    atomic_write_text(out / f"eval-{stem}.md", markdown_report(report))
+    plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{stem}.png",
+                   f"{ckpt.model_name} on {stem} (K={report['num_classes']})")
     log(summary_line(report))
-    log(f"wrote {out / f'eval-{split}.json'}, eval-{split}.md, confusion-{split}.png")
+    log(f"wrote {out / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
     return report
 
 
 def summary_line(r: dict) -> str:
     ae, qf = r["angular_error"], r["quantisation_floor"]
     share = r["neighbour_error_share"]
-    return (f"{r['dataset']['split']}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
+    cut = "" if r.get("keep_brightest") is None else f" (brightest {r['keep_brightest']} detections)"
+    return (f"{r['dataset']['split']}{cut}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
             f"top-3 {r['top3']:.3f} top-5 {r['top5']:.3f} (chance {r['chance_top1']:.3f}); angular error "
             f"mean {ae['mean_deg']:.2f} median {ae['median_deg']:.2f} p95 {ae['p95_deg']:.2f} deg (floor "
             f"median {qf['median_deg']:.2f}); errors between neighbours "
@@ -167,7 +172,9 @@ def markdown_report(r: dict) -> str:
         f"# Evaluation of `{r['checkpoint']}` (epoch {r['epoch']})", "",
         f"Model `{r['model']}`, branches {r['branches']}; dataset `{r['dataset']['path']}`, split "
         f"**{r['dataset']['split']}**: {r['n_frames']} frames ({r['frames_with_lt2_detections']} with fewer than "
-        f"2 detections), K = {r['num_classes']} (chance top-1 {_fmt(r['chance_top1'], True)}).", "",
+        f"2 detections), K = {r['num_classes']} (chance top-1 {_fmt(r['chance_top1'], True)})"
+        + ("." if r.get("keep_brightest") is None else
+           f"; each frame cut to its brightest {r['keep_brightest']} detections, the image untouched."), "",
         "| top-1 | top-3 | top-5 |", "|---|---|---|",
         f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
         "## Angular error (degrees)", "",
@@ -181,5 +188,6 @@ def markdown_report(r: dict) -> str:
         "## Per-class accuracy", "", "| class | frames | top-1 |", "|---|---|---|",
     ]
     lines += [f"| {c['class']} | {c['n']} | {_fmt(c['top1'], True)} |" for c in r["per_class"]]
-    lines += ["", f"Confusion matrix: `confusion-{r['dataset']['split']}.png` (rows true, columns predicted).", ""]
+    stem = r["dataset"]["split"] + ("" if r.get("keep_brightest") is None else f"-brightest{r['keep_brightest']}")
+    lines += ["", f"Confusion matrix: `confusion-{stem}.png` (rows true, columns predicted).", ""]
     return "\n".join(lines)

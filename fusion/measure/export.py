@@ -263,6 +263,11 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
     if model.fine_classes and exporter == "legacy" and opset < 16:
         raise ConfigError(f"--opset {opset}: this model sums its {model.fine_classes} fine regions per region "
                           "(ScatterElements with reduction=add), which ONNX has from opset 16; use --opset 16 or later")
+    if model.image is not None and model.image.rotates_tokens:
+        raise ExportError(f"{checkpoint}: its image branch is the peak set (model.image_backbone=peak_set), whose "
+                          "per-frame median, clipped noise and top-k peak selection have no ONNX export here; "
+                          "run it in PyTorch (fusion predict, fusion time) or export a model with a CNN image "
+                          "branch or none. No file was written.")
     wrapper = ExportWrapper(model.float(), mask_dtype)
     size, stars = ckpt.image_size, ckpt.max_stars
     rng = np.random.default_rng(seed)

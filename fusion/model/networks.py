@@ -40,10 +40,11 @@ from typing import Callable
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ..config import ModelConfig
 from ..errors import CheckpointError, ConfigError
-from .canonical import canonical_views, rotate_image, view_weights
+from .canonical import canonical_views, rotate_image, rotate_rows, view_weights
 from .heatmap import HeatmapRasteriser
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -88,7 +89,7 @@ def resolve_model_config(cfg: ModelConfig) -> ModelConfig:
     if spec.image_only:
         branches = replace(branches, image=True, heatmap=False, coords=False)
     in_chans = cfg.in_chans or (3 if cfg.pretrained else 1)
-    if cfg.pretrained and backbone in BACKBONES:
+    if cfg.pretrained and (backbone in BACKBONES or backbone == "peak_set"):
         raise ConfigError(f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
                           "use a timm backbone (model.image_backbone) or drop --pretrained")
     return replace(cfg, image_backbone=backbone, branches=branches, in_chans=in_chans)
@@ -129,7 +130,34 @@ class TinyCNN(nn.Module):
         return self.features(x).mean(dim=(2, 3))
 
 
-BACKBONES: dict[str, Callable[..., nn.Module]] = {"tiny_cnn": TinyCNN}
+class GridCNN(nn.Module):
+    """A small image backbone that keeps *where* things are: 256-d features of a star field.
+
+    A star field's identity is its layout, which a global average (:class:`TinyCNN`, most timm
+    backbones' pooled output) throws away. One stride-1 conv3x3 (so a one-pixel faint star
+    reaches the features at full resolution), then stride-2 conv3x3-GroupNorm-ReLU stages
+    (the heatmap CNN's design), the last map average-pooled to a ``grid`` x ``grid`` layout,
+    flattened and projected: position is kept at the grid's resolution and, within a cell,
+    in the channels. ~17 M multiply-adds and ~0.6 M parameters at 64 x 64 input.
+    """
+
+    def __init__(self, in_chans: int = 1, widths: tuple[int, ...] = (32, 64, 128, 128), stem: int = 16,
+                 grid: int = 4, out_dim: int = 256):
+        super().__init__()
+        layers = [nn.Conv2d(in_chans, stem, 3, padding=1, bias=False), _norm(stem), nn.ReLU(inplace=True)]
+        c = stem
+        for w in widths:
+            layers += [nn.Conv2d(c, w, 3, stride=2, padding=1, bias=False), _norm(w), nn.ReLU(inplace=True)]
+            c = w
+        self.features = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(grid), nn.Flatten())
+        self.proj = nn.Linear(c * grid * grid, out_dim)
+        self.num_features = out_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.proj(self.features(x))
+
+
+BACKBONES: dict[str, Callable[..., nn.Module]] = {"tiny_cnn": TinyCNN, "grid_cnn": GridCNN}
 
 
 def _pretrained_overlay(pretrained: str) -> dict:
@@ -171,11 +199,12 @@ def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretraine
 
 
 class ImageBranch(nn.Module):
-    """Replicates the 1-channel input to ``in_chans`` and applies ImageNet statistics when pretrained."""
+    """Area-bins the (rotated) stored image by ``bin`` (``model.image_px``), replicates the
+    1-channel input to ``in_chans`` and applies ImageNet statistics when pretrained."""
 
-    def __init__(self, backbone: nn.Module, in_chans: int, imagenet_norm: bool):
+    def __init__(self, backbone: nn.Module, in_chans: int, imagenet_norm: bool, bin: int = 1):
         super().__init__()
-        self.backbone, self.in_chans = backbone, in_chans
+        self.backbone, self.in_chans, self.bin = backbone, in_chans, int(bin)
         mean = torch.tensor(IMAGENET_MEAN[:in_chans] if in_chans == 3 else [sum(IMAGENET_MEAN) / 3])
         std = torch.tensor(IMAGENET_STD[:in_chans] if in_chans == 3 else [sum(IMAGENET_STD) / 3])
         self.imagenet_norm = imagenet_norm
@@ -183,7 +212,20 @@ class ImageBranch(nn.Module):
         self.register_buffer("std", std.view(1, -1, 1, 1), persistent=False)
         self.out_dim = int(backbone.num_features)
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
+    @property
+    def rotates_tokens(self) -> bool:
+        """A :class:`PeakSet` backbone is rotated into the canonical frame as tokens, not as pixels:
+        its peaks come from the image as stored (no resampling blur) and are rotated like detections."""
+        return isinstance(self.backbone, PeakSet)
+
+    def forward(self, image: torch.Tensor, theta: torch.Tensor | None = None) -> torch.Tensor:
+        if self.bin > 1:
+            image = F.avg_pool2d(image, self.bin)
+        if self.rotates_tokens:
+            rows, mask = self.backbone.peaks(image)
+            if theta is not None:
+                rows = rotate_rows(rows, theta.to(rows.dtype))
+            return self.backbone.encoder(rows.to(image.dtype), mask)
         if image.shape[1] != self.in_chans:
             image = image.expand(-1, self.in_chans, -1, -1)
         if self.imagenet_norm:
@@ -275,6 +317,88 @@ class TransformerSetEncoder(nn.Module):
         return self.proj(torch.cat([h[:, 0], mean], dim=-1))
 
 
+class PeakSet(nn.Module):
+    """An image backbone that reads the stars off the pixels: the frame's brightest local maxima
+    above ``threshold`` noise sigmas, as a set, through a transformer (:class:`TransformerSetEncoder`).
+
+    Not learned up to the set: the frame's background is its median, its noise the rms of the
+    90 % of pixels nearest it, scaled to a Gaussian's sigma (a per-frame estimate, so the
+    stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the maximum of its 3 x 3 neighbourhood and its
+    z = (x - median) / noise exceeds ``threshold``. Each of the ``max_peaks`` strongest peaks (by
+    the 3 x 3 sum of positive z) becomes a token ``[x, y, log10(sum z) - 1, peak z / sum z]``:
+    position at the 3 x 3 centroid, in the coordinate branch's convention (the pixel edges of
+    the image map to -1 and +1 in x, the centre to 0, y on the same scale), so a star in the
+    image and the same star's detection get the same (x, y); the last feature tells a one-pixel
+    defect (hot pixel) from a star spread by the PSF. A blank image gives an empty set.
+
+    The difference from the detections: no detector threshold, area or shape cuts, and all the
+    frame's stars, not ``data.max_stars`` — the stars below the detector's threshold that a
+    few-star frame still shows are here.
+    """
+
+    N_FEATURES = 4
+
+    def __init__(self, max_peaks: int = 48, threshold: float = 5.0, max_sharpness: float = 0.9, dim: int = 64,
+                 layers: int = 2, heads: int = 4, out_dim: int = 256):
+        super().__init__()
+        self.max_peaks, self.threshold, self.max_sharpness = int(max_peaks), float(threshold), float(max_sharpness)
+        self.encoder = TransformerSetEncoder(self.N_FEATURES, dim=dim, layers=layers, heads=heads, ff_mult=2,
+                                             out_dim=out_dim)
+        self.register_buffer("offsets", torch.tensor([[dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
+                                                      [dy for dy in (-1, 0, 1) for dx in (-1, 0, 1)]],
+                                                     dtype=torch.float32), persistent=False)
+        self.num_features = out_dim
+
+    def peaks(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Tokens (B, max_peaks, 4) and mask (B, max_peaks) of images (B, C, H, W) (first channel)."""
+        x = x[:, :1].float()
+        b, _, h, w = x.shape
+        step = max(1, min(h, w) // 64)              # the statistics from a 64 x 64-ish lattice of pixels
+        flat = x[:, 0, ::step, ::step].reshape(b, -1)
+        med = flat.median(dim=1).values
+        dev = (flat - med[:, None]).abs()
+        # the rms of the 90 % of pixels nearest the median, scaled to a Gaussian's sigma (a Gaussian cut at
+        # 1.645 sigma keeps 0.789 of its rms): robust to stars and defects like the MAD, but not zero on
+        # quantised frames, whose MAD is 0 when most pixels share the median's ADU
+        cut = dev.kthvalue(max(1, int(0.9 * dev.shape[1])), dim=1).values
+        inner = (dev <= cut[:, None]).to(dev.dtype)
+        noise = ((dev.square() * inner).sum(1) / inner.sum(1)).sqrt().div(0.789).clamp(min=1e-6)
+        z = ((x[:, 0] - med[:, None, None]) / noise[:, None, None])                # (B, H, W)
+        # local maxima of 3 x 3 neighbourhoods (separable: rows, then columns; cheaper than max_pool2d)
+        zp = F.pad(z, (1, 1, 1, 1), value=float("-inf"))
+        rowmax = torch.maximum(torch.maximum(zp[:, :, :-2], zp[:, :, 1:-1]), zp[:, :, 2:])
+        local = torch.maximum(torch.maximum(rowmax[:, :-2], rowmax[:, 1:-1]), rowmax[:, 2:])
+        peak = (z >= local) & (z > self.threshold)
+        ninf = torch.full_like(z, float("-inf"))
+        cand, idx = torch.where(peak, z, ninf).reshape(b, -1).topk(min(4 * self.max_peaks, h * w), dim=1)
+        # the 3 x 3 neighbourhood of each candidate: sum of positive z, centroid, sharpness
+        zc = F.pad(z.clamp(min=0), (1, 1, 1, 1)).reshape(b, -1)
+        iy, ix = idx // w, idx % w
+        patch = torch.stack([torch.gather(zc, 1, (iy + 1 + dy) * (w + 2) + ix + 1 + dx)
+                             for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dim=-1)          # (B, C, 9)
+        total = patch.sum(-1).clamp(min=1e-6)
+        offs = self.offsets.to(patch.dtype)
+        u = ix.to(z.dtype) + (patch * offs[0]).sum(-1) / total
+        v = iy.to(z.dtype) + (patch * offs[1]).sum(-1) / total
+        sharp = cand.clamp(min=0) / total
+        keep = torch.isfinite(cand) & (sharp <= self.max_sharpness)         # not a one-pixel spike
+        k = min(self.max_peaks, cand.shape[1])
+        val, j = torch.where(keep, total, torch.full_like(total, float("-inf"))).topk(k, dim=1)
+        mask = torch.isfinite(val)
+        pick = lambda t: torch.gather(t, 1, j)
+        rows = torch.stack([(pick(u) + 0.5) / (w / 2) - 1, (pick(v) + 0.5 - h / 2) / (w / 2),
+                            torch.log10(val.clamp(min=1)) - 1, pick(sharp)], dim=-1)
+        rows = torch.where(mask[..., None], rows, torch.zeros_like(rows))
+        if k < self.max_peaks:
+            rows = F.pad(rows, (0, 0, 0, self.max_peaks - k))
+            mask = F.pad(mask, (0, self.max_peaks - k))
+        return rows, mask
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        rows, mask = self.peaks(x)
+        return self.encoder(rows.to(x.dtype), mask)
+
+
 # --------------------------------------------------------------------------- the fused model
 class StarFusion(nn.Module):
     """Any non-empty subset of {image, heatmap, coords} branches -> concat -> LayerNorm -> Linear(K)."""
@@ -304,10 +428,10 @@ class StarFusion(nn.Module):
         return {"image": self.image is not None, "heatmap": self.heatmap is not None, "coords": self.coords is not None}
 
     def forward_features(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
-                         mask: torch.Tensor | None = None) -> torch.Tensor:
+                         mask: torch.Tensor | None = None, theta: torch.Tensor | None = None) -> torch.Tensor:
         parts = []
         if self.image is not None:
-            parts.append(self.image(image))
+            parts.append(self.image(image, theta))
         if self.heatmap is not None:
             parts.append(self.heatmap(coords, mask))
         if self.coords is not None:
@@ -343,11 +467,14 @@ class StarFusion(nn.Module):
         if c is None:
             return self.forward_head(self.forward_features(image, coords, mask), fine)
         cv, mv, theta, views = canonical_views(coords, mask, c.mode, c.n_refs, c.min_radius, self.training)
+        image_theta = None
         if image is not None and self.image is not None:
             image = image.repeat_interleave(views, dim=0)
-            if c.image:
+            if c.image and self.image.rotates_tokens:
+                image_theta = theta
+            elif c.image:
                 image = rotate_image(image, theta)
-        logits = self.forward_head(self.forward_features(image, cv, mv), fine)
+        logits = self.forward_head(self.forward_features(image, cv, mv, image_theta), fine)
         if views == 1:
             return logits
         w = view_weights(coords, mask, c.n_refs, c.min_radius)            # (B, V)
@@ -367,6 +494,17 @@ def relative_log_flux(coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def image_binning(image_px: int | None, stored_px: int) -> int:
+    """The integer factor that area-bins ``stored_px`` columns to ``model.image_px``."""
+    if image_px is None or image_px == stored_px:
+        return 1
+    if image_px > stored_px or stored_px % image_px:
+        raise ConfigError(f"model.image_px={image_px} is not an integer binning of the stored {stored_px}-px "
+                          f"images; choose a divisor of {stored_px} (e.g. {stored_px // 2} or {stored_px // 4}), "
+                          "or leave it unset for the stored size")
+    return stored_px // image_px
+
+
 def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *, image_size: int = 256,
                  max_stars: int = 6, load_pretrained: bool = True, fine_classes: int | None = None) -> StarFusion:
     """Build registered model ``name`` with K = ``num_classes`` outputs from a :class:`ModelConfig`.
@@ -378,9 +516,14 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
     b, h = cfg.branches, cfg.heatmap
     image = heat = coords = None
     if b.image:
-        backbone = create_backbone(cfg.image_backbone, cfg.in_chans, image_size,
-                                   cfg.pretrained if load_pretrained else None)
-        image = ImageBranch(backbone, cfg.in_chans, imagenet_norm=bool(cfg.pretrained))
+        binning = image_binning(cfg.image_px, image_size)
+        if cfg.image_backbone == "peak_set":
+            p = cfg.peaks
+            backbone = PeakSet(p.max_peaks, p.threshold_sigma, p.max_sharpness, p.dim, p.layers, p.heads, p.out_dim)
+        else:
+            backbone = create_backbone(cfg.image_backbone, cfg.in_chans, image_size // binning,
+                                       cfg.pretrained if load_pretrained else None)
+        image = ImageBranch(backbone, cfg.in_chans, imagenet_norm=bool(cfg.pretrained), bin=binning)
     if b.heatmap:
         heat = HeatmapBranch(h.canvas_px, h.sigma_px, h.channels, h.pool_grid, h.out_dim)
     if b.coords:

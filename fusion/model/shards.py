@@ -88,12 +88,15 @@ class FrameDataset(torch.utils.data.Dataset):
     (max_stars, 3) float32, ``mask`` (max_stars,) bool, ``n_detections`` before truncation) plus
     ``label`` int64, ``index`` (frame position in the dataset), ``soft`` (K,) float32 when soft
     targets are given and ``label_fine`` with fine-region labels. ``augment`` (training) is
-    applied to each sample with the generator of (seed, epoch, frame).
+    applied to each sample with the generator of (seed, epoch, frame). ``keep_brightest`` = N
+    (evaluation of few-star frames) keeps the brightest N detection rows and masks the rest;
+    the image is left as it is.
     """
 
     def __init__(self, ds: SkyDataset, positions: np.ndarray, labels: np.ndarray, *, max_stars: int = 6,
                  norm_scale_adu: float = 8.0, log_flux_offset: float = 3.0, soft: np.ndarray | None = None,
-                 augment: Augment | None = None, seed: int = 0, fine: np.ndarray | None = None):
+                 augment: Augment | None = None, seed: int = 0, fine: np.ndarray | None = None,
+                 keep_brightest: int | None = None):
         if len(positions) != len(labels) or (soft is not None and len(soft) != len(labels)):
             raise ValueError("positions, labels and soft targets must have the same length")
         self.ds = ds
@@ -104,6 +107,7 @@ class FrameDataset(torch.utils.data.Dataset):
         self.geo = FrameGeometry.from_render_config(ds.config)
         self.pre = Preprocessor(self.geo, max_stars, log_flux_offset, norm_scale_adu)
         self.augment, self.seed = augment, seed
+        self.keep_brightest = None if keep_brightest is None else int(keep_brightest)
         self._detections: dict[int, tuple] = {}   # per-process cache: the tables are small, reads are not
 
     def __getstate__(self) -> dict:
@@ -129,6 +133,9 @@ class FrameDataset(torch.utils.data.Dataset):
         j = key[0] if isinstance(key, tuple) else key
         s = self.sample(key)
         item = {**self.pre.item(s), "label": torch.tensor(self.labels[j]), "index": torch.tensor(self.positions[j])}
+        if self.keep_brightest is not None:     # a few-star frame: only the brightest N detections, image untouched
+            item["mask"][self.keep_brightest:] = False
+            item["coords"][self.keep_brightest:] = 0.0
         if self.soft is not None:
             item["soft"] = torch.from_numpy(self.soft[j])
         if self.fine is not None:

@@ -129,7 +129,7 @@ def pace_line(step_s: float, steps: int, epochs_left: int, batch: int, model, de
 def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> StarFusion:
     """The model for ``data``'s regions and image size; a warm start (``model.init_from``) for a fresh run."""
     if (cfg.model.branches.image and data.ds.image_shape[0] != data.ds.image_shape[1]
-            and cfg.model.image_backbone not in ("tiny_cnn",)):
+            and cfg.model.image_backbone not in ("tiny_cnn", "grid_cnn", "peak_set")):
         raise ConfigError(f"model.image_backbone={cfg.model.image_backbone} takes square images, but this dataset "
                           f"stores {data.ds.image_shape[1]} x {data.ds.image_shape[0]} (a non-square sensor); use "
                           "model.image_backbone=tiny_cnn or switch the image branch off")
