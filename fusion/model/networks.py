@@ -105,6 +105,15 @@ def _norm(channels: int) -> nn.GroupNorm:
     return nn.GroupNorm(min(8, channels), channels)
 
 
+def _stride2_stages(c: int, widths) -> tuple[list[nn.Module], int]:
+    """Conv3x3 (stride 2, no bias) - GroupNorm - ReLU per width, from ``c`` channels: (layers, channels out)."""
+    layers = []
+    for w in widths:
+        layers += [nn.Conv2d(c, w, 3, stride=2, padding=1, bias=False), _norm(w), nn.ReLU(inplace=True)]
+        c = w
+    return layers, c
+
+
 class TinyCNN(nn.Module):
     """A small CPU-friendly image backbone: 128-d pooled features.
 
@@ -144,11 +153,8 @@ class GridCNN(nn.Module):
     def __init__(self, in_chans: int = 1, widths: tuple[int, ...] = (32, 64, 128, 128), stem: int = 16,
                  grid: int = 4, out_dim: int = 256):
         super().__init__()
-        layers = [nn.Conv2d(in_chans, stem, 3, padding=1, bias=False), _norm(stem), nn.ReLU(inplace=True)]
-        c = stem
-        for w in widths:
-            layers += [nn.Conv2d(c, w, 3, stride=2, padding=1, bias=False), _norm(w), nn.ReLU(inplace=True)]
-            c = w
+        stages, c = _stride2_stages(stem, widths)
+        layers = [nn.Conv2d(in_chans, stem, 3, padding=1, bias=False), _norm(stem), nn.ReLU(inplace=True), *stages]
         self.features = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(grid), nn.Flatten())
         self.proj = nn.Linear(c * grid * grid, out_dim)
         self.num_features = out_dim
@@ -238,10 +244,7 @@ class HeatmapBranch(nn.Module):
                  pool_grid: int = 4, out_dim: int = 384):
         super().__init__()
         self.rasterise = HeatmapRasteriser(canvas_px, sigma_px)
-        layers, c = [], 1
-        for w in channels:
-            layers += [nn.Conv2d(c, w, 3, stride=2, padding=1, bias=False), _norm(w), nn.ReLU(inplace=True)]
-            c = w
+        layers, c = _stride2_stages(1, channels)
         self.cnn = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(pool_grid), nn.Flatten())
         self.proj = nn.Linear(c * pool_grid * pool_grid, out_dim)
         self.out_dim = out_dim
