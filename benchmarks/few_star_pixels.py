@@ -50,9 +50,7 @@ def star_counts(data: str, split: str, ns: list[int], max_frames: int | None = N
             with torch.no_grad():
                 rows, mask = peaks.peaks(img)
             px = rows[0, mask[0], :2].numpy()
-            # true stars in the stored image's normalised coordinates (the coordinate branch's convention)
-            tx = (true["x_px"] + 0.5) / (g.sensor_px / 2) - 1
-            ty = (true["y_px"] + 0.5 - g.sensor_h / 2) / (g.sensor_px / 2)
+            tx, ty = g.normalised(true["x_px"], true["y_px"])     # the coordinate branch's convention
             if len(px) and len(tx):
                 d = np.hypot(tx[:, None] - px[None, :, 0], ty[:, None] - px[None, :, 1]).min(1)
                 seen = d < 2.0 / g.image_px                                  # within one stored pixel
