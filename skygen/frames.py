@@ -50,9 +50,19 @@ def read_frame(path: str | Path) -> np.ndarray:
         if suffix == ".npy":
             img = np.load(path, allow_pickle=False)
         elif suffix in (".fits", ".fit", ".fts"):
+            import warnings
             from astropy.io import fits
-            with fits.open(path, memmap=False) as hdul:
-                img = next((h.data for h in hdul if h.data is not None and np.ndim(h.data) >= 2), None)
+            with warnings.catch_warnings(record=True) as caught:     # astropy's own WARNING lines: ours instead
+                warnings.simplefilter("always")
+                try:
+                    with fits.open(path, memmap=False) as hdul:
+                        img = next((h.data for h in hdul if h.data is not None and np.ndim(h.data) >= 2), None)
+                except Exception:
+                    truncated = next((str(w.message) for w in caught if "truncated" in str(w.message)), None)
+                    if truncated:
+                        raise FrameError(f"{path}: truncated FITS file ({truncated.rstrip('.')}); "
+                                         "copy it again from its source") from None
+                    raise
             if img is None:
                 raise FrameError(f"{path}: no image HDU with 2-D data")
         else:

@@ -10,8 +10,16 @@ def test_plan_shares_identical_runs():
     assert len(runs["recipe"]) == len(p.recipe) * len(p.seeds) >= 2 * len(p.seeds)
     keys = {r.key for v in runs.values() for r in v}
     assert len(keys) < sum(len(v) for v in runs.values())      # the full model is trained once per seed
-    sweep = {r.key for r in runs["table1"] if r.name == p.sweep_model}
-    assert sweep == {r.key for r in runs["k_sweep"] if r.name == "K=15"}     # the preset's own K is not retrained
+    k15 = {r.key for r in runs["k_sweep"] if r.name == "K=15"}
+    assert k15 == {r.key for r in runs["labels"] if "fine regions" in r.name}   # the preset's own K is not retrained
+    assert all(r.overrides == p.sweep_base for r in runs["k_sweep"] if r.name == "K=15")
+    # the CPU preset sweeps a shorter geometry run than table 1's (sweep_overrides), and table 1 shares its
+    # three-branch and few-star geometry runs with the ablation
+    assert p.sweep_overrides == [] and p.sweep_base != tuple(p.table1[p.sweep_model])
+    t1 = {r.name: r.key for r in runs["table1"] if r.seed == p.seeds[0]}
+    ab = {r.name: r.key for r in runs["ablation"] if r.seed == p.seeds[0]}
+    assert t1["star_fusion"] == ab["image+heatmap+coords"] and t1["image_only"] == ab["image"]
+    assert t1["geometry_only, few-star recipe"] == ab["coords"]
 
 
 def test_smoke_experiment_writes_report_and_resumes(tmp_path):

@@ -297,6 +297,20 @@ def test_a_truncated_tiff_is_one_line(capfd, tmp_path):
     assert capfd.readouterr().err == ""
 
 
+def test_a_truncated_fits_is_one_line_of_ours(capfd, tmp_path):
+    """astropy's own WARNING line about the truncation is not printed; ours names the file and says so."""
+    from astropy.io import fits
+    fits.writeto(tmp_path / "full.fits", np.random.default_rng(0).random((128, 128), np.float32))
+    data = (tmp_path / "full.fits").read_bytes()
+    (tmp_path / "cut.fits").write_bytes(data[: len(data) // 2])
+    capfd.readouterr()
+    with pytest.raises(FrameError, match="cut.fits: truncated FITS file"):
+        read_frame(tmp_path / "cut.fits")
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == ""
+    assert read_frame(tmp_path / "full.fits").shape == (128, 128)
+
+
 def test_real_16_bit_frames_read_as_the_decoder_gives_them():
     for path in sorted(REAL.glob("*.tiff")):
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

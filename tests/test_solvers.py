@@ -147,6 +147,56 @@ def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
         assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
 
 
+def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(renderer, tetra, regions):
+    """The prior puts all its weight away from the truth (what noisy magnitudes do to a brightest-star
+    reference): its regions alone refuse; with then_whole_sky the same search goes on over the sky and
+    finds the true attitude, its region reported as -1 and its H counting every hypothesis of both."""
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
+    prior = OraclePrior(regions)
+    only = CoarseToFineSolver(tetra, prior, top_k=2, name="regions")
+    then = CoarseToFineSolver(tetra, prior, top_k=2, name="regions>sky", then_whole_sky=True)
+    solved = 0
+    for i in range(4):
+        f = renderer.render(i)
+        truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+        p = prior.probabilities_for(f.unit_vector, i)
+        far = np.argsort(regions @ f.unit_vector)[:2]         # the two regions farthest from the boresight
+        wrong = np.zeros_like(p)
+        wrong[far] = [0.6, 0.4]
+        det = Detections.from_table(f.detections).brightest(6)
+        assert isinstance(only.solve(det, renderer.camera, probabilities=wrong), Refusal)
+        res = then.solve(det, renderer.camera, probabilities=wrong)
+        if isinstance(res, Solution):
+            assert boresight_error_deg(truth, res.matrix) < 0.05
+            assert res.extra["region"] == -1 and res.confidence >= 0.99
+            solved += 1
+        right = then.solve(det, renderer.camera, probabilities=p)    # a good prior never reaches the sky search
+        assert isinstance(right, Solution) and right.extra["region"] != -1
+    assert solved >= 3
+
+
+def test_only_the_brightest_detections_are_scored_and_all_are_verified(renderer, tetra, regions):
+    """A frame with many detections: the search scores the brightest max_detections (fewer partner tables)
+    and tetra3rs's verification re-matches every detection, so the answer is the same attitude."""
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
+    prior = OraclePrior(regions)
+    i = max(range(8), key=lambda k: len(renderer.render(k).detections["x_px"]))
+    f = renderer.render(i)
+    det = Detections.from_table(f.detections)
+    assert len(det) > 20
+    p = prior.probabilities_for(f.unit_vector, i)
+    capped = CoarseToFineSolver(tetra, prior, top_k=1, max_detections=8).solve(det, renderer.camera, probabilities=p)
+    full = CoarseToFineSolver(tetra, prior, top_k=1, max_detections=None).solve(det, renderer.camera, probabilities=p)
+    assert isinstance(capped, Solution) and isinstance(full, Solution)
+    assert capped.extra["refined_by"] == "tetra3rs tracking" and capped.n_matched > 8
+    assert rotation_angle_deg(capped.matrix, full.matrix) < 1e-3
+    assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), capped.matrix) < 0.05
+    with pytest.raises(ValueError, match="max_detections"):
+        CoarseToFineSolver(tetra, prior, max_detections=2)
+
+
 def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     """Three detections over the whole sky, geometry alone, cannot reach the confidence bar (~10^4 chance
     triangles): the search stops after the first detection pair instead of trying every pair in both passes."""

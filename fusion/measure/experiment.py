@@ -26,7 +26,9 @@ A preset is a YAML file (``configs/experiments/<name>.yaml``) that names the dat
 (skygen overrides), the training preset, the seeds and each section's variants as lists
 of ``key=value`` overrides of the training config. ``sweep_model`` names the table-1 row
 whose overrides the K sweep, the label study and the latency timing start from (default
-``star_fusion``; the CPU preset uses its geometry-only model, which learns in minutes).
+``star_fusion``); ``sweep_overrides`` replaces those overrides where the sweeps should run at
+another budget than table 1 (the CPU preset: a 1.6-min geometry-only run, while table 1 compares
+every model at about 4 min).
 """
 
 from __future__ import annotations
@@ -99,6 +101,12 @@ class Preset:
     notes: list[str] = field(default_factory=list)
     sweep_model: str = "star_fusion"
     recipe: dict[str, list[str]] = field(default_factory=dict)
+    sweep_overrides: list[str] | None = None   # None: the sweep model's table-1 overrides
+
+    @property
+    def sweep_base(self) -> tuple[str, ...]:
+        """Overrides the K sweep, labels, coords, recipe and latency sections start from."""
+        return tuple(self.table1[self.sweep_model] if self.sweep_overrides is None else self.sweep_overrides)
 
 
 def load_preset(name_or_path: str | Path) -> Preset:
@@ -121,14 +129,15 @@ def load_preset(name_or_path: str | Path) -> Preset:
             robustness_frames=int(sec["robustness"]["frames"]),
             robustness_levels={k: [float(x) for x in v] for k, v in sec["robustness"].get("levels", {}).items()},
             timing_iters=int(sec.get("latency", {}).get("iters", 50)), notes=list(raw.get("notes", [])),
-            sweep_model=str(raw.get("sweep_model", "star_fusion")), recipe=dict(sec.get("recipe") or {}))
+            sweep_model=str(raw.get("sweep_model", "star_fusion")), recipe=dict(sec.get("recipe") or {}),
+            sweep_overrides=None if raw.get("sweep_overrides") is None else [str(o) for o in raw["sweep_overrides"]])
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: malformed experiment preset ({type(exc).__name__}: {exc})") from None
     if preset.sweep_model not in preset.table1:
         raise ConfigError(f"{path}: sweep_model {preset.sweep_model!r} is not a row of sections.table1 "
                           f"({', '.join(preset.table1)})")
     for ov in [[], *preset.table1.values(), *preset.ablation.values(), *preset.coord_encoders.values(),
-               *preset.robustness_models.values(), *preset.recipe.values()]:
+               *preset.robustness_models.values(), *preset.recipe.values(), list(preset.sweep_base)]:
         load_config(_repo_path(preset.train_config), preset.train_overrides + list(ov))   # validate early
     return preset
 
@@ -147,7 +156,7 @@ def plan(preset: Preset) -> dict[str, list[RunSpec]]:
         runs["table1"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     for label, ov in preset.ablation.items():
         runs["ablation"] += [RunSpec(label, tuple(ov), s) for s in seeds]
-    full = tuple(preset.table1[preset.sweep_model])
+    full = preset.sweep_base
     base = load_config(_repo_path(preset.train_config), preset.train_overrides + list(full))
     for k in preset.k_values:       # the preset's own K shares the sweep model's runs
         ov = full if k == base.labels.k else full + (f"labels.k={k}",)
@@ -401,7 +410,7 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
         g = _group(runs["labels"], folders, split)
         results["sections"]["labels"] = g
         md += ["## 4. Hard labels vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", "",
-               f"Model: the `{preset.sweep_model}` row of table 1. Soft labels replace fine regions (the two "
+               f"Model: {_sweep_text(preset)}. Soft labels replace fine regions (the two "
                "cannot be combined), so they are compared with hard labels on the K regions themselves.", ""] + \
             table_topk(g) + [""]
     if "coords" in sections:
@@ -438,6 +447,13 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     atomic_write_text(out / "REPORT.md", "\n".join(md) + "\n")
     log(f"wrote {out / 'REPORT.md'}")
     return out / "REPORT.md"
+
+
+def _sweep_text(preset: Preset) -> str:
+    if preset.sweep_overrides is None:
+        return f"the `{preset.sweep_model}` row of table 1"
+    ov = ", ".join(f"`{o}`" for o in preset.sweep_overrides)
+    return f"`{preset.train_config}` with the preset-wide `train_overrides`" + (f" and {ov}" if ov else "")
 
 
 def _header(preset: Preset, data: Path) -> list[str]:
@@ -510,7 +526,7 @@ def _latency_section(preset, folder, data, out, results, log) -> list[str]:
     return ["## 8. Latency on this machine's CPU", "",
             "`fusion timing --mode both`, batch 1, fp32, raw JSON in `timing/`. End-to-end starts from a raw "
             "full-resolution frame (background, detection, coordinate encoding, downsampling, forward). "
-            f"*Trained*: the `{preset.sweep_model}` model of table 1. *Paper-size*: the default Star-Fusion architecture "
+            f"*Trained*: {_sweep_text(preset)}. *Paper-size*: the default Star-Fusion architecture "
             f"(SwinV2-Tiny at 256x256, random weights; latency does not depend on them). Paper, for reference: "
             f"{PAPER_LATENCY}.", "", "Trained model:", "", "```", text["trained"], "```", "",
             "Paper-size model:", "", "```", text["paper-size"], "```", ""]

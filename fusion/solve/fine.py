@@ -52,6 +52,8 @@ For one region (a cap around a region centroid, :class:`Region`):
    ``min_matches`` matches: next region, or a refusal. H only grows, so once even ``s = n``
    cannot reach ``min_confidence`` the search stops at once with a refusal (three stars over the
    whole sky: after the first detection pair);
+   Only the brightest ``max_detections`` (24) are scored (each one costs a partner table per anchor
+   star: a real 11° frame with 64 detections built ~60 of them per search); tetra3rs verifies with all;
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
    Kabsch and the scale of a 2-D similarity between tangent-plane coordinates, k kept within
    1 ± s whichever pass found the hypothesis), re-matched at ``tol_px`` until the matches
@@ -69,7 +71,8 @@ For one region (a cap around a region centroid, :class:`Region`):
    return (measured: 0.1-0.2 deg off at N = 4-6), so the region's search goes on.
 
 Regions are tried in order of prior probability (``top_k`` at most; ``few_top_k_factor`` times as many
-for three detections) — the prior's coarse
+for three detections), and with ``then_whole_sky`` the whole sky after them (region index -1; the
+hypotheses of the prior's regions are counted again there, which only costs confidence) — the prior's coarse
 regions, or, for a checkpoint trained with fine regions, its fine regions (a few degrees
 across, :meth:`fusion.solve.priors.CheckpointPrior.at_level`), which narrow the search
 about ten times more per region searched; the hypothesis count H accumulates, so searching
@@ -181,7 +184,7 @@ class CoarseToFineSolver:
                  verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest",
                  bright_stars_per_fov: float | None = 12.0, bright_max_detections: int = 3,
                  photometric_mag: float | None = 0.5, max_residual_px: float = 1.5,
-                 few_top_k_factor: int = 4):
+                 few_top_k_factor: int = 4, then_whole_sky: bool = False, max_detections: int | None = 24):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
@@ -191,6 +194,10 @@ class CoarseToFineSolver:
         self.anchor_order = anchor_order
         self.top_k, self.tol_px, self.min_matches, self.min_confidence = top_k, tol_px, min_matches, min_confidence
         self.few_top_k_factor = int(few_top_k_factor)
+        self.then_whole_sky = bool(then_whole_sky)
+        if max_detections is not None and max_detections < 3:
+            raise ValueError(f"max_detections={max_detections}: at least 3, or None (all)")
+        self.max_detections = max_detections
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
         self.bright_max_detections = int(bright_max_detections)
@@ -361,6 +368,11 @@ class CoarseToFineSolver:
         ms = lambda: (time.perf_counter() - t0) * 1e3
         if len(detections) < 3:
             return Refusal(f"too few detections ({len(detections)})", self.name, ms())
+        # the brightest max_detections identify; tetra3rs verifies with all of them. Each detection scored costs a
+        # partner table per anchor star (a real 11 deg frame with 64 detections: ~60 of them per search)
+        every = detections
+        if self.max_detections is not None and len(detections) > self.max_detections:
+            detections = detections.brightest(self.max_detections)
         centroids = None
         if probabilities is None and self.prior is not None:
             probabilities = self.prior.probabilities(detections, image)
@@ -384,6 +396,10 @@ class CoarseToFineSolver:
         # 47 -> 51 % at N = 3 on results/benchmark's frames, the true region's own rate)
         few = n <= self.bright_max_detections
         regions = self.regions(probabilities, centroids, self.top_k * self.few_top_k_factor if few else None)
+        if self.then_whole_sky and probabilities is not None:
+            # where the prior's regions refuse (a prior misled by noisy magnitudes, say), the rest of the sky;
+            # H keeps counting (the prior's regions are counted again inside it: conservative)
+            regions.append(Region(np.array([0.0, 0.0, 1.0]), 180.0, 0.0, -1))
         tables: dict = {}
         q_all = None
         for s in passes:
@@ -408,7 +424,7 @@ class CoarseToFineSolver:
                     verdict = self._decide(rots, ks, scores, tried, u, flux)
                     if isinstance(verdict, int):
                         sol = self._finish(rots[verdict], float(ks[verdict]), u, detections, camera, region, tried,
-                                           t0)
+                                           t0, every)
                         if isinstance(sol, Solution):
                             return sol
                         last = sol
@@ -454,7 +470,7 @@ class CoarseToFineSolver:
         cos = np.sum((uk[det_rows] @ np.asarray(matrix).T) * self.vec[cat_rows], axis=1)
         return bool(np.any(np.arccos(np.clip(cos, -1, 1)) > self.tol_rad))
 
-    def _finish(self, rot, k, u, detections, camera, region, tried, t0) -> Solution | Refusal:
+    def _finish(self, rot, k, u, detections, camera, region, tried, t0, every=None) -> Solution | Refusal:
         # the focal factor is fitted within +-focal_tol whichever pass found the hypothesis: a strict-pass
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
         rot, k, det_rows, cat_rows, uk = self.refine(rot, k, u, self.focal_tol)
@@ -479,7 +495,8 @@ class CoarseToFineSolver:
         if self.verify:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines
-            res = self.tetra.solve_with_hint(detections, cam_k, rot, 1.0, name=self.name)
+            res = self.tetra.solve_with_hint(every if every is not None else detections, cam_k, rot, 1.0,
+                                             name=self.name)
             confirmed = isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0
             resid_px = res.residual_arcsec / cam_k.pixel_scale_arcsec if confirmed else 0.0
             if confirmed and resid_px > self.max_residual_px and self._pulled_off(res.matrix, uk, det_rows, cat_rows):

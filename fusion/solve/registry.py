@@ -8,6 +8,8 @@ A solver is anything with ``name`` and ``solve(detections, camera, image=None, *
 ``whole-sky``              the fine stage over the whole sky, no prior (:mod:`fusion.solve.fine`)
 ``tetra3rs>whole-sky``     tetra3rs, and the whole-sky fine stage where it refuses
 ``learned+fine``           the fine stage searching a learned prior's most probable regions
+``learned+fine>whole-sky`` learned + fine, and the rest of the sky where the prior's regions refuse
+                           (one search: its hypothesis count H, and so its false-match budget, spans both)
 ``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses (``fusion predict --lis-first``)
 ``oracle-prior``           benchmark only: the fine stage with the true region ranked first
 ``sim85-prior``            benchmark only: the true region first in 85 % of frames, second otherwise
@@ -92,6 +94,14 @@ def _tetra3rs_whole_sky(ctx: SolverContext):
 def _learned_fine(ctx: SolverContext):
     from .fine import CoarseToFineSolver
     return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine", top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+
+@register_solver("learned+fine>whole-sky", prior="learned",
+                 doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget)")
+def _learned_fine_whole_sky(ctx: SolverContext):
+    from .fine import CoarseToFineSolver
+    return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine>whole-sky", top_k=ctx.top_k,
+                              focal_tol=ctx.focal_tol, then_whole_sky=True)
 
 
 @register_solver("tetra3rs>learned+fine", prior="learned",
