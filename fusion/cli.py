@@ -323,7 +323,8 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
                    "(N >= 1)")
     p.add_argument("--lis-first", action="store_true",
                    help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
-                        "stars) and the learned prior's fine stage only where it refuses; `solver` says which answered")
+                        "stars) and the learned chain (the prior's fine regions, then the whole sky) only where it refuses; "
+                        "`solver` says which answered")
     p.add_argument("--background-box", type=int, default=None, metavar="PX",
                    help="skygen detector: background per PX x PX box (e.g. 64; for ground frames with sky glow or "
                         "gradients); 0: one level per frame (default: the camera's detection.background_box_px, "

@@ -34,8 +34,9 @@ Per frame:
 3. with ``--solve``: the coarse-to-fine solver (:mod:`fusion.solvers.coarse_fine`) with the
    model's regions as prior — by default its fine regions (``--search fine``, the 20 most
    probable, ``--search-k``), and a focal length known to ±2 % (``--focal-tol``; fitted and
-   reported as ``focal_factor`` / ``fov_deg``); ``--lis-first`` tries tetra3rs lost-in-space
-   first and the learned path only where it refuses; without a checkpoint, tetra3rs lost-in-space and the
+   reported as ``focal_factor`` / ``fov_deg``), and the rest of the sky where those regions refuse
+   (``learned+fine>whole-sky``: one search, one false-match budget); ``--lis-first`` tries tetra3rs
+   lost-in-space first and the learned path only where it refuses; without a checkpoint, tetra3rs lost-in-space and the
    whole-sky fine stage where it refuses (``tetra3rs>whole-sky``); ``--solver NAME`` picks any registered
    solver (:mod:`fusion.solve.registry`). A full attitude
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
@@ -129,8 +130,10 @@ class Predictor:
         if solve:
             # the default chains: with a model, its prior and the fine stage; without one, the best prior-free
             # chain (tetra3rs lost-in-space, and the whole-sky fine stage where it refuses)
+            # (with a model, the rest of the sky is searched where its regions refuse: noisy magnitudes mislead a
+            # prior whose reference is the brightest star, and the whole-sky search is what then still solves)
             name = solver or ("tetra3rs>whole-sky" if self.prior is None else
-                              "tetra3rs>learned+fine" if lis_first else "learned+fine")
+                              "tetra3rs>learned+fine>whole-sky" if lis_first else "learned+fine>whole-sky")
             if self.prior is not None:
                 self.search_level = self.prior.at_level(search).level
             context = None

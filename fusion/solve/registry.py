@@ -9,8 +9,10 @@ A solver is anything with ``name`` and ``solve(detections, camera, image=None, *
 ``tetra3rs>whole-sky``     tetra3rs, and the whole-sky fine stage where it refuses
 ``learned+fine``           the fine stage searching a learned prior's most probable regions
 ``learned+fine>whole-sky`` learned + fine, and the rest of the sky where the prior's regions refuse
-                           (one search: its hypothesis count H, and so its false-match budget, spans both)
-``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses (``fusion predict --lis-first``)
+                           (one search: its hypothesis count H, and so its false-match budget, spans
+                           both; ``fusion predict --solve`` with a checkpoint)
+``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses
+``tetra3rs>learned+fine>whole-sky``  tetra3rs, then learned + fine > whole-sky (``fusion predict --lis-first``)
 ``oracle-prior``           benchmark only: the fine stage with the true region ranked first
 ``sim85-prior``            benchmark only: the true region first in 85 % of frames, second otherwise
 =========================  ======================================================================
@@ -109,6 +111,13 @@ def _learned_fine_whole_sky(ctx: SolverContext):
 def _tetra3rs_learned_fine(ctx: SolverContext):
     from .base import FallbackSolver
     return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine"))
+
+
+@register_solver("tetra3rs>learned+fine>whole-sky", prior="learned",
+                 doc="tetra3rs lost-in-space, then learned + fine > whole-sky where it refuses")
+def _tetra3rs_learned_fine_whole_sky(ctx: SolverContext):
+    from .base import FallbackSolver
+    return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine>whole-sky"))
 
 
 @register_solver("oracle-prior", prior="oracle", doc="benchmark only: the true region ranked first")
