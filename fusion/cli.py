@@ -348,7 +348,8 @@ def _add_benchmark(p: argparse.ArgumentParser) -> None:
     from .solve.benchmark import DEFAULT_SOLVERS, DETECTION_CORRUPTIONS, SOLVERS
     p.add_argument("--data", required=True, help="skygen dataset folder (its frames are the fixed test frames)")
     p.add_argument("--out", required=True, help="folder for benchmark.json, benchmark.md and the plots")
-    p.add_argument("--checkpoint", help="a fusion checkpoint: adds the 'learned' and 'learned+fine' solvers")
+    p.add_argument("--checkpoint", help="a fusion checkpoint: its prior for the solvers that need one ('learned', 'learned+fine', "
+                   "'learned+fine>whole-sky' and the tetra3rs chains before them)")
     p.add_argument("--split", default="test", choices=("train", "val", "test"))
     p.add_argument("--frames", type=int, help="first N frames of the split, N >= 1 (default 200; 30 with --grid small)")
     p.add_argument("--grid", choices=("small", "full"), default="full",

@@ -28,9 +28,11 @@ Solvers (``--solvers``):
 * ``learned`` / ``learned+fine`` — with ``--checkpoint``: the model's regions alone (top-1/top-3
   accuracy of its K regions, angular error of the top-1 centroid, and how often the true fine
   region is among the ``--top-k`` searched), and coarse-to-fine with the model as prior;
-* ``tetra3rs>learned+fine`` — tetra3rs lost-in-space, and learned + fine where it refuses
-  (``fusion predict --solve --lis-first``); ``tetra3rs>whole-sky`` likewise without a prior (what
-  ``fusion predict --solve`` runs without a model);
+* ``learned+fine>whole-sky`` — learned + fine, then the rest of the sky in the same search where the
+  prior's regions refuse (what ``fusion predict --solve`` runs with a model);
+* ``tetra3rs>learned+fine`` — tetra3rs lost-in-space, and learned + fine where it refuses;
+  ``tetra3rs>learned+fine>whole-sky`` (``fusion predict --solve --lis-first``); ``tetra3rs>whole-sky``
+  likewise without a prior (what ``fusion predict --solve`` runs without a model);
 * any other solver registered in :mod:`fusion.solve.registry` (docs/ARCHITECTURE.md, "A new solver").
 
 The coarse-to-fine solvers run as ``fusion predict --solve`` does: ``--search fine`` (the
