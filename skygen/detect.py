@@ -58,8 +58,15 @@ def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.
     ny, nx = -(-h // box_px), -(-w // box_px)
     level, sigma = np.empty((ny, nx)), np.empty((ny, nx))
     stride = 2 if box_px >= 32 else 1
+    fy, fx = h // box_px, w // box_px           # whole boxes: all at once (estimate_background's steps, vectorised)
+    if fy and fx and box_px % stride == 0:
+        level[:fy, :fx], sigma[:fy, :fx] = _whole_box_backgrounds(image, box_px, stride, fy, fx)
+    else:
+        fy = fx = 0
     for i in range(ny):
         for j in range(nx):
+            if i < fy and j < fx:
+                continue
             level[i, j], sigma[i, j] = estimate_background(
                 image[i * box_px:(i + 1) * box_px, j * box_px:(j + 1) * box_px], stride)
     if ny >= 3 and nx >= 3:
@@ -89,6 +96,28 @@ def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.
     level_px = wy @ ring(level) @ wx.T
     sigma_px = wy @ ring(sigma) @ wx.T
     return level_px.astype(np.float32), np.maximum(sigma_px, 0.5 * sigma.min()).astype(np.float32)
+
+
+def _whole_box_backgrounds(image: np.ndarray, box_px: int, stride: int, fy: int, fx: int):
+    """:func:`estimate_background` of each of the fy x fx whole boxes (the same strided pixels, the same
+    median, MAD and three clipping passes in float32), vectorised over the boxes: a 2048 x 1536 frame has
+    768 boxes of 64 px, whose one-at-a-time estimates cost ~45 ms of Python overhead. Equal to the
+    per-box estimates up to float32 summation order (~1e-6 relative)."""
+    b = box_px // stride
+    sub = image[:fy * box_px:stride, :fx * box_px:stride].astype(np.float32)
+    a = sub.reshape(fy, b, fx, b).transpose(0, 2, 1, 3).reshape(fy * fx, b * b)
+    level = np.median(a, axis=1)
+    sigma = np.maximum(1.4826 * np.median(np.abs(a - level[:, None]), axis=1), 0.5)
+    level, sigma = level.astype(np.float64), sigma.astype(np.float64)
+    for _ in range(3):
+        keep = np.abs(a - level.astype(np.float32)[:, None]) < (_CLIP * sigma).astype(np.float32)[:, None]
+        n = np.maximum(keep.sum(axis=1), 1)
+        mean = np.where(keep, a, np.float32(0)).sum(axis=1, dtype=np.float32) / n
+        dev = np.where(keep, a - mean.astype(np.float32)[:, None], np.float32(0))
+        std = np.sqrt((dev * dev).sum(axis=1, dtype=np.float32) / n)
+        level = mean.astype(np.float64)
+        sigma = np.maximum(std.astype(np.float64) / _CLIP_STD_FACTOR, 1e-3)
+    return level.reshape(fy, fx), sigma.reshape(fy, fx)
 
 
 def _linear_weights(position: np.ndarray, n: int) -> np.ndarray:
