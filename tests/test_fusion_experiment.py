@@ -34,3 +34,21 @@ def test_smoke_experiment_writes_report_and_resumes(tmp_path):
     stamps = [p.stat().st_mtime_ns for p in best]
     run_experiment("smoke", tmp_path / "out", **kw)
     assert [p.stat().st_mtime_ns for p in best] == stamps          # nothing retrained
+
+
+def test_cached_latency_is_retimed_for_another_cpu_or_a_retrained_checkpoint(tmp_path):
+    """A timing JSON is reused only for this CPU and this very checkpoint file (same path, same mtime): a run
+    folder of an older plan with the same key holds another model, and another machine other numbers."""
+    import os
+    from skygen.runtime import hardware
+    from fusion.measure.experiment import _stale_timing
+    ckpt = tmp_path / "best.pt"
+    ckpt.write_bytes(b"x")
+    cpu = hardware()["cpu_model"]
+    rec = {"hardware": {"cpu_model": cpu}, "model": {"checkpoint": str(ckpt), "checkpoint_mtime": ckpt.stat().st_mtime}}
+    assert not _stale_timing(rec, ckpt)
+    assert _stale_timing({**rec, "hardware": {"cpu_model": "another CPU"}}, ckpt)
+    assert _stale_timing({**rec, "model": {"checkpoint": str(ckpt)}}, ckpt)          # written before mtimes were kept
+    os.utime(ckpt, (1e9, 1e9))                                                     # retrained since
+    assert _stale_timing(rec, ckpt)
+    assert not _stale_timing({"hardware": {"cpu_model": cpu}}, None)              # the paper-size model: CPU only

@@ -268,7 +268,7 @@ def _train_cost(evs: list[dict]) -> str:
     wall = [e["train_wall_s"] for e in evs if e.get("train_wall_s")]
     seen = [e["train_samples"] for e in evs if e.get("train_samples")]
     t = f"{np.mean(wall) / 60:.1f}" if wall else "—"
-    n = f"{np.mean(seen) / 1000:,.0f} k" if seen else "—"
+    n = "—" if not seen else f"{np.mean(seen) / 1000:,.0f} k" if np.mean(seen) >= 10_000 else f"{np.mean(seen):,.0f}"
     return f"{t} | {n}"
 
 
@@ -440,6 +440,8 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     md += ["## Provenance", "", f"- command: `fusion experiment --preset {preset.name} --out {out}`",
            f"- git revision at start: {revision}", f"- hardware: {_hardware()}",
            f"- wall time of this invocation: {wall / 60:.1f} min (finished steps are skipped on re-runs)",
+           f"- training: {len(todo)} runs, {_summed_train_min(folders):.0f} min of training wall time in all "
+           f"({jobs} at a time; evaluation, robustness and latency come on top)",
            f"- raw results: `results.json` here; each run's config, metrics, checkpoints and `eval-{split}.json` "
            f"under `{runs_dir}/` and the dataset in `{data}/` (not committed)", ""]
     results["wall_time_s"] = wall
@@ -447,6 +449,16 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     atomic_write_text(out / "REPORT.md", "\n".join(md) + "\n")
     log(f"wrote {out / 'REPORT.md'}")
     return out / "REPORT.md"
+
+
+def _summed_train_min(folders: dict[str, Path]) -> float:
+    total = 0.0
+    for f in folders.values():
+        try:
+            total += float(json.loads((Path(f) / "summary.json").read_text()).get("wall_time_s") or 0)
+        except (OSError, ValueError):
+            pass
+    return total / 60
 
 
 def _sweep_text(preset: Preset) -> str:
@@ -481,9 +493,13 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
         log(f"{report_path}: made with other checkpoints than this plan's; recomputing")
         rep = None
     if rep is None:
+        log(f"robustness: {len(ckpts)} models x every corruption on {preset.robustness_frames} frames "
+            f"(the CPU preset: ~5 min on 2 cores)")
+        t0 = time.perf_counter()
         robustness(ckpts, data, "all", rdir, split=preset.split, n=preset.robustness_frames, workers=os.cpu_count() or 1,
                    seed=0, progress=False, log=lambda *a, **k: None, levels=None)
         rep = json.loads(report_path.read_text())
+        log(f"robustness: done ({time.perf_counter() - t0:.0f} s)")
     results["sections"]["robustness"] = {"report": str(report_path.relative_to(out))}
     names = {str(folders[r.key] / "best.pt"): r.name for r in runs}
     models = [r.name for r in runs]
@@ -507,6 +523,18 @@ def _robustness_section(preset, runs, folders, data, out, results, log) -> list[
     return lines + [""]
 
 
+def _stale_timing(rec: dict, checkpoint: Path | None) -> bool:
+    """Does a cached timing JSON describe another CPU, or another checkpoint than ``checkpoint`` (its path,
+    or the same path retrained since: a run folder of an older plan with the same key)?"""
+    if rec.get("hardware", {}).get("cpu_model") != hardware().get("cpu_model"):
+        return True
+    if checkpoint is None:
+        return False
+    when = rec.get("model", {}).get("checkpoint_mtime")
+    return rec.get("model", {}).get("checkpoint") != str(checkpoint) or \
+        when is None or abs(float(when) - Path(checkpoint).stat().st_mtime) > 1e-3
+
+
 def _latency_section(preset, folder, data, out, results, log) -> list[str]:
     from .timing import summary_text, timing
     k = load_checkpoint(folder / "best.pt").num_classes
@@ -515,9 +543,8 @@ def _latency_section(preset, folder, data, out, results, log) -> list[str]:
     text = {}
     for name, kw in jobs.items():
         path = out / "timing" / f"{name}-cpu-fp32-b1.json"
-        if name == "trained" and path.exists() and \
-                json.loads(path.read_text()).get("model", {}).get("checkpoint") != str(kw["checkpoint"]):
-            path.unlink()             # timed another run's checkpoint (an older plan): time this one
+        if path.exists() and _stale_timing(json.loads(path.read_text()), kw.get("checkpoint")):
+            path.unlink()             # timed on another machine, or another (or an older) checkpoint: time again
         if not path.exists():
             timing(path, device="cpu", precision="fp32", batch=1, iters=preset.timing_iters, mode="both",
                    log=lambda *a, **k: None, **kw)

@@ -99,8 +99,9 @@ def load_timed_model(checkpoint: str | Path | None = None, config: str | Path | 
         root = (ckpt.dataset or {}).get("root")
         if root and Path(root).is_dir():
             render = _dataset_config(root)
-        return TimedModel(ckpt.build_model(), ckpt.fusion_config, {"checkpoint": str(checkpoint)}, ckpt.image_size,
-                          ckpt.max_stars, ckpt.num_classes, render)
+        source = {"checkpoint": str(checkpoint), "checkpoint_mtime": Path(checkpoint).stat().st_mtime}
+        return TimedModel(ckpt.build_model(), ckpt.fusion_config, source, ckpt.image_size, ckpt.max_stars,
+                          ckpt.num_classes, render)
     cfg = load_config(config, overrides)
     cfg = replace(cfg, model=resolve_model_config(cfg.model))
     model = create_model(cfg.model.name, cfg.labels.k, cfg.model, image_size=image_size, fine_classes=cfg.labels.fine_k,
