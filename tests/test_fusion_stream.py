@@ -160,10 +160,30 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
     summary = train(full, tmp_path / "full", log=lambda m, *a, **k: lines.append(m))
     assert summary["epochs_run"] == 1 and np.isfinite(summary["best"]["val_loss"])
     warm = next(m for m in lines if m.startswith("warm start"))
-    assert "coords" in warm and "heatmap" in warm
-    a = load_checkpoint(geo / "best.pt").model
-    assert any(k.startswith("image.") for k in load_checkpoint(tmp_path / "full" / "best.pt").model)
+    assert "coords" in warm and "heatmap" in warm and "coords+heatmap columns copied" in warm
+    before = next(m for m in lines if m.startswith("warm start, before training"))
+    assert summary["warm_start_val"]["val_top1"] == pytest.approx(float(before.split("top1 ")[1].split()[0]), abs=1e-3)
+    assert summary["init"].startswith("warm start from")
+    geo_ck, full_ck = load_checkpoint(geo / "best.pt"), load_checkpoint(tmp_path / "full" / "best.pt")
+    a = geo_ck.model
+    assert any(k.startswith("image.") for k in full_ck.model)
     assert "coords.embed.0.weight" in a
+    # the fusion head, block by block: the geometry run's LayerNorm and head columns land on the
+    # columns of its branches (heatmap, coords), the image's columns start at zero (scale 1, shift 0)
+    from fusion.model.checkpoint import load_matching_state
+    model = full_ck.build_model()
+    info = load_matching_state(model, geo / "best.pt")
+    assert info["head_blocks"] == ["coords", "heatmap"]
+    n_img = model.image.out_dim
+    w, hw = model.head.weight.detach(), a["head.weight"]
+    assert w.shape[1] == n_img + hw.shape[1]
+    assert torch.equal(w[:, :n_img], torch.zeros_like(w[:, :n_img])) and torch.equal(w[:, n_img:], hw)
+    assert torch.equal(model.norm.weight.detach()[n_img:], a["norm.weight"])
+    assert torch.equal(model.norm.weight.detach()[:n_img], torch.ones(n_img))
+    assert torch.equal(model.norm.bias.detach()[:n_img], torch.zeros(n_img))
+    # the other way round (a three-branch checkpoint into a geometry model) copies branches by name only
+    small = geo_ck.build_model()
+    assert load_matching_state(small, tmp_path / "full" / "best.pt")["head_blocks"] == []
 
 
 def test_frames_stream_on_the_torch_renderer(smoke, tmp_path):

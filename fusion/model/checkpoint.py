@@ -211,8 +211,14 @@ def load_model_state(model: torch.nn.Module, ckpt: Checkpoint) -> None:
 def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
     """Warm start: copy every parameter/buffer of checkpoint ``path`` whose name and shape match.
 
-    Returns ``{"loaded": [...], "skipped": [...]}`` (names). Refuses a checkpoint that
-    matches nothing (wrong file); the head is simply skipped when K differs.
+    Returns ``{"loaded": [...], "skipped": [...], "head_blocks": [...]}`` (names). Refuses a
+    checkpoint that matches nothing (wrong file). When the checkpoint's branches are a subset of
+    this model's (a geometry run warm-starting the three-branch model), its fusion LayerNorm and
+    head are copied block by block into the columns of those branches and the columns of the new
+    branches start at zero (their LayerNorm scale at 1, shift at 0): the warm model starts from the
+    geometry model's scores and the new branches enter as they learn, instead of the head starting
+    from random. Only the copied branches' head columns stand in ``head_blocks``; with another
+    number of (fine) regions the head is simply trained from scratch.
     """
     ckpt = load_checkpoint(path)
     own = model.state_dict()
@@ -220,5 +226,52 @@ def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
     if not take:
         raise CheckpointError(f"model.init_from={path}: no parameter of that checkpoint fits this model "
                               f"(it holds {ckpt.model_name!r} with branches {ckpt.branches})")
+    blocks = _head_blocks(model, ckpt, own, take)
+    take.update(blocks)
     model.load_state_dict(take, strict=False)
-    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take)}
+    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take),
+            "head_blocks": sorted({n for n, _ in _branch_slices(model) if ckpt.branches.get(n)}) if blocks else []}
+
+
+def _branch_slices(model) -> list[tuple[str, slice]]:
+    """The fused feature's column range of each branch, in StarFusion.forward_features order."""
+    out, at = [], 0
+    for name in ("image", "heatmap", "coords"):
+        b = getattr(model, name, None)
+        if b is not None:
+            out.append((name, slice(at, at + b.out_dim)))
+            at += b.out_dim
+    return out
+
+
+def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> dict:
+    """norm.weight/bias and head.weight of ``model`` built from ``ckpt``'s where its branches are a
+    strict subset of the model's, each of those branches loaded whole; {} where that does not hold."""
+    keys = ("norm.weight", "norm.bias", "head.weight")
+    if not all(k in own and k in ckpt.model for k in keys) or any(k in take for k in keys):
+        return {}
+    src_on = [n for n, on in (ckpt.branches or {}).items() if on]
+    slices = dict(_branch_slices(model))
+    if not src_on or set(src_on) == set(slices) or not set(src_on) <= set(slices):
+        return {}
+    for name in src_on:   # every tensor of a shared branch must have been copied
+        if any(k.startswith(name + ".") and k not in take for k in own):
+            return {}
+    src_dim = ckpt.model["norm.weight"].shape[0]
+    if sum(slices[n].stop - slices[n].start for n in src_on) != src_dim:
+        return {}
+    hw = ckpt.model["head.weight"]
+    if hw.shape[0] != own["head.weight"].shape[0]:
+        return {}
+    nw, nb = torch.ones_like(own["norm.weight"]), torch.zeros_like(own["norm.bias"])
+    w = torch.zeros_like(own["head.weight"])
+    at = 0
+    for name, sl in _branch_slices(model):   # the source's columns are its branches in the same order
+        if name not in src_on:
+            continue
+        n = sl.stop - sl.start
+        nw[sl] = ckpt.model["norm.weight"][at:at + n]
+        nb[sl] = ckpt.model["norm.bias"][at:at + n]
+        w[:, sl] = hw[:, at:at + n]
+        at += n
+    return {"norm.weight": nw, "norm.bias": nb, "head.weight": w}

@@ -143,7 +143,9 @@ def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> Star
         warm = load_matching_state(model, cfg.model.init_from)
         groups = sorted({k.split(".")[0] for k in warm["loaded"]})
         say(f"warm start from {cfg.model.init_from}: {len(warm['loaded'])} tensors ({', '.join(groups)}); "
-            f"{len(warm['skipped'])} trained from scratch")
+            f"{len(warm['skipped'])} trained from scratch"
+            + (f"; the fusion head's {'+'.join(warm['head_blocks'])} columns copied, the new branches' columns "
+               "start at zero" if warm["head_blocks"] else ""))
     return model
 
 
@@ -278,6 +280,14 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
         log_start(cfg, data, steps, counts, device, info, opt.amp_dtype, say)
 
     soft = cfg.labels.soft_labels
+    warm_val = None
+    if ckpt is None and cfg.model.init_from:
+        # what the warm start brings before any step: the new branches enter from zero head columns
+        warm_val = validate(model, val_loader, loss_fn, device, info, amp_dtype=opt.amp_dtype, soft=soft,
+                            progress=False)
+        warm_val = {"val_loss": warm_val["loss"], "val_top1": warm_val["top1"], "val_top3": warm_val["top3"]}
+        say(f"warm start, before training: val loss {warm_val['val_loss']:.4f} top1 {warm_val['val_top1']:.3f} "
+            f"top3 {warm_val['val_top3']:.3f}")
     stopped_early = False
     for epoch in range(start_epoch, tc.epochs):
         torch.manual_seed(tc.seed * 1_000_003 + epoch)
@@ -323,7 +333,8 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
                "last": history[-1] if history else None, "num_classes": cfg.labels.k, "parameters": counts,
                "sparse_frames": data.sparse_frames, "frames": {"train": len(data.train), "val": len(data.val)},
                "processes": info.world, "device": str(device), "amp": str(opt.amp_dtype),
-               "init": cfg.model.pretrained or "scratch", "wall_time_s": time.perf_counter() - t_start,
+               "init": (f"warm start from {cfg.model.init_from}" if cfg.model.init_from
+                        else cfg.model.pretrained or "scratch"), "warm_start_val": warm_val, "wall_time_s": time.perf_counter() - t_start,
                "samples_seen": int(sum(h.get("train_samples", 0) for h in history)),
                "versions": template.versions, "dataset": template.dataset}
     if info.is_main:
