@@ -103,6 +103,7 @@ class ModelConfig:
     coord_encoder: str = param("mlp", choices=("mlp", "set", "transformer"), doc="coordinate branch: 3-layer MLP over the ordered list, permutation-invariant set encoder (deep sets), or transformer set encoder")
     coord_hidden: int = param(256, lo=1, hi=65536, doc="hidden and output width of the coordinate encoder")
     dropout: float = param(0.0, lo=0, hi=0.9, doc="dropout before the fusion classifier")
+    detections_dropout: float = param(0.0, lo=0, hi=1, hi_open=True, doc="training only, with an image branch and a detection branch: the share of samples whose detection branches (heatmap, coordinates) are zeroed in the fused feature, so that the image must classify them alone (a warm-started geometry branch otherwise leaves the pixels unused: results/image/README.md)")
     relative_flux: bool = param(False, doc="subtract the brightest detection's log flux from every coordinate row: the model sees flux ratios only, so a real camera's exposure, gain or ADU scaling (e.g. 12-bit data stored x16) cannot shift its inputs")
     branches: BranchesConfig = section(BranchesConfig)
     heatmap: HeatmapConfig = section(HeatmapConfig)

@@ -135,3 +135,24 @@ def test_bad_pretrained_values_are_clear_errors():
         resolve_model_config(dataclasses.replace(TINY, pretrained="timm"))
     with pytest.raises(ConfigError, match="neither a timm model"):
         create_backbone("no_such_backbone")
+
+
+def test_detections_dropout_zeroes_the_detection_branches_of_some_training_samples():
+    """model.detections_dropout: in training a share of the samples keep only their image features
+    (the heatmap and coordinate columns zeroed); evaluation sees every branch; it needs an image
+    branch and a detection branch."""
+    cfg = dataclasses.replace(TINY, detections_dropout=0.5)
+    model = create_model("star_fusion", 7, cfg, image_size=64)
+    img, c, m = inputs(b=64, n_real=(6,) * 64)
+    n_img = model.image.out_dim
+    torch.manual_seed(1)
+    z = model.train().forward_features(img, c, m)
+    dropped = (z[:, n_img:] == 0).all(dim=1)
+    assert 16 <= int(dropped.sum()) <= 48                     # ~half of 64 samples (binomial, p 0.5: ±4 sigma)
+    assert not (z[:, :n_img] == 0).all(dim=1).any()           # the image features are never touched
+    ev = model.eval().forward_features(img, c, m)
+    assert not (ev[:, n_img:] == 0).all(dim=1).any()          # evaluation: every branch, every sample
+    assert torch.allclose(ev[~dropped], z[~dropped].detach(), atol=1e-5)   # the kept samples: their features as they are
+    for branches in (BranchesConfig(False, True, True), BranchesConfig(True, False, False)):
+        with pytest.raises(ConfigError, match="detections_dropout"):
+            create_model("star_fusion", 7, dataclasses.replace(cfg, branches=branches), image_size=64)

@@ -408,13 +408,18 @@ class StarFusion(nn.Module):
 
     def __init__(self, num_classes: int, image: nn.Module | None = None, heatmap: nn.Module | None = None,
                  coords: nn.Module | None = None, dropout: float = 0.0, canonical=None, fine_classes: int | None = None,
-                 relative_flux: bool = False):
+                 relative_flux: bool = False, detections_dropout: float = 0.0):
         super().__init__()
         self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
         self.relative_flux = relative_flux
         if image is None and heatmap is None and coords is None:
             raise ConfigError("model.branches: at least one branch must be on")
         self.image, self.heatmap, self.coords = image, heatmap, coords
+        if detections_dropout and (image is None or (heatmap is None and coords is None)):
+            raise ConfigError(f"model.detections_dropout={detections_dropout}: it zeroes the detection branches of "
+                              "some training samples so that the image branch must carry them; it needs an image "
+                              "branch and a heatmap or coords branch (set it to 0)")
+        self.detections_dropout = float(detections_dropout)
         dim = sum(b.out_dim for b in (image, heatmap, coords) if b is not None)
         self.num_classes, self.num_features = num_classes, dim
         self.norm = nn.LayerNorm(dim)
@@ -439,6 +444,10 @@ class StarFusion(nn.Module):
             parts.append(self.heatmap(coords, mask))
         if self.coords is not None:
             parts.append(self.coords(coords, mask))
+        if self.training and self.detections_dropout > 0:
+            # modality dropout: these samples' detection features are zeroed, only the pixels are left
+            keep = (torch.rand(parts[0].shape[0], 1, device=parts[0].device) >= self.detections_dropout)
+            parts = parts[:1] + [p * keep.to(p.dtype) for p in parts[1:]]
         return torch.cat(parts, dim=-1)
 
     def forward_head(self, z: torch.Tensor, fine: bool = False) -> torch.Tensor:
@@ -539,7 +548,7 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
             coords = TransformerSetEncoder(dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult,
                                            out_dim=cfg.coord_hidden)
     return StarFusion(num_classes, image, heat, coords, cfg.dropout, cfg.canonical, fine_classes,
-                      relative_flux=cfg.relative_flux)
+                      relative_flux=cfg.relative_flux, detections_dropout=cfg.detections_dropout)
 
 
 def parameter_counts(model: StarFusion) -> dict[str, int]:
