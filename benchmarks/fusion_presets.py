@@ -43,7 +43,7 @@ RUNS = {
                                    "aug.rotation_max_deg=180", "aug.false_star_rate=1.0", "aug.dropout_prob=0.15"],
               "the 'multi' model on the dataset's 3,200 fixed training frames (augmented), about the same time"),
     "fusion": ("configs/cpu-fusion.yaml", ["model.init_from=runs/presets/demo/best.pt"],
-               "three branches (image + heatmap + coords) on the frames stream, warm-started from 'demo'"),
+               "three branches (peak set + heatmap + coords, detections dropout 0.3) on the frames stream, warm-started from 'demo'"),
     "few": ("configs/cpu-few.yaml", [], "cpu-few.yaml: half the samples cut to their brightest 3-12 detections"),
     "best-s0": ("configs/cpu-best.yaml", ["train.seed=0"], "cpu-best.yaml, seed 0"),
     "best-s1": ("configs/cpu-best.yaml", ["train.seed=1"], "cpu-best.yaml, seed 1"),
