@@ -226,11 +226,10 @@ def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
     if not take:
         raise CheckpointError(f"model.init_from={path}: no parameter of that checkpoint fits this model "
                               f"(it holds {ckpt.model_name!r} with branches {ckpt.branches})")
-    blocks = _head_blocks(model, ckpt, own, take)
+    blocks, shared = _head_blocks(model, ckpt, own, take)
     take.update(blocks)
     model.load_state_dict(take, strict=False)
-    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take),
-            "head_blocks": sorted({n for n, _ in _branch_slices(model) if ckpt.branches.get(n)}) if blocks else []}
+    return {"loaded": sorted(take), "skipped": sorted(k for k in own if k not in take), "head_blocks": shared}
 
 
 def _branch_slices(model) -> list[tuple[str, slice]]:
@@ -244,29 +243,31 @@ def _branch_slices(model) -> list[tuple[str, slice]]:
     return out
 
 
-def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> dict:
-    """norm.weight/bias and head.weight of ``model`` built from ``ckpt``'s where its branches are a
-    strict subset of the model's, each of those branches loaded whole; {} where that does not hold."""
+def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> tuple[dict, list[str]]:
+    """norm.weight/bias and head.weight of ``model`` built from ``ckpt``'s, and the shared branches
+    (sorted), where its branches are a strict subset of the model's, each of those branches loaded
+    whole; ({}, []) where that does not hold."""
     keys = ("norm.weight", "norm.bias", "head.weight")
     if not all(k in own and k in ckpt.model for k in keys) or any(k in take for k in keys):
-        return {}
+        return {}, []
     src_on = [n for n, on in (ckpt.branches or {}).items() if on]
-    slices = dict(_branch_slices(model))
+    order = _branch_slices(model)
+    slices = dict(order)
     if not src_on or set(src_on) == set(slices) or not set(src_on) <= set(slices):
-        return {}
+        return {}, []
     for name in src_on:   # every tensor of a shared branch must have been copied
         if any(k.startswith(name + ".") and k not in take for k in own):
-            return {}
+            return {}, []
     src_dim = ckpt.model["norm.weight"].shape[0]
     if sum(slices[n].stop - slices[n].start for n in src_on) != src_dim:
-        return {}
+        return {}, []
     hw = ckpt.model["head.weight"]
     if hw.shape[0] != own["head.weight"].shape[0]:
-        return {}
+        return {}, []
     nw, nb = torch.ones_like(own["norm.weight"]), torch.zeros_like(own["norm.bias"])
     w = torch.zeros_like(own["head.weight"])
     at = 0
-    for name, sl in _branch_slices(model):   # the source's columns are its branches in the same order
+    for name, sl in order:   # the source's columns are its branches in the same order
         if name not in src_on:
             continue
         n = sl.stop - sl.start
@@ -274,4 +275,4 @@ def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> dict:
         nb[sl] = ckpt.model["norm.bias"][at:at + n]
         w[:, sl] = hw[:, at:at + n]
         at += n
-    return {"norm.weight": nw, "norm.bias": nb, "head.weight": w}
+    return {"norm.weight": nw, "norm.bias": nb, "head.weight": w}, sorted(src_on)
