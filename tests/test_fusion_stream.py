@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fusion.model.inputs import FrameGeometry, Sample
-from fusion.model.checkpoint import load_checkpoint
+from fusion.model.checkpoint import load_checkpoint, load_matching_state
 from fusion.config import load_config
 from fusion.model.inputs import encode_detections
 from fusion.errors import ConfigError
@@ -170,7 +170,6 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
     assert "coords.embed.0.weight" in a
     # the fusion head, block by block: the geometry run's LayerNorm and head columns land on the
     # columns of its branches (heatmap, coords), the image's columns start at zero (scale 1, shift 0)
-    from fusion.model.checkpoint import load_matching_state
     model = full_ck.build_model()
     info = load_matching_state(model, geo / "best.pt")
     assert info["head_blocks"] == ["coords", "heatmap"]

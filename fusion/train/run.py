@@ -334,7 +334,8 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
                "sparse_frames": data.sparse_frames, "frames": {"train": len(data.train), "val": len(data.val)},
                "processes": info.world, "device": str(device), "amp": str(opt.amp_dtype),
                "init": (f"warm start from {cfg.model.init_from}" if cfg.model.init_from
-                        else cfg.model.pretrained or "scratch"), "warm_start_val": warm_val, "wall_time_s": time.perf_counter() - t_start,
+                        else cfg.model.pretrained or "scratch"),
+               "warm_start_val": warm_val, "wall_time_s": time.perf_counter() - t_start,
                "samples_seen": int(sum(h.get("train_samples", 0) for h in history)),
                "versions": template.versions, "dataset": template.dataset}
     if info.is_main:
