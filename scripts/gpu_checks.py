@@ -1,6 +1,6 @@
 """Every GPU check this project owes, in one run that fits a short GPU lease (~9 minutes).
 
-    python scripts/gpu_checks.py --out OUT [--train-seconds 210] [--workers 15]
+    python scripts/gpu_checks.py --out OUT [--train-seconds 210] [--workers 15] [--work runs/gpu-checks]
         [--device cuda] [--skip tests,timing,render,train] [--quick]
 
 Steps, each with its own time limit, each one's failure recorded and the next one run:
@@ -125,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="loader / render processes (default: all cores but one)")
     ap.add_argument("--model", default="swinv2_tiny", help="model.name of the training run (default swinv2_tiny)")
     ap.add_argument("--skip", default="", help="comma-separated steps to skip: tests,timing,render,train")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "gpu-checks"),
+                    help="folder for the dataset, the run and the timing files (default runs/gpu-checks)")
     ap.add_argument("--quick", action="store_true", help="check the script itself on a CPU (tiny sizes)")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -135,8 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     s.summary["args"] = vars(a)
     s.save()
     fusion, skygen = [PY, "-m", "fusion.cli"], [PY, "-m", "skygen.cli"]
-    work = ROOT / "runs" / "gpu-checks"
-    data = ROOT / "data" / "gpu-checks-eval"
+    work = Path(a.work)
+    data = work / "eval-data"
 
     if "tests" not in skip:
         s.run("tests", [PY, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "gpu",

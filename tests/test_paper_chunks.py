@@ -1,4 +1,5 @@
-"""scripts/paper_chunks.py: which command each chunk runs, and one real chunk on the CPU."""
+"""scripts/paper_chunks.py: which command each chunk runs, and one real chunk on the CPU;
+scripts/gpu_checks.py --quick on the CPU."""
 
 import importlib.util
 import sys
@@ -38,3 +39,22 @@ def test_one_chunk_trains_the_smoke_preset(tmp_path):
                         str(ROOT / "configs" / "smoke.yaml"), "--max-chunks", "1", "--chunk-minutes", "8",
                         "--launcher", f"{sys.executable} -m fusion.cli", "train.epochs=2", "train.progress=false"])
     assert code == 0 and (out / "summary.json").exists() and chunks.epochs_done(out) == 2
+
+
+@pytest.mark.slow
+def test_gpu_checks_quick_on_the_cpu(tmp_path):
+    """scripts/gpu_checks.py --quick: the dataset, a short training run stopped by its guard or
+    finished, its evaluation; at most the eight files the device tool brings back."""
+    import json
+    spec = importlib.util.spec_from_file_location("gpu_checks", ROOT / "scripts" / "gpu_checks.py")
+    gc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gc)
+    out = tmp_path / "out"
+    assert gc.main(["--out", str(out), "--work", str(tmp_path / "work"), "--quick", "--device", "cpu",
+                    "--skip", "tests,timing", "--train-seconds", "15", "--workers", "1"]) == 0
+    assert {p.name for p in out.iterdir()} <= set(gc.FILES)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"]["data"]["commands"][0]["rc"] == 0
+    assert summary["steps"]["eval"]["commands"][0]["rc"] == 0
+    ev = json.loads((out / "eval-test.json").read_text())
+    assert ev["n_frames"] == 96
