@@ -41,7 +41,7 @@ PRECISIONS = ("fp32", "fp16", "bf16")
 TIMING_MODES = ("forward", "end2end", "both")
 EXPORTERS = ("legacy", "dynamo")
 MASK_DTYPES = ("bool", "float32")
-EXPERIMENT_SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
+EXPERIMENT_SECTIONS = ("table1", "few_star", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
 
 
 # --------------------------------------------------------------------------- train
@@ -264,8 +264,8 @@ def _add_experiment(p: argparse.ArgumentParser) -> None:
                    "cpu (57 trainings, 3 seeds) 88 min with --jobs 2 on a 2-core CPU; smoke 55 s; gpu: days of "
                    "GPU time (run --sections one at a time)")
     p.add_argument("--out", help="output folder (default results/<preset>)")
-    p.add_argument("--sections", default=",".join(EXPERIMENT_SECTIONS),
-                   help=f"comma list of {', '.join(EXPERIMENT_SECTIONS)}")
+    p.add_argument("--sections", default=None,
+                   help=f"comma list of {', '.join(EXPERIMENT_SECTIONS)} (default: every section the preset defines)")
     p.add_argument("--workers", type=int, default=0, help="render/robustness worker processes (default: all cores)")
     p.add_argument("--data-dir", help="dataset folder (default data/experiment-<preset>)")
     p.add_argument("--runs-dir", help="folder of the training runs (default runs/experiment-<preset>)")
@@ -279,7 +279,8 @@ def _run_experiment(args: argparse.Namespace) -> int:
         raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
     from .measure.experiment import run_experiment
     run_experiment(args.preset, args.out or f"results/{Path(args.preset).stem}",
-                   sections=tuple(s for s in args.sections.split(",") if s), workers=args.workers or None,
+                   sections=None if args.sections is None else tuple(s for s in args.sections.split(",") if s),
+                   workers=args.workers or None,
                    data_dir=args.data_dir, runs_dir=args.runs_dir, jobs=args.jobs)
     return 0
 

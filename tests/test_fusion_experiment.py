@@ -23,13 +23,22 @@ def test_plan_shares_identical_runs():
 
 
 def test_smoke_experiment_writes_report_and_resumes(tmp_path):
-    kw = dict(sections=("table1", "coords", "latency"), workers=1, data_dir=tmp_path / "data",
+    kw = dict(sections=("table1", "few_star", "coords", "latency"), workers=1, data_dir=tmp_path / "data",
               runs_dir=tmp_path / "runs", log=lambda *a, **k: None)
     report = run_experiment("smoke", tmp_path / "out", jobs=2, **kw)      # two trainings at a time
     text = report.read_text()
-    for heading in ("## 1. Table 1", "## 5. Coordinate encoders", "## 8. Latency", "## Provenance", "paper top-1/3/5",
+    for heading in ("## 1. Table 1", "## 1b. Few-star frames", "| N = 2 |", "## 5. Coordinate encoders", "## 8. Latency", "## Provenance", "paper top-1/3/5",
                     "training (min)"):
         assert heading in text
+    # the two-stage row: warm-started from the geometry_only run of its seed, both stages' time in its row
+    import json
+    two = sorted((tmp_path / "runs").glob("star_fusion_two_stages-*/summary.json"))
+    assert len(two) == 2
+    for f in two:
+        init = json.loads(f.read_text())["init"]
+        assert init.startswith("warm start from ") and "/geometry_only-" in init and init.endswith("best.pt")
+    row = next(line for line in text.splitlines() if line.startswith("| star_fusion, two stages |"))
+    assert " + " in row.split("|")[7]          # training (min): "total (first + second)"
     best = sorted((tmp_path / "runs").glob("*/best.pt"))
     stamps = [p.stat().st_mtime_ns for p in best]
     run_experiment("smoke", tmp_path / "out", **kw)
@@ -52,3 +61,39 @@ def test_cached_latency_is_retimed_for_another_cpu_or_a_retrained_checkpoint(tmp
     os.utime(ckpt, (1e9, 1e9))                                                     # retrained since
     assert _stale_timing(rec, ckpt)
     assert not _stale_timing({"hardware": {"cpu_model": cpu}}, None)              # the paper-size model: CPU only
+
+
+def test_two_stage_rows_must_name_a_one_stage_table1_row(tmp_path):
+    import pytest
+    import yaml
+    from fusion.errors import ConfigError
+    from fusion.measure.experiment import PRESET_DIR, first_stage, stage_row
+    raw = yaml.safe_load((PRESET_DIR / "smoke.yaml").read_text())
+    raw["train_config"] = str(PRESET_DIR.parents[1] / raw["train_config"])
+    p = load_preset(PRESET_DIR / "smoke.yaml")
+    two = next(r for r in plan(p)["table1"] if stage_row(r.overrides))
+    assert first_stage(p, two).name == "geometry_only" and first_stage(p, two).seed == two.seed
+    for bad in ("no_such_row", "star_fusion, two stages"):          # unknown, or itself two-stage
+        raw["sections"]["table1"]["star_fusion, two stages"] = [f"model.init_from=row:{bad}"]
+        f = tmp_path / "bad.yaml"
+        f.write_text(yaml.safe_dump(raw))
+        with pytest.raises(ConfigError, match="one-stage row of sections.table1"):
+            load_preset(f)
+
+
+def test_cpu30_rows_train_from_their_own_presets_and_sections_are_the_presets_own(tmp_path):
+    import pytest
+    from fusion.errors import ConfigError
+    from fusion.measure.experiment import first_stage, load_run_config, stage_row
+    p = load_preset("cpu30")
+    assert p.sections == ("table1", "few_star") and p.few_star == [3, 4, 5, 6, 10]
+    runs = plan(p)
+    assert len(runs["table1"]) == 5 * 3 and runs["few_star"] == runs["table1"] and not runs["ablation"]
+    by_name = {r.name: r for r in runs["table1"] if r.seed == 0}
+    assert load_run_config(p, by_name["image_only"].overrides).model.image_backbone == "peak_set"
+    assert load_run_config(p, by_name["geometry_only"].overrides).train.epochs == 53
+    two = by_name["star_fusion, two stages"]
+    assert first_stage(p, two).overrides == by_name["geometry_only, 42 epochs (the first stage)"].overrides
+    assert stage_row(two.overrides) and load_run_config(p, [o for o in two.overrides if "row:" not in o]).model.detections_dropout > 0
+    with pytest.raises(ConfigError, match="defines no section ablation"):
+        run_experiment("cpu30", tmp_path / "out", sections=("ablation",), data_dir=tmp_path / "d", log=lambda *a: None)

@@ -10,6 +10,7 @@ training run resumes from its ``last.pt``).
 Sections (names usable with ``--sections``):
 
 1. ``table1``   — the paper's Table 1: image-only baselines and Star-Fusion, top-1/3/5;
+   ``few_star`` — table 1's runs on frames cut to their brightest N detections (the image whole);
 2. ``ablation`` — all 7 non-empty subsets of {image, heatmap, coordinates};
 3. ``k_sweep``  — K in the preset's list: top-1 and angular error (median, p95) against K;
 4. ``labels``   — hard labels with focal loss vs geometry-aware soft labels (several kappa);
@@ -29,6 +30,16 @@ whose overrides the K sweep, the label study and the latency timing start from (
 ``star_fusion``); ``sweep_overrides`` replaces those overrides where the sweeps should run at
 another budget than table 1 (the CPU preset: a 1.6-min geometry-only run, while table 1 compares
 every model at about 4 min).
+
+A preset runs the sections it defines (``--sections`` picks among them); ``few_star: [3, 4, ...]``
+scores every table-1 run again on the test frames cut to their brightest N detections (the image
+whole). A row's override ``config=configs/X.yaml`` trains it from that preset instead of the
+preset-wide ``train_config``, so rows of different recipes sit in one table.
+
+Two-stage rows: the override ``model.init_from=row:NAME`` warm-starts a run from the best
+checkpoint of table-1 row ``NAME`` with the same seed (trained first when missing). Its training
+time and samples seen in the tables are both stages together, so a two-stage row is compared with
+one-stage rows at equal total cost.
 """
 
 from __future__ import annotations
@@ -55,8 +66,10 @@ from ..errors import ConfigError
 from ..model.checkpoint import load_checkpoint
 from .evaluate import evaluate_checkpoint
 
-SECTIONS = ("table1", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
+SECTIONS = ("table1", "few_star", "ablation", "k_sweep", "labels", "coords", "recipe", "robustness", "latency")
 PRESET_DIR = Path(__file__).resolve().parents[2] / "configs" / "experiments"
+ROW_REF = "model.init_from=row:"      # a two-stage row: warm start from a table-1 row's run
+CONFIG_REF = "config="                # a row's own training preset instead of the preset-wide train_config
 
 # The paper's reported numbers (Hammad & Hammad, Star-Fusion; K = 15, validation split,
 # one seed, Stellarium-derived images, SwinV2 from ImageNet weights). Shown beside ours,
@@ -78,6 +91,12 @@ class RunSpec:
         import hashlib
         text = json.dumps(sorted(self.overrides)) + f"|{self.seed}"
         return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def stage_row(overrides) -> str | None:
+    """The table-1 row a two-stage run warm-starts from (``model.init_from=row:NAME``), or None."""
+    refs = [o[len(ROW_REF):] for o in overrides if o.startswith(ROW_REF)]
+    return refs[-1] if refs else None
 
 
 @dataclass
@@ -102,6 +121,8 @@ class Preset:
     sweep_model: str = "star_fusion"
     recipe: dict[str, list[str]] = field(default_factory=dict)
     sweep_overrides: list[str] | None = None   # None: the sweep model's table-1 overrides
+    few_star: list[int] = field(default_factory=list)
+    sections: tuple[str, ...] = SECTIONS       # the sections the preset defines
 
     @property
     def sweep_base(self) -> tuple[str, ...]:
@@ -119,27 +140,48 @@ def load_preset(name_or_path: str | Path) -> Preset:
     raw = yaml.safe_load(path.read_text()) or {}
     try:
         sec = raw["sections"]
+        present = tuple(s for s in SECTIONS if s in sec or (s == "labels" and "soft_kappas" in sec))
+        rob = sec.get("robustness") or {}
         preset = Preset(
             name=raw.get("name", path.stem), dataset_n=int(raw["dataset"]["n_frames"]),
             dataset_overrides=list(raw["dataset"].get("overrides", [])), train_config=raw["train_config"],
             train_overrides=list(raw.get("train_overrides", [])), seeds=[int(s) for s in raw["seeds"]],
-            split=raw.get("split", "test"), table1=dict(sec["table1"]), ablation=dict(sec["ablation"]),
-            k_values=[int(k) for k in sec["k_sweep"]], soft_kappas=[float(k) for k in sec["soft_kappas"]],
-            coord_encoders=dict(sec["coords"]), robustness_models=dict(sec["robustness"]["models"]),
-            robustness_frames=int(sec["robustness"]["frames"]),
-            robustness_levels={k: [float(x) for x in v] for k, v in sec["robustness"].get("levels", {}).items()},
-            timing_iters=int(sec.get("latency", {}).get("iters", 50)), notes=list(raw.get("notes", [])),
+            split=raw.get("split", "test"), table1=dict(sec["table1"]), ablation=dict(sec.get("ablation") or {}),
+            k_values=[int(k) for k in sec.get("k_sweep") or []],
+            soft_kappas=[float(k) for k in sec.get("soft_kappas") or []],
+            coord_encoders=dict(sec.get("coords") or {}), robustness_models=dict(rob.get("models") or {}),
+            robustness_frames=int(rob.get("frames", 0)),
+            robustness_levels={k: [float(x) for x in v] for k, v in rob.get("levels", {}).items()},
+            timing_iters=int((sec.get("latency") or {}).get("iters", 50)), notes=list(raw.get("notes", [])),
             sweep_model=str(raw.get("sweep_model", "star_fusion")), recipe=dict(sec.get("recipe") or {}),
-            sweep_overrides=None if raw.get("sweep_overrides") is None else [str(o) for o in raw["sweep_overrides"]])
+            sweep_overrides=None if raw.get("sweep_overrides") is None else [str(o) for o in raw["sweep_overrides"]],
+            few_star=[int(n) for n in sec.get("few_star") or []], sections=present)
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: malformed experiment preset ({type(exc).__name__}: {exc})") from None
     if preset.sweep_model not in preset.table1:
         raise ConfigError(f"{path}: sweep_model {preset.sweep_model!r} is not a row of sections.table1 "
                           f"({', '.join(preset.table1)})")
+    if any(n < 1 for n in preset.few_star):
+        raise ConfigError(f"{path}: sections.few_star {preset.few_star}: detections kept must be at least 1")
     for ov in [[], *preset.table1.values(), *preset.ablation.values(), *preset.coord_encoders.values(),
                *preset.robustness_models.values(), *preset.recipe.values(), list(preset.sweep_base)]:
-        load_config(_repo_path(preset.train_config), preset.train_overrides + list(ov))   # validate early
+        load_run_config(preset, ov)      # validate early
+        row = stage_row(ov)
+        if row is not None and (row not in preset.table1 or stage_row(preset.table1[row]) is not None):
+            raise ConfigError(f"{path}: {ROW_REF}{row} must name a one-stage row of sections.table1 "
+                              f"({', '.join(r for r, o in preset.table1.items() if stage_row(o) is None)})")
     return preset
+
+
+def load_run_config(preset: Preset, overrides, extra: list[str] = ()):
+    """The training config of a run: its own ``config=`` preset or the preset-wide one, then the
+    preset-wide ``train_overrides``, the run's overrides and ``extra``."""
+    ov = list(preset.train_overrides) + list(overrides) + list(extra)
+    own = [o[len(CONFIG_REF):] for o in ov if o.startswith(CONFIG_REF)]
+    base = _repo_path(own[-1] if own else preset.train_config)
+    if not base.exists():
+        raise ConfigError(f"experiment preset {preset.name!r}: training config {base} not found")
+    return load_config(base, [o for o in ov if not o.startswith(CONFIG_REF)])
 
 
 def _repo_path(p: str) -> Path:
@@ -157,28 +199,31 @@ def plan(preset: Preset) -> dict[str, list[RunSpec]]:
     for label, ov in preset.ablation.items():
         runs["ablation"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     full = preset.sweep_base
-    base = load_config(_repo_path(preset.train_config), preset.train_overrides + list(full))
+    base = load_run_config(preset, full)
     for k in preset.k_values:       # the preset's own K shares the sweep model's runs
         ov = full if k == base.labels.k else full + (f"labels.k={k}",)
         runs["k_sweep"] += [RunSpec(f"K={k}", ov, s) for s in seeds]
     loss = "focal" if base.loss.gamma > 0 else "cross-entropy"
-    if base.labels.fine_k:     # soft labels and fine regions exclude each other: compare both against plain hard labels
-        runs["labels"] += [RunSpec(f"hard, {loss}, {base.labels.fine_k} fine regions", full, s) for s in seeds]
-        full_coarse = full + ("labels.fine_k=null",)
-    else:
+    if "labels" in preset.sections:
         full_coarse = full
-    runs["labels"] += [RunSpec(f"hard, {loss}", full_coarse, s) for s in seeds]
-    for kappa in preset.soft_kappas:
-        runs["labels"] += [RunSpec(f"soft, kappa={kappa:g}", full_coarse + ("labels.soft_labels=true",
-                                                                             f"labels.kappa={kappa}"), s)
-                           for s in seeds]
+        if base.labels.fine_k:     # soft labels and fine regions exclude each other: compare both against hard labels
+            runs["labels"] += [RunSpec(f"hard, {loss}, {base.labels.fine_k} fine regions", full, s) for s in seeds]
+            full_coarse = full + ("labels.fine_k=null",)
+        runs["labels"] += [RunSpec(f"hard, {loss}", full_coarse, s) for s in seeds]
+        for kappa in preset.soft_kappas:
+            runs["labels"] += [RunSpec(f"soft, kappa={kappa:g}", full_coarse + ("labels.soft_labels=true",
+                                                                                 f"labels.kappa={kappa}"), s)
+                               for s in seeds]
     for label, ov in preset.coord_encoders.items():
         runs["coords"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     for label, ov in preset.recipe.items():
         runs["recipe"] += [RunSpec(label, tuple(ov), s) for s in seeds]
     for label, ov in preset.robustness_models.items():
         runs["robustness"].append(RunSpec(label, tuple(ov), seeds[0]))
-    runs["latency"].append(RunSpec(preset.sweep_model, full, seeds[0]))
+    if "latency" in preset.sections:
+        runs["latency"].append(RunSpec(preset.sweep_model, full, seeds[0]))
+    if "few_star" in preset.sections:
+        runs["few_star"] = list(runs["table1"])
     return runs
 
 
@@ -195,22 +240,51 @@ def run_folder(runs_dir: Path, run: RunSpec) -> Path:
     return runs_dir / f"{run.name.replace(' ', '_').replace(',', '').replace('=', '')}-{run.key}"
 
 
-def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log) -> Path:
-    """Train (or resume, or skip) one run and evaluate its best checkpoint on the test split."""
+def first_stage(preset: Preset, run: RunSpec) -> RunSpec:
+    """The table-1 run (same seed) that two-stage ``run`` warm-starts from."""
+    row = stage_row(run.overrides)
+    return RunSpec(row, tuple(preset.table1[row]), run.seed)
+
+
+def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log, *, retrain: bool = False) -> Path:
+    """Train (or resume, or skip) one run and evaluate its best checkpoint on the test split (and, with
+    ``few_star``, on its frames cut to their brightest N detections) while the checkpoint is at hand."""
     from ..train import train      # experiment is the one measurement that trains (docs/ARCHITECTURE.md)
     folder = run_folder(runs_dir, run)
-    ov = preset.train_overrides + list(run.overrides) + [f"train.seed={run.seed}", f"data.path={data}",
-                                                          "train.progress=false"]
-    if not (folder / "summary.json").exists():
-        cfg = load_config(_repo_path(preset.train_config), ov)
-        resume = (folder / "last.pt").exists()
+    ov = [o for o in run.overrides if not o.startswith(ROW_REF)]
+    extra = [f"train.seed={run.seed}", f"data.path={data}", "train.progress=false"]
+    done = (folder / "summary.json").exists() and not retrain
+    if stage_row(run.overrides) is not None and not done:
+        spec = first_stage(preset, run)
+        first = run_folder(runs_dir, spec)
+        again = (first / "summary.json").exists() and not (first / "best.pt").exists()
+        if again:
+            log(f"  {spec.name} seed {spec.seed}: its checkpoint is gone (results copied from another machine?); "
+                "training it again for the second stage")
+        ensure_run(preset, spec, data, runs_dir, log, retrain=again)
+        extra.append(f"model.init_from={first / 'best.pt'}")
+    if not done:
+        cfg = load_run_config(preset, ov, extra)
+        resume = (folder / "last.pt").exists() and not retrain
         t0 = time.perf_counter()
         train(cfg, folder, resume=resume, force=not resume, log=lambda *a, **k: None)
         log(f"  trained {run.name} seed {run.seed} in {time.perf_counter() - t0:.0f} s -> {folder}")
-        (folder / f"eval-{preset.split}.json").unlink(missing_ok=True)
-    if not (folder / f"eval-{preset.split}.json").exists():
-        evaluate_checkpoint(folder / "best.pt", data, preset.split, folder, log=lambda *a, **k: None)
+        for old in folder.glob(f"eval-{preset.split}*.json"):
+            old.unlink()
+    wanted = [None] + list(preset.few_star)
+    for n in wanted:
+        if not (folder / eval_name(preset.split, n)).exists():
+            if not (folder / "best.pt").exists():
+                raise ConfigError(f"{folder}: no best.pt to evaluate (a run folder copied without its checkpoint?); "
+                                  "delete its summary.json to train it again")
+            evaluate_checkpoint(folder / "best.pt", data, preset.split, folder, keep_brightest=n,
+                                log=lambda *a, **k: None)
     return folder
+
+
+def eval_name(split: str, brightest: int | None = None) -> str:
+    """The file ``fusion evaluate`` writes for a split (and a brightest-N cut)."""
+    return f"eval-{split}.json" if brightest is None else f"eval-{split}-brightest{brightest}.json"
 
 
 def evaluate_shuffled(checkpoint: Path, data: Path, split: str, seed: int = 0) -> float:
@@ -241,11 +315,20 @@ def evaluate_shuffled(checkpoint: Path, data: Path, split: str, seed: int = 0) -
 
 
 # --------------------------------------------------------------------------- tables
-def _eval(folder: Path, split: str) -> dict:
+def _eval(folder: Path, split: str, first: Path | None = None) -> dict:
+    """A run's evaluation with its training cost; ``first``: the folder of its first stage, whose
+    time and samples are added (a two-stage row costs both stages)."""
     ev = json.loads((folder / f"eval-{split}.json").read_text())
     summary = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").exists() else {}
     ev["train_wall_s"] = summary.get("wall_time_s")
     ev["train_samples"] = summary.get("samples_seen")
+    if first is not None and ev["train_wall_s"]:
+        if not (first / "summary.json").exists():
+            raise ConfigError(f"{folder}: its first stage {first} has no summary.json")
+        s0 = json.loads((first / "summary.json").read_text())
+        ev["train_stages_s"] = [s0.get("wall_time_s"), ev["train_wall_s"]]
+        ev["train_wall_s"] += s0.get("wall_time_s") or 0.0
+        ev["train_samples"] = (ev["train_samples"] or 0) + (s0.get("samples_seen") or 0)
     return ev
 
 
@@ -256,10 +339,11 @@ def _ms(values: list[float], pct: bool = True) -> str:
     return f"{v.mean():.1f} ± {v.std(ddof=1):.1f}"
 
 
-def _group(runs: list[RunSpec], folders: dict[str, Path], split: str) -> dict[str, list[dict]]:
+def _group(runs: list[RunSpec], folders: dict[str, Path], split: str,
+           firsts: dict[str, Path] | None = None) -> dict[str, list[dict]]:
     out: dict[str, list[dict]] = {}
     for r in runs:
-        out.setdefault(r.name, []).append(_eval(folders[r.key], split))
+        out.setdefault(r.name, []).append(_eval(folders[r.key], split, (firsts or {}).get(r.key)))
     return out
 
 
@@ -268,6 +352,9 @@ def _train_cost(evs: list[dict]) -> str:
     wall = [e["train_wall_s"] for e in evs if e.get("train_wall_s")]
     seen = [e["train_samples"] for e in evs if e.get("train_samples")]
     t = f"{np.mean(wall) / 60:.1f}" if wall else "—"
+    stages = [e["train_stages_s"] for e in evs if e.get("train_stages_s") and None not in e["train_stages_s"]]
+    if stages and wall:
+        t += " (" + " + ".join(f"{np.mean(col) / 60:.1f}" for col in zip(*stages)) + ")"
     n = "—" if not seen else f"{np.mean(seen) / 1000:,.0f} k" if np.mean(seen) >= 10_000 else f"{np.mean(seen):,.0f}"
     return f"{t} | {n}"
 
@@ -356,24 +443,38 @@ def train_runs(preset: Preset, todo: list[RunSpec], data: Path, runs_dir: Path, 
         return {r.key: ensure_run(preset, r, data, runs_dir, log) for r in todo}
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
+    # two waves: the one-stage runs (and every first stage), then the two-stage runs, so no two
+    # processes ever train the same first stage
+    firsts = {f.key: f for r in todo if stage_row(r.overrides) is not None for f in [first_stage(preset, r)]}
+    wave1 = list({**{r.key: r for r in todo if stage_row(r.overrides) is None}, **firsts}.values())
+    wave2 = [r for r in todo if stage_row(r.overrides) is not None]
+    folders: dict[str, Path] = {}
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        done = pool.map(_ensure_run_job, [(preset, r, data, runs_dir) for r in todo])
-        return {r.key: Path(f) for r, f in zip(todo, done)}
+        for wave in (wave1, wave2):
+            done = pool.map(_ensure_run_job, [(preset, r, data, runs_dir) for r in wave])
+            folders.update({r.key: Path(f) for r, f in zip(wave, done)})
+    return folders
 
 
-def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[str, ...] = SECTIONS,
+def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[str, ...] | None = None,
                    workers: int | None = None, data_dir: str | Path | None = None,
                    runs_dir: str | Path | None = None, jobs: int = 1, log=print) -> Path:
     """Run the preset's sections; small results and REPORT.md go to ``out``, the dataset to
     ``data_dir`` (default data/experiment-<preset>) and the run folders with checkpoints to
     ``runs_dir`` (default runs/experiment-<preset>), both ignored by git. ``jobs`` trainings run
-    at a time in separate processes (each with the preset's ``train.threads``)."""
+    at a time in separate processes (each with the preset's ``train.threads``). ``sections``: default
+    every section the preset defines."""
     t_start = time.perf_counter()
     revision = _git_revision()          # the code that runs, not the code at the end
     preset = load_preset(preset_name)
+    sections = preset.sections if sections is None else tuple(sections)
     bad = [s for s in sections if s not in SECTIONS]
     if bad:
         raise ConfigError(f"unknown section(s) {', '.join(bad)}; choose from {', '.join(SECTIONS)}")
+    missing = [s for s in sections if s not in preset.sections]
+    if missing:
+        raise ConfigError(f"preset {preset.name!r} defines no section {', '.join(missing)}; "
+                          f"it has {', '.join(preset.sections)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     workers = workers or os.cpu_count() or 1
@@ -383,23 +484,26 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     todo = list({r.key: r for s in sections for r in runs[s]}.values())
     log(f"{len(todo)} training runs ({len(preset.seeds)} seeds), {jobs} at a time")
     folders = train_runs(preset, todo, data, runs_dir, jobs, log)
+    firsts = {r.key: run_folder(runs_dir, first_stage(preset, r)) for r in todo if stage_row(r.overrides)}
     results: dict = {"preset": preset.name, "sections": {}}
     md = [f"# Star-Fusion experiments — preset `{preset.name}`", ""]
     md += _header(preset, data)
     split = preset.split
     if "table1" in sections:
-        g = _group(runs["table1"], folders, split)
+        g = _group(runs["table1"], folders, split, firsts)
         results["sections"]["table1"] = g
         md += ["## 1. Table 1: baselines and Star-Fusion", "",
                f"Test split, mean ± std over seeds {preset.seeds}. Right column: the paper's reported numbers "
                "(K = 15, its validation split, one seed, its own data) — for orientation, not a like-for-like "
                "comparison.", ""] + table_topk(g, PAPER_TABLE1) + [""]
+    if "few_star" in sections:
+        md += _few_star_section(preset, runs["few_star"], folders, results)
     if "ablation" in sections:
-        g = _group(runs["ablation"], folders, split)
+        g = _group(runs["ablation"], folders, split, firsts)
         results["sections"]["ablation"] = g
         md += ["## 2. Branch ablation (all 7 subsets)", ""] + table_topk(g, PAPER_ABLATION_TOP1) + [""]
     if "k_sweep" in sections:
-        g = _group(runs["k_sweep"], folders, split)
+        g = _group(runs["k_sweep"], folders, split, firsts)
         results["sections"]["k_sweep"] = g
         _plot_k(g, out / "k_sweep.png")
         md += ["## 3. Number of clusters K", "",
@@ -407,14 +511,14 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
                "predicted (the quantisation of the sphere into K cells).", ""] + table_k(g) + \
               ["", "![K sweep](k_sweep.png)", ""]
     if "labels" in sections:
-        g = _group(runs["labels"], folders, split)
+        g = _group(runs["labels"], folders, split, firsts)
         results["sections"]["labels"] = g
         md += ["## 4. Hard labels vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", "",
                f"Model: {_sweep_text(preset)}. Soft labels replace fine regions (the two "
                "cannot be combined), so they are compared with hard labels on the K regions themselves.", ""] + \
             table_topk(g) + [""]
     if "coords" in sections:
-        g = _group(runs["coords"], folders, split)
+        g = _group(runs["coords"], folders, split, firsts)
         shuffled = {}
         for r in runs["coords"]:
             shuffled.setdefault(r.name, []).append(evaluate_shuffled(folders[r.key] / "best.pt", data, split, r.seed))
@@ -426,7 +530,7 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
             md.append(f"| {name} | {_ms([e['top1'] for e in evs])} | {_ms(shuffled[name])} | {len(evs)} |")
         md.append("")
     if "recipe" in sections and runs["recipe"]:
-        g = _group(runs["recipe"], folders, split)
+        g = _group(runs["recipe"], folders, split, firsts)
         results["sections"]["recipe"] = g
         md += ["## 6. Recipe ablations", "",
                "Each row changes one thing of the preset's recipe (overrides in `results.json` and the preset "
@@ -449,6 +553,28 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     atomic_write_text(out / "REPORT.md", "\n".join(md) + "\n")
     log(f"wrote {out / 'REPORT.md'}")
     return out / "REPORT.md"
+
+
+def _few_star_section(preset: Preset, runs: list[RunSpec], folders: dict[str, Path], results: dict) -> list[str]:
+    """Table 1's runs on the test frames cut to their brightest N detections (the image whole)."""
+    split, ns = preset.split, preset.few_star
+    table: dict[str, dict[str, list[float]]] = {}
+    for r in runs:
+        row = table.setdefault(r.name, {})
+        for n in [None] + ns:
+            ev = json.loads((folders[r.key] / eval_name(split, n)).read_text())
+            row.setdefault("all" if n is None else str(n), []).append(ev["top1"])
+    results["sections"]["few_star"] = table
+    cols = ["all"] + [str(n) for n in ns]
+    lines = ["## 1b. Few-star frames: top-1 by detections kept", "",
+             f"The same test frames with each frame's detections cut to its brightest N (the image untouched: "
+             f"the pixels still show every star), top-1 (%) at K = {load_run_config(preset, []).labels.k}, "
+             f"mean ± std over seeds {preset.seeds}. Training time: table 1.", "",
+             "| model | " + " | ".join("whole frame" if c == "all" else f"N = {c}" for c in cols) + " |",
+             "|---|" + "---|" * len(cols)]
+    for name, row in table.items():
+        lines.append(f"| {name} | " + " | ".join(_ms(row[c]) for c in cols) + " |")
+    return lines + [""]
 
 
 def _summed_train_min(folders: dict[str, Path]) -> float:
