@@ -261,8 +261,8 @@ def _run_export(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- experiment
 def _add_experiment(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", required=True, help="experiment preset: cpu, gpu, smoke, or a YAML path. Measured: "
-                   "cpu (57 trainings, 3 seeds) 88 min with --jobs 2 on a 2-core CPU; smoke 55 s; gpu: days of "
-                   "GPU time (run --sections one at a time)")
+                   "cpu (63 trainings, 3 seeds) ~100 min with --jobs 2 on a 2-core CPU; cpu30 (the 30-min presets, "
+                   "15 trainings) ~6.5 h; smoke 55 s; gpu: days of GPU time (run --sections one at a time)")
     p.add_argument("--out", help="output folder (default results/<preset>)")
     p.add_argument("--sections", default=None,
                    help=f"comma list of {', '.join(EXPERIMENT_SECTIONS)} (default: every section the preset defines)")
