@@ -43,6 +43,18 @@ def test_smoke_experiment_writes_report_and_resumes(tmp_path):
     stamps = [p.stat().st_mtime_ns for p in best]
     run_experiment("smoke", tmp_path / "out", **kw)
     assert [p.stat().st_mtime_ns for p in best] == stamps          # nothing retrained
+    # results carried to another machine without checkpoints: a second stage still to train gets its
+    # first stage trained again (said in the log); finished runs are only read
+    from fusion.measure.experiment import first_stage, run_folder, stage_row
+    p = load_preset("smoke")
+    two = next(r for r in plan(p)["table1"] if stage_row(r.overrides) and r.seed == 0)
+    first = run_folder(tmp_path / "runs", first_stage(p, two))
+    (first / "best.pt").unlink()
+    (run_folder(tmp_path / "runs", two) / "summary.json").unlink()
+    said = []
+    run_experiment("smoke", tmp_path / "out", **{**kw, "sections": ("table1",), "log": said.append})
+    assert any("checkpoint is gone" in line for line in said)
+    assert (first / "best.pt").exists() and (run_folder(tmp_path / "runs", two) / "summary.json").exists()
 
 
 def test_cached_latency_is_retimed_for_another_cpu_or_a_retrained_checkpoint(tmp_path):
