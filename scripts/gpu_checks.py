@@ -171,8 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         # no faster than the loader processes can render (~800 binned frames/s each, measured on CPUs)
         fwd = None
         for key in ("bf16-b64", "fp32-b64", "fp32-b1"):
-            rec = timing.get(key, {})
-            ms = (rec.get("forward") or {}).get("median_ms") if isinstance(rec.get("forward"), dict) else None
+            ms = (timing.get(key, {}).get("forward") or {}).get("median_ms")
             if ms:
                 fwd = (ms, int(key.rsplit("-b", 1)[1]))
                 break

@@ -559,16 +559,18 @@ def _few_star_section(preset: Preset, runs: list[RunSpec], folders: dict[str, Pa
     """Table 1's runs on the test frames cut to their brightest N detections (the image whole)."""
     split, ns = preset.split, preset.few_star
     table: dict[str, dict[str, list[float]]] = {}
+    k = set()
     for r in runs:
         row = table.setdefault(r.name, {})
         for n in [None] + ns:
             ev = json.loads((folders[r.key] / eval_name(split, n)).read_text())
             row.setdefault("all" if n is None else str(n), []).append(ev["top1"])
+            k.add(ev["num_classes"])
     results["sections"]["few_star"] = table
     cols = ["all"] + [str(n) for n in ns]
     lines = ["## 1b. Few-star frames: top-1 by detections kept", "",
              f"The same test frames with each frame's detections cut to its brightest N (the image untouched: "
-             f"the pixels still show every star), top-1 (%) at K = {load_run_config(preset, []).labels.k}, "
+             f"the pixels still show every star), top-1 (%) at K = {' / '.join(map(str, sorted(k)))}, "
              f"mean ± std over seeds {preset.seeds}. Training time: table 1.", "",
              "| model | " + " | ".join("whole frame" if c == "all" else f"N = {c}" for c in cols) + " |",
              "|---|" + "---|" * len(cols)]
