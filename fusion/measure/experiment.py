@@ -271,8 +271,8 @@ def ensure_run(preset: Preset, run: RunSpec, data: Path, runs_dir: Path, log, *,
         log(f"  trained {run.name} seed {run.seed} in {time.perf_counter() - t0:.0f} s -> {folder}")
         for old in folder.glob(f"eval-{preset.split}*.json"):
             old.unlink()
-    wanted = [None] + list(preset.few_star)
-    for n in wanted:
+    in_table1 = run.overrides in {tuple(v) for v in preset.table1.values()}    # few_star scores table 1's runs
+    for n in [None] + (list(preset.few_star) if in_table1 else []):
         if not (folder / eval_name(preset.split, n)).exists():
             if not (folder / "best.pt").exists():
                 raise ConfigError(f"{folder}: no best.pt to evaluate (a run folder copied without its checkpoint?); "
