@@ -2,6 +2,7 @@
 
     python scripts/gpu_checks.py --out OUT [--train-seconds 210] [--workers 15] [--work runs/gpu-checks]
         [--device cuda] [--skip tests,timing,render,train] [--quick]
+        [--config configs/X.yaml] [--set KEY=VALUE ...] [--epochs N] [--data-like PRESET] [--few-star 3,4,6]
 
 Steps, each with its own time limit, each one's failure recorded and the next one run:
 
@@ -13,19 +14,27 @@ Steps, each with its own time limit, each one's failure recorded and the next on
 4. ``timing``  -- ``fusion timing`` of the paper architecture (random weights), fp32 / bf16 /
                   fp16 at batch 1 and 64, forward and end to end from a raw 1024² frame;
 5. ``render``  -- ``benchmarks/gpu_render_bench.py`` on the device (batches 1, 32, 128);
-6. ``train``   -- a short from-scratch run of the paper's recipe (``configs/paper.yaml``: focal loss,
-                  AdamW, warm-up + cosine, bf16 autocast) for ``--model`` (default ``swinv2_tiny``,
-                  the paper's image-only baseline) on the ``frames`` stream (binned renders in
-                  ``--workers`` loader processes, every sample new). Its epochs are sized so the run
-                  ends in about ``--train-seconds`` (the training rate is estimated from step 4's
-                  bf16 batch-64 forward time, x3 for the backward pass); SIGINT at 1.35 times that as
-                  a guard (best.pt is written at every epoch's end);
-7. ``eval``    -- ``fusion evaluate`` of its best.pt on the 1,920 test frames.
+6. ``train``   -- a short from-scratch run of ``--config`` (default ``configs/paper.yaml``, the paper's
+                  recipe: focal loss, AdamW, warm-up + cosine, bf16 autocast; ``--model`` picks its
+                  model, default ``swinv2_tiny``, the paper's image-only baseline; any other preset
+                  trains as it is, ``--set`` overrides added) on the ``frames`` stream (binned renders
+                  in ``--workers`` loader processes, every sample new). Its epochs are sized so the run
+                  ends in about ``--train-seconds``: for the paper preset from step 4's bf16 batch-64
+                  forward time (x3 for the backward pass), for another preset from a two-epoch
+                  ``probe`` run of it (or given: ``--epochs``). SIGINT at 1.35 times that as a guard
+                  (best.pt is written at every epoch's end);
+7. ``eval``    -- ``fusion evaluate`` of its best.pt on the test frames, whole and (``--few-star
+                  3,4,6``) cut to their brightest N detections, the image untouched.
+
+``--data-like PRESET`` renders the dataset of an experiment preset (``configs/experiments/``, e.g.
+``cpu30``: the same frames, so the same test split, as that experiment's CPU runs; its content id
+is in summary.json) in place of step 3's.
 
 Everything lands in ``--out`` as at most eight files (the device tool brings back eight):
 ``summary.json`` (every step's status, seconds and figures), ``log.txt`` (every command's
 output), ``timing.json``, ``render_bench.json``, ``metrics.csv``, ``config.yaml`` (the run's),
-``eval-test.json`` and ``eval-test.md``.
+``eval-test.json`` and ``eval-test.md``; ``--few-star`` puts its evaluations in
+``eval-brightest.json`` (N -> that evaluation) and needs ``--skip render`` to stay at eight.
 
 ``--quick`` checks the script itself on a CPU in about two minutes (a 120-frame dataset, the
 smoke preset instead of the paper's, one timing, no render benchmark); ``--device cpu`` with it.
@@ -47,7 +56,8 @@ from pathlib import Path
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 FILES = ("summary.json", "log.txt", "timing.json", "render_bench.json", "metrics.csv",
-         "config.yaml", "eval-test.json", "eval-test.md")
+         "config.yaml", "eval-test.json", "eval-test.md", "eval-brightest.json")
+PAPER = "configs/paper.yaml"
 
 
 class Session:
@@ -123,7 +133,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-seconds", type=float, default=210.0, help="target length of the training run")
     ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1),
                     help="loader / render processes (default: all cores but one)")
-    ap.add_argument("--model", default="swinv2_tiny", help="model.name of the training run (default swinv2_tiny)")
+    ap.add_argument("--model", default="swinv2_tiny",
+                    help="model.name of the paper-preset training run (default swinv2_tiny)")
+    ap.add_argument("--config", default=PAPER, help=f"training preset of step 6 (default {PAPER})")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="one more override of the training run (repeatable)")
+    ap.add_argument("--epochs", type=int, default=None, help="epochs of the training run (default: sized to --train-seconds)")
+    ap.add_argument("--data-like", default=None, metavar="PRESET",
+                    help="render an experiment preset's dataset (e.g. cpu30) instead of the default 2,400 frames")
+    ap.add_argument("--few-star", default="", help="comma list of N: also evaluate on test frames cut to their brightest N")
     ap.add_argument("--skip", default="", help="comma-separated steps to skip: tests,timing,render,train")
     ap.add_argument("--work", default=str(ROOT / "runs" / "gpu-checks"),
                     help="folder for the dataset, the run and the timing files (default runs/gpu-checks)")
@@ -144,10 +162,18 @@ def main(argv: list[str] | None = None) -> int:
         s.run("tests", [PY, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "gpu",
                         "tests/test_render_torch.py"], 120)
 
-    n_frames = 120 if a.quick else 2400
-    s.run("data", skygen + ["render", "--n", str(n_frames), "--seed", "7", "--workers", str(a.workers),
-                            "--out", str(data), "--force", "--quiet",
-                            "--set", "output.split_fractions=[0.05,0.15,0.8]"], 240)
+    if a.data_like:
+        sys.path.insert(0, str(ROOT))
+        from fusion.measure.experiment import load_preset
+        preset = load_preset(a.data_like)
+        render = ["--n", str(preset.dataset_n)] + [x for o in preset.dataset_overrides for x in ("--set", o)]
+    else:
+        render = ["--n", "120" if a.quick else "2400", "--seed", "7", "--set", "output.split_fractions=[0.05,0.15,0.8]"]
+    s.run("data", skygen + ["render", *render, "--workers", str(a.workers), "--out", str(data), "--force", "--quiet"], 240)
+    if (data / "manifest.json").exists():
+        man = json.loads((data / "manifest.json").read_text())
+        s.summary["data"] = {k: man.get(k) for k in ("dataset_id", "content_id", "n_frames")}
+        s.save()
 
     timing: dict = {}
     if "timing" not in skip:
@@ -167,44 +193,7 @@ def main(argv: list[str] | None = None) -> int:
                          "--devices", a.device, "--out", str(out / "render_bench.json")], 150)
 
     if "train" not in skip:
-        # samples/s estimate: the bf16 (else fp32) batch-64 forward time x 3 for forward + backward,
-        # no faster than the loader processes can render (~800 binned frames/s each, measured on CPUs)
-        fwd = None
-        for key in ("bf16-b64", "fp32-b64", "fp32-b1"):
-            ms = (timing.get(key, {}).get("forward") or {}).get("median_ms")
-            if ms:
-                fwd = (ms, int(key.rsplit("-b", 1)[1]))
-                break
-        rate = (fwd[1] / (3 * fwd[0] / 1e3)) if fwd else 200.0
-        rate = min(rate, 800.0 * a.workers)
-        per_epoch = 256 if a.quick else 16384
-        epochs = max(2, int(0.7 * rate * a.train_seconds / per_epoch))
-        s.summary["train_plan"] = {"estimated_samples_per_s": round(rate, 1), "samples_per_epoch": per_epoch,
-                                   "epochs": epochs, "forward_ms_used": fwd}
-        run_dir = work / "train"
-        cfg = "configs/smoke.yaml" if a.quick else "configs/paper.yaml"
-        overrides = [f"model.name={a.model}", "stream.render_backend=numpy", f"train.workers={a.workers}",
-                     f"train.device={a.device}", f"train.epochs={epochs}", f"stream.samples_per_epoch={per_epoch}",
-                     "optim.warmup_epochs=1", "train.patience=null", "train.progress=false"]
-        if a.quick:
-            overrides += ["model.name=star_fusion", "train.batch_size=32"]
-        rc = s.run("train", fusion + ["train", "--data", str(data), "--out", str(run_dir), "--config", cfg,
-                                      "--stream", "frames", "--force"] + overrides,
-                   limit_s=1.35 * a.train_seconds + 45, interrupt_s=1.35 * a.train_seconds)
-        for name in ("metrics.csv", "config.yaml"):
-            if (run_dir / name).exists():
-                shutil.copy(run_dir / name, out / name)
-        if (run_dir / "summary.json").exists():
-            s.summary["train_summary"] = json.loads((run_dir / "summary.json").read_text())
-        if (run_dir / "best.pt").exists():
-            ev = work / "eval"
-            s.run("eval", fusion + ["evaluate", "--checkpoint", str(run_dir / "best.pt"), "--data", str(data),
-                                    "--split", "test", "--out", str(ev), "--workers", str(min(8, a.workers))], 180)
-            for name in ("eval-test.json", "eval-test.md"):
-                if (ev / name).exists():
-                    shutil.copy(ev / name, out / name)
-        elif rc != 0:
-            s.log.write("### [train] no best.pt: the run finished no epoch\n")
+        train_step(s, a, fusion, work, data, timing)
     s.summary["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     s.save()
     extra = sorted(p.name for p in out.iterdir() if p.name not in FILES)
@@ -212,6 +201,86 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gpu_checks: unexpected files in {out}: {extra}", file=sys.stderr)
     print(json.dumps({k: [c["rc"] for c in v["commands"]] for k, v in s.summary["steps"].items()}))
     return 0
+
+
+def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing: dict) -> None:
+    """Steps 6 and 7: size the run to ``--train-seconds``, train it on the frames stream, evaluate it."""
+    paper = a.config == PAPER and not a.quick
+    cfg = "configs/smoke.yaml" if a.quick else a.config
+    common = ["stream.render_backend=numpy", f"train.workers={a.workers}", f"train.device={a.device}",
+              "train.patience=null", "train.progress=false"]
+    if paper:
+        per_epoch = 16384
+        common += [f"model.name={a.model}", f"stream.samples_per_epoch={per_epoch}", "optim.warmup_epochs=1"]
+    else:
+        sys.path.insert(0, str(ROOT))
+        from fusion.config import load_config
+        per_epoch = 128 if a.quick else int(load_config(cfg).stream.samples_per_epoch)
+        common += [f"stream.samples_per_epoch={per_epoch}"] + (["train.batch_size=32"] if a.quick else [])
+    common += list(a.set)
+    train = fusion + ["train", "--data", str(data), "--config", cfg, "--stream", "frames", "--force"]
+    plan: dict = {"config": cfg, "samples_per_epoch": per_epoch}
+    rate = None
+    if a.epochs is None and paper:
+        # samples/s: the bf16 (else fp32) batch-64 forward time x 3 for forward + backward,
+        # no faster than the loader processes can render (~800 binned frames/s each, measured on CPUs)
+        for key in ("bf16-b64", "fp32-b64", "fp32-b1"):
+            ms = (timing.get(key, {}).get("forward") or {}).get("median_ms")
+            if ms:
+                plan["forward_ms_used"] = [ms, int(key.rsplit("-b", 1)[1])]
+                rate = int(key.rsplit("-b", 1)[1]) / (3 * ms / 1e3)
+                break
+        rate = min(rate or 200.0, 800.0 * a.workers)
+    elif a.epochs is None:
+        # a two-epoch probe of the same preset; its second epoch (loaders warm) gives the rate
+        probe = work / "probe"
+        n = 64 if a.quick else max(per_epoch // 4, 8192)
+        s.run("probe", train + ["--out", str(probe), "train.epochs=2"] + common + [f"stream.samples_per_epoch={n}"], 240)
+        rows = (probe / "metrics.csv").read_text().splitlines() if (probe / "metrics.csv").exists() else []
+        if len(rows) >= 3:
+            head, last = rows[0].split(","), rows[-1].split(",")
+            rate = n / float(last[head.index("epoch_time_s")])
+        rate = rate or 200.0
+    if a.epochs is None:
+        epochs = max(2, int(0.85 * rate * a.train_seconds / per_epoch))
+        plan["estimated_samples_per_s"] = round(rate, 1)
+    else:
+        epochs = a.epochs
+    plan["epochs"] = epochs
+    s.summary["train_plan"] = plan
+    s.save()
+    run_dir = work / "train"
+    rc = s.run("train", train + ["--out", str(run_dir), f"train.epochs={epochs}"] + common,
+               limit_s=1.35 * a.train_seconds + 45, interrupt_s=1.35 * a.train_seconds)
+    for name in ("metrics.csv", "config.yaml"):
+        if (run_dir / name).exists():
+            shutil.copy(run_dir / name, s.out / name)
+    if (run_dir / "summary.json").exists():
+        s.summary["train_summary"] = {k: v for k, v in json.loads((run_dir / "summary.json").read_text()).items()
+                                      if k not in ("dataset", "config")}
+    if not (run_dir / "best.pt").exists():
+        if rc != 0:
+            s.log.write("### [train] no best.pt: the run finished no epoch\n")
+        return
+    ev = work / "eval"
+    evaluate = fusion + ["evaluate", "--checkpoint", str(run_dir / "best.pt"), "--data", str(data),
+                         "--split", "test", "--out", str(ev), "--workers", str(min(8, a.workers))]
+    s.run("eval", evaluate, 180)
+    for name in ("eval-test.json", "eval-test.md"):
+        if (ev / name).exists():
+            shutil.copy(ev / name, s.out / name)
+    few: dict = {}
+    for n in [int(x) for x in a.few_star.split(",") if x]:
+        s.run("eval", evaluate + ["--brightest", str(n)], 180)
+        f = ev / f"eval-test-brightest{n}.json"
+        if f.exists():
+            few[n] = json.loads(f.read_text())
+    if few:
+        (s.out / "eval-brightest.json").write_text(json.dumps(few, indent=2))
+    tops = {"whole": (json.loads((ev / "eval-test.json").read_text()) if (ev / "eval-test.json").exists() else {})}
+    tops.update({f"brightest{n}": e for n, e in few.items()})
+    s.summary["top1"] = {k: e.get("top1") for k, e in tops.items()}
+    s.save()
 
 
 if __name__ == "__main__":

@@ -43,18 +43,25 @@ def test_one_chunk_trains_the_smoke_preset(tmp_path):
 
 @pytest.mark.slow
 def test_gpu_checks_quick_on_the_cpu(tmp_path):
-    """scripts/gpu_checks.py --quick: the dataset, a short training run stopped by its guard or
-    finished, its evaluation; at most the eight files the device tool brings back."""
+    """scripts/gpu_checks.py --quick: the dataset, a probe that sizes the run, a short training run
+    stopped by its guard or finished, its evaluation whole and cut to the brightest 3 detections;
+    at most the eight files the device tool brings back."""
     import json
     spec = importlib.util.spec_from_file_location("gpu_checks", ROOT / "scripts" / "gpu_checks.py")
     gc = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gc)
     out = tmp_path / "out"
     assert gc.main(["--out", str(out), "--work", str(tmp_path / "work"), "--quick", "--device", "cpu",
-                    "--skip", "tests,timing", "--train-seconds", "15", "--workers", "1"]) == 0
-    assert {p.name for p in out.iterdir()} <= set(gc.FILES)
+                    "--skip", "tests,timing", "--train-seconds", "30", "--workers", "1",
+                    "--few-star", "3"]) == 0
+    assert {p.name for p in out.iterdir()} <= set(gc.FILES) and len(list(out.iterdir())) <= 8
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"]["data"]["commands"][0]["rc"] == 0
     assert summary["steps"]["eval"]["commands"][0]["rc"] == 0
     ev = json.loads((out / "eval-test.json").read_text())
     assert ev["n_frames"] == 96
+    assert summary["steps"]["probe"]["commands"][0]["rc"] == 0
+    assert summary["train_plan"]["estimated_samples_per_s"] > 0 and summary["train_plan"]["epochs"] >= 2
+    few = json.loads((out / "eval-brightest.json").read_text())
+    assert few["3"]["keep_brightest"] == 3 and few["3"]["n_frames"] == 96
+    assert set(summary["top1"]) == {"whole", "brightest3"}
