@@ -35,6 +35,8 @@ Everything lands in ``--out`` as at most eight files (the device tool brings bac
 output), ``timing.json``, ``render_bench.json``, ``metrics.csv``, ``config.yaml`` (the run's),
 ``eval-test.json`` and ``eval-test.md``; ``--few-star`` puts its evaluations in
 ``eval-brightest.json`` (N -> that evaluation) and needs ``--skip render`` to stay at eight.
+Where fewer than eight are written, the run's ``best.pt`` comes back too when it is at most 16 MiB
+(a small preset's checkpoint, e.g. to hand its prior to ``fusion benchmark --checkpoint`` here).
 
 ``--quick`` checks the script itself on a CPU in about two minutes (a 120-frame dataset, the
 smoke preset instead of the paper's, one timing, no render benchmark); ``--device cpu`` with it.
@@ -56,7 +58,8 @@ from pathlib import Path
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 FILES = ("summary.json", "log.txt", "timing.json", "render_bench.json", "metrics.csv",
-         "config.yaml", "eval-test.json", "eval-test.md", "eval-brightest.json")
+         "config.yaml", "eval-test.json", "eval-test.md", "eval-brightest.json", "best.pt")
+MAX_FILES, MAX_BYTES = 8, 16 * 2**20      # what the device tool brings back
 PAPER = "configs/paper.yaml"
 
 
@@ -277,6 +280,9 @@ def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing:
             few[n] = json.loads(f.read_text())
     if few:
         (s.out / "eval-brightest.json").write_text(json.dumps(few, indent=2))
+    best = run_dir / "best.pt"
+    if len(list(s.out.iterdir())) < MAX_FILES and best.stat().st_size <= MAX_BYTES:
+        shutil.copy(best, s.out / "best.pt")
     tops = {"whole": (json.loads((ev / "eval-test.json").read_text()) if (ev / "eval-test.json").exists() else {})}
     tops.update({f"brightest{n}": e for n, e in few.items()})
     s.summary["top1"] = {k: e.get("top1") for k, e in tops.items()}
