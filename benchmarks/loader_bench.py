@@ -1,94 +1,102 @@
-"""Throughput of fusion's full input pipeline, per DataLoader worker count.
+"""Training samples/s of a preset's loader with the model taken out: the batches alone.
 
-Measures samples/s of: shard read (image + detections through skygen's reader) ->
-augmentation (all paper augmentations on) -> normalisation and coordinate rows ->
-collation -> transfer to the device -> heatmap rasterisation on the device. The first
-batches of each setting (worker start-up) are not timed.
+    python benchmarks/loader_bench.py --data DATA [--config configs/paper.yaml] [--workers 0 1 2]
+        [--batches 100] [--device cuda] [--out FILE.json] [key=value ...]
 
-    python benchmarks/loader_bench.py --data data/sky --workers 0 1 2 4
+    e.g. the paper preset on the shards' training frames, every augmentation on:
+    python benchmarks/loader_bench.py --data data/demo --workers 0 1 2 --batches 25 stream.kind=none
 
-Prints one Markdown table; name the machine when you quote it.
+Each row: the run's own training loader (``fusion.train.run.train_loader``: the preset's stream or
+shards, in ``train.workers`` DataLoader processes), iterated for ``--batches`` batches after
+``2 * workers + 2`` untimed ones (the processes' start and the prefetch queue), each batch moved to
+``--device`` as the training loop moves it (``batch_inputs``, then a synchronise). Reported: samples/s,
+megabytes per batch crossing from the loader processes, and the milliseconds the training process
+itself spends per batch (waiting for it, and copying it to the device). With
+``benchmarks/train_step_bench.py`` (the step without the loader) and a run's samples/s (metrics.csv)
+it tells which half limits a training run. Prints one Markdown table.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
-import platform
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from fusion.config import AugConfig  # noqa: E402
-from fusion.model.shards import FrameDataset, make_loader, split_positions  # noqa: E402
-from fusion.model.heatmap import rasterise  # noqa: E402
-from skygen.datasets.shards import open_dataset  # noqa: E402
+from fusion.config import load_config
+from fusion.model.inference import batch_inputs
+from fusion.train.data import prepare_data
+from fusion.train.distributed import DistInfo
+from fusion.train.run import train_loader
 
 
-def bench(ds, workers: int, batch_size: int, batches: int, warmup: int, aug: bool, device: torch.device,
-          max_stars: int, start_method: str | None) -> dict:
-    pos = split_positions(ds, "train")
-    fd = FrameDataset(ds, pos, np.zeros(len(pos), np.int64), max_stars=max_stars,
-                      aug=AugConfig() if aug else None, seed=0)
-    loader = make_loader(fd, batch_size, shuffle=True, seed=0, workers=workers, start_method=start_method,
-                         pin_memory=device.type == "cuda")
+def bench(cfg_path: str, data: str, overrides: tuple[str, ...], workers: int, batches: int,
+          device: torch.device) -> dict:
+    warm = 2 * workers + 2
+    base = [f"data.path={data}", f"train.workers={workers}", "train.progress=false"]
+    steps = warm + batches
+    batch = load_config(cfg_path, overrides=[*base, *overrides]).train.batch_size
+    cfg = load_config(cfg_path, overrides=[*base, f"stream.samples_per_epoch={steps * batch}", *overrides])
+    prepared = prepare_data(cfg)
+    loader = train_loader(cfg, prepared, DistInfo(), device, lambda *a, **k: None)
+    if hasattr(loader.dataset, "set_epoch"):
+        loader.dataset.set_epoch(0)
+    wait = copy = 0.0
+    n = nbytes = 0
+    t_start = time.perf_counter()
     it = iter(loader)
-    n, t0 = 0, None
-    for b in range(warmup + batches):
-        if b == warmup:
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            t0, n = time.perf_counter(), 0
+    for i in range(steps):
+        if i == warm:
+            t0, wait, copy, n, nbytes = time.perf_counter(), 0.0, 0.0, 0, 0
+        a = time.perf_counter()
         try:
             batch = next(it)
-        except StopIteration:      # a short split: start the next epoch
-            loader.sampler.set_epoch(loader.sampler.epoch + 1)
-            it = iter(loader)
-            batch = next(it)
-        coords = batch["coords"].to(device, non_blocking=True)
-        mask = batch["mask"].to(device, non_blocking=True)
-        batch["image"].to(device, non_blocking=True)
-        rasterise(coords, mask, 64, 1.0)
+        except StopIteration:
+            break
+        b = time.perf_counter()
+        batch_inputs(batch, device)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        c = time.perf_counter()
+        wait, copy = wait + (b - a), copy + (c - b)
         n += len(batch["label"])
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    dt = time.perf_counter() - t0
-    del it, loader
-    return {"workers": workers, "samples": n, "seconds": dt, "samples_per_s": n / dt}
+        nbytes += sum(v.numel() * v.element_size() for v in batch.values() if isinstance(v, torch.Tensor))
+    t = time.perf_counter() - t0
+    k = max(1, n // cfg.train.batch_size)
+    return {"stream": "shards" if cfg.stream.kind == "none" else cfg.stream.kind, "workers": workers, "batch": cfg.train.batch_size, "samples": n,
+            "samples_per_s": n / t, "mb_per_batch": nbytes / k / 1e6, "wait_ms": 1e3 * wait / k,
+            "copy_ms": 1e3 * copy / k, "first_batches_s": t0 - t_start}
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="skygen dataset folder")
-    p.add_argument("--workers", type=int, nargs="+", default=[0, 1, 2, 4])
-    p.add_argument("--batch-size", type=int, default=64)
-    p.add_argument("--batches", type=int, default=30, help="timed batches per setting")
-    p.add_argument("--warmup", type=int, default=3, help="untimed batches per setting")
-    p.add_argument("--max-stars", type=int, default=6)
-    p.add_argument("--no-aug", action="store_true", help="measure without augmentations")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--start-method", choices=("fork", "spawn", "forkserver"))
-    args = p.parse_args(argv)
-    device = torch.device(args.device)
-    with open_dataset(args.data) as ds:
-        print(f"dataset {args.data}: {len(ds)} frames, images {ds.image_shape}, augment {not args.no_aug}, "
-              f"batch {args.batch_size}, device {device}")
-        print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-              f"torch {torch.__version__}")
-        print()
-        print("| workers | samples/s | samples | seconds |")
-        print("|---|---|---|---|")
-        for w in args.workers:
-            r = bench(ds, w, args.batch_size, args.batches, args.warmup, not args.no_aug, device, args.max_stars,
-                      args.start_method)
-            print(f"| {r['workers']} | {r['samples_per_s']:.0f} | {r['samples']} | {r['seconds']:.2f} |", flush=True)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True, help="skygen dataset folder (its config drives the stream)")
+    ap.add_argument("--config", default="configs/paper.yaml", help="training preset (default configs/paper.yaml)")
+    ap.add_argument("--workers", type=int, nargs="+", default=[max(1, (os.cpu_count() or 2) - 1)],
+                    help="DataLoader process counts, one row each (default: all cores but one)")
+    ap.add_argument("--batches", type=int, default=100, help="timed batches per row")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--out", default=None, help="also write the rows as JSON")
+    ap.add_argument("overrides", nargs="*", help="config overrides, e.g. stream.kind=detections")
+    a = ap.parse_args(argv)
+    device = torch.device(a.device)
+    rows = [bench(a.config, a.data, tuple(a.overrides), w, a.batches, device) for w in a.workers]
+    name = torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu"
+    print(f"# training loader alone: {a.config} {' '.join(a.overrides)} to {name}, "
+          f"{os.cpu_count()} logical CPUs, torch {torch.__version__}\n")
+    print("| stream | loader processes | batch | samples/s | MB per batch | wait ms/batch | to-device ms/batch | first batches (s) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['stream']} | {r['workers']} | {r['batch']} | {r['samples_per_s']:,.0f} | {r['mb_per_batch']:.1f} "
+              f"| {r['wait_ms']:.1f} | {r['copy_ms']:.1f} | {r['first_batches_s']:.1f} |")
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump({"rows": rows, "device": name, "torch": torch.__version__, "config": a.config,
+                       "overrides": a.overrides, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}, f, indent=2)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -1,12 +1,13 @@
 """Training samples/s of a preset's model with the loader taken out: the training step alone.
 
     python benchmarks/train_step_bench.py [--config configs/paper.yaml] [--batch-sizes 64,256]
-        [--device cuda] [--amp auto] [--steps 30] [--out FILE.json] [key=value ...]
+        [--device cuda] [--amp auto] [--steps 30] [--deterministic] [--out FILE.json] [key=value ...]
 
 Each row: one batch of random inputs of the right shapes (``fusion.measure.timing.random_inputs``)
 put on the device once, then ``--steps`` timed steps of the real training code
 (``fusion.train.loop.train_one_epoch``: autocast, focal loss, backward, AdamW, schedule, its
-once-per-step host sync) after 5 untimed ones. Compare with a run's ``samples/s`` (metrics.csv)
+once-per-step host sync) after 5 untimed ones. ``--deterministic`` sets torch's deterministic
+algorithms as ``fusion train`` does by default (``train.deterministic``); without it they are off. Compare with a run's ``samples/s`` (metrics.csv)
 to tell whether the device or the loader limits a training run. Prints one Markdown table.
 """
 
@@ -62,13 +63,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--amp", default="auto", choices=("auto", "bf16", "fp16", "off"))
     ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--deterministic", action="store_true",
+                    help="torch deterministic algorithms, as fusion train sets them (train.deterministic)")
     ap.add_argument("--out", default=None, help="also write the rows as JSON")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. model.name=swinv2_tiny")
     a = ap.parse_args(argv)
     device = torch.device(a.device)
+    if a.deterministic:          # as fusion.train.run.setup_torch, before the first cuBLAS call
+        import os
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        torch.backends.cudnn.benchmark = False
     rows = [bench(a.config, tuple(a.overrides), int(b), device, a.amp, a.steps) for b in a.batch_sizes.split(",")]
     name = torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu"
-    print(f"# training step alone: {a.config} {' '.join(a.overrides)} on {name}, torch {torch.__version__}\n")
+    det = ", deterministic algorithms" if a.deterministic else ""
+    print(f"# training step alone: {a.config} {' '.join(a.overrides)} on {name}, torch {torch.__version__}{det}\n")
     print("| model | batch | precision | step ms | samples/s | peak GPU memory (GiB) |")
     print("|---|---:|---|---:|---:|---:|")
     for r in rows:
@@ -77,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.out:
         with open(a.out, "w") as f:
             json.dump({"rows": rows, "device": name, "torch": torch.__version__, "config": a.config,
-                       "overrides": a.overrides, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}, f, indent=2)
+                       "overrides": a.overrides, "deterministic": a.deterministic, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}, f, indent=2)
     return 0
 
 
