@@ -244,7 +244,7 @@ def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing:
             head, last = rows[0].split(","), rows[-1].split(",")
             rate = n / float(last[head.index("epoch_time_s")])
         rate = rate or 200.0
-    if a.epochs is None:     # margins: the forward-time estimate ran ~1.6x fast on the H200, a probe is measured
+    if a.epochs is None:     # margins: the forward-time guess was 2-3x the H200 run's rate (the guard stops it), a probe is measured
         epochs = max(2, int((0.7 if paper else 0.85) * rate * a.train_seconds / per_epoch))
         plan["estimated_samples_per_s"] = round(rate, 1)
     else:
