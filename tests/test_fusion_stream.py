@@ -288,3 +288,35 @@ def test_frames_stream_binned_by_default_full_selectable():
     assert a["image"].shape == b["image"].shape == (8, 1, 128, 128)
     assert 0 < (a["image"] - b["image"]).abs().mean() < 0.05
     assert abs(float(a["image"].mean() - b["image"].mean())) < 0.01
+
+
+def test_frames_batches_send_stored_adu_for_a_gpu(smoke, tmp_path):
+    """stream.image_transfer: 'adu' hands the loader's stored uint16 ADU over (half the bytes of
+    float32) and batch_inputs stretches them on the training device into the image the 'float'
+    path makes in the loader; 'auto' picks adu only for a CUDA device; the training step takes
+    either."""
+    from fusion.model.inference import batch_inputs
+    path, config, cal = smoke
+    kw = dict(seed=3, batch=4, steps=2, max_stars=8)
+    flt = StreamBatches(config, "frames", np.eye(3), **kw).make_batch(1)
+    adu = StreamBatches(config, "frames", np.eye(3), adu_images=True, **kw).make_batch(1)
+    assert "image" not in adu and adu["image_adu"].dtype == torch.uint16
+    assert adu["image_adu"].element_size() * 2 == flt["image"].element_size()
+    image, coords, mask = batch_inputs(adu, torch.device("cpu"))
+    assert image.shape == flt["image"].shape and image.dtype == torch.float32
+    torch.testing.assert_close(image, flt["image"], rtol=0, atol=1e-6)
+    assert torch.equal(coords, flt["coords"]) and torch.equal(mask, flt["mask"])
+    assert torch.equal(adu["label"], flt["label"])
+    cfg = load_config(overrides=["stream.kind=frames"])
+    assert cfg.stream.image_transfer == "auto"
+    with pytest.raises(ConfigError, match="image_transfer"):
+        load_config(overrides=["stream.image_transfer=int8"])
+    from fusion.train.data import prepare_data
+    cfg = _cfg(smoke, "stream.kind=frames", "model.branches.image=true", "model.image_backbone=tiny_cnn")
+    data = prepare_data(cfg)
+    for dev, sent in (("cpu", False), ("cuda", True)):
+        assert StreamBatches.from_config(cfg, data.ds.config, data.regions, device=torch.device(dev)).adu_images is sent
+    summary = train(_cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
+                         "stream.image_transfer=adu", "model.branches.image=true",
+                         "model.image_backbone=tiny_cnn"), tmp_path / "adu", log=quiet)
+    assert summary["epochs_run"] == 1

@@ -30,11 +30,16 @@ def autocast(device: torch.device, dtype: torch.dtype | None):
 
 
 def batch_inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-    """(image or None, coords, mask) of a collated batch, on ``device``."""
+    """(image or None, coords, mask) of a collated batch, on ``device``; a stream batch's stored ADU
+    (``image_adu`` + ``image_stretch``, ``stream.image_transfer``) are stretched there."""
     nb = device.type == "cuda"
     image = batch.get("image")
-    return (None if image is None else image.to(device, non_blocking=nb), batch["coords"].to(device, non_blocking=nb),
-            batch["mask"].to(device, non_blocking=nb))
+    if image is not None:
+        image = image.to(device, non_blocking=nb)
+    elif "image_adu" in batch:
+        from .inputs import stretch_torch
+        image = stretch_torch(batch["image_adu"].to(device, non_blocking=nb), *batch["image_stretch"].tolist())
+    return image, batch["coords"].to(device, non_blocking=nb), batch["mask"].to(device, non_blocking=nb)
 
 
 def progress_bar(iterable, enabled: bool, desc: str, total: int | None = None):

@@ -116,6 +116,14 @@ def normalise_image(adu: np.ndarray, geo: FrameGeometry, scale_adu: float) -> np
     return x.astype(np.float32)
 
 
+def stretch_torch(adu, bias: float, scale: float, top: float):
+    """:func:`normalise_image` in torch on ``adu``'s device: a (B, H, W) tensor of stored ADU (any
+    dtype, uint16 included) -> (B, 1, H, W) float32."""
+    import torch
+    x = adu.to(torch.float32)
+    return (torch.log1p(torch.clamp(x - bias, min=0) / scale) / top)[:, None]
+
+
 def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
                       log_flux_offset: float) -> tuple[np.ndarray, np.ndarray]:
     """(max_stars, 3) coordinate rows and (max_stars,) mask; ``sample`` must be sorted brightest first."""
@@ -232,12 +240,14 @@ class Preprocessor:
         """coords (B, M, 3), mask (B, M), counts (B,) of flat brightest-first tables (:func:`encode_batch`)."""
         return encode_batch(offsets, det, self.geo, self.max_stars, self.log_flux_offset, limits)
 
+    def stretch(self) -> tuple[float, float, float]:
+        """(bias ADU, scale ADU, log1p of the ADC range over the scale): :func:`normalise_image`'s constants."""
+        g = self.geo
+        return float(g.bias_adu), float(self.norm_scale_adu), math.log1p((g.max_adu - g.bias_adu) / self.norm_scale_adu)
+
     def images_torch(self, adu):
         """The log stretch of a (B, H/f, S) torch tensor of stored ADU, on its device: (B, 1, H/f, S)."""
-        import torch
-        g = self.geo
-        top = float(np.log1p((g.max_adu - g.bias_adu) / self.norm_scale_adu))
-        return (torch.log1p(torch.clamp(adu - g.bias_adu, min=0) / self.norm_scale_adu) / top)[:, None]
+        return stretch_torch(adu, *self.stretch())
 
     # ---------------------------------------------------------------- a full-resolution frame
     def downsample(self, full: np.ndarray) -> np.ndarray:

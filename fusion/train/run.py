@@ -163,7 +163,7 @@ def train_loader(cfg: FusionConfig, data: PreparedData, info: D.DistInfo, device
     if sc.render_backend == "torch" and device.type == "cuda" and workers:
         say("stream.render_backend=torch renders on the GPU in the training process: train.workers set to 0")
         workers = 0
-    return make_stream_loader(batches, workers)
+    return make_stream_loader(batches, workers, pin_memory=device.type == "cuda" and workers > 0)
 
 
 @dataclass

@@ -22,7 +22,11 @@ image to the same :class:`fusion.model.inputs.Preprocessor`.
 Batches are the same dicts :class:`fusion.model.shards.FrameDataset` items collate to
 (``coords``, ``mask``, ``label``, ``index``, ``n_detections``, ``soft``; ``image`` for
 the ``frames`` kind), made by the same :class:`fusion.model.inputs.Preprocessor`, so the
-model and the training step do not know where a batch came from.
+model and the training step do not know where a batch came from. One exception, for speed on a
+GPU (``stream.image_transfer``): a ``frames`` batch may carry its stored uint16 ADU
+(``image_adu``, half the bytes of float32 between processes) and the stretch constants
+(``image_stretch``) in place of ``image``; :func:`fusion.model.inference.batch_inputs` stretches
+them on the training device, with the Preprocessor's formula.
 
 Corruption-aware training: ``stream.dropout``, ``stream.false_stars``,
 ``stream.centroid_noise`` and ``stream.magnitude_noise`` are ``[lo, hi]`` ranges; each
@@ -109,7 +113,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
                  calibration: str | None = None, device: str | None = None, render_backend: str | None = None,
                  fine_centroids: np.ndarray | None = None, few_prob: float = 0.0,
                  few_stars: tuple[int, int] = (3, 8), brightness_mag: tuple[float, float] = (0.0, 0.0),
-                 frames_renderer: str = "binned"):
+                 frames_renderer: str = "binned", adu_images: bool = False):
         if steps < 1:
             raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
                               "to at least one global batch")
@@ -124,6 +128,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.device, self.render_backend, self.frames_renderer = device, render_backend, frames_renderer
         self.few_prob, self.few_stars = float(few_prob), (int(few_stars[0]), int(few_stars[1]))
         self.brightness_mag = (float(brightness_mag[0]), float(brightness_mag[1]))
+        self.adu_images = bool(adu_images)
         self.epoch = 0
         self._stream = None
         # fail early (config, calibration, detectability) in the main process, not in a worker
@@ -135,6 +140,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
         """The training stream of a resolved :class:`fusion.config.FusionConfig` (``stream.*``, ``data.*``,
         ``labels.*``) for a dataset's render config; ``device`` is used by ``stream.render_backend=torch``."""
         sc, tc = cfg.stream, cfg.train
+        on_gpu = device is not None and torch.device(device).type == "cuda"
         return cls(dataset_config, sc.kind, regions.coarse, seed=tc.seed if sc.seed is None else sc.seed,
                    batch=tc.batch_size // world, steps=sc.samples_per_epoch // tc.batch_size, rank=rank,
                    world=world, max_stars=cfg.data.max_stars, log_flux_offset=cfg.data.log_flux_offset,
@@ -143,7 +149,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
                    calibration=sc.calibration, fine_centroids=regions.fine if cfg.labels.fine_k else None,
                    few_prob=sc.few_prob, few_stars=sc.few_stars, brightness_mag=sc.brightness_mag,
                    device=str(device) if sc.render_backend == "torch" and device is not None else None,
-                   render_backend=sc.render_backend, frames_renderer=sc.frames_renderer)
+                   render_backend=sc.render_backend, frames_renderer=sc.frames_renderer,
+                   adu_images=sc.image_transfer == "adu" or (sc.image_transfer == "auto" and on_gpu))
 
     def stream(self) -> SampleStream:
         if self._stream is None:
@@ -179,7 +186,10 @@ class StreamBatches(torch.utils.data.IterableDataset):
             frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
-            if dev_images is None:
+            if dev_images is None and self.adu_images:   # stretched on the training device (batch_inputs)
+                image = None
+                adu = torch.from_numpy(np.stack([np.asarray(f.image, np.uint16) for f in frames]))
+            elif dev_images is None:
                 image = np.stack([self.pre.image(f.image)[None] for f in frames])
             else:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
                 image = self.pre.images_torch(dev_images)
@@ -193,6 +203,8 @@ class StreamBatches(torch.utils.data.IterableDataset):
                "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
         if image is not None:
             out["image"] = image if isinstance(image, torch.Tensor) else torch.from_numpy(image)
+        elif self.kind == "frames":
+            out["image_adu"], out["image_stretch"] = adu, torch.tensor(self.pre.stretch(), dtype=torch.float64)
         if self.fine_centroids is not None:
             out["label_fine"] = torch.from_numpy(assign(unit, self.fine_centroids).astype(np.int64))
         if self.soft_kappa is not None:
@@ -206,10 +218,12 @@ class StreamBatches(torch.utils.data.IterableDataset):
             yield self.make_batch(step)
 
 
-def make_stream_loader(ds: StreamBatches, workers: int) -> torch.utils.data.DataLoader:
-    """A DataLoader over ready batches (``batch_size=None``); call ``loader.dataset.set_epoch(e)``."""
+def make_stream_loader(ds: StreamBatches, workers: int, pin_memory: bool = False) -> torch.utils.data.DataLoader:
+    """A DataLoader over ready batches (``batch_size=None``); call ``loader.dataset.set_epoch(e)``.
+    ``pin_memory`` (for a GPU): batches land in page-locked memory, so their copy to the device
+    runs beside the step."""
     kw = {}
     if workers > 0:
         from ..model.shards import worker_init
         kw = {"worker_init_fn": worker_init, "prefetch_factor": 4, "persistent_workers": False}
-    return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, **kw)
+    return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, pin_memory=pin_memory, **kw)
