@@ -180,19 +180,19 @@ class StreamBatches(torch.utils.data.IterableDataset):
         if self.kind == "detections":
             b = s.batch(idx)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
-            image = None
+            images = {}
         else:
             from skygen.stream import frames_as_batch
             frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
-            if dev_images is None and self.adu_images:   # stretched on the training device (batch_inputs)
-                image = None
-                adu = torch.from_numpy(np.stack([np.asarray(f.image, np.uint16) for f in frames]))
-            elif dev_images is None:
-                image = np.stack([self.pre.image(f.image)[None] for f in frames])
-            else:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
-                image = self.pre.images_torch(dev_images)
+            if dev_images is not None:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
+                images = {"image": self.pre.images_torch(dev_images)}
+            elif self.adu_images:        # stretched on the training device (batch_inputs)
+                images = {"image_adu": torch.from_numpy(np.stack([np.asarray(f.image, np.uint16) for f in frames])),
+                          "image_stretch": torch.tensor(self.pre.stretch(), dtype=torch.float64)}
+            else:
+                images = {"image": torch.from_numpy(np.stack([self.pre.image(f.image)[None] for f in frames]))}
         limits = few_star_limits(self.seed, idx, self.few_prob, *self.few_stars)
         coords, mask, counts = self.pre.batch(offsets, det, limits)
         shift = brightness_offsets(self.seed, idx, *self.brightness_mag)
@@ -201,10 +201,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
         out = {"coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
                "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
                "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
-        if image is not None:
-            out["image"] = image if isinstance(image, torch.Tensor) else torch.from_numpy(image)
-        elif self.kind == "frames":
-            out["image_adu"], out["image_stretch"] = adu, torch.tensor(self.pre.stretch(), dtype=torch.float64)
+        out.update(images)
         if self.fine_centroids is not None:
             out["label_fine"] = torch.from_numpy(assign(unit, self.fine_centroids).astype(np.int64))
         if self.soft_kappa is not None:
