@@ -63,6 +63,7 @@ class NonFiniteError(ConfigError):
 
 
 _NONFINITE_WORDS = {"nan", "inf", "infinity"}
+_BOOL_WORDS = {False: ("off", "false", "no", "n"), True: ("on", "true", "yes", "y")}   # YAML 1.1 booleans
 
 
 def _nonfinite(value: Any, key: str, meta: dict | None) -> NonFiniteError:
@@ -125,6 +126,13 @@ def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
             raise _nonfinite(value, key, meta)
         return value
     if tp is str:
+        if isinstance(value, bool):
+            # YAML 1.1 reads off/on/no/yes as booleans: `train.amp=off` means the choice "off"
+            words = [w for w in _BOOL_WORDS[value] if w in (meta.get("choices") or ())]
+            if len(words) == 1:
+                return words[0]
+            raise ConfigError(f"{key}: expected a string, got {value!r} (YAML reads off/on/no/yes as "
+                              f"true/false: quote the value, e.g. {key.rsplit('.', 1)[-1]}: \"off\")")
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {value!r}")
         return value

@@ -47,6 +47,14 @@ def test_scientific_notation_without_a_dot_is_a_number():
     assert load_config(overrides=["corruptions.hotpixels=1e-4"]).corruptions.hotpixels == 1e-4
 
 
+def test_yaml_booleans_read_as_the_choice_they_spell():
+    # YAML 1.1 reads `off` as false: `train.amp=off` must still mean the choice "off"
+    from fusion.config import load_config as load_fusion
+    assert load_fusion("configs/cpu-three.yaml", overrides=["train.amp=off"]).train.amp == "off"
+    with pytest.raises(ConfigError, match=r"train\.amp: .*quote the value"):
+        load_fusion("configs/cpu-three.yaml", overrides=["train.amp=yes"])    # no choice spells true
+
+
 def test_unknown_key_suggests_the_right_one():
     with pytest.raises(ConfigError, match="did you mean 'sensor.read_noise_e'"):
         load_config(overrides=["sensor.read_nosie_e=3"])
