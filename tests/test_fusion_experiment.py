@@ -30,6 +30,9 @@ def test_smoke_experiment_writes_report_and_resumes(tmp_path):
     for heading in ("## 1. Table 1", "## 1b. Few-star frames", "| N = 2 |", "## 5. Coordinate encoders", "## 8. Latency", "## Provenance", "paper top-1/3/5",
                     "training (min)"):
         assert heading in text
+    # the provenance line repeats the command that reproduces this report, every non-default option included
+    assert (f"- command: `fusion experiment --preset smoke --sections table1,few_star,coords,latency "
+            f"--data-dir {tmp_path / 'data'} --runs-dir {tmp_path / 'runs'} --jobs 2 --out {tmp_path / 'out'}`") in text
     # the two-stage row: warm-started from the geometry_only run of its seed, both stages' time in its row
     import json
     two = sorted((tmp_path / "runs").glob("star_fusion_two_stages-*/summary.json"))

@@ -541,7 +541,12 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     if "latency" in sections:
         md += _latency_section(preset, folders[runs["latency"][0].key], data, out, results, log)
     wall = time.perf_counter() - t_start
-    md += ["## Provenance", "", f"- command: `fusion experiment --preset {preset.name} --out {out}`",
+    cmd = [f"fusion experiment --preset {preset.name}"]
+    cmd += [f"--sections {','.join(sections)}"] if tuple(sections) != tuple(preset.sections) else []
+    cmd += [f"--data-dir {data_dir}"] if data_dir else []
+    cmd += [f"--runs-dir {runs_dir}"] if runs_dir != Path(f"runs/experiment-{preset.name}") else []
+    cmd += [f"--jobs {jobs}"] if jobs != 1 else []
+    md += ["## Provenance", "", f"- command: `{' '.join(cmd)} --out {out}`",
            f"- git revision at start: {revision}", f"- hardware: {_hardware()}",
            f"- wall time of this invocation: {wall / 60:.1f} min (finished steps are skipped on re-runs)",
            f"- training: {len(todo)} runs, {_summed_train_min(folders):.0f} min of training wall time in all "
