@@ -2,7 +2,7 @@
 
     fusion train --data DIR --out RUNDIR [--config FILE.yaml] [--stream detections|frames] [--resume]
                  [--force] [--pretrained PATH_OR_HUB] [--set key=value ...] [key=value ...]
-    fusion evaluate --checkpoint RUNDIR[/best.pt] --data DIR [--split test] [--out DIR] [--allow-overlap]
+    fusion evaluate --checkpoint RUNDIR[/best.pt] [RUNDIR2 ...] --data DIR [--split test] [--out DIR] [--allow-overlap]
     fusion robustness --corruption hotpixels --checkpoint CKPT [CKPT ...] --data DIR --out DIR
     fusion timing --checkpoint CKPT --mode both --out FILE.json
     fusion export --checkpoint CKPT --onnx FILE.onnx [--opset 17]
@@ -145,11 +145,13 @@ def resume_hint(out: str) -> str:
 
 # --------------------------------------------------------------------------- evaluate
 def _add_evaluate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="(required) best.pt or last.pt of a run, or the run folder "
-                   "(its best.pt)")
+    p.add_argument("--checkpoint", required=True, nargs="+", help="(required) best.pt or last.pt of a run, or the run "
+                   "folder (its best.pt); several: scored as one ensemble, the mean of their log-probabilities "
+                   "(same regions required, and --out)")
     p.add_argument("--data", required=True, help="(required) skygen dataset folder")
     p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to evaluate (default test)")
-    p.add_argument("--out", help="folder for eval-<split>.json/.md and confusion-<split>.png (default: the checkpoint's)")
+    p.add_argument("--out", help="folder for eval-<split>.json/.md and confusion-<split>.png (default: the checkpoint's; "
+                   "required for an ensemble)")
     p.add_argument("--batch-size", type=int, default=64, help="frames per forward pass (default 64)")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0: in-process)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),

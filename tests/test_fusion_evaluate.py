@@ -97,6 +97,37 @@ def test_evaluate_writes_json_markdown_and_png(trained, tmp_path):
     assert "| top-1 | top-3 | top-5 |" in md and "quantisation floor" in md and "Voronoi" in md
 
 
+def test_an_ensemble_of_checkpoints_is_scored_as_one(trained, tmp_path):
+    """Several checkpoints: the mean of their log-probabilities, each member's own top-1 beside it."""
+    import dataclasses
+    from fusion.errors import ConfigError
+    from fusion.model.checkpoint import load_checkpoint
+    data = small_dataset("smoke")
+    one = evaluate_checkpoint(trained / "best.pt", data, "test", tmp_path / "one", keep_brightest=2, log=quiet)
+    # the same model twice: the product of two equal experts ranks as the model does
+    two = evaluate_checkpoint([trained / "best.pt", trained], data, "test", tmp_path / "two", keep_brightest=2,
+                              log=quiet)
+    assert two["top1"] == one["top1"] and two["top3"] == one["top3"]
+    assert two["members_top1"] == [one["top1"]] * 2 and len(two["checkpoints"]) == 2
+    assert "An ensemble of 2 models" in (tmp_path / "two" / "eval-test-brightest2.md").read_text()
+    # a confident wrong member pulls the ensemble: a copy whose classifier says class 0 for every frame
+    ck = load_checkpoint(trained / "best.pt")
+    state = {k: v.clone() for k, v in ck.model.items()}
+    bias = [k for k in state if k.endswith("bias") and state[k].shape == (ck.num_classes,)][-1]
+    state[[k for k in state if k.endswith("weight") and state[k].shape[0] == ck.num_classes][-1]].zero_()
+    state[bias].zero_()
+    state[bias][0] = 50.0
+    dataclasses.replace(ck, model=state).save(tmp_path / "class0.pt")
+    pulled = evaluate_checkpoint([trained, tmp_path / "class0.pt"], data, "test", tmp_path / "pulled", log=quiet)
+    labels0 = np.array(pulled["confusion_matrix"])[0].sum() / pulled["n_frames"]
+    assert pulled["members_top1"][1] == pytest.approx(labels0) and pulled["top1"] < pulled["members_top1"][0]
+    with pytest.raises(ConfigError, match="--out"):
+        evaluate_checkpoint([trained, trained], data, "test", None, log=quiet)
+    dataclasses.replace(ck, centroids=-ck.centroids).save(tmp_path / "other-regions.pt")
+    with pytest.raises(ConfigError, match="other regions"):
+        evaluate_checkpoint([trained, tmp_path / "other-regions.pt"], data, "test", tmp_path / "x", log=quiet)
+
+
 def test_evaluate_brightest_n_cuts_the_detections_not_the_image(trained, tmp_path):
     """--brightest N: each frame keeps its brightest N detection rows, the image is the same."""
     from fusion.errors import ConfigError

@@ -18,6 +18,7 @@ Outputs ``eval-<split>.json``, ``eval-<split>.md`` and ``confusion-<split>.png``
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -88,13 +89,16 @@ def _camera_warning(ckpt: Checkpoint, ds, warn) -> None:
              f"(camera.{', camera.'.join(keys)} differ); accuracy may not carry over")
 
 
-def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "test", out: str | Path | None = None,
-                        *, batch_size: int = 64, workers: int = 0, device: str = "auto",
+def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str | Path, split: str = "test",
+                        out: str | Path | None = None, *, batch_size: int = 64, workers: int = 0, device: str = "auto",
                         max_frames: int | None = None, allow_overlap: bool = False, keep_brightest: int | None = None,
                         log=print, warn=None) -> dict:
     """Evaluate ``checkpoint`` (a file or a run folder) on ``split`` of dataset ``data``; write and return the report.
 
-    Refuses (DatasetError) frames the checkpoint was trained on unless ``allow_overlap``;
+    Several checkpoints are scored as one ensemble: the mean of their log-probabilities (a product
+    of experts, each model reading the frame as it was trained to); they must label the sky with the
+    same regions, and ``out`` is required (the report belongs to none of them).
+    Refuses (DatasetError) frames a checkpoint was trained on unless ``allow_overlap``;
     ``warn`` (default: print to stderr) receives the warnings. ``keep_brightest`` = N scores
     few-star frames: each frame keeps its brightest N detections (the image is untouched), and
     the files are named ``eval-<split>-brightest<N>.*``.
@@ -106,47 +110,81 @@ def evaluate_checkpoint(checkpoint: str | Path, data: str | Path, split: str = "
         if value is not None and value < lo:
             raise ConfigError(f"{name} {value}: must be at least {lo}")
     t0 = time.perf_counter()
-    checkpoint = resolve_checkpoint(checkpoint)
-    ckpt = load_checkpoint(checkpoint)
-    model, cfg = ckpt.build_model(), ckpt.fusion_config
-    centroids = ckpt.centroids
+    paths = [resolve_checkpoint(c) for c in ([checkpoint] if isinstance(checkpoint, (str, Path)) else checkpoint)]
+    if not paths:
+        raise ConfigError("no checkpoint given")
+    if len(paths) > 1 and out is None:
+        raise ConfigError(f"{len(paths)} checkpoints are scored as one ensemble, whose report belongs to none of "
+                          "their run folders: pass --out DIR")
+    ckpts = [load_checkpoint(p) for p in paths]
+    centroids = ckpts[0].centroids
+    for p, c in zip(paths[1:], ckpts[1:]):
+        if c.centroids.shape != centroids.shape or not np.allclose(c.centroids, centroids, atol=1e-9):
+            raise ConfigError(f"{p} labels the sky with other regions than {paths[0]} (K {len(c.centroids)} against "
+                              f"{len(centroids)}, or other centroids): an ensemble needs the same regions; train its "
+                              "models with the same labels settings on the same dataset")
     dev = pick_device(device)
-    model.to(dev)
+    logits = []
     with open_dataset(data) as ds:
         verify_checksums(ds, log=log)
-        _camera_warning(ckpt, ds, warn)
-        if ds.image_shape[0] != ckpt.image_size:
-            raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {checkpoint} was trained on "
-                               f"{ckpt.image_size} px images; render with output.image_size_px="
-                               f"{ckpt.image_size} or train on this dataset")
         pos = split_positions(ds, split, max_frames)
-        overlap = check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
         v = boresight_vectors(ds, pos)
         labels = assign(v, centroids)
-        d = cfg.data
-        frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
-                              log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
-        loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
-        pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
+        for p, ckpt in zip(paths, ckpts):
+            _camera_warning(ckpt, ds, warn)
+            if ds.image_shape[0] != ckpt.image_size:
+                raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {p} was trained on "
+                                   f"{ckpt.image_size} px images; render with output.image_size_px="
+                                   f"{ckpt.image_size} or train on this dataset")
+            check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
+            model, cfg = ckpt.build_model(), ckpt.fusion_config
+            model.to(dev)
+            d = cfg.data
+            frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
+                                  log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
+            loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
+            pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True,
+                                   desc=split)
+            if not np.array_equal(pred["index"], pos):
+                raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
+            logits.append(pred["logits"])
+        ids = ds.frames["frame_id"][pos].view(np.int64)
+        seen = [c.train_frame_ids for c in ckpts if c.train_frame_ids is not None]
+        overlap = int(np.isin(ids, np.concatenate(seen)).sum()) if seen else 0
         sparse = count_sparse_frames(ds, pos)
         dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
                         "frames_seen_in_training": overlap}
-    if not np.array_equal(pred["index"], pos):
-        raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
-    report = report_from_predictions(pred["logits"], labels, v, centroids)
-    report.update({"checkpoint": str(checkpoint), "epoch": ckpt.epoch, "model": ckpt.model_name,
-                   "branches": ckpt.branches, "dataset": dataset_info, "frames_with_lt2_detections": sparse,
+    if len(logits) == 1:
+        combined = logits[0]
+    else:       # mean log-probability: a product of experts, each model's confidence weighing in
+        combined = np.mean([lg - _logsumexp(lg) for lg in logits], axis=0)
+    report = report_from_predictions(combined, labels, v, centroids)
+    one = len(ckpts) == 1
+    report.update({"checkpoint": str(paths[0]) if one else " + ".join(map(str, paths)),
+                   "epoch": ckpts[0].epoch if one else [c.epoch for c in ckpts],
+                   "model": ckpts[0].model_name if one else " + ".join(c.model_name for c in ckpts),
+                   "branches": ckpts[0].branches if one else [c.branches for c in ckpts],
+                   "dataset": dataset_info, "frames_with_lt2_detections": sparse,
                    "device": str(dev), "wall_time_s": time.perf_counter() - t0, "keep_brightest": keep_brightest})
-    out = Path(out) if out is not None else checkpoint.parent
+    if not one:
+        report.update({"checkpoints": [str(p) for p in paths],
+                       "ensemble": "mean of the models' log-softmax (product of experts)",
+                       "members_top1": [float((np.argmax(lg, axis=1) == labels).mean()) for lg in logits]})
+    out = Path(out) if out is not None else paths[0].parent
     out.mkdir(parents=True, exist_ok=True)
     stem = split if keep_brightest is None else f"{split}-brightest{keep_brightest}"
     write_json(out / f"eval-{stem}.json", report)
     atomic_write_text(out / f"eval-{stem}.md", markdown_report(report))
     plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{stem}.png",
-                   f"{ckpt.model_name} on {stem} (K={report['num_classes']})")
+                   f"{report['model']} on {stem} (K={report['num_classes']})")
     log(summary_line(report))
     log(f"wrote {out / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
     return report
+
+
+def _logsumexp(x: np.ndarray) -> np.ndarray:
+    m = x.max(axis=1, keepdims=True)
+    return m + np.log(np.exp(x - m).sum(axis=1, keepdims=True))
 
 
 def summary_line(r: dict) -> str:
@@ -177,6 +215,12 @@ def markdown_report(r: dict) -> str:
            f"; each frame cut to its brightest {r['keep_brightest']} detections, the image untouched."), "",
         "| top-1 | top-3 | top-5 |", "|---|---|---|",
         f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
+    ]
+    if "ensemble" in r:
+        lines += [f"An ensemble of {len(r['checkpoints'])} models: {r['ensemble']}. Each alone on the same frames, "
+                  "top-1: " + ", ".join(f"`{c}` {_fmt(t, True)}" for c, t in zip(r["checkpoints"], r["members_top1"]))
+                  + ".", ""]
+    lines += [
         "## Angular error (degrees)", "",
         "| | mean | median | p95 |", "|---|---|---|---|",
         f"| prediction, arccos(v · c_pred) | {_fmt(ae['mean_deg'])} | {_fmt(ae['median_deg'])} "
