@@ -128,7 +128,7 @@ def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
     if tp is str:
         if isinstance(value, bool):
             # YAML 1.1 reads off/on/no/yes as booleans: `train.amp=off` means the choice "off"
-            words = [w for w in _BOOL_WORDS[value] if w in (meta.get("choices") or ())]
+            words = [w for w in _BOOL_WORDS[value] if w in ((meta or {}).get("choices") or ())]
             if len(words) == 1:
                 return words[0]
             raise ConfigError(f"{key}: expected a string, got {value!r} (YAML reads off/on/no/yes as "

@@ -157,7 +157,8 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
     if len(logits) == 1:
         combined = logits[0]
     else:       # mean log-probability: a product of experts, each model's confidence weighing in
-        combined = np.mean([lg - _logsumexp(lg) for lg in logits], axis=0)
+        from scipy.special import log_softmax
+        combined = np.mean([log_softmax(lg, axis=1) for lg in logits], axis=0)
     report = report_from_predictions(combined, labels, v, centroids)
     one = len(ckpts) == 1
     report.update({"checkpoint": str(paths[0]) if one else " + ".join(map(str, paths)),
@@ -180,11 +181,6 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
     log(summary_line(report))
     log(f"wrote {out / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
     return report
-
-
-def _logsumexp(x: np.ndarray) -> np.ndarray:
-    m = x.max(axis=1, keepdims=True)
-    return m + np.log(np.exp(x - m).sum(axis=1, keepdims=True))
 
 
 def summary_line(r: dict) -> str:
