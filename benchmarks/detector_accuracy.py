@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from skygen.config import load_config
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 
 def measure(cfg, n: int) -> dict:

@@ -60,12 +60,12 @@ def extractor_rows(fit_json: Path, fitted_yaml: Path) -> list[dict]:
     """Per extractor: detections per frame and the share within 2 px of a Hipparcos star (Hp <= 10) projected
     through the fitted camera and each frame's fitted attitude (the plate solution)."""
     from scipy.spatial import cKDTree
-    from skygen.attitude import attitude_matrix
-    from skygen.camera import Camera
-    from skygen.catalog import SkyIndex, load_catalog
+    from skygen.sky.attitude import attitude_matrix
+    from skygen.instrument.camera import Camera
+    from skygen.sky.catalog import SkyIndex, load_catalog
     from skygen.config import load_config
-    from skygen.detect import detect
-    from skygen.frames import read_frame
+    from skygen.instrument.detect import detect
+    from skygen.real.frames import read_frame
     rec = json.loads(fit_json.read_text())
     cam = Camera.from_config(load_config(fitted_yaml).camera)
     sky = SkyIndex(load_catalog(), float(EPOCH), 10.0)
@@ -140,8 +140,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "results" / "real-frames"))
     a = p.parse_args(argv)
     out = Path(a.out)
-    from skygen.platesolve import load_database
-    from skygen.camera import Camera
+    from skygen.real.platesolve import load_database
+    from skygen.instrument.camera import Camera
     from skygen.config import load_config
     load_database(Camera.from_config(load_config(START).camera).fov_deg[0])     # cached: the timing is the fit's
     load_database(5.0, fov_max_deg=30.0)

@@ -32,7 +32,7 @@ import cv2
 import torch
 
 from skygen.config import load_config
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 
 def bench_numpy(cfg, frames: int) -> dict:
@@ -50,7 +50,7 @@ def bench_numpy(cfg, frames: int) -> dict:
 
 
 def bench_torch(cfg, device: str, batch: int, frames: int) -> dict:
-    from skygen.render_torch import TorchRenderer
+    from skygen.render.torch_frames import TorchRenderer
     tr = TorchRenderer(cfg, device)
     sync = torch.cuda.synchronize if tr.device.type == "cuda" else (lambda: None)
     g = torch.Generator(device=tr.device)

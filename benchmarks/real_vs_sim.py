@@ -46,11 +46,11 @@ LISTED = listed_solutions()
 
 
 def frame_stats(img: np.ndarray, cfg, saturation: float, box: int) -> dict:
-    """skygen.framestats.frame_stats (the measurements skygen fit-camera reports too, one background per frame),
+    """skygen.real.frame_stats.frame_stats (the measurements skygen fit-camera reports too, one background per frame),
     plus detections with a background per ``box`` px box and tetra3rs's extractor."""
     import tetra3rs
-    from skygen.detect import detect
-    from skygen.framestats import frame_stats as shared_stats
+    from skygen.instrument.detect import detect
+    from skygen.real.frame_stats import frame_stats as shared_stats
     d = cfg.detection
     st, det = shared_stats(img, d.threshold_sigma, d.min_area_px, 0, saturation)     # counts them all
     local, _, _ = detect(img, d.threshold_sigma, d.min_area_px, 100_000, background_box_px=box)
@@ -77,9 +77,9 @@ def main(argv=None) -> int:
                    help="box of the local background (as fusion predict --background-box); the learned path uses "
                         "it (0: one background per frame)")
     a = p.parse_args(argv)
-    from skygen.camera import Camera
+    from skygen.instrument.camera import Camera
     from skygen.config import config_dict, load_config
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     from fusion.solve.frames import read_frame
     from fusion.solve.base import Detections, Solution
     from fusion.solve.tetra import Tetra3Solver

@@ -23,13 +23,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from skygen import corruptions as corr
-from skygen.attitude import attitude_matrix, sample_boresight
+from skygen.instrument import corruptions as corr
+from skygen.sky.attitude import attitude_matrix, sample_boresight
 from skygen.config import load_config
 from skygen.datasets.build import render_dataset
-from skygen.detect import detect
-from skygen.render import Renderer
-from skygen.sensor import Exposure, read_out
+from skygen.instrument.detect import detect
+from skygen.render.frame import Renderer
+from skygen.instrument.sensor import Exposure, read_out
 
 
 def stage_times(cfg, n: int) -> dict:

@@ -5,13 +5,13 @@
 Rows: ``detections`` (emulated detection sets, batches of --batch); ``frames (full)`` (every
 sensor pixel rendered, area-averaged to the stored size, real detector: the frames stream's
 ``frames_renderer="full"``); ``frames (binned)`` (the frames stream's default: the stored image
-drawn directly by skygen.binned plus emulated detections, batches of --frames-batch, the
+drawn directly by skygen.render.binned plus emulated detections, batches of --frames-batch, the
 size a training step asks for).
 
 Per core: one process, reported both per wall-clock second and per CPU-second of that
 process (the CPU-second figure is what one core delivers when the machine is shared).
 All cores: one process per core, each making its own disjoint part of the stream
-(``skygen.stream.partition``), wall clock of the slowest. Default camera, corruptions at
+(``skygen.stream.samples.partition``), wall clock of the slowest. Default camera, corruptions at
 their defaults. Writes results/skygen/stream_bench.{json,md} with --write.
 """
 
@@ -34,7 +34,7 @@ ROWS = {"detections": ("detections", None), "frames (full)": ("frames", "full"),
 
 def _run(row: str, n: int, batch: int, rank: int, world: int) -> tuple[float, float, int]:
     from skygen.config import load_config
-    from skygen.stream import SampleStream
+    from skygen.stream.samples import SampleStream
     kind, renderer = ROWS[row]
     s = SampleStream(load_config(), kind, frames_renderer=renderer or "binned")
     if kind == "detections":

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ._lazy import lazy_attributes
+from skygen.lazy import lazy_attributes
 
 __version__ = "0.1.0"
 

@@ -174,7 +174,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- robustness
 def _add_robustness(p: argparse.ArgumentParser) -> None:
-    from skygen import corruptions as corr
+    from skygen.instrument import corruptions as corr
     sweeps = "; ".join(f"{c.name} ({c.unit}: {', '.join(f'{v:g}' for v in c.sweep)})" for c in corr.REGISTRY.values())
     p.add_argument("--corruption", required=True, metavar="NAME|all",
                    help=f"a registered corruption, a comma-separated list, or 'all'. Default severities: {sweeps}")

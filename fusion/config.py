@@ -170,11 +170,11 @@ class AugConfig:
 class StreamConfig:
     """Training on samples synthesised on the fly (:mod:`fusion.stream`, skygen's streams)."""
     kind: str = param("none", choices=("none", "detections", "frames"), doc="none: train on the dataset's train split; detections: emulated detection sets (no image, ~0.1 ms each); frames: stored-size images + detections (see stream.frames_renderer)")
-    frames_renderer: str = param("binned", choices=("binned", "full"), doc="kind=frames: binned draws the stored image directly (skygen.binned, equal in distribution to render-then-downsample, ~1-3 ms) with emulated detections; full renders every sensor pixel, downsamples and runs the real detector (~15 ms). binned falls back to full, with a warning, for a config it cannot reproduce")
+    frames_renderer: str = param("binned", choices=("binned", "full"), doc="kind=frames: binned draws the stored image directly (skygen.render.binned, equal in distribution to render-then-downsample, ~1-3 ms) with emulated detections; full renders every sensor pixel, downsamples and runs the real detector (~15 ms). binned falls back to full, with a warning, for a config it cannot reproduce")
     samples_per_epoch: int = param(200000, lo=1, hi=10**10, doc="samples per epoch (whole batches); the cosine schedule spans train.epochs of them")
     seed: Optional[int] = param(None, lo=0, doc="stream seed (None: train.seed); the stream's seed space never meets a dataset's frames")
     calibration: Optional[str] = param(None, doc="detector-emulator calibration JSON (None: the one shipped for skygen's default camera)")
-    render_backend: str = param("numpy", choices=("numpy", "torch"), doc="kind=frames: numpy renders each frame in the loader workers; torch rasterises each batch on the training device (skygen.render_torch; GPU training without a dataset on disk)")
+    render_backend: str = param("numpy", choices=("numpy", "torch"), doc="kind=frames: numpy renders each frame in the loader workers; torch rasterises each batch on the training device (skygen.render.torch_frames; GPU training without a dataset on disk)")
     dropout: tuple[float, float] = param((0.0, 0.0), lo=0, hi=1, doc="per-sample detection dropout probability drawn uniformly in [lo, hi]")
     false_stars: tuple[float, float] = param((0.0, 0.0), lo=0, hi=100, doc="per-sample mean number of false stars (Poisson) drawn in [lo, hi]")
     centroid_noise: tuple[float, float] = param((0.0, 0.0), lo=0, hi=50, doc="per-sample centroid noise, px rms per axis, drawn in [lo, hi]")

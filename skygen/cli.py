@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SkygenError
-from .runtime import StopRequested as Terminated          # SIGTERM -> cleanup -> the resume hint
-from .runtime import request_stop as _raise_terminated
+from skygen.errors import SkygenError
+from skygen.runtime import StopRequested as Terminated          # SIGTERM -> cleanup -> the resume hint
+from skygen.runtime import request_stop as _raise_terminated
 
 EPILOG = """examples:
   skygen render --n 2000 --workers 2            # into data/sky-n2000-s0
@@ -52,7 +52,7 @@ def _parse_slice(text: str | None) -> tuple[int, int]:
 
 
 def _load(args):
-    from .config import load_config
+    from skygen.config import load_config
     sets = list(args.set or [])
     if getattr(args, "n", None) is not None:
         sets.append(f"n_frames={args.n}")
@@ -67,7 +67,7 @@ def _load(args):
 
 def cmd_render(args) -> int:
     import signal
-    from .datasets.build import render_dataset
+    from skygen.datasets.build import render_dataset
     cfg = _load(args)
     out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
     i, k = _parse_slice(args.slice)
@@ -84,21 +84,21 @@ def cmd_render(args) -> int:
 
 
 def cmd_inspect(args) -> int:
-    from .datasets.summary import inspect_dataset
+    from skygen.datasets.summary import inspect_dataset
     print(inspect_dataset(args.path, as_json=args.json))
     return 0
 
 
 def cmd_preview(args) -> int:
-    from .datasets.preview import preview
+    from skygen.datasets.preview import preview
     out = preview(args.path, args.out, n=args.n, split=args.split, start=args.start)
     print(f"wrote {out}")
     return 0
 
 
 def cmd_validate(args) -> int:
-    from .errors import DatasetError
-    from .datasets.validate import validate
+    from skygen.errors import DatasetError
+    from skygen.datasets.validate import validate
     if not Path(args.path).exists():
         raise DatasetError(f"{args.path}: no such dataset folder or shard file")
     report = validate(args.path, checksums=not args.no_checksums)
@@ -107,7 +107,7 @@ def cmd_validate(args) -> int:
 
 
 def cmd_merge(args) -> int:
-    from .datasets.merge import merge_datasets
+    from skygen.datasets.merge import merge_datasets
     man = merge_datasets(args.inputs, args.out)
     print(f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
           f"{man['n_shards']} shards (no frame data copied; shards are referenced by relative path)")
@@ -115,9 +115,9 @@ def cmd_merge(args) -> int:
 
 
 def cmd_catalog(args) -> int:
-    from .catalog import load_catalog
+    from skygen.sky.catalog import load_catalog
     if args.action == "fetch":
-        from .vizier import fetch
+        from skygen.sky.vizier import fetch
         out = Path(args.out or f"catalogs/{args.catalog}.npz")
         out.parent.mkdir(parents=True, exist_ok=True)
         stars = fetch(args.catalog, out, args.mag_limit)
@@ -133,14 +133,14 @@ def cmd_catalog(args) -> int:
 
 def cmd_config(args) -> int:
     import yaml
-    from .config import config_dict, config_help
+    from skygen.config import config_dict, config_help
     if args.keys:
         print(config_help())
         return 0
     cfg = _load(args)
     print(yaml.safe_dump(config_dict(cfg), sort_keys=False), end="")
     if args.summary:
-        from .render import Renderer
+        from skygen.render.frame import Renderer
         r = Renderer(cfg)
         fx, fy = r.camera.fov_deg
         print(f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
@@ -150,8 +150,8 @@ def cmd_config(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from . import calibration as cal
-    from . import emulator as emu
+    from skygen.stream import calibration as cal
+    from skygen.stream import emulator as emu
     if args.path:
         if args.config or args.set:
             raise SkygenError("calibrate: give either a dataset DIR (its own config is used) or --config/--set "
@@ -178,7 +178,7 @@ def cmd_calibrate(args) -> int:
 
 def cmd_fit_camera(args) -> int:
     import shlex
-    from .fitcam import fit_camera
+    from skygen.real.fit_camera import fit_camera
     command = "skygen fit-camera " + " ".join(shlex.quote(a) for a in (args.argv or []))
     report = args.report or str(Path(args.out).with_suffix("")) + "-report"
     rec = fit_camera(args.frames, args.out, camera=args.camera, fov_range=args.fov_range,
@@ -203,8 +203,9 @@ def cmd_fit_camera(args) -> int:
 def cmd_stream(args) -> int:
     import json
     import time
-    from .config import config_dict
-    from .stream import SampleStream, stream_summary, write_detection_sets
+    from skygen.config import config_dict
+    from skygen.datasets.detection_sets import write_detection_sets
+    from skygen.stream.samples import SampleStream, stream_summary
     if args.n < 1:
         raise SkygenError(f"--n {args.n}: need at least 1 sample")
     if args.start < 0:
@@ -224,7 +225,7 @@ def cmd_stream(args) -> int:
         batches = [stream.batch(range(a, min(a + args.batch, args.start + args.n)))
                    for a in range(args.start, args.start + args.n, args.batch)]
     else:
-        from .stream import frames_as_batch
+        from skygen.stream.samples import frames_as_batch
         batches = [frames_as_batch([stream.frame(i) for i in range(args.start, args.start + args.n)])]
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     summary = stream_summary(batches)
@@ -247,8 +248,8 @@ def cmd_stream(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    from .datasets.shards import SCHEMA_VERSION
+    from skygen import __version__
+    from skygen.datasets.shards import SCHEMA_VERSION
     p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
                                 "writing shareable HDF5 shards.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -314,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_catalog)
 
     ca = sub.add_parser("calibrate", help="fit the detector emulator of the detections stream",
-                        description="Fit the detector emulator (skygen.emulator) to the real detector: from a "
+                        description="Fit the detector emulator (skygen.stream.emulator) to the real detector: from a "
                         "rendered dataset DIR (its frames and config), or, without DIR, from --frames frames "
                         "rendered for --config/--set in their own random streams. The calibration is valid for "
                         "that camera, optics, photometry, sensor and detector only; streams refuse it for "
@@ -357,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Make --n samples of an endless stream (sample i is a pure function of "
                         "config, seed, kind and i) and print what a model would see. 'detections' uses the "
                         "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' adds the stored-size "
-                        "image, drawn directly at that size (skygen.binned, equal in distribution to `skygen "
+                        "image, drawn directly at that size (skygen.render.binned, equal in distribution to `skygen "
                         "render`'s), with emulated detections; a config it cannot reproduce renders and detects "
                         "like `skygen render` (with a warning).")
     config_args(st, with_n=False)
@@ -402,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 0
     except OSError as exc:       # an unwritable --out, a full disk: one line, not a traceback
-        from .runtime import describe_os_error
+        from skygen.runtime import describe_os_error
         print(f"skygen {args.command}: error: {describe_os_error(exc)}", file=sys.stderr)
         return 1
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from . import configlib
-from .configlib import param, section, to_dict
-from .errors import ConfigError
+from skygen import configlib
+from skygen.configlib import param, section, to_dict
+from skygen.errors import ConfigError
 
 INF = float("inf")
 
@@ -100,7 +100,7 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class CorruptionsConfig:
-    """Severity of each registered corruption (see :mod:`skygen.corruptions`); 0 = off."""
+    """Severity of each registered corruption (see :mod:`skygen.instrument.corruptions`); 0 = off."""
     hotpixels: float = param(5e-5, lo=0, hi=0.05, doc="fraction of pixels that are hot (static map from sensor_seed)")
     cosmic_rays: float = param(5.0, lo=0, hi=1e5, doc="particle flux, hits/cm^2/s (tracks)")
     motion_blur: float = param(0.0, lo=0, hi=90, doc="angular rate magnitude, deg/s (random axis)")
@@ -133,7 +133,7 @@ class OutputConfig:
 
 @dataclass(frozen=True)
 class BackendConfig:
-    """Which code rasterises the frames (see :mod:`skygen.render_torch`). The scene is the same."""
+    """Which code rasterises the frames (see :mod:`skygen.render.torch_frames`). The scene is the same."""
     backend: str = param("numpy", choices=("numpy", "torch"), doc="numpy: per-frame CPU renderer; torch: batches on render.device, noise equal in distribution")
     device: str = param("cpu", doc="render.backend=torch only: cpu, cuda or cuda:N")
     batch_size: int = param(16, lo=1, hi=4096, doc="render.backend=torch: frames rendered together on the device")

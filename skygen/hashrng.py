@@ -1,6 +1,6 @@
 """Counter-based random numbers: a draw is a pure function of (key, sample, draw id).
 
-The streams of :mod:`skygen.stream` synthesise thousands of samples per second. Creating
+The streams of :mod:`skygen.stream.samples` synthesise thousands of samples per second. Creating
 a ``numpy.random.Generator`` per sample costs ~15 us, more than a whole detection set is
 allowed to cost, and a generator's sequence depends on the *order* of draws. Here every
 random number is instead a hash of three integers:

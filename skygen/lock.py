@@ -46,7 +46,7 @@ import time
 import uuid
 from pathlib import Path
 
-from .errors import FolderInUseError
+from skygen.errors import FolderInUseError
 
 PREFIX = ".skygen"
 SUFFIX = ".lock"

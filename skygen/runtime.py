@@ -40,7 +40,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .errors import ConfigError
+from skygen.errors import ConfigError
 
 
 # --------------------------------------------------------------------------- files

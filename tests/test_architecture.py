@@ -55,10 +55,79 @@ def test_import_direction(part):
     assert not bad, "\n".join(bad)
 
 
+# skygen's layers in the order data flows (docs/ARCHITECTURE.md): a module imports only its own
+# package and the layers below it. The core (top-level modules: config, errors, runtime, ...) is
+# layer 0; the command line sits above everything.
+SKYGEN_LAYERS = {"core": 0, "sky": 1, "instrument": 2, "render": 3, "datasets": 4, "stream": 5, "real": 5,
+                 "cli": 9}
+
+
+def skygen_layer(module: str) -> str | None:
+    """The layer of a skygen module name (``skygen.render.frame`` -> ``render``), None outside skygen."""
+    bits = module.split(".")
+    if bits[0] != "skygen":
+        return None
+    if len(bits) == 1:
+        return "core"
+    if bits[1] == "__main__":
+        return "cli"
+    return bits[1] if bits[1] in SKYGEN_LAYERS else "core"
+
+
+def skygen_violations() -> list[str]:
+    bad = []
+    for path in sorted((ROOT / "skygen").rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        own = skygen_layer(".".join(rel.with_suffix("").parts))
+        if rel.name == "__init__.py" and len(rel.parts) == 2:
+            continue                                     # skygen/__init__.py: the lazy facade over every layer
+        for mod in imported_modules(path):
+            target = skygen_layer(mod)
+            if target is None or target == own:
+                continue
+            if SKYGEN_LAYERS[target] >= SKYGEN_LAYERS[own]:
+                bad.append(f"{rel} ({own}) imports {mod} ({target})")
+    return bad
+
+
+def test_skygen_layers_follow_the_data_flow():
+    bad = skygen_violations()
+    assert not bad, "\n".join(bad)
+
+
+def test_skygen_layer_rule_catches_a_violation():
+    """A sensor-level module reaching up into the renderer is found."""
+    fake = ROOT / "skygen" / "instrument" / "_probe_violation.py"
+    fake.write_text("def f():\n    from skygen.render.frame import Renderer\n    return Renderer\n")
+    try:
+        assert any("_probe_violation.py (instrument) imports skygen.render.frame" in b for b in skygen_violations())
+    finally:
+        fake.unlink()
+
+
 def test_skygen_imports_no_fusion():
     bad = [f"{p.relative_to(ROOT)} imports {m}" for p in sorted((ROOT / "skygen").rglob("*.py"))
            for m in imported_modules(p) if m.split(".")[0] == "fusion"]
     assert not bad, "\n".join(bad)
+
+
+# fusion's shared modules sit under every part: they import no part (testing, the tests' helper, reads
+# checkpoints through fusion.model); the command line and the package facade may import them all.
+SHARED_MAY_IMPORT = {"config.py": set(), "errors.py": set(), "plots.py": set(), "testing.py": {"model"}}
+
+
+@pytest.mark.parametrize("name", sorted(SHARED_MAY_IMPORT))
+def test_fusion_shared_modules_import_no_part(name):
+    path = ROOT / "fusion" / name
+    bad = [f"fusion/{name} imports {m}" for m in imported_modules(path)
+           if part_of(m) and part_of(m) not in SHARED_MAY_IMPORT[name]]
+    assert not bad, "\n".join(bad)
+
+
+def test_every_shared_module_is_covered():
+    """A new top-level fusion module gets a rule here (or is the CLI / the facade)."""
+    top = {p.name for p in (ROOT / "fusion").glob("*.py")} - {"__init__.py", "__main__.py", "cli.py"}
+    assert top == set(SHARED_MAY_IMPORT), top ^ set(SHARED_MAY_IMPORT)
 
 
 def test_the_rule_catches_a_violation(tmp_path, monkeypatch):

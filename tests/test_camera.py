@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS
 
-from skygen.attitude import attitude_matrix, matrix_to_quaternion, quaternion_to_matrix, sample_boresight
-from skygen.camera import Camera
-from skygen.catalog import radec_to_vec
+from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, quaternion_to_matrix, sample_boresight
+from skygen.instrument.camera import Camera
+from skygen.sky.catalog import radec_to_vec
 from skygen.config import load_config
 
 

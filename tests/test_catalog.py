@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skygen.catalog import SkyIndex, load_catalog, parse_hipparcos2, propagate, radec_to_vec
+from skygen.sky.catalog import SkyIndex, load_catalog, parse_hipparcos2, propagate, radec_to_vec
 from skygen.errors import CatalogError
 
 

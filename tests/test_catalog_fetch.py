@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from skygen import vizier
-from skygen.catalog import load_catalog
+from skygen.sky import vizier
+from skygen.sky.catalog import load_catalog
 from skygen.cli import main
 from skygen.config import load_config
 from skygen.errors import CatalogError
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 TABLE = Path(__file__).parent / "data" / "vizier_I_239_hip_main.ecsv"
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fusion.testing import small_dataset
-from skygen.frames import FrameError, read_frame
+from skygen.real.frames import FrameError, read_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 CAMERA = str(ROOT / "configs" / "cameras" / "default-20deg.yaml")

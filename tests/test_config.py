@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from skygen.config import RenderConfig, load_config
 from skygen.configlib import describe
 from skygen.errors import ConfigError
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 KEYS = {k: (d, allowed) for k, d, allowed, _ in describe(RenderConfig)}
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from skygen.config import load_config
-from skygen.detect import detect, estimate_background, match
-from skygen.psf import add_patch, stamp
-from skygen.sensor import Exposure, read_out, sensor_maps
+from skygen.instrument.detect import detect, estimate_background, match
+from skygen.instrument.psf import add_patch, stamp
+from skygen.instrument.sensor import Exposure, read_out, sensor_maps
 
 
 def frame_with_stars(xs, ys, flux, seed=0, size=512):
@@ -63,7 +63,7 @@ def test_brightest_first_and_match_is_one_to_one():
 def test_local_background_follows_a_sky_gradient():
     """Sky glow rising 80 ADU across the frame (ground frames): one global level loses the stars on
     the dark side under a sea of false pixels on the bright side; the box background finds every star."""
-    from skygen.detect import background_map
+    from skygen.instrument.detect import background_map
     rng = np.random.default_rng(2)
     gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)
     xs, ys = gx.ravel() + rng.uniform(-0.5, 0.5, 30), gy.ravel() + rng.uniform(-0.5, 0.5, 30)
@@ -93,7 +93,7 @@ def test_separable_background_interpolation_equals_bilinear_map_coordinates(shap
     """background_map interpolates its box mesh as weights @ mesh @ weights.T: the numbers of
     ndimage.map_coordinates(order=1) at the same fractional indices."""
     from scipy import ndimage
-    from skygen.detect import _linear_weights
+    from skygen.instrument.detect import _linear_weights
     rng = np.random.default_rng(1)
     h, w = shape
     pos_y = np.sort(rng.uniform(0, 9, h))
@@ -108,7 +108,7 @@ def test_box_backgrounds_at_once_equal_the_per_box_estimates(shape, box):
     """background_map estimates its whole boxes in one vectorised pass: the per-box clipped median/mean and
     noise of estimate_background, up to float32 summation order, including boxes holding a bright star
     (clipped away) and a quantised sky; partial edge boxes still go one at a time."""
-    from skygen.detect import _whole_box_backgrounds, estimate_background
+    from skygen.instrument.detect import _whole_box_backgrounds, estimate_background
     rng = np.random.default_rng(4)
     h, w = shape
     yy, xx = np.mgrid[0:h, 0:w]

@@ -16,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skygen import calibration as cal
-from skygen import emulator as emu
+from skygen.stream import calibration as cal
+from skygen.stream import emulator as emu
 from skygen import hashrng
 from skygen.config import load_config
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 N_FRAMES = 160
 
@@ -123,9 +123,9 @@ def test_calibration_round_trip_and_blending(tmp_path, pairs):
 def test_blending_matches_the_real_detector(pairs):
     """Pairs of equal stars painted into a frame and run through the real detector: the
     separation at which they split into two detections agrees with the emulator's."""
-    from skygen.detect import detect
-    from skygen.psf import add_patch, gaussian_stamps
-    from skygen.sensor import Exposure, read_out
+    from skygen.instrument.detect import detect
+    from skygen.instrument.psf import add_patch, gaussian_stamps
+    from skygen.instrument.sensor import Exposure, read_out
     cfg, model = pairs[0], pairs[1]
     r = Renderer(cfg)
     rng = np.random.default_rng(7)

@@ -30,7 +30,7 @@ TRUTH = {"camera": {"width_px": 512, "height_px": 256, "pixel_pitch_um": 11.0, "
 
 def _write_truth(folder: Path, n: int = 5) -> Path:
     from skygen.config import build_config
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     cfg = build_config({**TRUTH, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
@@ -49,7 +49,7 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
                  "--report", str(tmp_path / "rep")]) == 0
     fit = load_config(out)
     c = fit.camera
-    from skygen.camera import Camera
+    from skygen.instrument.camera import Camera
     fov = Camera.from_config(c).fov_deg[0]
     # the fitted pinhole field against the true one; the fit sees distortion and focal length together
     assert fov == pytest.approx(16.0, rel=0.003)
@@ -148,10 +148,10 @@ def test_a_field_range_without_the_solution_says_so(tmp_path, capsys):
 
 def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
     """Distortion and principal point from one frame are fixed, with the reason, not over-fitted."""
-    from skygen import fitgeom as G
-    from skygen.attitude import attitude_matrix
-    from skygen.camera import Camera
-    from skygen.catalog import SkyIndex, load_catalog
+    from skygen.real import fit_geometry as G
+    from skygen.sky.attitude import attitude_matrix
+    from skygen.instrument.camera import Camera
+    from skygen.sky.catalog import SkyIndex, load_catalog
     cam = Camera(640, 480, 2400.0, 319.5, 239.5)
     sky = SkyIndex(load_catalog(), 2024.0, 7.0)
     R = attitude_matrix(83.0, -5.0, 10.0)

@@ -6,7 +6,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 
 DOC = Path(__file__).parents[1] / "docs" / "FORMAT.md"
 

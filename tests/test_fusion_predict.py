@@ -58,7 +58,7 @@ def frame_and_truth(tmp_path_factory):
     """A full-resolution frame of the smoke dataset's camera, in every format, with its true attitude."""
     from skygen.config import build_config
     from skygen.datasets.shards import open_dataset
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     with open_dataset(small_dataset("smoke")) as ds:
         cfg = dict(ds.config)
     cfg["output"] = {**cfg["output"], "full_res": True}

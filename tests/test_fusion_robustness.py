@@ -14,9 +14,9 @@ from fusion import cli as fcli
 from fusion.measure import robustness as rob
 from fusion.errors import CheckpointError, ConfigError
 from fusion.testing import render_small, small_dataset
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 from skygen.datasets.shards import open_dataset
-from skygen.perturb import perturbed_frames
+from skygen.render.perturb import perturbed_frames
 
 
 def cli(argv: list[str]) -> int:

@@ -17,8 +17,8 @@ from fusion.train.stream import StreamBatches, make_stream_loader
 from fusion.model.inputs import encode_batch
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train.run import train
-from skygen import calibration as calib
-from skygen import emulator as emu
+from skygen.stream import calibration as calib
+from skygen.stream import emulator as emu
 from skygen.config import build_config as build_render_config
 from skygen.errors import SkygenError
 from skygen.datasets.shards import open_dataset
@@ -186,7 +186,7 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
 
 
 def test_frames_stream_on_the_torch_renderer(smoke, tmp_path):
-    """stream.render_backend=torch: each batch rasterised by skygen.render_torch (here on the
+    """stream.render_backend=torch: each batch rasterised by skygen.render.torch_frames (here on the
     CPU device), detections from the real detector; the same training step."""
     b = _batches(smoke)
     path, config, cal = smoke

@@ -27,7 +27,7 @@ def test_camera_presets_load():
         cfg = load_config(p)
         assert cfg.camera.width_px % cfg.output.image_size_px == 0, p
     bf = load_config(ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml")
-    from skygen.camera import Camera
+    from skygen.instrument.camera import Camera
     cam = Camera.from_config(bf.camera)
     assert (cam.width_px, cam.height_px) == (1024, 768)
     assert cam.fov_deg[0] == pytest.approx(11.53, abs=0.01) and cam.fov_deg[1] == pytest.approx(8.66, abs=0.01)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 from skygen.datasets.shards import open_dataset
-from skygen.perturb import perturbed_frames
+from skygen.render.perturb import perturbed_frames
 
 
 @pytest.mark.parametrize("name", list(corr.REGISTRY))

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from skygen.config import load_config
-from skygen.photometry import Photometry, bv_to_temperature, effective_bandwidth_a
-from skygen.render import Renderer
+from skygen.instrument.photometry import Photometry, bv_to_temperature, effective_bandwidth_a
+from skygen.render.frame import Renderer
 
 
 def test_zero_point_by_hand():

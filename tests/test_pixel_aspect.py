@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS
 
-from skygen.attitude import attitude_matrix
-from skygen.camera import Camera
-from skygen.catalog import radec_to_vec
+from skygen.sky.attitude import attitude_matrix
+from skygen.instrument.camera import Camera
+from skygen.sky.catalog import radec_to_vec
 from skygen.config import load_config
 
 TALL = ["camera.width_px=512", "camera.height_px=256", "camera.fov_deg=20", "camera.pixel_aspect=2",
@@ -42,7 +42,7 @@ def test_projection_matches_a_wcs_with_tall_pixels():
 
 
 def test_rendered_tall_pixel_frame_puts_stars_where_projection_says():
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     cfg = load_config(overrides=TALL + ["sensor.exposure_s=0.5"])
     r = Renderer(cfg)
     errs, shapes, n = [], [], 0
@@ -74,7 +74,7 @@ def test_rendered_tall_pixel_frame_puts_stars_where_projection_says():
 @pytest.mark.parametrize("psf", ["gaussian", "moffat"])
 def test_stamp_is_round_on_the_sky(psf):
     """Second moments of a noise-free stamp: rows measure sigma / aspect, columns sigma (plus the pixel's 1/12)."""
-    from skygen.psf import stamp
+    from skygen.instrument.psf import stamp
     s, aspect = 1.5, 2.0
     y0, x0, p = stamp(0.2, -0.3, 1.0, psf, s, 3.0, aspect)
     yy, xx = np.mgrid[y0:y0 + p.shape[0], x0:x0 + p.shape[1]]
@@ -87,7 +87,7 @@ def test_stamp_is_round_on_the_sky(psf):
 
 
 def test_sky_background_scales_with_pixel_area():
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     square = Renderer(load_config(overrides=TALL[:3] + ["output.image_size_px=512"]))
     tall = Renderer(load_config(overrides=TALL))
     assert tall.sky_e == pytest.approx(2 * square.sky_e, rel=1e-9)
@@ -103,7 +103,7 @@ def test_tetra3rs_solves_a_tall_pixel_frame():
     pytest.importorskip("tetra3rs")
     from fusion.solve.base import Detections, Solution
     from fusion.solve.tetra import Tetra3Solver
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     cfg = load_config(overrides=TALL + ["sensor.exposure_s=0.5"])
     r = Renderer(cfg)
     solver = Tetra3Solver(r.camera)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skygen.psf import gaussian_stamps, stamp, streak
+from skygen.instrument.psf import gaussian_stamps, stamp, streak
 
 
 def centroid(y0, x0, patch):

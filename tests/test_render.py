@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 from skygen.config import config_dict, load_config
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 CLEAN = [f"corruptions.{name}=0" for name in corr.REGISTRY]
 
@@ -51,7 +51,7 @@ def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     r = Renderer(cfg)
     omega, n, taus = r._motion(np.random.default_rng(0))
     assert n > 10 and abs(np.degrees(np.linalg.norm(omega)) - 1.0) < 1e-12
-    from skygen.attitude import attitude_matrix
+    from skygen.sky.attitude import attitude_matrix
     stars = r._stars(attitude_matrix(10, 20, 30), omega, taus)
     star_e = np.zeros((1024, 1024), np.float32)
     r._deposit(stars, star_e)
@@ -137,7 +137,7 @@ def test_corruption_log_records_what_happened(small_overrides):
 def test_a_frame_with_detections_but_no_catalog_star(small_overrides):
     """Only false sources (a one-star catalog far from the boresight, cosmic rays): every
     detection is false (hip_id -1), no IndexError."""
-    from skygen.catalog import StarTable
+    from skygen.sky.catalog import StarTable
     one = StarTable(np.array([1]), np.array([0.0]), np.array([-1.5]), np.zeros(1), np.zeros(1),
                     np.array([3.0], np.float32), np.array([0.6], np.float32), 1991.25, "test")
     cfg = load_config(overrides=small_overrides + ["attitude.mode=list", "attitude.ra_deg=[180]",

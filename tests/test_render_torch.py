@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 from skygen.config import load_config
 from skygen.errors import ConfigError
-from skygen.render import Renderer
-from skygen.render_torch import TorchRenderer, render_batch
+from skygen.render.frame import Renderer
+from skygen.render.torch_frames import TorchRenderer, render_batch
 
 CLEAN = [f"corruptions.{name}=0" for name in corr.REGISTRY]
 H = W = 256
@@ -89,7 +89,7 @@ def test_background_noise_matches_formula(small, sampler, lam):
 def test_fast_background_probabilities_are_exact(small):
     """The LUT draw of the uniform background against the exact ADU distribution (chi^2)."""
     from scipy import stats
-    from skygen.sensor import background_sampler
+    from skygen.instrument.sensor import background_sampler
     tr = TorchRenderer(load_config(overrides=quiet(small)))
     smp = background_sampler(12.0, 3.0, 1.7)
     adu = tr._dense_background(12.0, (8, H * W), torch.Generator().manual_seed(3))

@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 from skygen.config import load_config
-from skygen.photometry import dark_current_e_s
-from skygen.sensor import BackgroundSampler, Exposure, bloom, read_out, sensor_maps
+from skygen.instrument.photometry import dark_current_e_s
+from skygen.instrument.sensor import BackgroundSampler, Exposure, bloom, read_out, sensor_maps
 
 H = W = 256
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skygen.attitude import attitude_matrix
+from skygen.sky.attitude import attitude_matrix
 from skygen.config import load_config
-from skygen.render import Renderer
+from skygen.render.frame import Renderer
 
 from fusion.solve.base import Detections, Refusal, Solution, Solver, boresight_error_deg, radec_roll_from_matrix, roll_error_deg, rotation_angle_deg
 
@@ -334,7 +334,7 @@ def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, reg
 
 def test_registered_solver_is_built_by_name_and_unknown_names_are_refused():
     """The plug-in interface of docs/ARCHITECTURE.md: register a builder, build it by name."""
-    from skygen.camera import Camera
+    from skygen.instrument.camera import Camera
     from skygen.config import load_config
     from fusion.errors import ConfigError
     from fusion.solve import Refusal, SolverContext, build_solver, register_solver

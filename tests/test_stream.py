@@ -1,4 +1,4 @@
-"""skygen.stream: determinism, sample identity, bad input, and the CLI."""
+"""skygen.stream.samples: determinism, sample identity, bad input, and the CLI."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from skygen import emulator as emu
+from skygen.stream import emulator as emu
 from skygen.cli import main
 from skygen.config import build_config, load_config
 from skygen.errors import ConfigError, DatasetError
-from skygen.render import Renderer
-from skygen.attitude import attitude_matrices, matrices_to_quaternions as quaternions
-from skygen.stream import SampleStream, partition
+from skygen.render.frame import Renderer
+from skygen.sky.attitude import attitude_matrices, matrices_to_quaternions as quaternions
+from skygen.stream.samples import SampleStream, partition
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""skygen.binned: the stored-resolution renderer is equal in distribution to render-then-downsample.
+"""skygen.render.binned: the stored-resolution renderer is equal in distribution to render-then-downsample.
 
 Both paths rasterise the *same scenes* (``Renderer.scene(i)`` of the frames stream, default
 camera: 1024² sensor stored at 256², factor 4) with independent noise. Every statistic below is
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from skygen.binned import (
+from skygen.render.binned import (
     BinnedRenderer,
     aliasing_bound,
     area_rounding,
@@ -24,8 +24,8 @@ from skygen.binned import (
     unsupported_reason,
 )
 from skygen.config import load_config
-from skygen.render import Renderer
-from skygen.stream import SampleStream
+from skygen.render.frame import Renderer
+from skygen.stream.samples import SampleStream
 
 N_SCENES = 100         # scenes rendered by both paths (two noise draws each)
 F = 4                  # default camera: 1024 -> 256
@@ -252,7 +252,7 @@ def test_rounding_and_model_bound():
 
 
 def test_block_sum_model_matches_background_table(renderer):
-    """The two samplers of skygen.binned agree where both apply: background-only blocks drawn by
+    """The two samplers of skygen.render.binned agree where both apply: background-only blocks drawn by
     the block-sum model (Poisson of the sum, summed read noise, n - 1 uniforms) and by the exact
     n-fold convolution of the per-pixel distribution."""
     b = BinnedRenderer(renderer)
@@ -312,11 +312,11 @@ def test_frames_stream_uses_binned_renderer_with_emulated_detections():
 
 
 def test_scene_builder_draws_scenes_like_the_renderer(renderer):
-    """The stream's vectorised scenes (skygen.scenes) against Renderer.scene: same distribution of
+    """The stream's vectorised scenes (skygen.render.scenes) against Renderer.scene: same distribution of
     stars per scene, their electrons, declination, false stars and cosmic-ray hits (two-sample KS,
     p > 1e-3); the same stars, projected and sized alike, for a given attitude."""
     from skygen import hashrng
-    from skygen.scenes import SceneBuilder
+    from skygen.render.scenes import SceneBuilder
     cfg = load_config(overrides=["corruptions.false_stars=1.5", "corruptions.cosmic_rays=200"])
     r = Renderer(cfg, rng_tag="@stream-frames")
     built = SceneBuilder(r, hashrng.stream_key(cfg.seed, "@stream-frames")).scenes(np.arange(400), {})

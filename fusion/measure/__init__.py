@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .._lazy import lazy_attributes
+from skygen.lazy import lazy_attributes
 
 _LAZY = {"evaluate_checkpoint": ".evaluate", "run_sweep": ".robustness", "robustness": ".robustness",
          "run_timing": ".timing", "export_onnx": ".export", "run_experiment": ".experiment"}

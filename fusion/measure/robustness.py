@@ -1,8 +1,8 @@
 """Corruption-robustness sweeps (``fusion robustness``): accuracy against corruption severity.
 
-For each corruption of skygen's registry (:data:`skygen.corruptions.REGISTRY`) and each
+For each corruption of skygen's registry (:data:`skygen.instrument.corruptions.REGISTRY`) and each
 severity of its sweep, the chosen frames of one split are perturbed by
-:func:`skygen.perturb.perturbed_frames` — the generator's own code, nothing re-implemented
+:func:`skygen.render.perturb.perturbed_frames` — the generator's own code, nothing re-implemented
 here — and every checkpoint is evaluated on them:
 
 * ``sensor`` and ``scene`` corruptions re-render each frame from its stored seed and
@@ -12,7 +12,7 @@ here — and every checkpoint is evaluated on them:
 
 Severities are *extra* severities in the corruption's physical unit (hot-pixel fraction,
 px rms of centroid noise, deg/s of angular rate, ...), stacked on the dataset's own level
-of that corruption (:meth:`skygen.corruptions.Corruption.stack`); both the extra and the
+of that corruption (:meth:`skygen.instrument.corruptions.Corruption.stack`); both the extra and the
 resulting total are reported. Severity 0 gives the stored frames exactly, so its row
 equals ``fusion evaluate`` on the same frames.
 
@@ -56,12 +56,12 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from skygen import corruptions as corr
+from skygen.instrument import corruptions as corr
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import Dataset as SkyDataset
 from skygen.datasets.shards import open_dataset
 from skygen.lock import FolderLock
-from skygen.perturb import perturbed_frames
+from skygen.render.perturb import perturbed_frames
 
 from skygen.runtime import atomic_write_bytes, atomic_write_text, pick_device, write_json
 

@@ -15,7 +15,7 @@ Two modes, each after ``warmup`` untimed iterations, then ``iters`` timed ones u
     device synchronisation at its end:
 
     ``detect``               background estimate, threshold, connected components and
-                             centroids on the full frame (:func:`skygen.detect.detect`);
+                             centroids on the full frame (:func:`skygen.instrument.detect.detect`);
     ``downsample_normalise`` ``cv2.resize(INTER_AREA)`` to the stored size and the log stretch
                              (:meth:`fusion.model.inputs.Preprocessor.image`);
     ``encode_coords``        brightest-first rows, normalised positions, padding and mask
@@ -136,7 +136,7 @@ def random_inputs(batch: int, image_size: int, max_stars: int, device: torch.dev
 def raw_frames(render_config: dict | None, image_size: int, n: int) -> tuple[list[np.ndarray], dict, str]:
     """``n`` full-resolution frames (uint16 ADU) rendered by skygen, with the render config used."""
     from skygen.config import build_config, config_dict, load_config as load_render_config
-    from skygen.render import Renderer
+    from skygen.render.frame import Renderer
     if render_config is not None:
         data, source = dict(render_config), "the checkpoint's training dataset (or --data)"
     else:
@@ -168,7 +168,7 @@ class EndToEnd:
         self.geo = self.pre.geo
 
     def detect(self, full: np.ndarray) -> dict:
-        from skygen.detect import detect
+        from skygen.instrument.detect import detect
         return detect(full, self.det.threshold_sigma, self.det.min_area_px, self.det.max_detections)[0]
 
     def downsample_normalise(self, full: np.ndarray) -> np.ndarray:

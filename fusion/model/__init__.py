@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .._lazy import lazy_attributes
+from skygen.lazy import lazy_attributes
 
 _LAZY = {"FrameGeometry": ".inputs", "Sample": ".inputs", "Preprocessor": ".inputs",
          "Regions": ".regions", "Checkpoint": ".checkpoint", "load_checkpoint": ".checkpoint",

@@ -21,7 +21,7 @@ Hierarchy (:class:`Regions`)
     can be trained on; ``groups[f]`` is the region of fine region f (the region of its
     centroid). Fine regions (and, for a model trained on a stream, the K regions too) are
     fitted on :func:`sky_directions`, ``SKY_SAMPLES_PER_REGION`` directions per region drawn
-    from the render config's attitude distribution with ``labels.seed`` (:func:`skygen.attitude.boresight_sample`),
+    from the render config's attitude distribution with ``labels.seed`` (:func:`skygen.sky.attitude.boresight_sample`),
     never on a dataset's frames: any ``fine_k`` works with any dataset size, and datasets of one
     camera and attitude distribution share the regions. One object owns both levels:
     training fits it, the checkpoint stores it, the model's log-sum-exp head and the fine
@@ -175,7 +175,7 @@ SKY_SAMPLES_MIN = 20_000
 
 def sky_directions(attitude_config, n_regions: int, seed: int) -> np.ndarray:
     """Directions to fit ``n_regions`` regions on: drawn from the attitude distribution, not from a dataset."""
-    from skygen.attitude import boresight_sample
+    from skygen.sky.attitude import boresight_sample
     return boresight_sample(attitude_config, max(SKY_SAMPLES_MIN, SKY_SAMPLES_PER_REGION * n_regions), seed)
 
 

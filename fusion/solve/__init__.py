@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .._lazy import lazy_attributes
+from skygen.lazy import lazy_attributes
 from .base import Detections, FallbackSolver, Refusal, Solution, Solver
 from .registry import SOLVERS, SolverContext, build_solver, register_solver
 

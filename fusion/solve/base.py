@@ -5,13 +5,13 @@ scored by ``fusion benchmark`` on the same inputs if it implements :class:`Solve
 
     class MySolver:
         name = "my-solver"
-        def solve(self, detections: Detections, camera: skygen.camera.Camera,
+        def solve(self, detections: Detections, camera: skygen.instrument.camera.Camera,
                   image: numpy.ndarray | None = None) -> Solution | Refusal: ...
 
 Inputs
     ``detections`` — a :class:`Detections` table in skygen's pixel convention
     (full-resolution sensor pixels, the centre of the top-left pixel at (0, 0), +x along
-    columns, +y along rows; brightest first). ``camera`` — :class:`skygen.camera.Camera`
+    columns, +y along rows; brightest first). ``camera`` — :class:`skygen.instrument.camera.Camera`
     (focal length in pixels, principal point, Brown-Conrady distortion). ``image`` — the
     stored frame in ADU when the solver wants pixels (learned solvers); classical solvers
     ignore it.
@@ -33,7 +33,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from skygen.attitude import matrix_to_quaternion, quaternion_to_matrix
+from skygen.sky.attitude import matrix_to_quaternion, quaternion_to_matrix
 
 
 @dataclass(frozen=True)
@@ -138,7 +138,7 @@ class FallbackSolver:
 def radec_roll_from_matrix(m: np.ndarray) -> tuple[float, float, float]:
     """(ra_deg, dec_deg, roll_deg) of a camera -> ICRS matrix (columns: camera x, y, z in ICRS).
 
-    Inverse of :func:`skygen.attitude.attitude_matrix`; roll is the position angle of image
+    Inverse of :func:`skygen.sky.attitude.attitude_matrix`; roll is the position angle of image
     up (-y) from north through east, in [0, 360).
     """
     m = np.asarray(m, np.float64)

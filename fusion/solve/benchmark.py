@@ -7,7 +7,7 @@ fixed. Cells of the grid:
 * one cell per (corruption, severity, N) for the detection-level corruptions of skygen's
   registry (``dropout``, ``false_stars``, ``centroid_noise``, ``magnitude_noise``; severities
   from the registry's sweep, in its units) at each N of ``--corruption-n``. Dropout,
-  centroid and magnitude noise are :func:`skygen.corruptions.apply_detection_corruptions` on
+  centroid and magnitude noise are :func:`skygen.instrument.corruptions.apply_detection_corruptions` on
   the stored table with the stream ``/benchmark``; ``false_stars`` (a *scene* corruption in
   the generator) is emulated on the table: Poisson(severity) detections at uniform sensor
   positions, each with the flux of a randomly chosen real detection of the frame, so they
@@ -62,8 +62,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen import corruptions as corr
-from skygen.camera import Camera
+from skygen.instrument import corruptions as corr
+from skygen.instrument.camera import Camera
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import open_dataset
 from skygen.lock import FolderLock
@@ -222,7 +222,7 @@ def _run_benchmark(data, out: Path, checkpoint, split, frames, n_values, corrupt
         seed = int(ds.config["seed"])
         dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
                         "frames": int(len(pos))}
-    from skygen.attitude import quaternion_to_matrix
+    from skygen.sky.attitude import quaternion_to_matrix
     truth = [(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)]
     tetra = Tetra3Solver(cam, log=log)
     prior, notes = None, []

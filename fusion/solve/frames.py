@@ -1,9 +1,9 @@
-"""Reading a user's frames for ``fusion predict``: files (:mod:`skygen.frames` reads PNG, TIFF 8/16 bit,
+"""Reading a user's frames for ``fusion predict``: files (:mod:`skygen.real.frames` reads PNG, TIFF 8/16 bit,
 FITS and ``.npy``), folders of them, or a skygen dataset's stored frames.
 
 :func:`iter_inputs` walks the arguments of ``fusion predict``: files, skygen dataset folders (a
 ``manifest.json``) and other folders (their frame files, sorted by name). The file reader itself
-(:func:`read_frame`, :func:`mask_bad_pixels`, :class:`FrameError`) lives in :mod:`skygen.frames`
+(:func:`read_frame`, :func:`mask_bad_pixels`, :class:`FrameError`) lives in :mod:`skygen.real.frames`
 (``skygen fit-camera`` reads frames too, and skygen never imports fusion); it is re-exported here.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from skygen.frames import FRAME_SUFFIXES, FrameError, frame_files, mask_bad_pixels, read_frame
+from skygen.real.frames import FRAME_SUFFIXES, FrameError, frame_files, mask_bad_pixels, read_frame
 
 __all__ = ["FRAME_SUFFIXES", "FrameError", "frame_files", "iter_inputs", "mask_bad_pixels", "read_frame"]
 

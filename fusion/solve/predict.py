@@ -21,7 +21,7 @@ of the finite ones before detection and counted in the record as ``bad_pixels``.
 
 Per frame:
 
-1. detection: skygen's detector (:func:`skygen.detect.detect`) with the camera's detection
+1. detection: skygen's detector (:func:`skygen.instrument.detect.detect`) with the camera's detection
    settings (threshold in background sigma, minimum area), positions in full-resolution
    pixels (skygen convention: (0, 0) is the centre of the top-left pixel); ``--background-box
    64`` estimates the background per 64 x 64 px box instead of once per frame (ground frames
@@ -63,9 +63,9 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.camera import Camera
+from skygen.instrument.camera import Camera
 from skygen.config import build_config as build_render_config
-from skygen.detect import detect
+from skygen.instrument.detect import detect
 
 from skygen.runtime import atomic_path, atomic_write_bytes, dumps_json
 

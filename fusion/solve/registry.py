@@ -37,7 +37,7 @@ import numpy as np
 @dataclass
 class SolverContext:
     """What a builder may use: the camera, a shared tetra3rs solver, the prior and the search settings."""
-    camera: object                          # skygen.camera.Camera
+    camera: object                          # skygen.instrument.camera.Camera
     tetra: object                           # fusion.solve.tetra.Tetra3Solver (its database loaded once)
     prior: object | None = None             # a RegionPrior at its search level (learned solvers)
     search_centroids: np.ndarray | None = None   # regions the oracle priors rank (benchmark)
@@ -168,7 +168,7 @@ def make_context(camera, *, prior=None, search: str = "fine", search_k: int | No
 
 def build_solver(name: str, camera, *, prior=None, search: str = "fine", search_k: int | None = None,
                  focal_tol: float = 0.02, log=None, context: SolverContext | None = None):
-    """The registered solver ``name`` for ``camera`` (a :class:`skygen.camera.Camera`).
+    """The registered solver ``name`` for ``camera`` (a :class:`skygen.instrument.camera.Camera`).
 
     ``prior``: a :class:`fusion.solve.priors.RegionPrior` (e.g. ``load_prior(checkpoint)``), needed by
     the learned solvers; ``search``/``search_k``/``focal_tol``: the fine stage's settings, as

@@ -9,7 +9,7 @@ with as few as 3 matched stars; the fine stage of :mod:`fusion.solvers.coarse_fi
 Conventions (checked on rendered frames by ``tests/test_solvers.py``)
     * tetra3rs centroids are relative to the image centre, +x right, +y down, in pixels of
       an ideal pinhole. We pass ``f * X/Z, f * Y/Z`` of each detection's camera-frame
-      direction (:meth:`skygen.camera.Camera.unproject`, so skygen's distortion and
+      direction (:meth:`skygen.instrument.camera.Camera.unproject`, so skygen's distortion and
       principal point are removed first) with a distortion-free ``CameraModel`` of focal
       length ``f`` (pixels): the sensor pixel ``(cx + 3, cy)`` becomes centroid ``(3, 0)``.
     * ``SolveResult.rotation_matrix_icrs_to_camera`` uses the same camera axes as skygen
@@ -21,7 +21,7 @@ Conventions (checked on rendered frames by ``tests/test_solvers.py``)
     * matched catalog ids are tetra3rs's (Gaia DR3 source ids; negative = Hipparcos
       gap-fill stars), not HIP numbers.
 
-Database and centroid conversion: :mod:`skygen.platesolve` (shared with ``skygen fit-camera``):
+Database and centroid conversion: :mod:`skygen.real.platesolve` (shared with ``skygen fit-camera``):
 ``SolverDatabase.generate_from_gaia`` for the camera's horizontal field of view (or a range of
 fields, ``fov_range``), cached on disk (``$FUSION_CACHE`` or ``~/.cache/fusion``); a database for
 a 20° field builds in about a second.
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen import platesolve
-from skygen.platesolve import DB_PARAMS, SolverUnavailable, cache_dir, database_path, load_database  # noqa: F401
+from skygen.real import platesolve
+from skygen.real.platesolve import DB_PARAMS, SolverUnavailable, cache_dir, database_path, load_database  # noqa: F401
 
 from .base import Detections, Refusal, Solution, solution_from_matrix
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .._lazy import lazy_attributes
+from skygen.lazy import lazy_attributes
 
 _LAZY = {"train": ".run", "prepare_data": ".data", "StreamBatches": ".stream"}
 

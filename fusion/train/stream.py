@@ -15,7 +15,7 @@ Determinism and resume
     the DataLoader returns round-robin, i.e. in step order) change nothing.
 
 ``--stream frames`` draws each image at the stored size (``stream.frames_renderer=binned``,
-:mod:`skygen.binned`: equal in distribution to render-then-downsample) with detections from the
+:mod:`skygen.render.binned`: equal in distribution to render-then-downsample) with detections from the
 calibrated emulator, or renders full frames (``full``); both hand the same stored-size uint16
 image to the same :class:`fusion.model.inputs.Preprocessor`.
 
@@ -52,7 +52,7 @@ import torch
 
 from skygen import hashrng
 from skygen.config import build_config as build_render_config
-from skygen.stream import RANGED, SampleStream
+from skygen.stream.samples import RANGED, SampleStream
 
 from ..errors import ConfigError
 from ..model.inputs import Preprocessor
@@ -182,7 +182,7 @@ class StreamBatches(torch.utils.data.IterableDataset):
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
             images = {}
         else:
-            from skygen.stream import frames_as_batch
+            from skygen.stream.samples import frames_as_batch
             frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]

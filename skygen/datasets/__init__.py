@@ -11,6 +11,6 @@
 ``from skygen.datasets import open_dataset`` is the reader every consumer (fusion included) uses.
 """
 
-from .shards import Dataset, open_dataset, verify_checksums
+from skygen.datasets.shards import Dataset, open_dataset, verify_checksums
 
 __all__ = ["Dataset", "open_dataset", "verify_checksums"]

@@ -3,7 +3,7 @@
 Frame i always comes from ``Renderer(cfg).render(i)``, so a dataset is identical
 whatever the number of workers, the slicing, or how often it was interrupted. With
 ``render.backend=torch`` frames are rasterised in device batches of ``render.batch_size``
-that start at fixed indices within each shard (:mod:`skygen.render_torch`), so the same
+that start at fixed indices within each shard (:mod:`skygen.render.torch_frames`), so the same
 holds on one device type; detection runs on the host as for the NumPy backend.
 
 Progress is recorded in the manifest after every finished shard. A re-run with the same
@@ -28,16 +28,16 @@ import time
 from pathlib import Path
 
 
-from .. import corruptions as corr
-from ..config import RenderConfig, config_dict
-from .card import CARD_NAME, CROISSANT_NAME, write_card
-from ..configlib import flatten
-from ..errors import ConfigError, DatasetError
-from ..identity import content_id
-from .shards import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
+from skygen.instrument import corruptions as corr
+from skygen.config import RenderConfig, config_dict
+from skygen.datasets.card import CARD_NAME, CROISSANT_NAME, write_card
+from skygen.configlib import flatten
+from skygen.errors import ConfigError, DatasetError
+from skygen.identity import content_id
+from skygen.datasets.shards import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
                  sha256_file, shard_name, write_json_atomic, write_shard)
-from ..lock import FolderLock
-from ..runtime import check_stop
+from skygen.lock import FolderLock
+from skygen.runtime import check_stop
 
 
 def shard_ranges(n_frames: int, shard_size: int) -> list[tuple[int, int]]:
@@ -140,13 +140,13 @@ def _init_worker(cfg: RenderConfig, counter, parent_pid: int | None = None, thre
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         _exit_when_orphaned(parent_pid)
-    from ..render import Renderer
+    from skygen.render.frame import Renderer
     _WORKER["renderer"] = Renderer(cfg)
     _WORKER["counter"] = counter
     _WORKER.pop("torch", None)
     if cfg.render.backend == "torch":
         import torch
-        from ..render_torch import TorchRenderer
+        from skygen.render.torch_frames import TorchRenderer
         if threads:                      # pool workers: one thread each, as cv2
             torch.set_num_threads(threads)
         _WORKER["torch"] = TorchRenderer(cfg, renderer=_WORKER["renderer"])
@@ -200,7 +200,7 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     croissant.json, :mod:`skygen.datasets.card`) once the dataset is complete.
     """
     import sys
-    from ..render import Renderer
+    from skygen.render.frame import Renderer
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     if workers < 1:
         raise ConfigError(f"--workers {workers}: need at least 1 worker process")
@@ -214,7 +214,7 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
                           f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
                           f"output.shard_size={size} for {num_slices} slices")
     if cfg.render.backend == "torch":           # fail before any work if the device is not usable
-        from ..render_torch import resolve_device
+        from skygen.render.torch_frames import resolve_device
         resolve_device(cfg.render.device)
     probe_renderer = Renderer(cfg)      # refuses configs it cannot render (ConfigError) before any file is made
     message = probe_renderer.saturation_warning()

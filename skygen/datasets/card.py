@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
+from skygen.datasets.shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
                  write_json_atomic)
-from ..runtime import atomic_write_text
+from skygen.runtime import atomic_write_text
 
 CARD_NAME = "README.md"
 CROISSANT_NAME = "croissant.json"

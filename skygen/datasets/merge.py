@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .card import write_card
-from .build import _manifests, config_differences, write_failed
-from ..errors import DatasetError
-from ..identity import dataset_frame_ids
-from .shards import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
-from ..lock import FolderLock
+from skygen.datasets.card import write_card
+from skygen.datasets.build import _manifests, config_differences, write_failed
+from skygen.errors import DatasetError
+from skygen.identity import dataset_frame_ids
+from skygen.datasets.shards import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
+from skygen.lock import FolderLock
 
 MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
                   "output.full_res"}

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import full_to_stored
-from ..errors import ConfigError, DatasetError
-from .shards import open_dataset
+from skygen.conventions import full_to_stored
+from skygen.errors import ConfigError, DatasetError
+from skygen.datasets.shards import open_dataset
 
 
 def check_preview_args(out: Path, n: int, start: int) -> None:

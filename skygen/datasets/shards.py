@@ -29,10 +29,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..conventions import CONVENTIONS
-from ..runtime import atomic_path, write_json
-from ..errors import DatasetError
-from ..identity import content_id, legacy_frame_ids, split_bounds
+from skygen.conventions import CONVENTIONS
+from skygen.runtime import atomic_path, write_json
+from skygen.errors import DatasetError
+from skygen.identity import content_id, legacy_frame_ids, split_bounds
 
 FORMAT_NAME = "skygen-shard"
 MANIFEST_FORMAT = "skygen-dataset"
@@ -82,7 +82,7 @@ def library_versions() -> dict:
     import astropy
     import cv2
     import scipy
-    from .. import __version__
+    from skygen import __version__
     return {"skygen": __version__, "python": platform.python_version(), "numpy": np.__version__,
             "scipy": scipy.__version__, "astropy": astropy.__version__, "h5py": h5py.__version__,
             "hdf5": h5py.version.hdf5_version, "opencv": cv2.__version__}
@@ -144,7 +144,7 @@ def _write_table(group: h5py.Group, rows: list[dict], fields: dict) -> None:
 def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: int,
                 frame_start: int, compression: str = "gzip", compression_level: int = 4,
                 corruption_names: tuple[str, ...] = ()) -> dict:
-    """Write rendered frames (a list of :class:`skygen.render.Frame`) as one shard.
+    """Write rendered frames (a list of :class:`skygen.render.frame.Frame`) as one shard.
 
     The HDF5 file is built in memory (about the size of the shard file; the frames
     themselves are already held) and then written with one plain write to a hidden

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from .shards import SPLIT_NAMES, open_dataset
+from skygen.datasets.shards import SPLIT_NAMES, open_dataset
 
 
 def _hist_line(values: np.ndarray, edges: list[int]) -> str:

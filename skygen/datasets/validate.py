@@ -20,9 +20,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import DatasetError
-from ..identity import frame_ids, split_bounds
-from .shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
+from skygen.errors import DatasetError
+from skygen.identity import frame_ids, split_bounds
+from skygen.datasets.shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
                  V2_FRAME_FIELDS, config_id, open_shard_file, read_manifest, sha256_file)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .catalog import radec_to_vec
+from skygen.sky.catalog import radec_to_vec
 
 
 def attitude_matrix(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ConfigError
+from skygen.errors import ConfigError
 
 # Cosmic-ray deposit model: a minimum-ionising particle frees ~80 electron-hole pairs
 # per micrometre of silicon (most probable value); the sensitive depth of a CMOS pixel
@@ -87,7 +87,7 @@ def get(name: str) -> Corruption:
 
 def with_level(cfg, name: str, level: float):
     """A RenderConfig with corruption ``name`` at ``level`` (validated like a config value)."""
-    from .config import build_config, config_dict
+    from skygen.config import build_config, config_dict
     get(name)
     data = config_dict(cfg)
     data["corruptions"][name] = level

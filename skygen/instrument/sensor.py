@@ -36,7 +36,7 @@ import cv2
 from scipy.special import ndtr
 from scipy.stats import poisson
 
-from .photometry import dark_current_e_s
+from skygen.instrument.photometry import dark_current_e_s
 
 _AMBIGUOUS = 65535
 _AMBIGUOUS8 = 255
@@ -105,7 +105,7 @@ class BackgroundSampler:
     def from_pmf(cls, k: np.ndarray, pmf: np.ndarray) -> "BackgroundSampler":
         """A sampler of any distribution on consecutive integers ``k`` (``pmf`` need not be
         normalised): the same two-level table, value = ``kmin + j``. Used for the sum of a
-        stored pixel's full-resolution values (:mod:`skygen.binned`)."""
+        stored pixel's full-resolution values (:mod:`skygen.render.binned`)."""
         self = cls.__new__(cls)
         self.lam = self.sigma = self.gain = float("nan")
         self._build_tables(np.asarray(k), np.cumsum(np.asarray(pmf, np.float64)))

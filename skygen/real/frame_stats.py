@@ -4,12 +4,12 @@ Used by ``skygen fit-camera`` (real frames against renders of the start and the 
 and by ``benchmarks/real_vs_sim.py``. Units: ADU of the frame as given; pixels.
 
 * background level and noise: skygen's sigma-clipped estimator over the whole frame
-  (:func:`skygen.detect.estimate_background`; a gradient across the frame raises the noise);
+  (:func:`skygen.instrument.detect.estimate_background`; a gradient across the frame raises the noise);
 * detections: skygen's detector with the given settings, all of them counted;
 * star width: :func:`star_width_px`, the intensity-weighted second moment (per axis, 9 x 9 px, local
   background subtracted) of the 20 brightest unsaturated detections, median;
 * zero point (with catalogue magnitudes of matched detections): median of ``mag + 2.5 log10(flux_adu)``
-  (:func:`skygen.fitpixels.zero_point`).
+  (:func:`skygen.real.fit_pixels.zero_point`).
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: i
 def frame_stats(img: np.ndarray, threshold_sigma: float, min_area_px: int, background_box_px: int,
                 saturation: float) -> tuple[dict, dict]:
     """({background_adu, noise_adu, detections, star_sigma_px}, the detections) of one frame."""
-    from .detect import detect, estimate_background
+    from skygen.instrument.detect import detect, estimate_background
     bg, sigma = estimate_background(img)
     det, _, _ = detect(img, threshold_sigma, min_area_px, 100_000, background_box_px)
     return ({"background_adu": bg, "noise_adu": sigma, "detections": int(len(det["x_px"])),

@@ -15,16 +15,16 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from . import corruptions as corr
-from .attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
-from .camera import Camera
-from .catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
-from .detect import detect, match
-from .errors import ConfigError
-from .identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
-from .photometry import Photometry, dark_current_e_s
-from .psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
-from .sensor import Exposure, read_out, sensor_maps
+from skygen.instrument import corruptions as corr
+from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
+from skygen.instrument.camera import Camera
+from skygen.sky.catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
+from skygen.instrument.detect import detect, match
+from skygen.errors import ConfigError
+from skygen.identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
+from skygen.instrument.photometry import Photometry, dark_current_e_s
+from skygen.instrument.psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
+from skygen.instrument.sensor import Exposure, read_out, sensor_maps
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 BLUR_STEP_PX = 0.25   # sub-exposure spacing of a motion-blurred star
@@ -96,11 +96,11 @@ class Renderer:
 
     def __init__(self, cfg, catalog: StarTable | None = None, rng_tag: str = "", legacy_streams: bool = False):
         """``rng_tag``: appended to every stage name of the per-frame generators: "" for
-        datasets; the streams of :mod:`skygen.stream` use their own tag (and key sample i by
+        datasets; the streams of :mod:`skygen.stream.samples` use their own tag (and key sample i by
         i alone), so their frames never repeat a dataset's. ``legacy_streams``: key random
         streams by the global frame index, as schema 1.x datasets were rendered (to
         re-render frames of such a dataset exactly)."""
-        from .config import config_dict
+        from skygen.config import config_dict
         self.cfg = cfg
         self.rng_tag = rng_tag
         self.legacy_streams = legacy_streams
@@ -284,7 +284,7 @@ class Renderer:
     def scene(self, i: int) -> "Scene":
         """Everything about frame ``i`` except the pixel noise: attitude, light sources,
         cosmic-ray charge, stray-light direction. A pure function of (config, i); both
-        backends (this NumPy renderer and :mod:`skygen.render_torch`) rasterise it."""
+        backends (this NumPy renderer and :mod:`skygen.render.torch_frames`) rasterise it."""
         cfg = self.cfg
         seed = cfg.seed
         split, j, key = self.stream_key(i)

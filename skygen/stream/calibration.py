@@ -1,8 +1,8 @@
-"""Calibrating the detector emulator (:mod:`skygen.emulator`) against the real detector.
+"""Calibrating the detector emulator (:mod:`skygen.stream.emulator`) against the real detector.
 
 :func:`calibrate_from_renders` renders frames with the real renderer and detector
 (:func:`calibration_config`: the camera's own settings, no corruptions), and :func:`fit`
-turns their sources and detections into a :class:`skygen.emulator.DetectorModel`:
+turns their sources and detections into a :class:`skygen.stream.emulator.DetectorModel`:
 completeness and the rows of isolated detections per bin of ``u``, the blending curve
 (catalog pairs plus the designed pairs of :func:`painted_pairs`) and the spurious
 detections. :func:`calibrate_from_dataset` fits the same from a rendered dataset's stored
@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .emulator import (BANK_ROWS_PER_BIN, BLEND_MAX_PX, GAP_EDGES, ISOLATION_PX, STREAM_CORRUPTIONS, U_EDGES,
+from skygen.stream.emulator import (BANK_ROWS_PER_BIN, BLEND_MAX_PX, GAP_EDGES, ISOLATION_PX, STREAM_CORRUPTIONS, U_EDGES,
                        DetectorModel, calibration_key, gap_px, threshold_electrons)
-from .errors import ConfigError, DatasetError
+from skygen.errors import ConfigError, DatasetError
 
 
 def _logistic_fit(gap: np.ndarray, resolved: np.ndarray) -> np.ndarray:
@@ -198,12 +198,12 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
     is measured directly: ``per_side**2`` pairs per frame, each in its own cell of the
     sensor, brightness log-uniform between 2x and 1000x the threshold, separation uniform in
     1-12 px, painted with the configured PSF, read out with the configured sensor (noise,
-    PRNU, hot pixels, ADC) and detected by :func:`skygen.detect.detect`. Returns the
+    PRNU, hot pixels, ADC) and detected by :func:`skygen.instrument.detect.detect`. Returns the
     pairs' footprint gaps and whether both stars were detected separately.
     """
-    from .detect import detect, match
-    from .psf import add_patch, stamp
-    from .sensor import Exposure, read_out
+    from skygen.instrument.detect import detect, match
+    from skygen.instrument.psf import add_patch, stamp
+    from skygen.instrument.sensor import Exposure, read_out
     cfg = renderer.cfg
     h, w = cfg.camera.height_px, cfg.camera.width_px
     o, d = cfg.optics, cfg.detection
@@ -235,7 +235,7 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
 
 def calibration_config(cfg):
     """``cfg`` with the stream-applied corruptions off (the calibration must not contain them)."""
-    from .config import build_config, config_dict
+    from skygen.config import build_config, config_dict
     data = config_dict(cfg)
     for name in STREAM_CORRUPTIONS:
         data["corruptions"][name] = 0.0
@@ -244,8 +244,8 @@ def calibration_config(cfg):
 
 def calibrate_from_renders(cfg, n_frames: int = 2000, tag: str = "@calibration", progress=None) -> DetectorModel:
     """Render ``n_frames`` calibration frames (their own random streams) and fit the emulator."""
-    from .config import config_dict
-    from .render import Renderer
+    from skygen.config import config_dict
+    from skygen.render.frame import Renderer
     cfg = calibration_config(cfg)
     r = Renderer(cfg, rng_tag=tag)
 
@@ -262,14 +262,14 @@ def calibrate_from_renders(cfg, n_frames: int = 2000, tag: str = "@calibration",
     return fit(frames(), threshold_electrons(r), calibration_key(d), cfg.sensor.gain_e_per_adu, cfg.optics.psf_sigma_px,
                {"source": f"{n_frames} frames rendered with rng tag {tag!r}, seed {cfg.seed}; blending also from "
                           f"{len(pairs[0])} painted pairs in {n_pair_frames} frames",
-                "skygen_detector": "skygen.detect.detect"}, extra_pairs=pairs)
+                "skygen_detector": "skygen.instrument.detect.detect"}, extra_pairs=pairs)
 
 
 def calibrate_from_dataset(path: str | Path, max_frames: int | None = None) -> DetectorModel:
     """Fit the emulator on the frames of a rendered dataset (all splits)."""
-    from .config import build_config
-    from .datasets.shards import open_dataset
-    from .render import Renderer
+    from skygen.config import build_config
+    from skygen.datasets.shards import open_dataset
+    from skygen.render.frame import Renderer
     with open_dataset(path) as ds:
         config = ds.config
         bad = [n for n in STREAM_CORRUPTIONS[1:] if float(config["corruptions"][n]) != 0.0]
@@ -286,4 +286,4 @@ def calibrate_from_dataset(path: str | Path, max_frames: int | None = None) -> D
                    cfg.optics.psf_sigma_px,
                    {"source": f"dataset {Path(path).name} ({ds.manifest.get('dataset_id')}), first {n} frames; "
                               f"blending also from {len(pairs[0])} painted pairs",
-                    "skygen_detector": "skygen.detect.detect"}, extra_pairs=pairs)
+                    "skygen_detector": "skygen.instrument.detect.detect"}, extra_pairs=pairs)

@@ -1,10 +1,10 @@
-"""A detector emulator: what :func:`skygen.detect.detect` would report, without pixels.
+"""A detector emulator: what :func:`skygen.instrument.detect.detect` would report, without pixels.
 
-The ``detections`` stream (:mod:`skygen.stream`) needs detection sets at ~0.1 ms each;
+The ``detections`` stream (:mod:`skygen.stream.samples`) needs detection sets at ~0.1 ms each;
 rendering and detecting a frame costs ~12 ms. The emulator replaces pixels and detector
 by an empirical model *fitted to the real detector* on rendered frames
-(:mod:`skygen.calibration`), never tuned by hand. This module is the model; fitting it is
-:mod:`skygen.calibration`.
+(:mod:`skygen.stream.calibration`), never tuned by hand. This module is the model; fitting it is
+:mod:`skygen.stream.calibration`.
 
 The variable everything is binned on
     ``u = log10(electrons / threshold_e)``, a source's expected electrons over the
@@ -28,7 +28,7 @@ What is modelled (each from the calibration frames)
       falls to the threshold). The probability is a logistic curve in ``g`` fitted by maximum
       likelihood to the catalog pairs of the calibration frames plus a designed experiment
       of pairs painted into frames and run through the real sensor model and detector
-      (:func:`skygen.calibration.painted_pairs`); a merged
+      (:func:`skygen.stream.calibration.painted_pairs`); a merged
       pair becomes one detection at the flux-weighted mean position with the summed
       electrons;
     * spurious detections (cosmic rays, hot-pixel clusters, stars just outside the frame):
@@ -56,8 +56,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import hashrng
-from .errors import ConfigError, DatasetError
+from skygen import hashrng
+from skygen.errors import ConfigError, DatasetError
 
 CALIBRATION_FORMAT = "skygen-detector-calibration"
 CALIBRATION_VERSION = 1
@@ -83,13 +83,13 @@ def calibration_key(config: dict) -> dict:
     for name in KEY_CORRUPTIONS:
         key[f"corruptions.{name}"] = config["corruptions"][name]
     key["detection.max_detections"] = config["detection"]["max_detections"]
-    from .identity import NEUTRAL_DEFAULTS
+    from skygen.identity import NEUTRAL_DEFAULTS
     return {k: v for k, v in key.items() if not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])}
 
 
 def threshold_electrons(renderer) -> float:
     """Electrons a centred point source needs for its peak pixel to reach the threshold."""
-    from .psf import peak_fraction
+    from skygen.instrument.psf import peak_fraction
     o = renderer.cfg.optics
     return float(renderer.cfg.detection.threshold_sigma * renderer.noise_e()
                  / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect))
@@ -97,7 +97,7 @@ def threshold_electrons(renderer) -> float:
 
 @dataclass(frozen=True)
 class DetectorModel:
-    """A fitted emulator (see the module docstring). Build with :func:`skygen.calibration.calibrate_from_renders` or :func:`load`."""
+    """A fitted emulator (see the module docstring). Build with :func:`skygen.stream.calibration.calibrate_from_renders` or :func:`load`."""
 
     key: dict
     threshold_e: float
@@ -243,7 +243,7 @@ def _digest(body: dict) -> str:
 
 def save(model: DetectorModel, path: str | Path) -> Path:
     """Write the calibration as JSON (atomically)."""
-    from .datasets.shards import write_json_atomic
+    from skygen.datasets.shards import write_json_atomic
     path = Path(path)
     write_json_atomic(path, model.to_json())
     return path

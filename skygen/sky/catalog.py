@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import CatalogError
+from skygen.errors import CatalogError
 
 HIPPARCOS_EPOCH_YR = 1991.25
 MAS_TO_RAD = np.pi / 180 / 3600e3
@@ -128,7 +128,7 @@ def load_catalog(path: str | Path | None = None) -> StarTable:
 
 
 def write_npz(table: StarTable, path: str | Path) -> None:
-    from .runtime import atomic_path
+    from skygen.runtime import atomic_path
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, hip=table.hip, ra_rad=table.ra_rad, dec_rad=table.dec_rad,
                  pmra_mas_yr=table.pmra_mas_yr, pmdec_mas_yr=table.pmdec_mas_yr, mag=table.mag,

@@ -1,18 +1,18 @@
 """Many scenes at once: the vectorised scene builder of the frames stream.
 
-:meth:`skygen.render.Renderer.scene` builds one frame's scene (attitude, light sources,
+:meth:`skygen.render.frame.Renderer.scene` builds one frame's scene (attitude, light sources,
 cosmic-ray charge, stray-light direction) from per-frame numpy generators, ~0.4 ms a
 frame, most of it creating generators. :class:`SceneBuilder` builds the scenes of many
 samples in one go from counter-based draws (:mod:`skygen.hashrng`), distributed as
 ``Renderer.scene`` draws them: the same attitude distribution
-(:func:`skygen.attitude.boresights_from_uniforms`), the same catalog stars (the
+(:func:`skygen.sky.attitude.boresights_from_uniforms`), the same catalog stars (the
 renderer's sky index, cone and sensor margins), photometry and vignetting, false stars as
-the renderer draws them, cosmic-ray tracks by :func:`skygen.corruptions.cosmic_ray_charge`
+the renderer draws them, cosmic-ray tracks by :func:`skygen.instrument.corruptions.cosmic_ray_charge`
 and the stray-light direction. Sample ``i`` is a pure function of (config, stream key,
 ``i``), alone or in any batch. Motion blur (per-frame sub-exposure paths) is left to
 ``Renderer.scene``: with ``corruptions.motion_blur > 0`` every scene comes from it.
 
-Both renderers of the frames stream (:mod:`skygen.binned` and the full renderer) rasterise
+Both renderers of the frames stream (:mod:`skygen.render.binned` and the full renderer) rasterise
 these scenes, so a sample's stars are the same whichever draws its pixels.
 """
 
@@ -21,12 +21,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import corruptions as corr
-from . import hashrng
-from .attitude import attitude_matrices, boresights_from_uniforms
-from .render import Scene
+from skygen.instrument import corruptions as corr
+from skygen import hashrng
+from skygen.sky.attitude import attitude_matrices, boresights_from_uniforms
+from skygen.render.frame import Scene
 
-# draw ids under the stream key (skygen.stream keeps its own below 64 and at >= 512)
+# draw ids under the stream key (skygen.stream.samples keeps its own below 64 and at >= 512)
 D_ATT = 0              # 0..2
 D_NFALSE = 16
 D_COSMIC = 18

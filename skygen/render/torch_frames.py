@@ -2,7 +2,7 @@
 
 The *scene* of frame i (attitude, light sources with their sub-exposure paths and
 electrons, cosmic-ray charge, stray-light direction) comes from
-:meth:`skygen.render.Renderer.scene`, the code the NumPy renderer runs, so both backends
+:meth:`skygen.render.frame.Renderer.scene`, the code the NumPy renderer runs, so both backends
 render the same stars with the same fluxes. Only the rasterisation and the pixel noise run
 here, for a whole batch at once. Per pixel p of frame b, in electrons (e-) over the
 exposure t, then ADU::
@@ -14,7 +14,7 @@ exposure t, then ADU::
 
 ``bg`` is dark + sky (times the static vignetting map) plus the frame's stray-light ramp;
 ``prnu``, ``offset`` (bias + integer FPN), ``hot`` and the dead-pixel mask are the same
-static maps as the NumPy renderer's (:func:`skygen.sensor.sensor_maps`, drawn from
+static maps as the NumPy renderer's (:func:`skygen.instrument.sensor.sensor_maps`, drawn from
 ``sensor.sensor_seed``), copied to the device once. The stored image is the mean of each
 ``factor x factor`` block of the ADU frame (area averaging, as ``cv2.INTER_AREA`` does
 for an integer factor), on the device.
@@ -28,16 +28,16 @@ What differs from the NumPy renderer, on purpose:
   pixel touched by a star, a cosmic ray or a defect with the exact model; ``exact`` draws
   Poisson and Gaussian noise for every pixel.
 * Gaussian stamps are computed on the device, exact pixel integrals (erf differences),
-  with one radius for all stars, :func:`skygen.psf.stamp_radius_px` (NumPy cuts faint
+  with one radius for all stars, :func:`skygen.instrument.psf.stamp_radius_px` (NumPy cuts faint
   stars' stamps where < 0.01 e- lies outside); both normalise each stamp to its flux.
-  Moffat and Airy stamps are computed on the host by :mod:`skygen.psf` (the NumPy code)
+  Moffat and Airy stamps are computed on the host by :mod:`skygen.instrument.psf` (the NumPy code)
   and copied to the device: correct, but slower.
 * Blooming (rare: only stars brighter than about Hp -1 saturate the default camera) is
-  done on the host for the few affected columns, with :func:`skygen.sensor.bloom`.
+  done on the host for the few affected columns, with :func:`skygen.instrument.sensor.bloom`.
 
 For on-the-fly training (no dataset on disk): :func:`render_batch` renders frames by index
 in one call. To keep a GPU busy, make the scenes in host processes (``Renderer(cfg).scene(i)``
-in DataLoader workers; a :class:`~skygen.render.Scene` pickles) and pass them to
+in DataLoader workers; a :class:`~skygen.render.frame.Scene` pickles) and pass them to
 :meth:`TorchRenderer.rasterise` on the device: the host part costs about 0.6-1.4 ms per frame
 per core, the device part is batched.
 
@@ -57,11 +57,11 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from .catalog import radec_to_vec
-from .errors import ConfigError
-from .psf import peak_fraction, stamp, stamp_radius_px, streak
-from .render import Frame, Renderer, Scene
-from .sensor import background_sampler, bloom
+from skygen.sky.catalog import radec_to_vec
+from skygen.errors import ConfigError
+from skygen.instrument.psf import peak_fraction, stamp, stamp_radius_px, streak
+from skygen.render.frame import Frame, Renderer, Scene
+from skygen.instrument.sensor import background_sampler, bloom
 
 _SQRT2 = math.sqrt(2.0)
 _AMBIGUOUS = -1e9   # marks a 16-bit prefix whose ADU value needs the full 32-bit search
@@ -124,7 +124,7 @@ class Batch:
 class TorchRenderer:
     """Rasterises scenes of one configuration on ``device``. Construct once per process.
 
-    Holds the NumPy :class:`~skygen.render.Renderer` (catalog index, camera, photometry,
+    Holds the NumPy :class:`~skygen.render.frame.Renderer` (catalog index, camera, photometry,
     scene code) and the static sensor maps on the device.
     """
 
@@ -310,7 +310,7 @@ class TorchRenderer:
     def _dense_background(self, background_e: float, shape, generator: torch.Generator) -> torch.Tensor:
         """Every pixel from the uniform-background ADU distribution, offsets added (float32 ADU).
 
-        The NumPy :class:`~skygen.sensor.BackgroundSampler`'s tables: a random 16-bit
+        The NumPy :class:`~skygen.instrument.sensor.BackgroundSampler`'s tables: a random 16-bit
         prefix picks the answer from a 65,536-entry table wherever the prefix alone decides
         it; elsewhere 16 more random bits are drawn and the exact 32-bit CDF thresholds
         searched, so probabilities are resolved to 2^-32.
@@ -418,7 +418,7 @@ class TorchRenderer:
         return self.rasterise(self.scenes(indices), generator, full_res=full_res, dtype=dtype)
 
     def frames(self, batch: Batch) -> list[Frame]:
-        """Every frame of a ``full_res`` batch as a :class:`~skygen.render.Frame`: the real
+        """Every frame of a ``full_res`` batch as a :class:`~skygen.render.frame.Frame`: the real
         detector, matching and detection-level corruptions run on the host (NumPy), with
         the stored image rounded to uint16 as in the shards."""
         if batch.full is None:
@@ -453,7 +453,7 @@ def _point_sources(scenes: list[Scene]) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 def _host_stamps(stars: dict, psf: str, sigma: float, beta: float) -> list:
-    """Moffat/Airy stamps (and streaks) from :mod:`skygen.psf`, as the NumPy renderer makes them."""
+    """Moffat/Airy stamps (and streaks) from :mod:`skygen.instrument.psf`, as the NumPy renderer makes them."""
     flux = np.asarray(stars["electrons"], dtype=np.float64)
     if stars["paths"] is None:
         return [stamp(float(x), float(y), float(f), psf, sigma, beta) for x, y, f in zip(stars["x_px"], stars["y_px"], flux)]

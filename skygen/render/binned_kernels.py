@@ -1,4 +1,4 @@
-"""The binned renderer's inner loops (:mod:`skygen.binned`), compiled with numba.
+"""The binned renderer's inner loops (:mod:`skygen.render.binned`), compiled with numba.
 
 Static sensor-size maps are *block-major*: pixel (y, x) at b * s^2 + (y % s) * s + x % s,
 b = (y // s) * wb + x // s, so a stored pixel's s^2 sensor pixels are contiguous. A frame's
@@ -75,7 +75,7 @@ def _add(buf, paint, slot, weight, use_weight, f, wb, yy, xa, xb, vals, v0):
 
 @njit(cache=True)
 def paint_gauss(buf, paint, slot, weight, xs, ys, flux, radii, sigma, f, h, w):
-    """Add Gaussian stamps (exactly as :func:`skygen.psf.gaussian_stamps`: erf differences,
+    """Add Gaussian stamps (exactly as :func:`skygen.instrument.psf.gaussian_stamps`: erf differences,
     normalised to the flux), times the pixels' ``weight`` (PRNU, 0 on dead pixels), into the
     compact buffer; return each stamp's peak pixel (unweighted, as Renderer._deposit sees it)."""
     wb = w // f
@@ -263,7 +263,7 @@ def model_blocks(blocks, n, star, charge, has_charge, live, hot_e, static_specia
 
 @njit(cache=True)
 def _bloom_column(col, full_well):
-    """:func:`skygen.sensor.bloom` on one column (in place)."""
+    """:func:`skygen.instrument.sensor.bloom` on one column (in place)."""
     h = len(col)
     first, last = -1, -1
     excess = 0.0
@@ -289,7 +289,7 @@ def _bloom_column(col, full_well):
 @njit(cache=True)
 def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, live, hot_e, static_px, bg,
                   bg_bm, use_map, all_on, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
-    """Blocks drawn pixel by pixel as :func:`skygen.sensor.read_out` draws them: Poisson,
+    """Blocks drawn pixel by pixel as :func:`skygen.instrument.sensor.read_out` draws them: Poisson,
     cosmic charge, dead pixels, blooming (spilled charge kept only on pixels the full renderer
     draws exactly: source boxes, their blooming extensions, hot and dead pixels; every pixel
     when ``all_on``, i.e. when the full renderer draws every pixel exactly), full well, read

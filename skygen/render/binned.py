@@ -3,7 +3,7 @@
 ``Renderer.render`` draws every full-resolution pixel (1024 x 1024 by default) and then
 area-averages the uint16 frame to the stored size (``Renderer.downsample``, OpenCV
 ``INTER_AREA``). :class:`BinnedRenderer` draws the *stored* pixels of the same
-:class:`skygen.render.Scene` directly, with the distribution render-then-downsample gives
+:class:`skygen.render.frame.Scene` directly, with the distribution render-then-downsample gives
 them. What follows is the derivation; ``tests/test_stream_binned.py`` checks it.
 
 What render-then-downsample stores
@@ -13,7 +13,7 @@ What render-then-downsample stores
     ``x_p = (e_p + n_p) / g``, ``e_p ~ Poisson(lam_p) + c_p`` (``lam_p``: dark + sky (+ stray
     light) + PRNU x star light + hot-pixel dark current, 0 for a dead pixel; ``c_p``: cosmic-ray
     charge), ``n_p ~ N(0, sigma_read)``, ``o_p`` the static bias + FPN offset
-    (:mod:`skygen.sensor`). ``INTER_AREA`` at an integer factor stores the block sum
+    (:mod:`skygen.instrument.sensor`). ``INTER_AREA`` at an integer factor stores the block sum
     ``A_b = sum_p a_p`` divided by ``n`` and rounded: half to even for ``s = 4, 8``, half up
     for ``s = 2`` (OpenCV's code paths differ; :func:`area_rounding` finds the rule by asking
     OpenCV once, and refuses a factor it cannot reproduce). So the stored value is a
@@ -24,7 +24,7 @@ Block sums (no clipping, no full well reached)
 
     * Background-only blocks (uniform dark + sky, no star, hot, dead pixel or cosmic ray):
       the ``k_p`` are i.i.d. with the per-pixel distribution of the renderer's own
-      ``fast`` sampler (:class:`skygen.sensor.BackgroundSampler`), so ``S_b`` has its
+      ``fast`` sampler (:class:`skygen.instrument.sensor.BackgroundSampler`), so ``S_b`` has its
       ``n``-fold convolution, computed once and drawn from the same 2^-32 table. Exact.
     * Every other block (stars, hot and dead pixels, cosmic rays, a non-uniform
       background): with ``U`` uniform on [0, 1), ``P(floor(x) = k) = f_{x - U}(k)`` for any
@@ -45,7 +45,7 @@ Block sums (no clipping, no full well reached)
       pixel is then visible in the sum and only per-pixel draws are exact).
     * Blocks where any pixel could reach the full well or the ADC top (bright stars, strong
       hot pixels, cosmic-ray cores), extended along the columns as far as blooming can
-      spill: every sensor pixel of those blocks is drawn as :func:`skygen.sensor.read_out`
+      spill: every sensor pixel of those blocks is drawn as :func:`skygen.instrument.sensor.read_out`
       draws it (Poisson, charge, dead pixels, blooming onto the pixels the full renderer
       draws exactly, full well, read noise, ADC, clipping), then summed. Exact.
 
@@ -66,9 +66,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from . import binned_kernels as kern
-from .psf import gaussian_radius_px, stamp, streak
-from .sensor import BackgroundSampler, background_sampler
+from skygen.render import binned_kernels as kern
+from skygen.instrument.psf import gaussian_radius_px, stamp, streak
+from skygen.instrument.sensor import BackgroundSampler, background_sampler
 
 ALIAS_BOUND = 1e-12      # largest tolerated aliasing of the block-sum model (see module doc)
 
@@ -139,7 +139,7 @@ def unsupported_reason(renderer) -> str | None:
 
 # ---------------------------------------------------------------------------------- renderer
 class BinnedRenderer:
-    """Stored-size uint16 frames of a :class:`skygen.render.Renderer`'s scenes (module doc).
+    """Stored-size uint16 frames of a :class:`skygen.render.frame.Renderer`'s scenes (module doc).
 
     Construct once per process (static maps are binned here). :meth:`image` is a pure
     function of (config, scene, seed, numba version): one 64-bit seed starts a SplitMix64
@@ -150,7 +150,7 @@ class BinnedRenderer:
     def __init__(self, renderer):
         reason = unsupported_reason(renderer)
         if reason is not None:
-            from .errors import ConfigError
+            from skygen.errors import ConfigError
             raise ConfigError(f"binned rendering cannot reproduce this config: {reason}")
         self.r = renderer
         cfg = renderer.cfg
@@ -279,7 +279,7 @@ class BinnedRenderer:
     def image(self, scene, seed: int | None = None) -> np.ndarray:
         """The stored-size uint16 ADU image (h/s, w/s) of ``scene``; every draw comes from the
         64-bit ``seed`` (default: from the scene's generator of stage ``binned_noise``)."""
-        from . import corruptions as corr
+        from skygen.instrument import corruptions as corr
         r, cfg = self.r, self.r.cfg
         s = cfg.sensor
         f, n, (hb, wb) = self.f, self.n, self.shape

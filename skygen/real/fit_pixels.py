@@ -5,7 +5,7 @@ divided by 16); electrons only through the fitted gain; pixel positions in skyge
 
 * :func:`value_scale` — the factor the stored values carry (common trailing zero bits of every
   pixel below the file's maximum) and the ADC depth.
-* :func:`background` — per-box sigma-clipped level and noise (:func:`skygen.detect.background_map`)
+* :func:`background` — per-box sigma-clipped level and noise (:func:`skygen.instrument.detect.background_map`)
   and ``level = centre + gx x + gy y - drop r^2`` fitted to the box levels (``r^2`` normalised to 1 at
   the corner, as skygen's ``optics.vignetting``): the level at the centre, the large-scale gradient
   (ADU from the dark edge to the bright edge, and its direction) and the vignetting drop at the corner.
@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erf
 
-from .detect import background_map
+from skygen.instrument.detect import background_map
 
 
 def value_scale(images: list[np.ndarray]) -> tuple[int, int, float]:

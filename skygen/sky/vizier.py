@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .catalog import HIPPARCOS_EPOCH_YR, StarTable
-from .errors import CatalogError
+from skygen.sky.catalog import HIPPARCOS_EPOCH_YR, StarTable
+from skygen.errors import CatalogError
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ def table_to_stars(source: VizierSource, table) -> StarTable:
 
 def fetch(name: str, out, mag_limit: float = 9.0) -> StarTable:
     """Fetch catalog ``name`` (a key of SOURCES) and save it as ``out`` (.npz)."""
-    from .catalog import write_npz
+    from skygen.sky.catalog import write_npz
     try:
         source = SOURCES[name]
     except KeyError:

@@ -3,18 +3,18 @@
     skygen fit-camera FRAME... --out camera.yaml [--camera START.yaml | --fov-range LO HI] [--pixel-pitch UM]
                       [--pixel-aspect A] [--epoch YEAR] [--report DIR]
 
-1. Read the frames (:mod:`skygen.frames`); all must have one size. Values are divided by the scale
-   they carry (:func:`skygen.fitpixels.value_scale`: 12-bit data stored x16 in 16-bit TIFF).
+1. Read the frames (:mod:`skygen.real.frames`); all must have one size. Values are divided by the scale
+   they carry (:func:`skygen.real.fit_pixels.value_scale`: 12-bit data stored x16 in 16-bit TIFF).
    Blank (constant) and saturated frames, colour and unreadable files are dropped with the reason.
 2. Detect stars (skygen's detector, 5 sigma, >= 3 px, a background per 64 px box) and solve each
-   frame lost-in-space with tetra3rs (:mod:`skygen.platesolve`): from the start camera, or, with
+   frame lost-in-space with tetra3rs (:mod:`skygen.real.platesolve`): from the start camera, or, with
    ``--fov-range`` (default without a camera file: 5-30 deg), searching the horizontal field in that
    range (the first search of a range builds and caches a database: ~20 s for 5-30 deg). Unsolved frames are dropped with
    the solver's reason.
-3. Geometry (:mod:`skygen.fitgeom`): detections matched to skygen's catalogue (Hipparcos-2 at the
+3. Geometry (:mod:`skygen.real.fit_geometry`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted
    together by least squares; terms the data cannot constrain are fixed, and the report says why.
-4. Pixels (:mod:`skygen.fitpixels`): background level and gradient, gain/bias/read noise from the
+4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, gain/bias/read noise from the
    mean-variance relation, PSF (Gaussian or Moffat), hot pixels, the photometric zero point.
 5. Detector settings: the threshold and background box that find the most catalogue stars net of
    other detections on these frames. Real frames show stars fainter than the catalogue's
@@ -41,8 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .errors import ConfigError, SkygenError
+from skygen.instrument.camera import Camera
+from skygen.errors import ConfigError, SkygenError
 
 BOX_PX = 64                 # background box of detection and pixel statistics
 DETECT = {"threshold_sigma": 5.0, "min_area_px": 3}
@@ -60,7 +60,7 @@ class FitError(SkygenError):
 def read_frames(paths: list[str], log) -> tuple[list[str], list[np.ndarray], list[tuple[str, str]]]:
     """(names, images, dropped): unreadable, colour or empty files are dropped with their one-line reason;
     frames of different sizes are refused."""
-    from .frames import FrameError, frame_files, read_frame
+    from skygen.real.frames import FrameError, frame_files, read_frame
     files: list[Path] = []
     for p in paths:
         path = Path(p)
@@ -98,7 +98,7 @@ def usable(img: np.ndarray, saturation: float) -> str:
 
 def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
     """The start config: the camera file, or a camera of the frames' size with the range's middle field."""
-    from .config import build_config, load_config
+    from skygen.config import build_config, load_config
     h, w = shape
     if camera is not None:
         if fov_range is not None:
@@ -133,11 +133,11 @@ def _image_size(w: int, h: int, want: int = 256) -> int:
 def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None, pixel_pitch_um=None,
                pixel_aspect=None, epoch_yr=None, report_dir=None, command: str = "", log=print) -> dict:
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record."""
-    from . import fitgeom as G
-    from . import fitpixels as P
-    from .catalog import SkyIndex, load_catalog
-    from .detect import detect
-    from .platesolve import load_database
+    from skygen.real import fit_geometry as G
+    from skygen.real import fit_pixels as P
+    from skygen.sky.catalog import SkyIndex, load_catalog
+    from skygen.instrument.detect import detect
+    from skygen.real.platesolve import load_database
     t0 = time.perf_counter()
     if pixel_aspect is not None and not 0.1 <= pixel_aspect <= 10:
         raise ConfigError(f"--pixel-aspect {pixel_aspect:g}: pixel height / width between 0.1 and 10")
@@ -246,7 +246,7 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
                      cfg, scale, sat, fov_range, camera, command, {"solve_s": t_solve, "geometry_s": t_geom,
                                                                "total_s": t_total}, epoch)
     record["notes"] = notes
-    from .fitreport import write_camera_yaml, write_report
+    from skygen.real.fit_report import write_camera_yaml, write_report
     write_camera_yaml(out, cfg, record, command)
     if report_dir is not None:
         write_report(report_dir, record, [imgs[i] for i in sidx][:1], g)
@@ -255,7 +255,7 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
 
 def _zero_point_real(solved, g, bgs, sat):
     """Zero point of the real frames and the matched unsaturated stars (flux ADU, Hp, B-V)."""
-    from .fitpixels import zero_point
+    from skygen.real.fit_pixels import zero_point
     flux, mag, bv, peak, lev = [], [], [], [], []
     for fs, m, b in zip(solved, g.keep, bgs):
         d = fs.det_index[m]
@@ -274,7 +274,7 @@ def _zero_point_real(solved, g, bgs, sat):
 
 def _exposure_from_stars(cfg0, stars, gain) -> float:
     """First estimate of exposure x throughput: detected electrons / the model's electrons per second."""
-    from .photometry import Photometry
+    from skygen.instrument.photometry import Photometry
     if stars["n"] == 0:
         return cfg0.sensor.exposure_s
     ph = Photometry.from_config(cfg0.optics, cfg0.photometry, cfg0.sensor)
@@ -285,7 +285,7 @@ def _exposure_from_stars(cfg0, stars, gain) -> float:
 def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
     """Threshold and background box that maximise (catalogue stars found) - (other detections)."""
     from scipy.spatial import cKDTree
-    from .detect import detect
+    from skygen.instrument.detect import detect
     trees = []
     for fs, R in zip(solved, rotations):
         idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
@@ -312,8 +312,8 @@ def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
 
 def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=None):
     """The fitted config: the start config with the measured values in the model's own terms."""
-    from .config import build_config, config_dict
-    from .photometry import Photometry, dark_current_e_s
+    from skygen.config import build_config, config_dict
+    from skygen.instrument.photometry import Photometry, dark_current_e_s
     d = config_dict(cfg0)
     s = cfg0.sensor
     gain = meas["gain_e_per_adu"]
@@ -358,8 +358,8 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
 
 
 def _measure_real(img, settings, sat, fs, g, k) -> dict:
-    from .framestats import frame_stats
-    from .fitpixels import zero_point
+    from skygen.real.frame_stats import frame_stats
+    from skygen.real.fit_pixels import zero_point
     st, _ = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
     m = g.keep[k]
     d = fs.det_index[m]
@@ -370,10 +370,10 @@ def _measure_real(img, settings, sat, fs, g, k) -> dict:
 
 def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
-    from .config import build_config, config_dict
-    from .fitpixels import zero_point
-    from .framestats import frame_stats
-    from .render import Renderer
+    from skygen.config import build_config, config_dict
+    from skygen.real.fit_pixels import zero_point
+    from skygen.real.frame_stats import frame_stats
+    from skygen.render.frame import Renderer
     d = config_dict(cfg)
     ra, dec, roll = (tuple(float(a[i]) for a in attitudes) for i in range(3))
     d["attitude"] = {**d["attitude"], "mode": "list", "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
@@ -388,7 +388,7 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         f = r.render(i)
         img = f.image_full.astype(np.float32)
         st, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)
-        from .detect import match
+        from skygen.instrument.detect import match
         sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
         ok = sidx >= 0
         zp, n = zero_point(det["flux_adu"][ok].astype(float), f.stars["mag"][sidx[ok]].astype(float),
@@ -399,11 +399,11 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
 
 def _record(names, dropped, solved, g, cam0, cam, mv, meas, zp_real, exposure, real_stats, before, after, cfg,
             scale, sat, fov_range, camera, command, timing, epoch) -> dict:
-    from .config import config_dict
-    from .runtime import hardware
+    from skygen.config import config_dict
+    from skygen.runtime import hardware
     per_frame = []
     for fs, r, p, R in zip(solved, g.residuals, g.positions, g.rotations):
-        from .fitgeom import radec_roll
+        from skygen.real.fit_geometry import radec_roll
         ra, dec, roll = radec_roll(R)
         per_frame.append({"frame": Path(fs.name).name, "solved_fov_deg": fs.fov_deg, "matched": int(len(r)),
                           "rms_px": float(np.sqrt(np.mean(np.sum(r ** 2, 1)))) if len(r) else float("nan"),

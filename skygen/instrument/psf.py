@@ -16,7 +16,7 @@ at every 1/16-pixel phase); a star's stamp is then read from that table by bilin
 interpolation in its sub-pixel phase. Centroids of these stamps are true to < 0.005 px
 (Moffat) and < 0.01 px (Airy, whose slowly falling wings are cut at 8 FWHM).
 
-Non-square pixels (``aspect`` = pixel height / width, see :mod:`skygen.camera`): the PSF is
+Non-square pixels (``aspect`` = pixel height / width, see :mod:`skygen.instrument.camera`): the PSF is
 round on the sky, so in pixels it is ``aspect`` times narrower along y (Gaussian: sigma_y =
 sigma / aspect); ``sigma`` is always measured in pixel widths (along x).
 

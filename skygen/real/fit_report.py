@@ -1,6 +1,6 @@
 """What ``skygen fit-camera`` writes: the camera YAML and the report (``REPORT.md``, ``fit.json``, ``fit.png``).
 
-Every number in them comes from the fit record (:func:`skygen.fitcam.fit_camera`); files are
+Every number in them comes from the fit record (:func:`skygen.real.fit_camera.fit_camera`); files are
 written atomically (:mod:`skygen.runtime`).
 """
 
@@ -16,8 +16,8 @@ SECTIONS = ("camera", "optics", "photometry", "sensor", "corruptions", "detectio
 def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     """The fitted camera as a camera file (checked by loading it back)."""
     import yaml
-    from .config import config_dict, load_config
-    from .runtime import atomic_write_text
+    from skygen.config import config_dict, load_config
+    from skygen.runtime import atomic_write_text
     d = config_dict(cfg)
     body = {s: {k: v for k, v in d[s].items() if v is not None} for s in SECTIONS}
     body["epoch_yr"] = d["epoch_yr"]
@@ -25,7 +25,7 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     fixed = "; ".join(f"{k} fixed ({v})" for k, v in g["fixed"].items()) or "none fixed"
     head = [f"# Fitted by skygen fit-camera from {len(record['solved'])} solved of "
             f"{len(record['frames'])} usable frames ({record['created_utc']}):",
-            f"#   {command}" if command else "#   (from Python: skygen.fitcam.fit_camera)",
+            f"#   {command}" if command else "#   (from Python: skygen.real.fit_camera.fit_camera)",
             f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
             f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
             "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
@@ -52,7 +52,7 @@ def markdown(r: dict) -> str:
     cpu = (f"{hw.get('cpu_model', 'CPU')}, {hw.get('machine', '')}, {hw.get('usable_cores')} usable cores, "
            f"load {hw.get('load_average_1m', float('nan')):.1f}") if isinstance(hw, dict) else str(hw)
     lines = ["# skygen fit-camera report", "",
-             f"`{r['command'] or 'skygen.fitcam.fit_camera(...)'}` ({cpu}, {r['created_utc']}): "
+             f"`{r['command'] or 'skygen.real.fit_camera.fit_camera(...)'}` ({cpu}, {r['created_utc']}): "
              f"{len(r['frames'])} usable frames, {len(r['solved'])} solved; {r['timing_s']['total_s']:.1f} s in all "
              f"(solving {r['timing_s']['solve_s']:.1f} s, geometry done at {r['timing_s']['geometry_s']:.1f} s). "
              f"Frame values divided by {r['value_scale']} (the scale they carry); saturation {r['saturation_adu']:.0f} ADU.",
@@ -113,14 +113,14 @@ def markdown(r: dict) -> str:
         rel = (f"{v['fitted'] - v['real']:+.3f} mag" if k == "zero_point_mag" else
                f"{v['fitted'] / v['real']:.3f}" if v["real"] else "–")
         lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} |")
-    lines += ["", "Statistics are measured the same way on both (skygen.framestats): background and noise by the "
+    lines += ["", "Statistics are measured the same way on both (skygen.real.frame_stats): background and noise by the "
               "whole-frame sigma-clipped estimator, detections with the fitted detector settings, star width as "
               "the second moment in 9 × 9 px, zero point from matched stars.", "", "![fit](fit.png)", ""]
     return "\n".join(lines)
 
 
 def write_report(folder, record: dict, real_example: list, g) -> None:
-    from .runtime import atomic_write_text, write_json
+    from skygen.runtime import atomic_write_text, write_json
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rec = {k: v for k, v in record.items() if not k.startswith("_")}
@@ -133,7 +133,7 @@ def _plot(path, record, real_example, g) -> None:
     import matplotlib
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
-    from .runtime import atomic_path
+    from skygen.runtime import atomic_path
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     import os
     full = [f["frame"] for f in record["solved"]]

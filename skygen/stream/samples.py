@@ -7,25 +7,25 @@ same samples. Two kinds:
 
 ``frames``
     Image at the stored size, detections, true stars, labels. The scenes of a batch come
-    from :class:`skygen.scenes.SceneBuilder` (counter-based, vectorised; distributed as
+    from :class:`skygen.render.scenes.SceneBuilder` (counter-based, vectorised; distributed as
     ``Renderer.scene`` draws them); ``frames_renderer`` chooses what rasterises them:
 
-    * ``"binned"`` (default): :class:`skygen.binned.BinnedRenderer` draws the stored pixels
+    * ``"binned"`` (default): :class:`skygen.render.binned.BinnedRenderer` draws the stored pixels
       directly, equal in distribution to render-then-downsample (its module docstring has
       the derivation, ``tests/test_stream_binned.py`` the two-sample tests), and the
-      detections come from the calibrated :mod:`skygen.emulator` run on the scene's light
+      detections come from the calibrated :mod:`skygen.stream.emulator` run on the scene's light
       sources, as the ``detections`` stream makes them. ~1.2 ms per sample per core.
-    * ``"full"``: the full render of :class:`skygen.render.Renderer` — every sensor pixel,
+    * ``"full"``: the full render of :class:`skygen.render.frame.Renderer` — every sensor pixel,
       area-averaged, detections from the real detector: exactly what ``skygen render``
       writes, without writing it. ~12-17 ms per sample per core.
 
     A config the binned renderer cannot reproduce exactly (see
-    :func:`skygen.binned.unsupported_reason`), or one the emulator's calibration was not
+    :func:`skygen.render.binned.unsupported_reason`), or one the emulator's calibration was not
     made for, falls back to ``"full"`` with one warning per process and reason.
 ``detections``
     The fast path: attitude, catalog cone search, projection and photometry (the
     renderer's own camera, catalog index and photometry), false stars, then the
-    calibrated :mod:`skygen.emulator` instead of pixels and detector, then the corruption
+    calibrated :mod:`skygen.stream.emulator` instead of pixels and detector, then the corruption
     registry's detection-level corruptions. Same detection table and labels, no image.
     ~0.05 ms per sample per core in batches (``benchmarks/stream_bench.py``).
 
@@ -54,12 +54,12 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import corruptions as corr
-from . import emulator as emu
-from . import hashrng
-from .attitude import attitude_matrices, boresights_from_uniforms, matrices_to_quaternions
-from .catalog import radec_to_vec
-from .errors import ConfigError
+from skygen.instrument import corruptions as corr
+from skygen.stream import emulator as emu
+from skygen import hashrng
+from skygen.sky.attitude import attitude_matrices, boresights_from_uniforms, matrices_to_quaternions
+from skygen.sky.catalog import radec_to_vec
+from skygen.errors import ConfigError
 
 KINDS = ("frames", "detections")
 FRAMES_RENDERERS = ("binned", "full")
@@ -148,7 +148,7 @@ class SampleStream:
 
     def __init__(self, cfg, kind: str = "detections", *, calibration=None, level_ranges: dict | None = None,
                  catalog=None, frames_renderer: str = "binned"):
-        from .render import Renderer
+        from skygen.render.frame import Renderer
         self.kind = check_kind(kind)
         self.level_ranges = check_ranges(level_ranges)
         if frames_renderer not in FRAMES_RENDERERS:
@@ -162,7 +162,7 @@ class SampleStream:
         self.binned = None
         self.frames_renderer = frames_renderer if kind == "frames" else None
         if kind == "frames":
-            from .scenes import SceneBuilder
+            from skygen.render.scenes import SceneBuilder
             self.scene_builder = SceneBuilder(self.renderer, self.key)
             if frames_renderer == "binned":
                 self._setup_binned(calibration)
@@ -186,8 +186,8 @@ class SampleStream:
     def _setup_binned(self, calibration) -> None:
         """The binned renderer and the emulator for a ``frames`` stream, or the full renderer
         with one warning when either cannot serve this config exactly."""
-        from .binned import BinnedRenderer, unsupported_reason
-        from .errors import SkygenError
+        from skygen.render.binned import BinnedRenderer, unsupported_reason
+        from skygen.errors import SkygenError
         torch = getattr(self.cfg, "render", None) is not None and self.cfg.render.backend == "torch"
         reason = "render.backend=torch rasterises full frames on its device" if torch else \
             unsupported_reason(self.renderer)
@@ -229,7 +229,7 @@ class SampleStream:
 
     # ------------------------------------------------------------------ frames
     def frame(self, i: int):
-        """Sample ``i`` of a ``frames`` stream: a :class:`skygen.render.Frame` (split set to -1)."""
+        """Sample ``i`` of a ``frames`` stream: a :class:`skygen.render.frame.Frame` (split set to -1)."""
         if i < 0:
             raise ConfigError(f"stream index {i} must be >= 0")
         if self.kind != "frames":
@@ -268,7 +268,7 @@ class SampleStream:
             return [self.frame(i) for i in idx], None
         import torch
 
-        from .render_torch import TorchRenderer
+        from skygen.render.torch_frames import TorchRenderer
         if getattr(self, "_torch", None) is None or (device is not None and str(self._torch.device) != str(device)):
             self._torch = TorchRenderer(self.cfg, device, renderer=self.renderer)
         levels = self.levels_of(np.array(idx))
@@ -286,14 +286,14 @@ class SampleStream:
         return frames, batch.images
 
     def binned_frames(self, indices) -> list:
-        """Samples ``indices`` of a binned ``frames`` stream: :class:`skygen.render.Frame` objects whose
-        image is drawn at the stored size (:class:`skygen.binned.BinnedRenderer`) and whose
+        """Samples ``indices`` of a binned ``frames`` stream: :class:`skygen.render.frame.Frame` objects whose
+        image is drawn at the stored size (:class:`skygen.render.binned.BinnedRenderer`) and whose
         detections come from the emulator run on the same scene's sources (inside the
         sensor), then the detector's cap and the detection-level corruptions, as in
         :meth:`batch`. ``background_adu`` and ``noise_adu`` are the nominal values (no
         detector ran). Sample ``i`` is the same alone or in any batch."""
-        from .attitude import matrix_to_quaternion
-        from .render import Frame
+        from skygen.sky.attitude import matrix_to_quaternion
+        from skygen.render.frame import Frame
         idx = np.asarray(indices, np.int64).ravel()
         if self.binned is None:
             raise ConfigError("binned_frames() needs a frames stream with the binned renderer")
@@ -431,7 +431,7 @@ def _warn_once(message: str) -> None:
 
 
 def _load_calibration(calibration, cfg) -> "emu.DetectorModel":
-    from .config import config_dict
+    from skygen.config import config_dict
     if calibration is None:
         calibration = emu.default_calibration_path()
     model = calibration if isinstance(calibration, emu.DetectorModel) else emu.load(calibration)
@@ -458,7 +458,7 @@ def _cap(fr, det, det_id, B, cap):
 
 def _detection_corruptions(fr, det, det_id, idx, levels, key):
     """Dropout, centroid noise and magnitude noise with per-sample severities (the registry's
-    :func:`skygen.corruptions.apply_detection_corruptions`, vectorised with counter draws)."""
+    :func:`skygen.instrument.corruptions.apply_detection_corruptions`, vectorised with counter draws)."""
     s = idx[fr]
     d = _D_CORR + 4 * det_id
     p = levels["dropout"][fr]
@@ -491,43 +491,6 @@ def frames_as_batch(frames) -> DetectionBatch:
                           off([f.stars for f in frames]), stars, labels, levels)
 
 
-def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
-    """Write detection-stream samples to one HDF5 file in the shard table layout
-    (``detections``/``stars`` flat tables with ``offsets``, ``boresight`` per sample)."""
-    import json
-
-    import h5py
-
-    from .datasets.shards import BORESIGHT_FIELDS, DETECTION_FIELDS, LIBVER, STAR_FIELDS
-    from .runtime import atomic_path
-    parts = list(batches)
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w", libver=LIBVER) as f:
-            f.attrs["format"] = "skygen-detection-stream"
-            f.attrs["config"] = json.dumps(config, sort_keys=True)
-            f.attrs["description"] = ("detection sets of skygen's detections stream (emulated detector); "
-                                      "tables as in skygen shards: rows of sample j are offsets[j]:offsets[j+1]")
-            idx = np.concatenate([b.index for b in parts])
-            f.create_dataset("index", data=idx)
-            g = f.create_group("boresight")
-            g.attrs["frame"] = "ICRS"
-            for name, (dtype, _, units, desc) in BORESIGHT_FIELDS.items():
-                d = g.create_dataset(name, data=np.concatenate([b.labels[name] for b in parts]).astype(dtype))
-                d.attrs["units"], d.attrs["description"] = units, desc
-            for group, fields, offs, attr in (("detections", DETECTION_FIELDS, "offsets", "detections"),
-                                              ("stars", STAR_FIELDS, "star_offsets", "stars")):
-                g = f.create_group(group)
-                counts = np.concatenate([np.diff(getattr(b, offs)) for b in parts])
-                g.create_dataset("offsets", data=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
-                for name, (dtype, units, desc) in fields.items():
-                    cols = [getattr(b, attr).get(name) for b in parts]
-                    if any(c is None for c in cols):
-                        continue
-                    d = g.create_dataset(name, data=np.concatenate(cols).astype(dtype))
-                    d.attrs["units"], d.attrs["description"] = units, desc
-    return path
-
-
 def stream_summary(batches) -> dict:
     """Detections per sample, magnitudes of detected catalog stars, spurious share."""
     n_det = np.concatenate([np.diff(b.offsets) for b in batches])
@@ -549,4 +512,4 @@ def stream_summary(batches) -> dict:
             "spurious_share": spur / max(total, 1)}
 
 
-__all__ = ["KINDS", "SampleStream", "DetectionBatch", "partition", "write_detection_sets", "stream_summary"]
+__all__ = ["KINDS", "SampleStream", "DetectionBatch", "partition", "stream_summary"]

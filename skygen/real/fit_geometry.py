@@ -1,6 +1,6 @@
 """Geometry of ``skygen fit-camera``: lost-in-space solutions, catalogue matches and the joint camera fit.
 
-Per frame: tetra3rs lost-in-space (:mod:`skygen.platesolve`) on the brightest detections, from a
+Per frame: tetra3rs lost-in-space (:mod:`skygen.real.platesolve`) on the brightest detections, from a
 start camera (a camera file) or from a field-of-view range (the field searched); then every
 detection is paired with the nearest skygen catalogue star (Hipparcos-2, propagated to the
 epoch) projected through the solution, within ``match_radius_px``.
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera
+from skygen.instrument.camera import Camera
 
 RULES = {"min_frames_distortion": 2, "min_stars_distortion": 30, "min_stars_k2": 150,
          "min_edge_fraction": 0.7, "max_corner_sigma_px": 0.3}
@@ -50,7 +50,7 @@ class FrameSolution:
 
 
 def radec_roll(R: np.ndarray) -> tuple[float, float, float]:
-    """(ra, dec, roll) degrees of a camera -> ICRS matrix; inverse of :func:`skygen.attitude.attitude_matrix`."""
+    """(ra, dec, roll) degrees of a camera -> ICRS matrix; inverse of :func:`skygen.sky.attitude.attitude_matrix`."""
     b, up = R[:, 2], -R[:, 1]
     ra = np.arctan2(b[1], b[0])
     dec = np.arcsin(np.clip(b[2], -1.0, 1.0))
@@ -73,7 +73,7 @@ def _rotvec(w: np.ndarray) -> np.ndarray:
 def solve_frame(db, det: dict, camera: Camera, fov_range, max_stars: int = 64,
                 match_threshold: float = 1e-5) -> tuple[np.ndarray | None, float, str]:
     """tetra3rs lost-in-space: (camera -> ICRS matrix or None, solved horizontal FOV, refusal reason)."""
-    from .platesolve import ideal_centroids, tetra3rs
+    from skygen.real.platesolve import ideal_centroids, tetra3rs
     n = min(len(det["x_px"]), max_stars)
     if n < 4:
         return None, float("nan"), f"too few stars to solve ({n} detections; tetra3rs needs at least 4, better 8+)"
