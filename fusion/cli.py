@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import signal
 import sys
 from pathlib import Path
 from typing import Callable
@@ -88,11 +87,17 @@ def _run_train(args: argparse.Namespace) -> int:
     else:
         base = read_yaml(args.config) if args.config else {}
     cfg = build_config(merge_overrides(base, overrides))
+    from skygen.runtime import StopRequested, stop_on_sigterm
+
     from .train.run import train
-    previous = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
     _quiet_worker_teardown()      # before anything can interrupt: torch reports dying workers from destructors
+    # SIGTERM (a scheduler's stop, `kill`) ends a training like Ctrl-C: files closed, lock released, a hint
     try:
-        train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+        with stop_on_sigterm():
+            train(cfg, args.out, resume=args.resume and not args.force, force=args.force)
+    except StopRequested:
+        print(f"fusion train: terminated (SIGTERM); {resume_hint(args.out)}", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"fusion train: interrupted; {resume_hint(args.out)}", file=sys.stderr)
         return 130
@@ -100,16 +105,10 @@ def _run_train(args: argparse.Namespace) -> int:
         if "DataLoader worker" not in str(exc):
             raise
         print(f"fusion train: stopped: {one_line(exc)}; {resume_hint(args.out)}", file=sys.stderr)
-        return 130 if "Terminated" in str(exc) or "Interrupt" in str(exc) else 1
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        if "Terminated" in str(exc):
+            return 143
+        return 130 if "Interrupt" in str(exc) else 1
     return 0
-
-
-def _interrupt(signum, frame):
-    """SIGTERM (a scheduler's stop, `kill`) ends a training like Ctrl-C: files closed, lock released, a hint."""
-    raise KeyboardInterrupt
 
 
 def _quiet_worker_teardown() -> None:
@@ -128,11 +127,6 @@ def _quiet_worker_teardown() -> None:
 
     hook._drops_dataloader_teardown = True
     sys.unraisablehook = hook
-
-
-def _main_thread() -> bool:
-    import threading
-    return threading.current_thread() is threading.main_thread()
 
 
 def resume_hint(out: str) -> str:

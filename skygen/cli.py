@@ -12,12 +12,12 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from skygen.errors import SkygenError
 from skygen.runtime import StopRequested as Terminated          # SIGTERM -> cleanup -> the resume hint
-from skygen.runtime import request_stop as _raise_terminated
 
 EPILOG = """examples:
   skygen render --n 2000 --workers 2            # into data/sky-n2000-s0
@@ -63,40 +63,84 @@ def _load(args):
     return load_config(args.config, sets)
 
 
+def _config_args(p: argparse.ArgumentParser, with_n: bool = True) -> None:
+    """--config, --set, --seed (and --n): the one config system's options, shared by several commands."""
+    p.add_argument("--config", metavar="FILE.yaml", help="YAML config (keys as in `skygen config`)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one config key, e.g. --set sensor.exposure_s=0.05 (repeatable)")
+    if with_n:
+        p.add_argument("--n", type=int, help="number of frames (config n_frames; default 1000)")
+    p.add_argument("--seed", type=int, help="dataset seed (config seed; default 0)")
 
 
-def cmd_render(args) -> int:
-    import signal
+# --------------------------------------------------------------------------- render
+def _add_render(p: argparse.ArgumentParser) -> None:
+    _config_args(p)
+    p.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED}); locked while rendering: a "
+                   "second render into it is refused, naming the first")
+    p.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
+    p.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
+    p.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays, counting from 0). "
+                   "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
+                   "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
+                   "once; the last slice to finish writes manifest.json")
+    p.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _run_render(args: argparse.Namespace) -> int:
     from skygen.datasets.build import render_dataset
+    from skygen.runtime import stop_on_sigterm
     cfg = _load(args)
     out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
     i, k = _parse_slice(args.slice)
     if args.workers < 0:
         raise SkygenError(f"--workers {args.workers}: give a number of worker processes >= 1 (0 = all cores)")
     workers = args.workers or os.cpu_count() or 1
-    signal.signal(signal.SIGTERM, _raise_terminated)
-    man = render_dataset(cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force,
-                         progress=not args.quiet)
+    with stop_on_sigterm():
+        man = render_dataset(cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force,
+                             progress=not args.quiet)
     print(f"{man['n_frames']} frames in {len(man['shards'])} shard(s) at {out}  "
           f"(train {man['splits']['train']}, val {man['splits']['val']}, test {man['splits']['test']})")
     print(f"look at it:  skygen inspect {out}   |   skygen preview {out} --out {out}/preview.png")
     return 0
 
 
-def cmd_inspect(args) -> int:
+# --------------------------------------------------------------------------- inspect
+def _add_inspect(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="dataset folder (or one shard file)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+
+
+def _run_inspect(args: argparse.Namespace) -> int:
     from skygen.datasets.summary import inspect_dataset
     print(inspect_dataset(args.path, as_json=args.json))
     return 0
 
 
-def cmd_preview(args) -> int:
+# --------------------------------------------------------------------------- preview
+def _add_preview(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="dataset folder (or one shard file)")
+    p.add_argument("--out", default="preview.png", help="PNG file to write (its folder must exist)")
+    p.add_argument("--n", type=int, default=12, help="frames to show (>= 1)")
+    p.add_argument("--start", type=int, default=0, help="first frame, a position within the split (>= 0)")
+    p.add_argument("--split", choices=("train", "val", "test"), default=None)
+
+
+def _run_preview(args: argparse.Namespace) -> int:
     from skygen.datasets.preview import preview
     out = preview(args.path, args.out, n=args.n, split=args.split, start=args.start)
     print(f"wrote {out}")
     return 0
 
 
-def cmd_validate(args) -> int:
+# --------------------------------------------------------------------------- validate
+def _add_validate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="dataset folder (or one shard file); a missing path exits 2")
+    p.add_argument("--no-checksums", action="store_true", help="skip sha256 verification (faster)")
+
+
+def _run_validate(args: argparse.Namespace) -> int:
     from skygen.errors import DatasetError
     from skygen.datasets.validate import validate
     if not Path(args.path).exists():
@@ -106,7 +150,13 @@ def cmd_validate(args) -> int:
     return 0 if report.ok else 1
 
 
-def cmd_merge(args) -> int:
+# --------------------------------------------------------------------------- merge
+def _add_merge(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="+", help="dataset folders")
+    p.add_argument("--out", required=True, help="new folder for the merged manifest (locked while merging)")
+
+
+def _run_merge(args: argparse.Namespace) -> int:
     from skygen.datasets.merge import merge_datasets
     man = merge_datasets(args.inputs, args.out)
     print(f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
@@ -114,7 +164,16 @@ def cmd_merge(args) -> int:
     return 0
 
 
-def cmd_catalog(args) -> int:
+# --------------------------------------------------------------------------- catalog
+def _add_catalog(p: argparse.ArgumentParser) -> None:
+    p.add_argument("action", choices=("info", "fetch"))
+    p.add_argument("--catalog", default="hipparcos-v", help="fetch: hipparcos-v (I/239) or tycho2 (I/259)")
+    p.add_argument("--mag-limit", type=float, default=9.0, help="fetch: faintest V magnitude")
+    p.add_argument("--out", help="fetch: output .npz (default catalogs/NAME.npz)")
+    p.add_argument("--path", help="info: catalog file (default: bundled Hipparcos-2)")
+
+
+def _run_catalog(args: argparse.Namespace) -> int:
     from skygen.sky.catalog import load_catalog
     if args.action == "fetch":
         from skygen.sky.vizier import fetch
@@ -131,25 +190,17 @@ def cmd_catalog(args) -> int:
     return 0
 
 
-def cmd_config(args) -> int:
-    import yaml
-    from skygen.config import config_dict, config_help
-    if args.keys:
-        print(config_help())
-        return 0
-    cfg = _load(args)
-    print(yaml.safe_dump(config_dict(cfg), sort_keys=False), end="")
-    if args.summary:
-        from skygen.render.frame import Renderer
-        r = Renderer(cfg)
-        fx, fy = r.camera.fov_deg
-        print(f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
-              f"detection limit Hp {r.detection_limit_mag:.2f}, rendering to Hp {r.mag_limit:.2f} "
-              f"({len(r.sky)} stars), background {r.background_e:.2f} e-/px, noise {r.noise_e():.2f} e-/px")
-    return 0
+# --------------------------------------------------------------------------- calibrate
+def _add_calibrate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", nargs="?", help="rendered dataset folder to fit on (optional; default: render frames)")
+    _config_args(p, with_n=False)
+    p.add_argument("--frames", type=int, default=3000, help="frames to render when no DIR is given (default 3000)")
+    p.add_argument("--max-frames", type=int, default=None, help="with DIR: use at most this many frames")
+    p.add_argument("--out", required=True, help="calibration JSON to write")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def cmd_calibrate(args) -> int:
+def _run_calibrate(args: argparse.Namespace) -> int:
     from skygen.stream import calibration as cal
     from skygen.stream import emulator as emu
     if args.path:
@@ -176,7 +227,26 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def cmd_fit_camera(args) -> int:
+# --------------------------------------------------------------------------- fit-camera
+def _add_fit_camera(p: argparse.ArgumentParser) -> None:
+    p.add_argument("frames", nargs="+", metavar="FRAME", help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
+                    "monochrome full-resolution read-out each, all of one size) or folders of them")
+    p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
+    p.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
+    p.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
+                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
+                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~20 s)")
+    p.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
+                    "(default 5.5; only the written focal_length_mm depends on it)")
+    p.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
+                    "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height")
+    p.add_argument("--epoch", type=float, metavar="YEAR", help="when the frames were taken, Julian year (catalogue "
+                    "proper motions; default the camera file's epoch_yr)")
+    p.add_argument("--report", metavar="DIR", help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png "
+                    "(default: beside --out, OUT-report/)")
+
+
+def _run_fit_camera(args: argparse.Namespace) -> int:
     import shlex
     from skygen.real.fit_camera import fit_camera
     command = "skygen fit-camera " + " ".join(shlex.quote(a) for a in (args.argv or []))
@@ -200,7 +270,22 @@ def cmd_fit_camera(args) -> int:
     return 0
 
 
-def cmd_stream(args) -> int:
+# --------------------------------------------------------------------------- stream
+def _add_stream(p: argparse.ArgumentParser) -> None:
+    _config_args(p, with_n=False)
+    p.add_argument("--kind", choices=("detections", "frames"), default="detections", help="sample kind")
+    p.add_argument("--n", type=int, default=10000, help="samples to make (default 10000)")
+    p.add_argument("--start", type=int, default=0, help="first sample index (default 0)")
+    p.add_argument("--batch", type=int, default=1024, help="detections: samples per vectorised batch")
+    p.add_argument("--calibration", help="detector calibration JSON (default: the shipped one for the default camera)")
+    p.add_argument("--range", action="append", metavar="NAME=LO:HI",
+                    help="per-sample severity range of a corruption (false_stars, dropout, centroid_noise, "
+                    "magnitude_noise), e.g. --range dropout=0:0.3 (repeatable)")
+    p.add_argument("--out", help="also write the detection sets to this HDF5 file (shard table layout)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _run_stream(args: argparse.Namespace) -> int:
     import json
     import time
     from skygen.config import config_dict
@@ -247,88 +332,57 @@ def cmd_stream(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from skygen import __version__
-    from skygen.datasets.shards import SCHEMA_VERSION
-    p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
-                                "writing shareable HDF5 shards.", epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--version", action="version", version=f"skygen {__version__} (writes schema {SCHEMA_VERSION})")
-    sub = p.add_subparsers(dest="command", required=True)
+# --------------------------------------------------------------------------- config
+def _add_config(p: argparse.ArgumentParser) -> None:
+    _config_args(p)
+    p.add_argument("--keys", action="store_true", help="list keys, defaults, allowed ranges and units")
+    p.add_argument("--summary", action="store_true", help="also print FOV, detection limit, noise")
 
-    def config_args(sp, with_n=True):
-        sp.add_argument("--config", metavar="FILE.yaml", help="YAML config (keys as in `skygen config`)")
-        sp.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="override one config key, e.g. --set sensor.exposure_s=0.05 (repeatable)")
-        if with_n:
-            sp.add_argument("--n", type=int, help="number of frames (config n_frames; default 1000)")
-        sp.add_argument("--seed", type=int, help="dataset seed (config seed; default 0)")
 
-    r = sub.add_parser("render", help="render a dataset (resumes an interrupted one)",
+def _run_config(args: argparse.Namespace) -> int:
+    import yaml
+    from skygen.config import config_dict, config_help
+    if args.keys:
+        print(config_help())
+        return 0
+    cfg = _load(args)
+    print(yaml.safe_dump(config_dict(cfg), sort_keys=False), end="")
+    if args.summary:
+        from skygen.render.frame import Renderer
+        r = Renderer(cfg)
+        fx, fy = r.camera.fov_deg
+        print(f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
+              f"detection limit Hp {r.detection_limit_mag:.2f}, rendering to Hp {r.mag_limit:.2f} "
+              f"({len(r.sky)} stars), background {r.background_e:.2f} e-/px, noise {r.noise_e():.2f} e-/px")
+    return 0
+
+
+SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
+    "render": (dict(help="render a dataset (resumes an interrupted one)",
                        description="Render frames into HDF5 shards plus manifest.json. Re-running the same "
-                       "command resumes; Ctrl-C never leaves a broken shard.")
-    config_args(r)
-    r.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED}); locked while rendering: a "
-                   "second render into it is refused, naming the first")
-    r.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
-    r.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
-    r.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays, counting from 0). "
-                   "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
-                   "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
-                   "once; the last slice to finish writes manifest.json")
-    r.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
-    r.add_argument("--quiet", action="store_true", help="no progress bar")
-    r.set_defaults(func=cmd_render)
-
-    i = sub.add_parser("inspect", help="counts, splits, star and detection histograms, config summary")
-    i.add_argument("path", help="dataset folder (or one shard file)")
-    i.add_argument("--json", action="store_true", help="machine-readable output")
-    i.set_defaults(func=cmd_inspect)
-
-    v = sub.add_parser("preview", help="PNG grid of frames with detections and true stars")
-    v.add_argument("path", help="dataset folder (or one shard file)")
-    v.add_argument("--out", default="preview.png", help="PNG file to write (its folder must exist)")
-    v.add_argument("--n", type=int, default=12, help="frames to show (>= 1)")
-    v.add_argument("--start", type=int, default=0, help="first frame, a position within the split (>= 0)")
-    v.add_argument("--split", choices=("train", "val", "test"), default=None)
-    v.set_defaults(func=cmd_preview)
-
-    va = sub.add_parser("validate", help="check schema, shapes, value ranges and checksums")
-    va.add_argument("path", help="dataset folder (or one shard file); a missing path exits 2")
-    va.add_argument("--no-checksums", action="store_true", help="skip sha256 verification (faster)")
-    va.set_defaults(func=cmd_validate)
-
-    m = sub.add_parser("merge", help="combine slices or compatible datasets into one (no data copied)",
+                       "command resumes; Ctrl-C never leaves a broken shard."),
+               _add_render, _run_render),
+    "inspect": (dict(help="counts, splits, star and detection histograms, config summary"),
+               _add_inspect, _run_inspect),
+    "preview": (dict(help="PNG grid of frames with detections and true stars"),
+               _add_preview, _run_preview),
+    "validate": (dict(help="check schema, shapes, value ranges and checksums"),
+               _add_validate, _run_validate),
+    "merge": (dict(help="combine slices or compatible datasets into one (no data copied)",
                        description="Write OUT/manifest.json listing the shards of several dataset folders: "
                        "slices of one job-array render, or datasets whose configs differ only in seed, "
-                       "n_frames or storage options. Incompatible inputs are refused with the differing keys.")
-    m.add_argument("inputs", nargs="+", help="dataset folders")
-    m.add_argument("--out", required=True, help="new folder for the merged manifest (locked while merging)")
-    m.set_defaults(func=cmd_merge)
-
-    c = sub.add_parser("catalog", help="show the catalog, or fetch another one from VizieR (online)")
-    c.add_argument("action", choices=("info", "fetch"))
-    c.add_argument("--catalog", default="hipparcos-v", help="fetch: hipparcos-v (I/239) or tycho2 (I/259)")
-    c.add_argument("--mag-limit", type=float, default=9.0, help="fetch: faintest V magnitude")
-    c.add_argument("--out", help="fetch: output .npz (default catalogs/NAME.npz)")
-    c.add_argument("--path", help="info: catalog file (default: bundled Hipparcos-2)")
-    c.set_defaults(func=cmd_catalog)
-
-    ca = sub.add_parser("calibrate", help="fit the detector emulator of the detections stream",
+                       "n_frames or storage options. Incompatible inputs are refused with the differing keys."),
+               _add_merge, _run_merge),
+    "catalog": (dict(help="show the catalog, or fetch another one from VizieR (online)"),
+               _add_catalog, _run_catalog),
+    "calibrate": (dict(help="fit the detector emulator of the detections stream",
                         description="Fit the detector emulator (skygen.stream.emulator) to the real detector: from a "
                         "rendered dataset DIR (its frames and config), or, without DIR, from --frames frames "
                         "rendered for --config/--set in their own random streams. The calibration is valid for "
                         "that camera, optics, photometry, sensor and detector only; streams refuse it for "
-                        "any other.")
-    ca.add_argument("path", nargs="?", help="rendered dataset folder to fit on (optional; default: render frames)")
-    config_args(ca, with_n=False)
-    ca.add_argument("--frames", type=int, default=3000, help="frames to render when no DIR is given (default 3000)")
-    ca.add_argument("--max-frames", type=int, default=None, help="with DIR: use at most this many frames")
-    ca.add_argument("--out", required=True, help="calibration JSON to write")
-    ca.add_argument("--quiet", action="store_true", help="no progress bar")
-    ca.set_defaults(func=cmd_calibrate)
-
-    fc = sub.add_parser("fit-camera", help="fit a camera file to a real sensor from its own star frames",
+                        "any other."),
+               _add_calibrate, _run_calibrate),
+    "fit-camera": (dict(help="fit a camera file to a real sensor from its own star frames",
                         description="Solve real star frames (tetra3rs lost-in-space), then fit the camera to all of "
                         "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
                         "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
@@ -336,49 +390,34 @@ def build_parser() -> argparse.ArgumentParser:
                         "Moffat), hot pixels, the photometric zero point (as exposure x throughput) and the "
                         "detector settings. Writes a camera YAML that `skygen render --config` and `fusion predict "
                         "--camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
-                        "already described.")
-    fc.add_argument("frames", nargs="+", metavar="FRAME", help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
-                    "monochrome full-resolution read-out each, all of one size) or folders of them")
-    fc.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
-    fc.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
-    fc.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
-                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
-                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~20 s)")
-    fc.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
-                    "(default 5.5; only the written focal_length_mm depends on it)")
-    fc.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
-                    "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height")
-    fc.add_argument("--epoch", type=float, metavar="YEAR", help="when the frames were taken, Julian year (catalogue "
-                    "proper motions; default the camera file's epoch_yr)")
-    fc.add_argument("--report", metavar="DIR", help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png "
-                    "(default: beside --out, OUT-report/)")
-    fc.set_defaults(func=cmd_fit_camera)
-
-    st = sub.add_parser("stream", help="synthesise training samples on the fly; print throughput and statistics",
+                        "already described."),
+               _add_fit_camera, _run_fit_camera),
+    "stream": (dict(help="synthesise training samples on the fly; print throughput and statistics",
                         description="Make --n samples of an endless stream (sample i is a pure function of "
                         "config, seed, kind and i) and print what a model would see. 'detections' uses the "
                         "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' adds the stored-size "
                         "image, drawn directly at that size (skygen.render.binned, equal in distribution to `skygen "
                         "render`'s), with emulated detections; a config it cannot reproduce renders and detects "
-                        "like `skygen render` (with a warning).")
-    config_args(st, with_n=False)
-    st.add_argument("--kind", choices=("detections", "frames"), default="detections", help="sample kind")
-    st.add_argument("--n", type=int, default=10000, help="samples to make (default 10000)")
-    st.add_argument("--start", type=int, default=0, help="first sample index (default 0)")
-    st.add_argument("--batch", type=int, default=1024, help="detections: samples per vectorised batch")
-    st.add_argument("--calibration", help="detector calibration JSON (default: the shipped one for the default camera)")
-    st.add_argument("--range", action="append", metavar="NAME=LO:HI",
-                    help="per-sample severity range of a corruption (false_stars, dropout, centroid_noise, "
-                    "magnitude_noise), e.g. --range dropout=0:0.3 (repeatable)")
-    st.add_argument("--out", help="also write the detection sets to this HDF5 file (shard table layout)")
-    st.add_argument("--json", action="store_true", help="print the summary as JSON")
-    st.set_defaults(func=cmd_stream)
+                        "like `skygen render` (with a warning)."),
+               _add_stream, _run_stream),
+    "config": (dict(help="print the resolved config, or every key with --keys"),
+               _add_config, _run_config),
+}
 
-    cf = sub.add_parser("config", help="print the resolved config, or every key with --keys")
-    config_args(cf)
-    cf.add_argument("--keys", action="store_true", help="list keys, defaults, allowed ranges and units")
-    cf.add_argument("--summary", action="store_true", help="also print FOV, detection limit, noise")
-    cf.set_defaults(func=cmd_config)
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of every command (imports no torch: ``skygen --help`` stays light)."""
+    from skygen import __version__
+    from skygen.datasets.shards import SCHEMA_VERSION
+    p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
+                                "writing shareable HDF5 shards.", epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"skygen {__version__} (writes schema {SCHEMA_VERSION})")
+    sub = p.add_subparsers(dest="command", required=True)
+    for name, (texts, add, run) in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, **texts)
+        add(sp)
+        sp.set_defaults(func=run)
     return p
 
 
@@ -390,14 +429,14 @@ def main(argv: list[str] | None = None) -> int:
     except SkygenError as exc:
         print(f"skygen {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:               # before KeyboardInterrupt, of which it is a kind
+        print(f"\nskygen {args.command}: terminated (SIGTERM); finished shards are kept — run the same command "
+              "again to resume.", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"\nskygen {args.command}: interrupted; finished shards are kept — run the same command "
               "again to resume.", file=sys.stderr)
         return 130
-    except Terminated:
-        print(f"\nskygen {args.command}: terminated (SIGTERM); finished shards are kept — run the same command "
-              "again to resume.", file=sys.stderr)
-        return 143
     except BrokenPipeError:      # `skygen inspect DIR | head`: the reader has gone; stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())

@@ -20,6 +20,11 @@ Hardware
     CUDA capability and memory; Jetson board, L4T release and power mode). Torch is
     imported only when a device is given.
 
+Stopping
+    :func:`stop_on_sigterm` turns SIGTERM (a scheduler's stop, ``kill``) into
+    :class:`StopRequested` for the block it guards; :func:`check_stop` re-raises a request
+    whose exception Python swallowed (inside a destructor) between units of work.
+
 Devices
     :func:`pick_device` has one meaning of ``auto`` for every command: the first CUDA
     device if one is visible, else the CPU. ``cuda`` (or ``cuda:N``) without a visible
@@ -203,8 +208,12 @@ def pick_device(name: str = "auto", option: str = "--device", local_rank: int | 
 
 
 # --------------------------------------------------------------------------- stopping on SIGTERM
-class StopRequested(Exception):
-    """SIGTERM arrived: raised in the main process so that cleanup runs and the resume hint is printed."""
+class StopRequested(KeyboardInterrupt):
+    """SIGTERM arrived: raised in the main process so that cleanup runs and the resume hint is printed.
+
+    A :class:`KeyboardInterrupt` (so a BaseException): every cleanup that serves Ctrl-C serves a
+    scheduler's stop too, and no ``except Exception`` of a long job swallows it. Catch it before
+    ``KeyboardInterrupt`` to tell the two apart (exit 143 against 130)."""
 
 
 _STOP = {"requested": False}
@@ -222,6 +231,25 @@ def check_stop() -> None:
     """Raise :class:`StopRequested` if SIGTERM arrived (call between units of work)."""
     if _STOP["requested"]:
         raise StopRequested()
+
+
+@contextlib.contextmanager
+def stop_on_sigterm() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`StopRequested` in the main thread (:func:`request_stop`);
+    the previous handler comes back afterwards. The one SIGTERM handling of both command lines
+    (``skygen render``, ``fusion train``). Outside the main thread (where Python delivers no
+    signal) it does nothing."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _STOP["requested"] = False
+    previous = signal.signal(signal.SIGTERM, request_stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def describe_os_error(exc: OSError) -> str:

@@ -152,6 +152,24 @@ def test_help_loads_no_torch(argv):
     assert res.stdout.strip().splitlines()[-1] == "NO-TORCH"
 
 
+@pytest.mark.parametrize("argv", [["--help"], ["render", "--help"], ["fit-camera", "--help"], ["stream", "--help"]])
+def test_skygen_help_loads_no_torch(argv):
+    code = ("import sys\nfrom skygen.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
+            "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')" % argv)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1] == "NO-TORCH"
+
+
+def test_skygen_cli_follows_the_command_pattern():
+    """Each skygen command is an _add_NAME / _run_NAME pair registered in SUBCOMMANDS (as fusion's)."""
+    from skygen import cli
+    for name, (texts, add, run) in cli.SUBCOMMANDS.items():
+        key = name.replace("-", "_")
+        assert add.__name__ == f"_add_{key}" and run.__name__ == f"_run_{key}", name
+        assert "help" in texts, name
+
+
 def test_public_api_is_lazy_and_complete():
     code = ("import sys, fusion\nassert 'torch' not in sys.modules\n"
             "names = [n for n in fusion.__all__ if n != '__version__']\n"

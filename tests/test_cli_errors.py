@@ -79,3 +79,21 @@ def test_a_swallowed_sigterm_still_stops_the_next_unit_of_work(monkeypatch):
         pass                                               # Python may swallow this one (a weakref callback) ...
     with pytest.raises(runtime.StopRequested):
         runtime.check_stop()                               # ... the next check raises it again
+
+
+def test_stop_on_sigterm_raises_within_the_block_and_restores_the_handler():
+    """The one SIGTERM handling of both command lines: a kind of KeyboardInterrupt (no `except Exception`
+    swallows it), raised inside the block only; the handler that was there before comes back."""
+    import os
+    import signal
+
+    from skygen import runtime
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(runtime.StopRequested):
+        with runtime.stop_on_sigterm():
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):                          # the handler runs between bytecodes
+                pass
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert issubclass(runtime.StopRequested, KeyboardInterrupt) and not issubclass(runtime.StopRequested, Exception)
+    runtime._STOP["requested"] = False

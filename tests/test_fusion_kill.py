@@ -57,9 +57,9 @@ def test_sigterm_prints_the_resume_command_and_that_command_finishes_the_run(tmp
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate()
     assert not (run / "summary.json").exists(), "the run finished before it could be stopped"
-    assert proc.returncode == 130
+    assert proc.returncode == 143                    # 128 + SIGTERM, as skygen render
     last = err.strip().splitlines()[-1]
-    assert last.startswith("fusion train: interrupted; continue it with: fusion train --out ")
+    assert last.startswith("fusion train: terminated (SIGTERM); continue it with: fusion train --out ")
     assert not list(run.glob(".skygen*.lock"))       # the lock went with the process
     resume = shlex.split(last.split("with: ", 1)[1])
     assert resume[:2] == ["fusion", "train"] and resume[3] == str(run)
