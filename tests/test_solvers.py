@@ -207,12 +207,13 @@ def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     assert isinstance(res, Refusal) and "cannot reach the confidence bar" in res.reason
     d = Detections.from_table(f.detections).brightest(3)
     u = renderer.camera.unproject(d.x_px, d.y_px)
-    counts = [2 * np.diff(c2f.pairs.range(np.arccos(u[a] @ u[b]) - 2 * c2f.tol_rad,
-                                          np.arccos(u[a] @ u[b]) + 2 * c2f.tol_rad))[0]
+    bright = c2f.tiers[-1]                                          # three detections search the bright tier
+    counts = [2 * np.diff(bright.pairs.range(np.arccos(u[a] @ u[b]) - 2 * c2f.tol_rad,
+                                             np.arccos(u[a] @ u[b]) + 2 * c2f.tol_rad))[0]
               for a, b in ((0, 1), (0, 2), (1, 2))]
     first_pair = min(counts)                                        # the pair with the fewest candidates goes first
     assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
-    assert c2f.confidence(first_pair, 3, 3) < c2f.min_confidence
+    assert c2f.confidence(first_pair, 3, 3, tier=bright) < c2f.min_confidence
 
 
 def test_photometry_identifies_three_stars_that_geometry_alone_cannot(renderer, tetra):
@@ -243,16 +244,16 @@ def test_photometric_chance_rate_is_a_conservative_monte_carlo(tetra):
     np.testing.assert_allclose(magnitude_scatter(np.array([3.0, 4.0, 5.5]), 10 ** (-0.4 * np.array([1.0, 2.0, 3.5]))),
                                0.0, atol=1e-12)                    # a common zero point is no scatter
     c2f = CoarseToFineSolver(tetra, None)
-    c2f.tier = c2f.tiers[-1]
+    tier = c2f.tiers[-1]
     flux = np.array([5000.0, 2000.0, 900.0])
-    q = c2f._photometric_q(flux)
+    q = c2f._photometric_q(tier, flux)
     rng = np.random.default_rng(11)                                 # an independent estimate of the same chance
-    mags = c2f.mag[rng.integers(0, len(c2f.mag), (20000, 3))]
+    mags = tier.mag[rng.integers(0, len(tier.mag), (20000, 3))]
     direct = float(np.mean(magnitude_scatter(mags, flux) <= c2f.photometric_mag))
     assert 0.05 < direct < 0.5 and direct < q < direct + 0.05
     c2f.photometric_mag = 0.2
-    assert c2f._photometric_q(flux) < q
-    assert c2f._photometric_q(np.array([5000.0, -1.0, 900.0])) == 1.0    # no usable flux: no evidence
+    assert c2f._photometric_q(tier, flux) < q
+    assert c2f._photometric_q(tier, np.array([5000.0, -1.0, 900.0])) == 1.0    # no usable flux: no evidence
 
 
 def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(renderer, tetra, regions):
@@ -360,3 +361,19 @@ def test_registered_solver_is_built_by_name_and_unknown_names_are_refused():
             build_solver("learned+fine", cam, context=ctx)
     finally:
         SOLVERS.pop("never")
+
+
+def test_coarse_to_fine_solver_keeps_no_state_between_solves(tetra):
+    """One solver object serves interleaved solves (threads, a generator of frames): solve() changes
+    nothing on the object, whichever catalogue tier (three detections: the bright one) it searched."""
+    from fusion.solve.base import Detections
+    from fusion.solve.fine import CoarseToFineSolver
+    c2f = CoarseToFineSolver(tetra, None)
+    before = {k: v for k, v in vars(c2f).items()}
+    rng = np.random.default_rng(5)
+    for n in (3, 6):
+        det = Detections(rng.uniform(0, 1000, n), rng.uniform(0, 1000, n), np.sort(rng.uniform(100, 5000, n))[::-1])
+        c2f.solve(det)
+        assert vars(c2f).keys() == before.keys()
+        assert all(vars(c2f)[k] is v for k, v in before.items())
+    assert not hasattr(CoarseToFineSolver, "tier")

@@ -33,7 +33,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from skygen.sky.attitude import matrix_to_quaternion, quaternion_to_matrix
+from skygen.sky.attitude import matrix_to_quaternion, matrix_to_radec_roll, quaternion_to_matrix
 
 
 @dataclass(frozen=True)
@@ -135,20 +135,8 @@ class FallbackSolver:
 
 
 # --------------------------------------------------------------------------- attitude helpers
-def radec_roll_from_matrix(m: np.ndarray) -> tuple[float, float, float]:
-    """(ra_deg, dec_deg, roll_deg) of a camera -> ICRS matrix (columns: camera x, y, z in ICRS).
-
-    Inverse of :func:`skygen.sky.attitude.attitude_matrix`; roll is the position angle of image
-    up (-y) from north through east, in [0, 360).
-    """
-    m = np.asarray(m, np.float64)
-    b, up = m[:, 2], -m[:, 1]
-    ra = np.arctan2(b[1], b[0])
-    dec = np.arcsin(np.clip(b[2], -1.0, 1.0))
-    east = np.array([-np.sin(ra), np.cos(ra), 0.0])
-    north = np.array([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)])
-    roll = np.arctan2(up @ east, up @ north)
-    return float(np.degrees(ra) % 360.0), float(np.degrees(dec)), float(np.degrees(roll) % 360.0)
+# the inverse of skygen.sky.attitude.attitude_matrix, under the name fusion's solvers have always used
+radec_roll_from_matrix = matrix_to_radec_roll
 
 
 def solution_from_matrix(m: np.ndarray, **kw) -> Solution:

@@ -231,16 +231,7 @@ class CoarseToFineSolver:
                                                   getattr(tetra, "log", None)),
                                     # chance that a random direction has a catalog star within tol
                                     min(1.0, len(vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)))
-        self.tier = self.tiers[0]
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
-
-    # the catalogue of the tier being searched
-    vec = property(lambda self: self.tier.vec)
-    ids = property(lambda self: self.tier.ids)
-    mag = property(lambda self: self.tier.mag)
-    tree = property(lambda self: self.tier.tree)
-    pairs = property(lambda self: self.tier.pairs)
-    p_chance = property(lambda self: self.tier.p_chance)
 
     # ---------------------------------------------------------------- regions
     def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None, top_k: int | None = None) -> list[Region]:
@@ -252,12 +243,12 @@ class CoarseToFineSolver:
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
     # ---------------------------------------------------------------- search
-    def _hypotheses(self, u: np.ndarray, region: Region, s: float, tables: dict):
+    def _hypotheses(self, tier: _Tier, u: np.ndarray, region: Region, s: float, tables: dict):
         """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) of the
         hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`)."""
-        idx, tol = self.pairs, self.tol_rad
+        idx, tol = tier.pairs, self.tol_rad
         cap = np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol)
-        star_ok = (self.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(self.vec), bool)
+        star_ok = (tier.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(tier.vec), bool)
         cos_r = math.cos(math.radians(region.radius_deg))
         n = len(u)
         m = min(n, self.max_pair_detections)
@@ -277,17 +268,17 @@ class CoarseToFineSolver:
                 tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
             else:
                 tol_n = np.full(n, tol)
-            offs, partner, psep = self._partners(i, j, t, s, tables)
+            offs, partner, psep = self._partners(tier, i, j, t, s, tables)
             tried, _, _, ks, scores, rots = anchor_hypotheses(
-                i, j, t, lo, hi, idx.first, idx.second, idx.sep, self.vec, star_ok, s, tol_n, offs, partner,
+                i, j, t, lo, hi, idx.first, idx.second, idx.sep, tier.vec, star_ok, s, tol_n, offs, partner,
                 psep, region.center, cos_r, 3)
             yield rots, ks, scores, tried
 
-    def _partners(self, i: int, j: int, t: np.ndarray, s: float, tables: dict):
+    def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict):
         """The partner tables of detection pairs (i, k) for every k but i and j, concatenated (see
         :func:`fusion.solve.match.partner_table`); each (i, k) table is built once per solve and pass,
         whatever the number of regions searched (``tables``)."""
-        idx, tol, n, n_stars = self.pairs, self.tol_rad, len(t), len(self.vec)
+        idx, tol, n, n_stars = tier.pairs, self.tol_rad, len(t), len(tier.vec)
         offs = np.zeros((n, n_stars + 1), np.int64)
         parts, seps, base = [], [], 0
         for k in range(n):
@@ -308,39 +299,41 @@ class CoarseToFineSolver:
         psep = np.concatenate(seps) if seps else np.zeros(0)
         return offs, partner, psep
 
-    def _matches(self, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        dist, idx = self.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
+    def _matches(self, tier: _Tier, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dist, idx = tier.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
         ok = np.isfinite(dist)
         return np.flatnonzero(ok), idx[ok]
 
-    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0) -> float:
+    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0,
+                   tier: _Tier | None = None) -> float:
         """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc),
         with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
         match also passes the photometric test (1: not tested)."""
+        tier = tier or self.tiers[0]
         if score - 2 <= 0:
             return 0.0
-        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(self.p_chance, n_det, score) * q))
+        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(tier.p_chance, n_det, score) * q))
 
     # ---------------------------------------------------------------- photometry
-    def _photometric_q(self, flux: np.ndarray, samples: int = 4000) -> float:
+    def _photometric_q(self, tier: _Tier, flux: np.ndarray, samples: int = 4000) -> float:
         """Chance that random stars of the tier, one per detection of ``flux``, pass the photometric test
         against these detections: a Monte Carlo over the tier's magnitudes (fixed seed), plus two
         standard errors and 1/samples, so the bound errs on the side of less confidence."""
         if self.photometric_mag is None or len(flux) < 3 or np.any(flux <= 0):
             return 1.0
         rng = np.random.default_rng(0x9407)
-        mags = self.mag[rng.integers(0, len(self.mag), (samples, len(flux)))]
+        mags = tier.mag[rng.integers(0, len(tier.mag), (samples, len(flux)))]
         q = float(np.mean(magnitude_scatter(mags, flux) <= self.photometric_mag))
         return min(1.0, q + 2 * math.sqrt(q * (1 - q) / samples) + 1.0 / samples)
 
-    def _photometric_pass(self, cat_rows: np.ndarray, det_rows: np.ndarray, flux: np.ndarray) -> bool:
+    def _photometric_pass(self, tier: _Tier, cat_rows: np.ndarray, det_rows: np.ndarray, flux: np.ndarray) -> bool:
         """Do the matched stars' catalogue magnitudes follow the detections' fluxes within
         ``photometric_mag`` (after a common zero point)? At least three matched stars with positive flux."""
         if self.photometric_mag is None or len(det_rows) < 3 or np.any(flux[det_rows] <= 0):
             return False
-        return bool(magnitude_scatter(self.mag[cat_rows], flux[det_rows]) <= self.photometric_mag)
+        return bool(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]) <= self.photometric_mag)
 
-    def _decide(self, rots: np.ndarray, ks: np.ndarray, scores: np.ndarray, tried: int, u: np.ndarray,
+    def _decide(self, tier: _Tier, rots: np.ndarray, ks: np.ndarray, scores: np.ndarray, tried: int, u: np.ndarray,
                 flux: np.ndarray) -> int | Refusal:
         """Index of the accepted hypothesis, or a refusal saying why none is accepted yet. Geometry alone
         decides where it can; where it cannot, catalogue magnitudes that follow the detected fluxes
@@ -352,11 +345,11 @@ class CoarseToFineSolver:
         rivals = np.flatnonzero(scores == s)
         if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
             return Refusal(f"ambiguous: several attitudes match {s} of {n} detections", self.name)
-        conf = self.confidence(tried, n, s)
+        conf = self.confidence(tried, n, s, tier=tier)
         if s >= self.min_matches and conf < self.min_confidence and self.photometric_mag is not None:
-            det_rows, cat_rows = self._matches(rots[best], _unit_at(u[:, :2] / u[:, 2:3], ks[best]))
-            if self._photometric_pass(cat_rows, det_rows, flux):
-                conf = self.confidence(tried, n, s, self._photometric_q(flux[det_rows]))
+            det_rows, cat_rows = self._matches(tier, rots[best], _unit_at(u[:, :2] / u[:, 2:3], ks[best]))
+            if self._photometric_pass(tier, cat_rows, det_rows, flux):
+                conf = self.confidence(tried, n, s, self._photometric_q(tier, flux[det_rows]), tier=tier)
         if s < self.min_matches or conf < self.min_confidence:
             return Refusal(f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}", self.name)
         return best
@@ -385,7 +378,7 @@ class CoarseToFineSolver:
         flux = np.asarray(detections.flux_adu, np.float64)
         # three detections: the bright tier (a chance triangle needs three bright stars, so H and p both
         # shrink); more: the full cut, where four or more stars leave few look-alikes anyway
-        self.tier = self.tiers[-1] if n <= self.bright_max_detections else self.tiers[0]
+        tier = self.tiers[-1] if n <= self.bright_max_detections else self.tiers[0]
         tried, last = 0, Refusal("no catalog pair matches the detections in the prior's regions", self.name)
         # strict first (the nominal focal length, every region), then within +-focal_tol: a wider
         # search finds more coincidences, so it runs only where the strict one found nothing,
@@ -406,13 +399,13 @@ class CoarseToFineSolver:
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
-                for r, k, sc, t in self._hypotheses(u, region, s, tables):
+                for r, k, sc, t in self._hypotheses(tier, u, region, s, tables):
                     tried += t
-                    best_possible = self.confidence(tried, n, n)
+                    best_possible = self.confidence(tried, n, n, tier=tier)
                     if best_possible < self.min_confidence and self.photometric_mag is not None:
                         if q_all is None:         # photometry's best case: every detection matched and passing
-                            q_all = self._photometric_q(flux)
-                        best_possible = self.confidence(tried, n, n, q_all)
+                            q_all = self._photometric_q(tier, flux)
+                        best_possible = self.confidence(tried, n, n, q_all, tier=tier)
                     if best_possible < self.min_confidence:
                         # H only grows: not even all n detections matched could pass any more, so stop here
                         return Refusal(f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
@@ -421,9 +414,9 @@ class CoarseToFineSolver:
                     if not len(sc):
                         continue
                     rots, ks, scores = np.concatenate([rots, r]), np.concatenate([ks, k]), np.concatenate([scores, sc])
-                    verdict = self._decide(rots, ks, scores, tried, u, flux)
+                    verdict = self._decide(tier, rots, ks, scores, tried, u, flux)
                     if isinstance(verdict, int):
-                        sol = self._finish(rots[verdict], float(ks[verdict]), u, detections, camera, region, tried,
+                        sol = self._finish(tier, rots[verdict], float(ks[verdict]), u, detections, camera, region, tried,
                                            t0, every)
                         if isinstance(sol, Solution):
                             return sol
@@ -432,7 +425,7 @@ class CoarseToFineSolver:
                     last = verdict
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried})
 
-    def refine(self, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
+    def refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
         """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
 
         Iterated to convergence: a scale error leaves the outer stars unmatched at first, and each
@@ -441,15 +434,15 @@ class CoarseToFineSolver:
         previous = None
         for _ in range(iterations):
             uk = _unit_at(t, k)
-            det_rows, cat_rows = self._matches(rot, uk)
+            det_rows, cat_rows = self._matches(tier, rot, uk)
             if len(det_rows) < 2:
                 break
-            rot = _kabsch(uk[det_rows], self.vec[cat_rows])
+            rot = _kabsch(uk[det_rows], tier.vec[cat_rows])
             if s > 0 and len(det_rows) >= 3:
                 # scale of the 2-D similarity (Umeyama) from the matched stars' tangent-plane coordinates
                 # (g) to the detections' (t = k g up to a small shift and turn): free of the rotation's own
                 # error, which a plain t = k g fit absorbs, so it converges in a few iterations
-                c = self.vec[cat_rows] @ rot                     # matched stars in the camera frame
+                c = tier.vec[cat_rows] @ rot                     # matched stars in the camera frame
                 g = c[:, :2] / c[:, 2:3]
                 gc, tc = g - g.mean(axis=0), t[det_rows] - t[det_rows].mean(axis=0)
                 sv = np.linalg.svd(gc.T @ tc, compute_uv=False)
@@ -462,25 +455,25 @@ class CoarseToFineSolver:
             if converged:
                 break
         uk = _unit_at(t, k)
-        det_rows, cat_rows = self._matches(rot, uk)
+        det_rows, cat_rows = self._matches(tier, rot, uk)
         return rot, k, det_rows, cat_rows, uk
 
-    def _pulled_off(self, matrix: np.ndarray, uk: np.ndarray, det_rows: np.ndarray, cat_rows: np.ndarray) -> bool:
+    def _pulled_off(self, tier: _Tier, matrix: np.ndarray, uk: np.ndarray, det_rows: np.ndarray, cat_rows: np.ndarray) -> bool:
         """Does attitude ``matrix`` move any of our matched stars beyond ``tol_px`` of its catalogue star?"""
-        cos = np.sum((uk[det_rows] @ np.asarray(matrix).T) * self.vec[cat_rows], axis=1)
+        cos = np.sum((uk[det_rows] @ np.asarray(matrix).T) * tier.vec[cat_rows], axis=1)
         return bool(np.any(np.arccos(np.clip(cos, -1, 1)) > self.tol_rad))
 
-    def _finish(self, rot, k, u, detections, camera, region, tried, t0, every=None) -> Solution | Refusal:
+    def _finish(self, tier: _Tier, rot, k, u, detections, camera, region, tried, t0, every=None) -> Solution | Refusal:
         # the focal factor is fitted within +-focal_tol whichever pass found the hypothesis: a strict-pass
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
-        rot, k, det_rows, cat_rows, uk = self.refine(rot, k, u, self.focal_tol)
+        rot, k, det_rows, cat_rows, uk = self.refine(tier, rot, k, u, self.focal_tol)
         score = len(det_rows)
-        conf = self.confidence(tried, len(u), score)
+        conf = self.confidence(tried, len(u), score, tier=tier)
         flux = np.asarray(detections.flux_adu, np.float64)
         evidence = "geometry"
         if score >= self.min_matches and conf < self.unverified_confidence \
-                and self._photometric_pass(cat_rows, det_rows, flux):
-            conf_p = self.confidence(tried, len(u), score, self._photometric_q(flux[det_rows]))
+                and self._photometric_pass(tier, cat_rows, det_rows, flux):
+            conf_p = self.confidence(tried, len(u), score, self._photometric_q(tier, flux[det_rows]), tier=tier)
             if conf_p > conf:
                 conf, evidence = conf_p, "geometry and photometry"
         if score < self.min_matches or conf < self.min_confidence:
@@ -491,7 +484,7 @@ class CoarseToFineSolver:
                  "refined_by": "own least squares", "focal_factor": k, "fov_deg": list(cam_k.fov_deg),
                  "evidence": evidence}
         if len(det_rows) >= 2:
-            extra["magnitude_scatter"] = float(magnitude_scatter(self.mag[cat_rows], flux[det_rows]))
+            extra["magnitude_scatter"] = float(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]))
         if self.verify:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines
@@ -499,7 +492,7 @@ class CoarseToFineSolver:
                                              name=self.name)
             confirmed = isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0
             resid_px = res.residual_arcsec / cam_k.pixel_scale_arcsec if confirmed else 0.0
-            if confirmed and resid_px > self.max_residual_px and self._pulled_off(res.matrix, uk, det_rows, cat_rows):
+            if confirmed and resid_px > self.max_residual_px and self._pulled_off(tier, res.matrix, uk, det_rows, cat_rows):
                 # confirmed, but tetra3rs's refinement took in a star beyond any centroid error (a bright
                 # star missing from the tier, matched to a neighbour) and is pulled off by it, so far that
                 # our own matches no longer fit; their own least squares is no better (few stars, and the
@@ -516,8 +509,8 @@ class CoarseToFineSolver:
             elif conf < self.unverified_confidence:
                 return Refusal("best candidate not confirmed by tetra3rs tracking and evidence below the unverified "
                                "bar", self.name)
-        resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * self.vec[cat_rows], axis=1), -1, 1))
-        return solution_from_matrix(rot, matched=np.column_stack([det_rows, self.ids[cat_rows]]),
+        resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
+        return solution_from_matrix(rot, matched=np.column_stack([det_rows, tier.ids[cat_rows]]),
                                     residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
                                     confidence=conf, solver=self.name, time_ms=(time.perf_counter() - t0) * 1e3,
                                     extra=extra)

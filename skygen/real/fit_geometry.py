@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skygen.instrument.camera import Camera
+from skygen.sky.attitude import matrix_to_radec_roll
 
 RULES = {"min_frames_distortion": 2, "min_stars_distortion": 30, "min_stars_k2": 150,
          "min_edge_fraction": 0.7, "max_corner_sigma_px": 0.3}
@@ -49,15 +50,7 @@ class FrameSolution:
         return self.R is not None
 
 
-def radec_roll(R: np.ndarray) -> tuple[float, float, float]:
-    """(ra, dec, roll) degrees of a camera -> ICRS matrix; inverse of :func:`skygen.sky.attitude.attitude_matrix`."""
-    b, up = R[:, 2], -R[:, 1]
-    ra = np.arctan2(b[1], b[0])
-    dec = np.arcsin(np.clip(b[2], -1.0, 1.0))
-    east = np.array([-np.sin(ra), np.cos(ra), 0.0])
-    north = np.array([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)])
-    return (float(np.degrees(ra) % 360), float(np.degrees(dec)),
-            float(np.degrees(np.arctan2(up @ east, up @ north)) % 360))
+radec_roll = matrix_to_radec_roll          # (ra, dec, roll) degrees of a camera -> ICRS matrix
 
 
 def _rotvec(w: np.ndarray) -> np.ndarray:

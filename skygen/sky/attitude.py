@@ -29,6 +29,22 @@ def attitude_matrix(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarra
     return np.column_stack([x, y, b])
 
 
+def matrix_to_radec_roll(m: np.ndarray) -> tuple[float, float, float]:
+    """(ra_deg, dec_deg, roll_deg) of a camera -> ICRS matrix: the inverse of :func:`attitude_matrix`.
+
+    ra in [0, 360), dec in [-90, 90], roll (the position angle of image up, -y, from north through
+    east) in [0, 360). The one inverse: fusion's solvers and ``skygen fit-camera`` both use it.
+    """
+    m = np.asarray(m, np.float64)
+    b, up = m[:, 2], -m[:, 1]
+    ra = np.arctan2(b[1], b[0])
+    dec = np.arcsin(np.clip(b[2], -1.0, 1.0))
+    east = np.array([-np.sin(ra), np.cos(ra), 0.0])
+    north = np.array([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)])
+    roll = np.arctan2(up @ east, up @ north)
+    return float(np.degrees(ra) % 360.0), float(np.degrees(dec)), float(np.degrees(roll) % 360.0)
+
+
 def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
     """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix (Shepperd's method)."""
     m = np.asarray(m, dtype=np.float64)
@@ -47,9 +63,9 @@ def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
     else:
         z = np.sqrt(1.0 + 2 * m[2, 2] - tr) / 2
         q = [(m[1, 0] - m[0, 1]) / (4 * z), (m[0, 2] + m[2, 0]) / (4 * z), (m[1, 2] + m[2, 1]) / (4 * z), z]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    quat = np.array(q)
+    quat /= np.linalg.norm(quat)
+    return -quat if quat[0] < 0 else quat
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
