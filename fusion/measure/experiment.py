@@ -467,19 +467,13 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     t_start = time.perf_counter()
     revision = _git_revision()          # the code that runs, not the code at the end
     preset = load_preset(preset_name)
-    sections = preset.sections if sections is None else tuple(sections)
-    bad = [s for s in sections if s not in SECTIONS]
-    if bad:
-        raise ConfigError(f"unknown section(s) {', '.join(bad)}; choose from {', '.join(SECTIONS)}")
-    missing = [s for s in sections if s not in preset.sections]
-    if missing:
-        raise ConfigError(f"preset {preset.name!r} defines no section {', '.join(missing)}; "
-                          f"it has {', '.join(preset.sections)}")
+    sections = _checked_sections(preset, sections)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     workers = workers or os.cpu_count() or 1
     data = ensure_dataset(preset, Path(data_dir or f"data/experiment-{preset.name}"), workers, log)
-    runs_dir = Path(runs_dir or f"runs/experiment-{preset.name}")
+    default_runs_dir = Path(f"runs/experiment-{preset.name}")
+    runs_dir = Path(runs_dir or default_runs_dir)
     runs = plan(preset)
     todo = list({r.key: r for s in sections for r in runs[s]}.values())
     log(f"{len(todo)} training runs ({len(preset.seeds)} seeds), {jobs} at a time")
@@ -488,76 +482,106 @@ def run_experiment(preset_name: str | Path, out: str | Path, *, sections: tuple[
     results: dict = {"preset": preset.name, "sections": {}}
     md = [f"# Star-Fusion experiments — preset `{preset.name}`", ""]
     md += _header(preset, data)
-    split = preset.split
-    if "table1" in sections:
-        g = _group(runs["table1"], folders, split, firsts)
-        results["sections"]["table1"] = g
-        md += ["## 1. Table 1: baselines and Star-Fusion", "",
-               f"Test split, mean ± std over seeds {preset.seeds}. Right column: the paper's reported numbers "
-               "(K = 15, its validation split, one seed, its own data) — for orientation, not a like-for-like "
-               "comparison.", ""] + table_topk(g, PAPER_TABLE1) + [""]
-    if "few_star" in sections:
-        md += _few_star_section(preset, runs["few_star"], folders, results)
-    if "ablation" in sections:
-        g = _group(runs["ablation"], folders, split, firsts)
-        results["sections"]["ablation"] = g
-        md += ["## 2. Branch ablation (all 7 subsets)", ""] + table_topk(g, PAPER_ABLATION_TOP1) + [""]
-    if "k_sweep" in sections:
-        g = _group(runs["k_sweep"], folders, split, firsts)
-        results["sections"]["k_sweep"] = g
-        _plot_k(g, out / "k_sweep.png")
-        md += ["## 3. Number of clusters K", "",
-               "Angular error = arccos(v · c_pred); the floor is the error if the true class were always "
-               "predicted (the quantisation of the sphere into K cells).", ""] + table_k(g) + \
-              ["", "![K sweep](k_sweep.png)", ""]
-    if "labels" in sections:
-        g = _group(runs["labels"], folders, split, firsts)
-        results["sections"]["labels"] = g
-        md += ["## 4. Hard labels vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", "",
-               f"Model: {_sweep_text(preset)}. Soft labels replace fine regions (the two "
-               "cannot be combined), so they are compared with hard labels on the K regions themselves.", ""] + \
-            table_topk(g) + [""]
-    if "coords" in sections:
-        g = _group(runs["coords"], folders, split, firsts)
-        shuffled = {}
-        for r in runs["coords"]:
-            shuffled.setdefault(r.name, []).append(evaluate_shuffled(folders[r.key] / "best.pt", data, split, r.seed))
-        results["sections"]["coords"] = {"ordered": g, "shuffled_top1": shuffled}
-        md += ["## 5. Coordinate encoders: MLP over the ordered list, set encoder, transformer", "",
-               "Shuffled: the same test frames with the kept detection rows in a random order at evaluation time.",
-               "", "| encoder | top-1 ordered (%) | top-1 shuffled (%) | seeds |", "|---|---|---|---|"]
-        for name, evs in g.items():
-            md.append(f"| {name} | {_ms([e['top1'] for e in evs])} | {_ms(shuffled[name])} | {len(evs)} |")
-        md.append("")
-    if "recipe" in sections and runs["recipe"]:
-        g = _group(runs["recipe"], folders, split, firsts)
-        results["sections"]["recipe"] = g
-        md += ["## 6. Recipe ablations", "",
-               "Each row changes one thing of the preset's recipe (overrides in `results.json` and the preset "
-               "file). Training time is wall time on this machine; compare rows at equal time, not equal "
-               "epochs.", ""] + table_topk(g) + [""]
-    if "robustness" in sections:
-        md += _robustness_section(preset, runs["robustness"], folders, data, out, results, log)
-    if "latency" in sections:
-        md += _latency_section(preset, folders[runs["latency"][0].key], data, out, results, log)
+    for name in SECTIONS:              # in the report's order
+        if name not in sections:
+            continue
+        if name in GROUP_SECTIONS:
+            md += _group_section(name, preset, runs[name], folders, firsts, out, results)
+        elif name == "few_star":
+            md += _few_star_section(preset, runs["few_star"], folders, results)
+        elif name == "coords":
+            md += _coords_section(preset, runs["coords"], folders, firsts, data, results)
+        elif name == "robustness":
+            md += _robustness_section(preset, runs["robustness"], folders, data, out, results, log)
+        elif name == "latency":
+            md += _latency_section(preset, folders[runs["latency"][0].key], data, out, results, log)
     wall = time.perf_counter() - t_start
     cmd = [f"fusion experiment --preset {preset.name}"]
     cmd += [f"--sections {','.join(sections)}"] if tuple(sections) != tuple(preset.sections) else []
     cmd += [f"--data-dir {data_dir}"] if data_dir else []
-    cmd += [f"--runs-dir {runs_dir}"] if runs_dir != Path(f"runs/experiment-{preset.name}") else []
+    cmd += [f"--runs-dir {runs_dir}"] if runs_dir != default_runs_dir else []
     cmd += [f"--jobs {jobs}"] if jobs != 1 else []
     md += ["## Provenance", "", f"- command: `{' '.join(cmd)} --out {out}`",
            f"- git revision at start: {revision}", f"- hardware: {_hardware()}",
            f"- wall time of this invocation: {wall / 60:.1f} min (finished steps are skipped on re-runs)",
            f"- training: {len(todo)} runs, {_summed_train_min(folders):.0f} min of training wall time in all "
            f"({jobs} at a time; evaluation, robustness and latency come on top)",
-           f"- raw results: `results.json` here; each run's config, metrics, checkpoints and `eval-{split}.json` "
+           f"- raw results: `results.json` here; each run's config, metrics, checkpoints and `eval-{preset.split}.json` "
            f"under `{runs_dir}/` and the dataset in `{data}/` (not committed)", ""]
     results["wall_time_s"] = wall
     write_json(out / "results.json", results)
     atomic_write_text(out / "REPORT.md", "\n".join(md) + "\n")
     log(f"wrote {out / 'REPORT.md'}")
     return out / "REPORT.md"
+
+
+def _checked_sections(preset: Preset, sections) -> tuple[str, ...]:
+    """The sections to run: every one the preset defines by default; unknown or undefined ones refused."""
+    sections = preset.sections if sections is None else tuple(sections)
+    bad = [s for s in sections if s not in SECTIONS]
+    if bad:
+        raise ConfigError(f"unknown section(s) {', '.join(bad)}; choose from {', '.join(SECTIONS)}")
+    missing = [s for s in sections if s not in preset.sections]
+    if missing:
+        raise ConfigError(f"preset {preset.name!r} defines no section {', '.join(missing)}; "
+                          f"it has {', '.join(preset.sections)}")
+    return sections
+
+
+# the sections that are one table of top-k over their runs: title and the lines under it
+GROUP_SECTIONS = {
+    "table1": ("## 1. Table 1: baselines and Star-Fusion", None),
+    "ablation": ("## 2. Branch ablation (all 7 subsets)", []),
+    "k_sweep": ("## 3. Number of clusters K", ["Angular error = arccos(v · c_pred); the floor is the error if the true "
+                                               "class were always predicted (the quantisation of the sphere into K "
+                                               "cells).", ""]),
+    "labels": ("## 4. Hard labels vs geometry-aware soft labels q_k ∝ exp(κ v·c_k)", None),
+    "recipe": ("## 6. Recipe ablations", ["Each row changes one thing of the preset's recipe (overrides in "
+                                          "`results.json` and the preset file). Training time is wall time on this "
+                                          "machine; compare rows at equal time, not equal epochs.", ""]),
+}
+
+
+def _group_section(name: str, preset: Preset, runs: list[RunSpec], folders: dict[str, Path], firsts: dict,
+                   out: Path, results: dict) -> list[str]:
+    """One of GROUP_SECTIONS: its runs evaluated, grouped by row, as a table (table 1 and the ablation
+    beside the paper's numbers, the K sweep with its plot and angular errors)."""
+    if name == "recipe" and not runs:
+        return []
+    g = _group(runs, folders, preset.split, firsts)
+    results["sections"][name] = g
+    title, intro = GROUP_SECTIONS[name]
+    if name == "table1":
+        intro = [f"Test split, mean ± std over seeds {preset.seeds}. Right column: the paper's reported numbers "
+                 "(K = 15, its validation split, one seed, its own data) — for orientation, not a like-for-like "
+                 "comparison.", ""]
+        return [title, "", *intro] + table_topk(g, PAPER_TABLE1) + [""]
+    if name == "labels":
+        intro = [f"Model: {_sweep_text(preset)}. Soft labels replace fine regions (the two "
+                 "cannot be combined), so they are compared with hard labels on the K regions themselves.", ""]
+    if name == "ablation":
+        return [title, "", *intro] + table_topk(g, PAPER_ABLATION_TOP1) + [""]
+    if name == "k_sweep":
+        _plot_k(g, out / "k_sweep.png")
+        return [title, "", *intro] + table_k(g) + ["", "![K sweep](k_sweep.png)", ""]
+    return [title, "", *intro] + table_topk(g) + [""]
+
+
+def _coords_section(preset: Preset, runs: list[RunSpec], folders: dict[str, Path], firsts: dict, data: Path,
+                    results: dict) -> list[str]:
+    """The coordinate encoders, scored on the test frames as they are and with the rows shuffled."""
+    g = _group(runs, folders, preset.split, firsts)
+    shuffled: dict = {}
+    for r in runs:
+        shuffled.setdefault(r.name, []).append(evaluate_shuffled(folders[r.key] / "best.pt", data, preset.split,
+                                                                 r.seed))
+    results["sections"]["coords"] = {"ordered": g, "shuffled_top1": shuffled}
+    md = ["## 5. Coordinate encoders: MLP over the ordered list, set encoder, transformer", "",
+          "Shuffled: the same test frames with the kept detection rows in a random order at evaluation time.",
+          "", "| encoder | top-1 ordered (%) | top-1 shuffled (%) | seeds |", "|---|---|---|---|"]
+    for name, evs in g.items():
+        md.append(f"| {name} | {_ms([e['top1'] for e in evs])} | {_ms(shuffled[name])} | {len(evs)} |")
+    return md + [""]
 
 
 def _few_star_section(preset: Preset, runs: list[RunSpec], folders: dict[str, Path], results: dict) -> list[str]:

@@ -12,6 +12,7 @@ stars and detections. ``skygen calibrate`` runs them and saves the result.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,20 @@ def _binned_rate(values: np.ndarray, hits: np.ndarray, edges: np.ndarray) -> tup
     return hit, tot
 
 
+@dataclass
+class _Tallies:
+    """What the calibration frames add up to, frame by frame (:func:`_tally_frame`)."""
+    u: list = field(default_factory=list)              # log10(electrons / threshold) of isolated sources
+    hit: list = field(default_factory=list)            # ... and whether the detector found them
+    rows: list = field(default_factory=list)           # residual rows of matched isolated detections
+    rows_bin: list = field(default_factory=list)       # ... and their brightness bin
+    pair_d: list = field(default_factory=list)         # gap of close pairs of bright stars
+    pair_res: list = field(default_factory=list)       # ... and whether both were detected (resolved)
+    spur_counts: list = field(default_factory=list)    # spurious detections per frame
+    spur_rows: list = field(default_factory=list)      # ... their flux, peak and area
+    frames: int = 0
+
+
 def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_px: float, info: dict | None = None,
         rng: np.random.Generator | None = None, extra_pairs: tuple | None = None) -> DetectorModel:
     """Fit a :class:`DetectorModel` from ``(true_stars, detections)`` pairs of rendered frames.
@@ -61,87 +76,105 @@ def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_
     applies those itself.
     """
     rng = rng or np.random.default_rng(0)
-    n_bins = len(U_EDGES) - 1
-    u_all, hit_all, rows, rows_bin = [], [], [], []
-    pair_d, pair_res = [], []
-    spur_counts, spur_rows = [], []
-    n_frames = 0
+    t = _Tallies()
     for stars, det in frames:
-        n_frames += 1
-        e = np.asarray(stars["electrons"], np.float64)
-        sx, sy = np.asarray(stars["x_px"], np.float64), np.asarray(stars["y_px"], np.float64)
-        u = np.log10(np.maximum(e, 1e-12) / threshold_e)
-        sidx = np.asarray(det["star_index"], np.int64)
-        matched = np.zeros(len(e), bool)
-        matched[sidx[sidx >= 0]] = True
-        # isolation: no other source above u = -0.7 (a fifth of the threshold) within ISOLATION_PX
-        strong = u > -0.7
-        isolated = np.ones(len(e), bool)
-        if len(e) > 1 and strong.any():
-            tree = cKDTree(np.column_stack([sx[strong], sy[strong]]))
-            cnt = np.array([len(c) for c in tree.query_ball_point(np.column_stack([sx, sy]), ISOLATION_PX)])
-            isolated = cnt - strong.astype(int) == 0
-            pts = np.column_stack([sx, sy])
-            good = np.flatnonzero(u > 0.3)
-            if len(good) > 1:
-                pr = cKDTree(pts[good]).query_pairs(BLEND_MAX_PX, output_type="ndarray")
-                if len(pr):
-                    a, b = good[pr[:, 0]], good[pr[:, 1]]
-                    # only pairs with no third source nearby: the pair alone decides
-                    third = np.array([len(c) for c in tree.query_ball_point(pts[a], ISOLATION_PX)]) \
-                        + np.array([len(c) for c in tree.query_ball_point(pts[b], ISOLATION_PX)])
-                    clean = third <= 4
-                    d = np.hypot(sx[a] - sx[b], sy[a] - sy[b])
-                    pair_d.append(gap_px(e[a], e[b], d, threshold_e, psf_sigma_px)[clean])
-                    pair_res.append((matched[a] & matched[b])[clean])
-        u_all.append(u[isolated])
-        hit_all.append(matched[isolated])
-        m = np.flatnonzero(sidx >= 0)
-        s = sidx[m]
-        keep = isolated[s]
-        m, s = m[keep], s[keep]
-        if len(m):
-            rows.append(np.column_stack([
-                np.asarray(det["x_px"], np.float64)[m] - sx[s], np.asarray(det["y_px"], np.float64)[m] - sy[s],
-                np.log10(np.maximum(np.asarray(det["flux_adu"], np.float64)[m], 1e-3) / e[s]),
-                np.log10(np.maximum(np.asarray(det["peak_adu"], np.float64)[m], 1e-3) / e[s]),
-                np.asarray(det["area_px"], np.float64)[m]]))
-            rows_bin.append(np.clip(np.searchsorted(U_EDGES, u[s], side="right") - 1, 0, n_bins - 1))
-        sp = np.flatnonzero(sidx < 0)
-        spur_counts.append(len(sp))
-        if len(sp):
-            spur_rows.append(np.column_stack([np.asarray(det["flux_adu"], np.float64)[sp],
-                                              np.asarray(det["peak_adu"], np.float64)[sp],
-                                              np.asarray(det["area_px"], np.float64)[sp]]))
-    if n_frames == 0:
+        _tally_frame(t, stars, det, threshold_e, psf_sigma_px)
+    if t.frames == 0:
         raise DatasetError("no frames to calibrate on")
-    u_all, hit_all = np.concatenate(u_all), np.concatenate(hit_all)
+    u_all, hit_all = np.concatenate(t.u), np.concatenate(t.hit)
     hit, tot = _binned_rate(u_all, hit_all, U_EDGES)
-    completeness = _monotone(hit, tot)
-    rows = np.concatenate(rows) if rows else np.zeros((0, 5))
-    rows_bin = np.concatenate(rows_bin) if rows_bin else np.zeros(0, np.int64)
+    rows = np.concatenate(t.rows) if t.rows else np.zeros((0, 5))
     if len(rows) == 0:
         raise DatasetError("the calibration frames hold no matched detections of isolated stars; "
                            "render brighter or more frames")
+    rows_bin = np.concatenate(t.rows_bin) if t.rows_bin else np.zeros(0, np.int64)
+    start, bank = _residual_bank(rows, rows_bin, rng)
+    if extra_pairs is not None:
+        t.pair_d.append(extra_pairs[0])
+        t.pair_res.append(extra_pairs[1])
+    p_res = _logistic_fit(np.concatenate(t.pair_d), np.concatenate(t.pair_res)) if t.pair_d \
+        else np.ones(len(GAP_EDGES) - 1)
+    counts = np.asarray(t.spur_counts)
+    pmf, sp = _spurious_model(counts, t.spur_rows, rng)
+    info = dict(info or {})
+    info.update({"frames": t.frames, "isolated_sources": int(len(u_all)), "matched_rows": int(len(rows)),
+                 "spurious_per_frame": float(counts.mean()), "pairs_for_blending": int(sum(len(p) for p in t.pair_d)),
+                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+    return DetectorModel(key=key, threshold_e=float(threshold_e), psf_sigma_px=float(psf_sigma_px),
+                         completeness=_monotone(hit, tot), bank_start=start,
+                         bank=bank, p_resolved=p_res, spurious_pmf=pmf,
+                         spurious={"flux_adu": sp[:, 0], "peak_adu": sp[:, 1], "area_px": sp[:, 2]},
+                         gain_e_per_adu=float(gain_e_per_adu), info=info)
+
+
+def _tally_frame(t: _Tallies, stars: dict, det: dict, threshold_e: float, psf_sigma_px: float) -> None:
+    """Add one frame's isolated sources, matched residuals, close pairs and spurious detections to ``t``."""
+    t.frames += 1
+    e = np.asarray(stars["electrons"], np.float64)
+    sx, sy = np.asarray(stars["x_px"], np.float64), np.asarray(stars["y_px"], np.float64)
+    u = np.log10(np.maximum(e, 1e-12) / threshold_e)
+    sidx = np.asarray(det["star_index"], np.int64)
+    matched = np.zeros(len(e), bool)
+    matched[sidx[sidx >= 0]] = True
+    # isolation: no other source above u = -0.7 (a fifth of the threshold) within ISOLATION_PX
+    strong = u > -0.7
+    isolated = np.ones(len(e), bool)
+    if len(e) > 1 and strong.any():
+        tree = cKDTree(np.column_stack([sx[strong], sy[strong]]))
+        cnt = np.array([len(c) for c in tree.query_ball_point(np.column_stack([sx, sy]), ISOLATION_PX)])
+        isolated = cnt - strong.astype(int) == 0
+        pts = np.column_stack([sx, sy])
+        good = np.flatnonzero(u > 0.3)
+        if len(good) > 1:
+            pr = cKDTree(pts[good]).query_pairs(BLEND_MAX_PX, output_type="ndarray")
+            if len(pr):
+                a, b = good[pr[:, 0]], good[pr[:, 1]]
+                # only pairs with no third source nearby: the pair alone decides
+                third = np.array([len(c) for c in tree.query_ball_point(pts[a], ISOLATION_PX)]) \
+                    + np.array([len(c) for c in tree.query_ball_point(pts[b], ISOLATION_PX)])
+                clean = third <= 4
+                d = np.hypot(sx[a] - sx[b], sy[a] - sy[b])
+                t.pair_d.append(gap_px(e[a], e[b], d, threshold_e, psf_sigma_px)[clean])
+                t.pair_res.append((matched[a] & matched[b])[clean])
+    t.u.append(u[isolated])
+    t.hit.append(matched[isolated])
+    m = np.flatnonzero(sidx >= 0)
+    s = sidx[m]
+    keep = isolated[s]
+    m, s = m[keep], s[keep]
+
+    def col(name: str, rows: np.ndarray) -> np.ndarray:
+        return np.asarray(det[name], np.float64)[rows]
+    if len(m):
+        t.rows.append(np.column_stack([
+            col("x_px", m) - sx[s], col("y_px", m) - sy[s],
+            np.log10(np.maximum(col("flux_adu", m), 1e-3) / e[s]),
+            np.log10(np.maximum(col("peak_adu", m), 1e-3) / e[s]),
+            col("area_px", m)]))
+        t.rows_bin.append(np.clip(np.searchsorted(U_EDGES, u[s], side="right") - 1, 0, len(U_EDGES) - 2))
+    sp = np.flatnonzero(sidx < 0)
+    t.spur_counts.append(len(sp))
+    if len(sp):
+        t.spur_rows.append(np.column_stack([col("flux_adu", sp), col("peak_adu", sp), col("area_px", sp)]))
+
+
+def _residual_bank(rows: np.ndarray, rows_bin: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """At most BANK_ROWS_PER_BIN residual rows per brightness bin (a random subset, kept in order):
+    the bank's start offsets per bin and its columns."""
     chosen = []
-    for b in range(n_bins):
+    for b in range(len(U_EDGES) - 1):
         r = np.flatnonzero(rows_bin == b)
         if len(r) > BANK_ROWS_PER_BIN:
             r = np.sort(rng.choice(r, BANK_ROWS_PER_BIN, replace=False))
         chosen.append(r)
     start = np.concatenate([[0], np.cumsum([len(c) for c in chosen])]).astype(np.int64)
     sel = rows[np.concatenate(chosen)]
-    bank = {"dx": sel[:, 0], "dy": sel[:, 1], "log_flux_ratio": sel[:, 2], "log_peak_ratio": sel[:, 3],
-            "area": sel[:, 4]}
-    if extra_pairs is not None:
-        pair_d.append(extra_pairs[0])
-        pair_res.append(extra_pairs[1])
-    if pair_d:
-        d, res = np.concatenate(pair_d), np.concatenate(pair_res)
-        p_res = _logistic_fit(d, res)
-    else:
-        p_res = np.ones(len(GAP_EDGES) - 1)
-    counts = np.asarray(spur_counts)
+    return start, {"dx": sel[:, 0], "dy": sel[:, 1], "log_flux_ratio": sel[:, 2], "log_peak_ratio": sel[:, 3],
+                   "area": sel[:, 4]}
+
+
+def _spurious_model(counts: np.ndarray, spur_rows: list, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The distribution of spurious detections per frame and a bank of their (flux, peak, area) rows."""
     pmf = np.bincount(counts).astype(np.float64) / len(counts)
     sp = np.concatenate(spur_rows) if spur_rows else np.zeros((0, 3))
     if len(sp) > 4 * BANK_ROWS_PER_BIN:
@@ -149,15 +182,7 @@ def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_
     if len(sp) == 0:
         pmf = np.array([1.0])
         sp = np.zeros((1, 3))
-    info = dict(info or {})
-    info.update({"frames": n_frames, "isolated_sources": int(len(u_all)), "matched_rows": int(len(rows)),
-                 "spurious_per_frame": float(counts.mean()), "pairs_for_blending": int(sum(len(p) for p in pair_d)),
-                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
-    return DetectorModel(key=key, threshold_e=float(threshold_e), psf_sigma_px=float(psf_sigma_px),
-                         completeness=completeness, bank_start=start,
-                         bank=bank, p_resolved=p_res, spurious_pmf=pmf,
-                         spurious={"flux_adu": sp[:, 0], "peak_adu": sp[:, 1], "area_px": sp[:, 2]},
-                         gain_e_per_adu=float(gain_e_per_adu), info=info)
+    return pmf, sp
 
 
 def _monotone(hit: np.ndarray, tot: np.ndarray) -> np.ndarray:
