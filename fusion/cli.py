@@ -145,7 +145,7 @@ def _add_evaluate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="(required) skygen dataset folder")
     p.add_argument("--split", default="test", choices=("train", "val", "test"), help="split to evaluate (default test)")
     p.add_argument("--out", help="folder for eval-<split>.json/.md and confusion-<split>.png (default: the checkpoint's; "
-                   "required for an ensemble)")
+                   "created and checked for writing before any work; required for an ensemble)")
     p.add_argument("--batch-size", type=int, default=64, help="frames per forward pass (default 64)")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0: in-process)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
@@ -215,7 +215,8 @@ def _add_timing(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="skygen dataset whose camera renders the raw frame for end2end (default: the "
                    "checkpoint's training dataset if present, else skygen's default 1024 px camera)")
     p.add_argument("--image-size", type=int, default=256, help="model input size with --config (default 256)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default 1: the latency of one model on one core, "
+                   "as a tracker runs it; 0: every usable core, torch's own default)")
     p.add_argument("--out", required=True, help="JSON file to write, e.g. results/timing/cpu_fp32_b1.json")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides with --config")
 
@@ -363,7 +364,8 @@ def _add_benchmark(p: argparse.ArgumentParser) -> None:
     p.add_argument("--corruptions", nargs="*", default=list(DETECTION_CORRUPTIONS), metavar="NAME",
                    help=f"detection-level corruptions (default all: {', '.join(DETECTION_CORRUPTIONS)}); none: clean only")
     p.add_argument("--solvers", nargs="+", metavar="NAME", default=list(DEFAULT_SOLVERS),
-                   help=f"solvers to score, from: {', '.join(SOLVERS)} (default: {' '.join(DEFAULT_SOLVERS)})")
+                   help=f"solvers to score, from: {', '.join(SOLVERS)} (default: {' '.join(DEFAULT_SOLVERS)}; those "
+                        "needing a learned prior are skipped without --checkpoint, and refused when named)")
     p.add_argument("--correct-deg", type=float, default=0.1,
                    help="boresight error counted as correct, in (0, 180] (default 0.1 deg)")
     p.add_argument("--correct-roll-deg", type=float, default=1.0,

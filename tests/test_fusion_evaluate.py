@@ -205,7 +205,8 @@ def test_evaluate_warns_about_another_camera_and_takes_a_run_folder(trained, tmp
     warnings = []
     r = evaluate_checkpoint(trained, other, "test", tmp_path, log=quiet, warn=warnings.append)
     assert r["checkpoint"] == str(trained / "best.pt")
-    assert any("another camera" in w and "camera.fov_deg" in w for w in warnings), warnings
+    assert any("other frame settings" in w and "camera.fov_deg 20 -> 24" in w for w in warnings), warnings
+    assert r["config_differences"] == {"camera.fov_deg": {"training": 20.0, "data": 24.0}}
 
 
 def test_evaluate_and_train_refuse_a_shard_changed_after_rendering(trained, tmp_path, monkeypatch, capsys):

@@ -12,11 +12,21 @@ cosine). Reported (angles in degrees, see :mod:`fusion.model.metrics` for defini
 * the share of errors between neighbouring clusters (Voronoi neighbours on the sphere).
 
 Outputs ``eval-<split>.json``, ``eval-<split>.md`` and ``confusion-<split>.png`` in
-``out`` (default: the checkpoint's folder).
+``out`` (default: the checkpoint's folder), which is created and tested for writing before
+any work. The JSON records the hardware (:func:`skygen.runtime.hardware`).
+
+Data rendered with other frame settings than the checkpoint's training data (any key of
+``camera``, ``optics``, ``photometry``, ``sensor``, ``corruptions``, ``detection``,
+``catalog``, or ``epoch_yr``: :func:`fusion.model.checkpoint.frame_config_differences`;
+not ``seed``, ``n_frames``, ``attitude``, ``output``, ``render``) is scored, since a
+robustness study does it on purpose, but a one-line WARNING naming the keys (training ->
+data) goes to stderr before the work and again after the result, the summary line and the
+Markdown say so, and the JSON lists them under ``config_differences``.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -25,10 +35,10 @@ import numpy as np
 
 from skygen.datasets.shards import open_dataset, verify_checksums
 
-from skygen.runtime import atomic_write_text, pick_device, write_json
+from skygen.runtime import atomic_write_text, hardware, pick_device, write_json
 
 from ..errors import ConfigError, DatasetError
-from ..model.checkpoint import Checkpoint, load_checkpoint, resolve_checkpoint
+from ..model.checkpoint import Checkpoint, differences_text, differences_warning, load_checkpoint, resolve_checkpoint
 from ..model.inference import autocast_dtype, predict_batches
 from ..model.metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share,
                              per_class_accuracy, topk_accuracy, voronoi_neighbours)
@@ -81,12 +91,32 @@ def check_no_training_frames(ckpt: Checkpoint, ds, pos: np.ndarray, split: str, 
     return n
 
 
-def _camera_warning(ckpt: Checkpoint, ds, warn) -> None:
-    trained = (ckpt.dataset or {}).get("camera")
-    if trained is not None and trained != ds.config["camera"]:
-        keys = sorted(k for k in set(trained) | set(ds.config["camera"]) if trained.get(k) != ds.config["camera"].get(k))
-        warn(f"warning: {ds.root} was rendered with another camera than the checkpoint's training data "
-             f"(camera.{', camera.'.join(keys)} differ); accuracy may not carry over")
+def frame_settings_check(ckpt: Checkpoint, ds, warn) -> dict:
+    """The render settings that change frames and differ between ``ckpt``'s training data and ``ds``
+    (:meth:`Checkpoint.config_differences`); a one-line warning on ``warn`` when there are any. A warning,
+    not a refusal: scoring a model on frames of another sensor is what a robustness study does on purpose."""
+    diffs = ckpt.config_differences(ds.config)
+    if diffs:
+        warn(differences_warning(str(ds.root), diffs, ckpt.source))
+    return diffs
+
+
+def prepare_out(out: Path, default: bool) -> bool:
+    """Create ``out`` and check that files can be written there, before any work; True when it was created
+    here. ConfigError naming the folder (and ``--out``) otherwise."""
+    what = f"{out} (the checkpoint's folder, the default of --out)" if default else f"--out {out}"
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{what} exists and is not a folder; give a folder for the report files")
+    created = not out.exists()
+    probe = out / f".write-test-{os.getpid()}"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{what}: cannot write there ({exc.strerror or exc}); give a folder you can write to "
+                          "with --out DIR") from None
+    return created
 
 
 def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str | Path, split: str = "test",
@@ -116,6 +146,33 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
     if len(paths) > 1 and out is None:
         raise ConfigError(f"{len(paths)} checkpoints are scored as one ensemble, whose report belongs to none of "
                           "their run folders: pass --out DIR")
+    out_dir = Path(out) if out is not None else paths[0].parent
+    created = prepare_out(out_dir, default=out is None)       # before minutes of work, not after
+    try:
+        report = _evaluate(paths, data, split, batch_size=batch_size, workers=workers, device=device,
+                           max_frames=max_frames, allow_overlap=allow_overlap, keep_brightest=keep_brightest,
+                           log=log, warn=warn)
+    except BaseException:
+        if created and not any(out_dir.iterdir()):
+            out_dir.rmdir()             # a failed evaluation leaves no empty folder behind
+        raise
+    report["wall_time_s"] = time.perf_counter() - t0
+    stem = split if keep_brightest is None else f"{split}-brightest{keep_brightest}"
+    write_json(out_dir / f"eval-{stem}.json", report)
+    atomic_write_text(out_dir / f"eval-{stem}.md", markdown_report(report))
+    plot_confusion(np.array(report["confusion_matrix"]), out_dir / f"confusion-{stem}.png",
+                   f"{report['model']} on {stem} (K={report['num_classes']})")
+    log(summary_line(report))
+    log(f"wrote {out_dir / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
+    if _all_differences(report):        # said again beside the result, where it is read
+        warn(f"WARNING: {report['dataset']['path']} differs from the training data in frame settings "
+             f"({differences_text(_all_differences(report))}): read the score above with that in mind")
+    return report
+
+
+def _evaluate(paths: list[Path], data, split: str, *, batch_size: int, workers: int, device: str,
+              max_frames: int | None, allow_overlap: bool, keep_brightest: int | None, log, warn) -> dict:
+    """The report of :func:`evaluate_checkpoint` (everything but writing it)."""
     ckpts = [load_checkpoint(p) for p in paths]
     centroids = ckpts[0].centroids
     for p, c in zip(paths[1:], ckpts[1:]):
@@ -124,30 +181,20 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
                               f"{len(centroids)}, or other centroids): an ensemble needs the same regions; train its "
                               "models with the same labels settings on the same dataset")
     dev = pick_device(device)
-    logits = []
+    logits, diffs = [], []
     with open_dataset(data) as ds:
         verify_checksums(ds, log=log)
         pos = split_positions(ds, split, max_frames)
         v = boresight_vectors(ds, pos)
         labels = assign(v, centroids)
         for p, ckpt in zip(paths, ckpts):
-            _camera_warning(ckpt, ds, warn)
+            diffs.append(frame_settings_check(ckpt, ds, warn))
             if ds.image_shape[0] != ckpt.image_size:
                 raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {p} was trained on "
                                    f"{ckpt.image_size} px images; render with output.image_size_px="
                                    f"{ckpt.image_size} or train on this dataset")
             check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
-            model, cfg = ckpt.build_model(), ckpt.fusion_config
-            model.to(dev)
-            d = cfg.data
-            frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
-                                  log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
-            loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
-            pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True,
-                                   desc=split)
-            if not np.array_equal(pred["index"], pos):
-                raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
-            logits.append(pred["logits"])
+            logits.append(_predict_split(ckpt, ds, pos, labels, dev, split, batch_size, workers, keep_brightest))
         ids = ds.frames["frame_id"][pos].view(np.int64)
         seen = [c.train_frame_ids for c in ckpts if c.train_frame_ids is not None]
         overlap = int(np.isin(ids, np.concatenate(seen)).sum()) if seen else 0
@@ -165,28 +212,49 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
                    "epoch": ckpts[0].epoch if one else [c.epoch for c in ckpts],
                    "model": ckpts[0].model_name if one else " + ".join(c.model_name for c in ckpts),
                    "branches": ckpts[0].branches if one else [c.branches for c in ckpts],
+                   # render settings that change frames, training -> this data ({} when they agree)
+                   "config_differences": diffs[0] if one else diffs,
                    "dataset": dataset_info, "frames_with_lt2_detections": sparse,
-                   "device": str(dev), "wall_time_s": time.perf_counter() - t0, "keep_brightest": keep_brightest})
+                   "device": str(dev), "hardware": hardware(dev), "keep_brightest": keep_brightest})
     if not one:
         report.update({"checkpoints": [str(p) for p in paths],
                        "ensemble": "mean of the models' log-softmax (product of experts)",
                        "members_top1": [float((np.argmax(lg, axis=1) == labels).mean()) for lg in logits]})
-    out = Path(out) if out is not None else paths[0].parent
-    out.mkdir(parents=True, exist_ok=True)
-    stem = split if keep_brightest is None else f"{split}-brightest{keep_brightest}"
-    write_json(out / f"eval-{stem}.json", report)
-    atomic_write_text(out / f"eval-{stem}.md", markdown_report(report))
-    plot_confusion(np.array(report["confusion_matrix"]), out / f"confusion-{stem}.png",
-                   f"{report['model']} on {stem} (K={report['num_classes']})")
-    log(summary_line(report))
-    log(f"wrote {out / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
     return report
+
+
+def _predict_split(ckpt: Checkpoint, ds, pos: np.ndarray, labels: np.ndarray, dev, split: str, batch_size: int,
+                   workers: int, keep_brightest: int | None) -> np.ndarray:
+    """The logits of one checkpoint on the frames ``pos`` of ``ds``, in that order."""
+    model, cfg = ckpt.build_model(), ckpt.fusion_config
+    model.to(dev)
+    d = cfg.data
+    frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
+                          log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
+    loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
+    pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
+    if not np.array_equal(pred["index"], pos):
+        raise RuntimeError("prediction order does not match the split's frames")  # a bug, not user input
+    return pred["logits"]
+
+
+def _all_differences(r: dict) -> dict:
+    """The frame-setting differences of a report, merged over an ensemble's members."""
+    d = r.get("config_differences") or {}
+    if isinstance(d, list):
+        merged = {}
+        for one in d:
+            merged.update(one)
+        return merged
+    return d
 
 
 def summary_line(r: dict) -> str:
     ae, qf = r["angular_error"], r["quantisation_floor"]
     share = r["neighbour_error_share"]
     cut = "" if r.get("keep_brightest") is None else f" (brightest {r['keep_brightest']} detections)"
+    differ = _all_differences(r)
+    cut += f" [WARNING: frame settings differ from the training data: {', '.join(differ)}]" if differ else ""
     return (f"{r['dataset']['split']}{cut}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
             f"top-3 {r['top3']:.3f} top-5 {r['top5']:.3f} (chance {r['chance_top1']:.3f}); angular error "
             f"mean {ae['mean_deg']:.2f} median {ae['median_deg']:.2f} p95 {ae['p95_deg']:.2f} deg (floor "
@@ -209,6 +277,12 @@ def markdown_report(r: dict) -> str:
         f"2 detections), K = {r['num_classes']} (chance top-1 {_fmt(r['chance_top1'], True)})"
         + ("." if r.get("keep_brightest") is None else
            f"; each frame cut to its brightest {r['keep_brightest']} detections, the image untouched."), "",
+    ]
+    if _all_differences(r):
+        lines += [f"**Warning:** the data was rendered with other frame settings than the training data "
+                  f"({differences_text(_all_differences(r), limit=20)}; training -> this data); the score is not "
+                  "the model's score on the frames it was trained for.", ""]
+    lines += [
         "| top-1 | top-3 | top-5 |", "|---|---|---|",
         f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
     ]

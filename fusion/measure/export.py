@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from skygen.runtime import atomic_path, write_json
+from skygen.runtime import atomic_path, hardware, write_json
 
 from ..errors import ConfigError, FusionError
 from ..model.checkpoint import load_checkpoint
@@ -248,8 +248,9 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
                 mask_dtype: str = "bool", report: str | Path | None = None) -> dict:
     """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place.
 
-    ``report``: also write the returned record there as strict JSON. Both output paths are
-    checked for writing before the export starts.
+    ``report``: also write the returned record there as strict JSON (it names the hardware the
+    verification ran on, :func:`skygen.runtime.hardware`). Both output paths are checked for
+    writing before the export starts.
     """
     if exporter not in EXPORTERS:
         raise ConfigError(f"--exporter: {exporter!r}; expected one of {', '.join(EXPORTERS)}")
@@ -303,7 +304,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
             "outputs": {"logits": ["batch", model.num_classes]}, "model": ckpt.model_name,
             "branches": model.branches, "verification": result, "bytes": out.stat().st_size,
             "sha256": _sha256(out), "onnxruntime": onnxruntime.__version__, "torch": str(torch.__version__),
-            "time_s": time.perf_counter() - t0}
+            "hardware": hardware(torch.device("cpu")), "time_s": time.perf_counter() - t0}
     if report is not None:
         write_json(report, r)
     return r

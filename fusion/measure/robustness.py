@@ -63,11 +63,11 @@ from skygen.datasets.shards import open_dataset
 from skygen.lock import FolderLock
 from skygen.render.perturb import perturbed_frames
 
-from skygen.runtime import atomic_write_bytes, atomic_write_text, pick_device, write_json
+from skygen.runtime import atomic_write_bytes, atomic_write_text, hardware, pick_device, write_json
 
 from ..config import FusionConfig
 from ..errors import CheckpointError, ConfigError
-from ..model.checkpoint import load_checkpoint
+from ..model.checkpoint import differences_text, differences_warning, load_checkpoint
 from ..model.inference import autocast_dtype, predict_batches
 from ..model.inputs import FrameGeometry, Preprocessor, Sample, sample_from_table
 from ..model.metrics import angular_error_deg, error_stats, topk_accuracy
@@ -153,6 +153,7 @@ class SweepModel:
     branches: dict
     image_size: int
     label: str = ""
+    config_differences: dict | None = None     # frame settings of the sweep's data unlike the training data's
 
     @property
     def num_classes(self) -> int:
@@ -163,8 +164,9 @@ class SweepModel:
         return "+".join(k for k, on in self.branches.items() if on)
 
 
-def load_sweep_model(path: str | Path, ds: SkyDataset) -> SweepModel:
-    """Load a checkpoint and check that it can be evaluated on ``ds`` (CheckpointError otherwise)."""
+def load_sweep_model(path: str | Path, ds: SkyDataset, warn=None) -> SweepModel:
+    """Load a checkpoint and check that it can be evaluated on ``ds`` (CheckpointError otherwise); frame settings
+    of ``ds`` unlike those of the checkpoint's training data are recorded and warned about on ``warn``."""
     path = Path(path)
     ckpt = load_checkpoint(path)
     model, cfg = ckpt.build_model(), ckpt.fusion_config
@@ -179,7 +181,11 @@ def load_sweep_model(path: str | Path, ds: SkyDataset) -> SweepModel:
         raise CheckpointError(f"{path} was trained on {size} x {size} images but dataset {ds.root} stores "
                               f"{ds.image_shape[0]} x {ds.image_shape[1]}; render the sweep dataset with "
                               f"output.image_size_px={size} or use a checkpoint trained at this size")
-    return SweepModel(path, model, cfg, centroids, ckpt.model_name, dict(ckpt.branches), size)
+    diffs = ckpt.config_differences(ds.config)
+    if diffs and warn is not None:
+        warn(differences_warning(str(ds.root), diffs, str(path)))
+    return SweepModel(path, model, cfg, centroids, ckpt.model_name, dict(ckpt.branches), size,
+                      config_differences=diffs)
 
 
 def _label(models: list[SweepModel]) -> None:
@@ -250,16 +256,19 @@ def _bar(total: int, enabled: bool):
 def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str] = "all", *,
               split: str = "test", levels: str | Sequence[float] | None = None, n: int | None = None,
               workers: int = 1, seed: int = 0, batch_size: int = 64, device: str = "auto",
-              progress: bool = True, log=None) -> dict:
+              progress: bool = True, log=None, warn=None) -> dict:
     """Evaluate ``checkpoints`` on ``split`` of ``data`` under each corruption and severity.
 
     Everything the user gave is checked before any frame is rendered. ``log`` (default:
-    silent) receives one line per corruption and severity as it finishes. Returns the report:
+    silent) receives one line per corruption and severity as it finishes; ``warn`` (default:
+    stderr) a one-line warning per checkpoint whose training data had other frame settings than
+    ``data`` (also in the report: ``checkpoints[i].config_differences``). Returns the report:
     settings, checkpoints, the dataset's own corruption levels and ``rows`` (one per
     checkpoint x corruption x severity, in that nesting, with the fields of
     :data:`CSV_COLUMNS` plus ``pred``, the predicted class of each frame).
     """
     t0 = time.perf_counter()
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
     if isinstance(checkpoints, (str, Path)):
         checkpoints = [checkpoints]
     if not checkpoints:
@@ -271,7 +280,7 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
     dev = pick_device(device)
     with open_dataset(data) as ds:
         plan = sweep_levels(names, levels, ds.config)
-        models = [load_sweep_model(p, ds) for p in checkpoints]
+        models = [load_sweep_model(p, ds, warn) for p in checkpoints]
         _label(models)
         for m in models:
             m.model.to(dev)
@@ -321,9 +330,10 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
                                     "description": corr.REGISTRY[k].description,
                                     "dataset_level": own[k]} for k in names},
             "checkpoints": [{"path": str(m.path), "label": m.label, "model": m.model_name, "branches": m.branches,
-                             "num_classes": m.num_classes, "image_size": m.image_size} for m in models],
+                             "num_classes": m.num_classes, "image_size": m.image_size,
+                             "config_differences": m.config_differences} for m in models],
             "dataset": dataset_info, "frame_positions": pos.tolist(), "seed": int(seed), "n_frames": int(len(pos)),
-            "device": str(dev), "wall_time_s": time.perf_counter() - t0, "rows": rows}
+            "device": str(dev), "hardware": hardware(dev), "wall_time_s": time.perf_counter() - t0, "rows": rows}
 
 
 # --------------------------------------------------------------------------- outputs
@@ -356,7 +366,9 @@ def markdown_text(report: dict) -> str:
              "dataset's own level (\"total\" is the result). Angular error: arccos(v · c_pred), degrees. Detections: "
              "mean per frame, before truncation to the model's max_stars.", "",
              "Checkpoints:", ""]
-    lines += [f"- **{c['label']}** — `{c['path']}`, K = {c['num_classes']}" for c in report["checkpoints"]]
+    lines += [f"- **{c['label']}** — `{c['path']}`, K = {c['num_classes']}"
+              + (f"; **trained on other frame settings than this data** ({differences_text(c['config_differences'])};"
+                 " training -> this data)" if c.get("config_differences") else "") for c in report["checkpoints"]]
     for name in report["corruptions"]:
         info = report["corruption_info"][name]
         lines += ["", f"## {name} ({info['unit']}; {info['stage']} stage)", "",

@@ -33,6 +33,20 @@ Precision: ``fp32``, or the model's weights and float inputs cast to ``fp16``/``
 (as a deployed half-precision engine runs; no autocast). Statistics per mode: median,
 p90, p99, mean, min, max in milliseconds, and throughput = batch / median latency.
 
+Threads: one torch thread by default (``--threads 1``): the latency of one model on one
+core, as a tracker runs it beside its other work on a Jetson-class computer, and a figure
+that other jobs on the machine barely move (on a loaded 2-core machine torch's own choice
+measured 200 ms per forward against 0.77 ms on one thread). ``--threads N`` uses N,
+``--threads 0`` every usable core (torch's own default); the report records the count and how it was
+chosen. Where the timed distribution is bimodal (p90 above :data:`BIMODAL_RATIO` times the
+median) the machine was busy: a one-line WARNING says so and the report lists it under
+``warnings``.
+
+Memory: a ``--batch`` whose input tensors alone would take more than half the memory
+available (``MemAvailable`` of ``/proc/meminfo``, or the free memory of the GPU) is refused
+before any work, naming the largest batch that fits; running out of memory later is one
+line too.
+
 The model comes from a checkpoint (its weights), from a training preset (``--config``:
 its architecture with random weights, which time the same), or, with neither, from the
 default config: the paper's Star-Fusion with the SwinV2-T image branch. The JSON records
@@ -54,7 +68,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from skygen.runtime import hardware, pick_device, write_json
+from skygen.runtime import hardware, pick_device, usable_cores, write_json
 
 from ..config import FusionConfig, load_config
 from ..errors import ConfigError, DatasetError
@@ -67,6 +81,8 @@ FORMAT_VERSION = 1
 PRECISIONS = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
 MODES = ("forward", "end2end", "both")
 STAGES = ("detect", "downsample_normalise", "encode_coords", "to_device", "forward")
+DEFAULT_THREADS = 1
+BIMODAL_RATIO = 5.0      # p90 / median above this: the machine was busy, not the model slow
 FLOP_NOTE = ("FlopCounterMode counts matrix multiplications, convolutions and attention (2 FLOPs per "
              "multiply-add); element-wise work (norms, activations, heatmap exponentials) is not counted. "
              "MACs = FLOPs / 2.")
@@ -189,7 +205,8 @@ def stats_ms(samples_ms: list[float], batch: int) -> dict:
     med = float(np.median(a))
     return {"median_ms": med, "p90_ms": float(np.percentile(a, 90)), "p99_ms": float(np.percentile(a, 99)),
             "mean_ms": float(a.mean()), "min_ms": float(a.min()), "max_ms": float(a.max()),
-            "std_ms": float(a.std()), "n": int(len(a)), "throughput_per_s": batch * 1000.0 / med}
+            "std_ms": float(a.std()), "n": int(len(a)), "throughput_per_s": batch * 1000.0 / med,
+            "p90_over_median": float(np.percentile(a, 90)) / med if med > 0 else None}
 
 
 def time_forward(model: StarFusion, inputs: tuple, device: torch.device, iters: int, warmup: int) -> dict:
@@ -290,26 +307,111 @@ def count_flops(model: StarFusion, image_size: int, max_stars: int, device: torc
 
 
 # --------------------------------------------------------------------------- the command
+def resolve_threads(threads: int | None) -> tuple[int, str]:
+    """(torch threads to use, how they were chosen) for ``--threads`` (None: :data:`DEFAULT_THREADS`;
+    0: every usable core, torch's own default)."""
+    if threads is None:
+        return DEFAULT_THREADS, (f"default ({DEFAULT_THREADS}: the latency of one model on one core, as a tracker "
+                                 "runs it; --threads N for more)")
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+        raise ConfigError(f"--threads: {threads}; give 1 or more, or 0 for every usable core")
+    if threads == 0:
+        return usable_cores(), f"--threads 0: every usable core ({usable_cores()})"
+    return threads, f"--threads {threads}"
+
+
+def available_memory_bytes(device: torch.device) -> int | None:
+    """Memory free for new tensors: the GPU's free memory, or ``MemAvailable`` of /proc/meminfo (None if unknown)."""
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_batch_memory(batch: int, image_size: int, max_stars: int, device: torch.device, dtype: torch.dtype) -> int:
+    """Bytes of one batch's input tensors; ConfigError when they alone would take more than half the memory
+    available (the model's activations need at least as much again), naming the largest batch that fits."""
+    item = torch.tensor([], dtype=dtype).element_size()
+    per_frame = item * (image_size * image_size + max_stars * 3) + max_stars     # image, coords, mask (bool)
+    if dtype != torch.float32:
+        per_frame += 4 * (image_size * image_size + max_stars * 3)               # made in float32, then cast
+    need = batch * per_frame
+    free = available_memory_bytes(device)
+    if free is not None and need > free / 2:
+        fits = max(int(free / 2 // per_frame), 1)
+        raise ConfigError(f"--batch {batch}: its input tensors alone take {need / 1e9:.1f} GB ({batch} x "
+                          f"{image_size} x {image_size} images and coordinate rows) but {device} has "
+                          f"{free / 1e9:.1f} GB available; use a smaller --batch (the inputs of {min(fits, batch - 1)} "
+                          "frames fill half of it, before the model's own working memory)")
+    return need
+
+
+def _out_of_memory(exc: BaseException) -> bool:
+    text = str(exc).lower()
+    return isinstance(exc, MemoryError) or "out of memory" in text or "can't allocate memory" in text
+
+
+def spread_warning(name: str, stats: dict, hw: dict) -> str | None:
+    """A one-line WARNING when the timed distribution is bimodal (p90 > :data:`BIMODAL_RATIO` x median)."""
+    ratio = stats.get("p90_over_median")
+    if ratio is None or ratio <= BIMODAL_RATIO:
+        return None
+    load = hw.get("load_average_1m")
+    load_text = "" if load is None else f"; load average {load:.1f} on {hw.get('usable_cores')} usable cores"
+    return (f"WARNING: {name} latency is bimodal (median {stats['median_ms']:.2f} ms, p90 {stats['p90_ms']:.2f} ms, "
+            f"{ratio:.0f}x the median{load_text}): other work on the machine interrupted the run and the figures "
+            "measure the machine, not the model; time again on an idle machine (with --threads 1, the default)")
+
+
 def run_timing(checkpoint: str | Path | None = None, config: str | Path | None = None, *, device: str = "cpu",
                precision: str = "fp32", batch: int = 1, iters: int = 100, warmup: int = 10, mode: str = "both",
                data: str | Path | None = None, image_size: int = 256, threads: int | None = None,
-               overrides: tuple[str, ...] = ()) -> dict:
-    """Measure the latency of a model; returns the report (the JSON ``fusion timing`` writes)."""
+               overrides: tuple[str, ...] = (), warn=None) -> dict:
+    """Measure the latency of a model; returns the report (the JSON ``fusion timing`` writes).
+
+    ``threads``: torch CPU threads (None: :data:`DEFAULT_THREADS`; 0: every usable core); set for the
+    run and restored after it. ``warn`` (default: stderr) receives the bimodality warnings."""
+    import sys
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
     if precision not in PRECISIONS:
         raise ConfigError(f"--precision: {precision!r}; expected one of {', '.join(PRECISIONS)}")
     if mode not in MODES:
         raise ConfigError(f"--mode: {mode!r}; expected one of {', '.join(MODES)}")
     if batch < 1 or iters < 1 or warmup < 0:
         raise ConfigError(f"--batch ({batch}) and --iters ({iters}) must be >= 1 and --warmup ({warmup}) >= 0")
-    if threads is not None:
-        if threads < 1:
-            raise ConfigError(f"--threads: {threads}; give at least 1")
-        torch.set_num_threads(threads)
+    n_threads, threads_note = resolve_threads(threads)
+    before = torch.get_num_threads()
+    torch.set_num_threads(n_threads)
+    try:
+        report = _run_timing(checkpoint, config, device=device, precision=precision, batch=batch, iters=iters,
+                             warmup=warmup, mode=mode, data=data, image_size=image_size, overrides=overrides)
+    finally:
+        torch.set_num_threads(before)
+    report["settings"]["threads_chosen_by"] = threads_note
+    report["warnings"] = []
+    timed = {"forward": report.get("forward"), "end-to-end": (report.get("end2end") or {}).get("total")}
+    for name, stats in timed.items():
+        line = spread_warning(name, stats, report["hardware"]) if stats else None
+        if line:
+            report["warnings"].append(line)
+            warn(line)
+    return report
+
+
+def _run_timing(checkpoint, config, *, device: str, precision: str, batch: int, iters: int, warmup: int, mode: str,
+                data, image_size: int, overrides: tuple[str, ...]) -> dict:
+    """:func:`run_timing` once its arguments are checked and the thread count is set."""
     dev, dtype = pick_device(device), PRECISIONS[precision]
     tm = load_timed_model(checkpoint, config, image_size=image_size, overrides=overrides)
     render_config = _dataset_config(data) if data is not None else tm.render_config
     if data is not None and render_config is None:
         raise DatasetError(f"--data {data}: not a readable skygen dataset")
+    input_bytes = check_batch_memory(batch, tm.image_size, tm.max_stars, dev, dtype)
     model = tm.model.to(dev)
     b = model.branches
     report = {"format": FORMAT, "format_version": FORMAT_VERSION,
@@ -321,6 +423,7 @@ def run_timing(checkpoint: str | Path | None = None, config: str | Path | None =
               "flops": count_flops(model, tm.image_size, tm.max_stars, dev, torch.float32),
               "settings": {"device": str(dev), "precision": precision, "batch": batch, "iters": iters,
                            "warmup": warmup, "mode": mode, "torch_threads": torch.get_num_threads(),
+                           "input_bytes": input_bytes,
                            "precision_note": "fp32" if precision == "fp32" else
                            f"weights and float inputs cast to {dtype} (no autocast)"},
               "hardware": hardware(dev)}
@@ -329,6 +432,7 @@ def run_timing(checkpoint: str | Path | None = None, config: str | Path | None =
         if mode in ("forward", "both"):
             inputs = random_inputs(batch, tm.image_size, tm.max_stars, dev, dtype)
             report["forward"] = time_forward(model, inputs, dev, iters, warmup)
+            del inputs
         if mode in ("end2end", "both"):
             frames, used, source = raw_frames(render_config, tm.image_size, min(batch, 8))
             frames = [frames[i % len(frames)] for i in range(batch)]
@@ -337,7 +441,10 @@ def run_timing(checkpoint: str | Path | None = None, config: str | Path | None =
             e2e["frame"]["source"] = source
             e2e["frame"]["downsample_factor"] = pre.geo.factor
             report["end2end"] = e2e
-    except (RuntimeError, NotImplementedError) as exc:
+    except (RuntimeError, NotImplementedError, MemoryError) as exc:
+        if _out_of_memory(exc):
+            raise ConfigError(f"--batch {batch}: out of memory on {dev} ({str(exc).strip().splitlines()[0][:160]}); "
+                              f"use a smaller --batch") from None
         if "not implemented" in str(exc).lower() and precision != "fp32":
             raise ConfigError(f"--precision {precision} is not supported on {dev} for this model "
                               f"({str(exc).splitlines()[0]}); try another precision or device") from None
@@ -352,7 +459,8 @@ def summary_text(r: dict) -> str:
     lines = [f"{r['model']['name']} ({r['model']['image_backbone'] or 'no image branch'}), "
              f"{p['total'] / 1e6:.2f} M parameters, {f['per_image_gflops']:.3f} GFLOPs = "
              f"{f['per_image_gmacs']:.3f} GMACs per image; {s['device']} ({r['hardware']['device_name']}), "
-             f"{s['precision']}, batch {s['batch']}, {s['iters']} iterations"]
+             f"{s['precision']}, batch {s['batch']}, {s['iters']} iterations, {s['torch_threads']} torch "
+             f"thread{'s' if s['torch_threads'] != 1 else ''}"]
     if "forward" in r:
         fw = r["forward"]
         lines.append(f"forward: median {fw['median_ms']:.2f} ms, p90 {fw['p90_ms']:.2f}, p99 {fw['p99_ms']:.2f}; "
@@ -369,8 +477,15 @@ def timing(out: str | Path, log=print, **kw) -> dict:
     out = Path(out)
     if out.exists() and out.is_dir():
         raise ConfigError(f"--out {out} is a folder; give a file name such as results/timing/cpu.json")
+    probe = out.with_name(f".{out.name}.write-test{os.getpid()}")
+    try:                                  # before the run, not after it
+        out.parent.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot write there ({exc.strerror or exc}); give a file in a folder you "
+                          "can write to") from None
     report = run_timing(**kw)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, report)
     log(summary_text(report))
     log(f"wrote {out}")

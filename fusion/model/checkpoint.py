@@ -21,21 +21,29 @@ fields of :class:`Checkpoint` plus ``format`` = ``"fusion-checkpoint"`` and
     model), so that evaluation can refuse frames the model has seen.
 ``versions``
     the library versions that wrote it.
+``weights_sha256``
+    the sha256 of the weights (:func:`weights_sha256`: every tensor of ``model``, then
+    ``centroids`` and ``fine_centroids``, names, dtypes, shapes and bytes in sorted name
+    order), computed by :meth:`Checkpoint.save`; :func:`load_checkpoint` recomputes it and
+    refuses a file whose weights changed after it was written (a flipped bit scores
+    without a word otherwise). Files written before it existed load, with a one-line note.
 ``epoch``, ``history``, ``best``, ``finished``, ``optimizer``, ``scheduler``, ``scaler``, ``rng``
     training state: completed epochs (training resumes at this epoch index), metric rows, the
     best-epoch record, whether the run ended, optimiser/schedule/scaler states and generator
     states.
 
 Older files of format version 1 lack some keys (``fine_centroids``, ``render_config``,
-``train_frame_ids``, ``dataset``); :func:`migrate` fills them with None, and the users of
+``train_frame_ids``, ``dataset``, ``weights_sha256``); :func:`migrate` fills them with None, and the users of
 those fields say what to do when they need one. A file of another format version is
 refused with one line.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import platform
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -84,6 +92,7 @@ class Checkpoint:
     scheduler: dict | None = None
     scaler: dict | None = None
     rng: dict | None = None
+    weights_sha256: str | None = None
     source: str = field(default="checkpoint", compare=False)
 
     # ---------------------------------------------------------------- file
@@ -95,6 +104,7 @@ class Checkpoint:
             d["fine_centroids"] = torch.from_numpy(np.asarray(self.fine_centroids, np.float64))
         if self.train_frame_ids is not None:
             d["train_frame_ids"] = torch.from_numpy(np.asarray(self.train_frame_ids).view(np.int64))
+        d["weights_sha256"] = weights_sha256(d)      # of what is written, whatever the field held
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **d}
 
     @classmethod
@@ -136,6 +146,19 @@ class Checkpoint:
         except ConfigError as exc:
             raise CheckpointError(f"{self.source}: its config is not valid for this fusion version ({exc})") from None
 
+    def config_differences(self, config: dict) -> dict:
+        """Keys that change what a frame looks like whose values differ between this model's training
+        data and a dataset rendered with ``config`` (:func:`frame_config_differences`); ``{}`` when they
+        agree or when the checkpoint records nothing to compare (only ``camera.*`` for checkpoints
+        without ``render_config``)."""
+        trained = self.render_config
+        if not isinstance(trained, dict):
+            camera = (self.dataset or {}).get("camera")
+            if camera is None:
+                return {}
+            trained, config = {"camera": camera}, {"camera": (config or {}).get("camera", {})}
+        return frame_config_differences(trained, config)
+
     def require_render_config(self) -> dict:
         """The skygen render config the model was trained for; a one-line CheckpointError when it lacks one."""
         rc = self.render_config
@@ -161,7 +184,113 @@ def migrate(d: dict, source: str = "checkpoint") -> dict:
                 "rng"):
         d.setdefault(key, None)
     d.setdefault("versions", {})
+    d.setdefault("weights_sha256", None)
     return d
+
+
+# ------------------------------------------------------------------------- integrity
+def weights_sha256(d: dict) -> str:
+    """sha256 of the weights of a checkpoint dict: every tensor of ``d["model"]`` (the state dict), then
+    ``d["centroids"]`` and ``d["fine_centroids"]`` when present, each as its name, dtype, shape and bytes, in
+    sorted name order (the same digest whatever order the dict was built in, on any machine)."""
+    h = hashlib.sha256()
+    items = [(f"model.{k}", v) for k, v in sorted((d.get("model") or {}).items())]
+    items += [(k, d[k]) for k in ("centroids", "fine_centroids") if d.get(k) is not None]
+    for name, value in items:
+        t = value.detach().cpu().contiguous() if isinstance(value, torch.Tensor) else torch.as_tensor(np.asarray(value))
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        if t.numel():
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+_NOTED_UNHASHED: set[str] = set()
+
+
+def verify_weights(d: dict, path: str | Path, note=None) -> None:
+    """Refuse (CheckpointError) a checkpoint dict whose weights differ from the sha256 stored at save; a file
+    written before checkpoints carried one gets a one-line note (once per file and process) on ``note``
+    (default: stderr)."""
+    stored = d.get("weights_sha256")
+    if stored is None:
+        if str(path) not in _NOTED_UNHASHED:
+            _NOTED_UNHASHED.add(str(path))
+            (note or (lambda m: print(m, file=sys.stderr)))(
+                f"note: {path} predates checkpoint checksums (no weights_sha256); its weights cannot be checked "
+                "for damage. Training further (--resume) or re-training writes checkpoints that carry one")
+        return
+    if weights_sha256(d) != stored:
+        raise CheckpointError(f"{path}: its weights do not match the sha256 stored when it was written (the file "
+                              "was damaged or edited since); use an intact copy (best.pt or last.pt of the run, a "
+                              "backup) or train again")
+
+
+# ------------------------------------------------------------------------- render settings
+# the render settings that change what a frame (pixels or detections) looks like; the rest (seed, n_frames,
+# attitude.*, output.*, render.*: which frames, how they are stored and on which backend) does not
+FRAME_SECTIONS = ("catalog", "camera", "optics", "photometry", "sensor", "corruptions", "detection")
+FRAME_KEYS = ("epoch_yr",)
+NOT_FRAME_KEYS = ("detection.match_radius_px",   # matching detections to true stars (labels), not detection
+                  "sensor.sampler")              # two samplers of the same noise distribution
+
+
+def changes_frames(key: str) -> bool:
+    """Whether the dotted render-config ``key`` changes what a frame looks like (pixels or detections)."""
+    return (key in FRAME_KEYS or key.split(".", 1)[0] in FRAME_SECTIONS) and key not in NOT_FRAME_KEYS
+
+
+def frame_config_differences(trained: dict, other: dict) -> dict:
+    """``{dotted key: {"training": value, "data": value}}`` for the render settings that change what a frame
+    looks like (:data:`FRAME_SECTIONS`, :data:`FRAME_KEYS`) and differ between two skygen configs. Both are
+    first resolved by skygen (a key a config predates takes skygen's default), so a config that merely
+    omits a default is not a difference."""
+    from skygen.configlib import flatten
+    fa, fb = flatten(_resolved(trained)), flatten(_resolved(other))
+    missing = "<missing>"
+    out = {}
+    for k in sorted(k for k in set(fa) | set(fb) if changes_frames(k)):
+        a, b = _plain(fa.get(k, missing)), _plain(fb.get(k, missing))
+        if a != b:
+            out[k] = {"training": None if a == missing else a, "data": None if b == missing else b}
+    return out
+
+
+def _resolved(config: dict) -> dict:
+    from skygen.config import build_config, config_dict
+    from skygen.errors import SkygenError
+    try:
+        return config_dict(build_config(config))
+    except (SkygenError, TypeError, ValueError):      # a config of another skygen version: compared as written
+        return dict(config or {})
+
+
+def _plain(v):
+    return [_plain(x) for x in v] if isinstance(v, (list, tuple)) else v
+
+
+def _value_text(v) -> str:
+    """A config value as it is typed after ``--set key=``: numbers and names plain, lists and null as YAML/JSON."""
+    import json
+    if isinstance(v, bool) or v is None or isinstance(v, (list, dict)):
+        return json.dumps(v)
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def differences_text(diffs: dict, limit: int = 6) -> str:
+    """``sensor.exposure_s 0.1 -> 0.05, ...`` (training -> data) for a message."""
+    parts = [f"{k} {_value_text(v['training'])} -> {_value_text(v['data'])}" for k, v in list(diffs.items())[:limit]]
+    return ", ".join(parts) + (f" and {len(diffs) - limit} more" if len(diffs) > limit else "")
+
+
+def differences_warning(what: str, diffs: dict, checkpoint: str) -> str:
+    """The one-line warning for data rendered with other frame settings than ``checkpoint``'s training data:
+    the keys (training -> data) and the ``--set`` overrides that render data as the model was trained."""
+    fix = " ".join(f"--set {k}={_value_text(v['training'])}" for k, v in list(diffs.items())[:6])
+    more = " ..." if len(diffs) > 6 else ""
+    return (f"WARNING: {what} was rendered with other frame settings than the training data of {checkpoint} "
+            f"({differences_text(diffs)}; training -> this data): the model may score near chance on it. Render "
+            f"it with the training settings (skygen render {fix}{more}) unless the difference is intended, "
+            "as in a robustness study")
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -175,8 +304,10 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return path
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> Checkpoint:
-    """Load and check a fusion checkpoint (a file, or a run folder: its best.pt); CheckpointError otherwise."""
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu", note=None) -> Checkpoint:
+    """Load and check a fusion checkpoint (a file, or a run folder: its best.pt); CheckpointError otherwise,
+    also when its weights no longer match the sha256 stored at save (:func:`verify_weights`; ``note``
+    receives the one-line note for a file that predates checksums, default stderr)."""
     path = resolve_checkpoint(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
@@ -194,6 +325,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if d.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {d.get('format_version')} is not supported "
                               f"(this fusion reads version {FORMAT_VERSION}); use the fusion version that wrote it")
+    verify_weights(d, path, note)
     return Checkpoint.from_dict(d, str(path))
 
 

@@ -35,6 +35,13 @@ Solvers (``--solvers``):
   likewise without a prior (what ``fusion predict --solve`` runs without a model);
 * any other solver registered in :mod:`fusion.solve.registry` (docs/ARCHITECTURE.md, "A new solver").
 
+The solvers that need a learned prior (``learned`` and every registered solver with
+``prior="learned"``) need ``--checkpoint``: named in ``--solvers`` without one they are
+refused before any work; among the default solvers they are skipped with a note in the
+report. A checkpoint trained for another camera is refused; one trained on other frame
+settings (sensor, optics, ...: :func:`fusion.model.checkpoint.frame_config_differences`)
+is scored with a one-line WARNING, and the report lists the keys under ``config_differences``.
+
 The coarse-to-fine solvers run as ``fusion predict --solve`` does: ``--search fine`` (the
 20 most probable fine regions) and ``--focal-tol 0.02`` by default, so the benchmark scores
 what a user gets; the frames are rendered at the nominal focal length, so the tolerance
@@ -58,6 +65,7 @@ lock of ``--out`` (:class:`skygen.lock.FolderLock`) while it runs.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -172,21 +180,47 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
             "ms_per_frame": 1e3 * float(np.mean(secs)), "ms_per_frame_median": 1e3 * float(np.median(secs))}
 
 
-def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
-                  frames: int = 200, n_values=FULL_N, corruption_n=(6, 10), corruptions=DETECTION_CORRUPTIONS,
-                  severities=None, solvers=DEFAULT_SOLVERS,
-                  correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
-                  search: str = "fine", focal_tol: float = 0.02, log=print) -> dict:
-    """Score ``solvers`` on every cell of the grid (module docstring) and write the outputs into ``out``.
+def needs_learned_prior(name: str) -> bool:
+    """Whether solver ``name`` (or the benchmark's ``learned`` column) needs a checkpoint's prior."""
+    return name == "learned" or (name in REGISTERED and REGISTERED[name].prior == "learned")
 
-    Arguments are checked first (ConfigError naming the option); ``out`` is locked while the
-    benchmark runs (a second one into it is refused, naming the first)."""
-    from .registry import check_search_options
-    check_search_options(focal_tol, top_k, "--top-k")
-    check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
+
+def check_solvers(solvers, checkpoint) -> tuple[str, ...]:
+    """The solvers to score (None: :data:`DEFAULT_SOLVERS`). Unknown names are refused, and so are solvers that
+    need a learned prior when no checkpoint is given, unless they came with the defaults (then they are skipped
+    with a note in the report)."""
+    solvers = DEFAULT_SOLVERS if solvers is None else tuple(solvers)
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
         raise ConfigError(f"--solvers: unknown {sorted(unknown)}; choose from {', '.join(SOLVERS)}")
+    if not solvers:
+        raise ConfigError(f"--solvers: give at least one solver, from {', '.join(SOLVERS)}")
+    need = [s for s in solvers if needs_learned_prior(s)]
+    if need and not checkpoint and solvers != DEFAULT_SOLVERS:
+        free = [s for s in SOLVERS if not needs_learned_prior(s)]
+        raise ConfigError(f"--solvers {' '.join(need)}: {'it needs' if len(need) == 1 else 'they need'} a learned "
+                          f"prior; pass --checkpoint CK (a trained model), or choose solvers without one: "
+                          f"{', '.join(free)}")
+    return solvers
+
+
+def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
+                  frames: int = 200, n_values=FULL_N, corruption_n=(6, 10), corruptions=DETECTION_CORRUPTIONS,
+                  severities=None, solvers=None,
+                  correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
+                  search: str = "fine", focal_tol: float = 0.02, log=print, warn=None) -> dict:
+    """Score ``solvers`` on every cell of the grid (module docstring) and write the outputs into ``out``.
+
+    Arguments are checked first (ConfigError naming the option; :func:`check_solvers`); ``out`` is
+    locked while the benchmark runs (a second one into it is refused, naming the first). ``warn``
+    (default: stderr) receives a one-line warning when the checkpoint was trained on data of other
+    frame settings than ``data`` (also in the report: ``config_differences``)."""
+    import sys
+    from .registry import check_search_options
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
+    check_search_options(focal_tol, top_k, "--top-k")
+    check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
+    solvers = check_solvers(solvers, checkpoint)
     corruptions = resolve_corruptions(corruptions)
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -195,115 +229,171 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
+    settings = {"split": split, "frames": frames, "n_values": n_values, "corruption_n": corruption_n,
+                "corruptions": corruptions, "severities": severities, "correct_deg": correct_deg,
+                "correct_roll_deg": correct_roll_deg, "top_k": top_k, "search": search, "focal_tol": focal_tol}
     with FolderLock(out, what="fusion benchmark"):
-        return _run_benchmark(data, out, checkpoint, split, frames, n_values, corruption_n, corruptions, severities,
-                              solvers, correct_deg, correct_roll_deg, top_k, search, focal_tol, log)
+        return _run_benchmark(data, out, checkpoint, list(solvers), settings, log, warn)
 
 
-def _run_benchmark(data, out: Path, checkpoint, split, frames, n_values, corruption_n, corruptions, severities,
-                   solvers, correct_deg, correct_roll_deg, top_k, search, focal_tol, log) -> dict:
-    """run_benchmark once its arguments are checked and it holds the lock of ``out``."""
-    from .priors import OraclePrior, load_prior
-    from .registry import get, make_context
-    from .tetra import Tetra3Solver
-    t_start = time.perf_counter()
+@dataclass
+class BenchmarkFrames:
+    """The fixed frames of a benchmark: the camera, their stored detections (and images, for a model) and truth."""
+    config: dict                # the dataset's render config
+    camera: Camera
+    index: np.ndarray           # frame index of each frame
+    tables: list                # stored detection tables
+    images: list                # stored images, or None each (no model to read them)
+    v_true: np.ndarray          # (n, 3) true boresight unit vectors
+    truth: list                 # (true rotation matrix, true roll_deg) per frame
+    seed: int                   # the dataset's seed: every corruption draw derives from it
+    info: dict                  # path, dataset_id, split, frames (for the report)
+
+
+def load_frames(data, split: str, frames: int, with_images: bool) -> BenchmarkFrames:
+    """The first ``frames`` frames of ``split`` of dataset ``data``."""
+    from skygen.sky.attitude import quaternion_to_matrix
     with open_dataset(data) as ds:
         rcfg = build_render_config(ds.config)
-        cam = Camera.from_config(rcfg.camera)
         pos = ds.indices(split)[:frames]
         if not len(pos):
             raise ConfigError(f"--split {split}: dataset {data} holds no {split} frames")
-        idx = ds.frames["index"][pos]
         tables = [ds.detections(int(p)) for p in pos]
-        images = [ds.image(int(p)) for p in pos] if checkpoint else [None] * len(pos)
+        images = [ds.image(int(p)) for p in pos] if with_images else [None] * len(pos)
         q_true = np.asarray(ds.boresight["quaternion"][pos], np.float64)
-        v_true = np.asarray(ds.boresight["unit_vector"][pos], np.float64)
         roll_true = np.asarray(ds.boresight["roll_deg"][pos], np.float64)
-        seed = int(ds.config["seed"])
-        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
-                        "frames": int(len(pos))}
-    from skygen.sky.attitude import quaternion_to_matrix
-    truth = [(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)]
-    tetra = Tetra3Solver(cam, log=log)
-    prior, notes = None, []
-    if checkpoint:
-        from ..model.checkpoint import load_checkpoint
-        ckpt = load_checkpoint(checkpoint)
-        own = ckpt.render_config                     # older checkpoints: the benchmark dataset's
-        if own and own["camera"] != ds.config["camera"]:
-            raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
-                              f"({own['camera']} vs {ds.config['camera']}); benchmark it on frames of its camera")
-        prior = load_prior(ckpt, None if own else dict(ds.config))
-        centroids = prior.centroids
-    else:
-        centroids = default_centroids()
-        dropped = [s for s in solvers if "learned" in s]
-        if dropped:
-            notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
-        solvers = [s for s in solvers if "learned" not in s]
-    ctx = make_context(cam, prior=prior, search=search, search_k=top_k, focal_tol=focal_tol, tetra=tetra,
-                       search_centroids=None if prior is not None else centroids, k_flag="--top-k")
-    search_prior, search_centroids, top_k = ctx.prior, ctx.search_centroids, ctx.top_k
-    level = getattr(search_prior, "level", "coarse")
+        return BenchmarkFrames(
+            config=dict(ds.config), camera=Camera.from_config(rcfg.camera), index=ds.frames["index"][pos],
+            tables=tables, images=images, v_true=np.asarray(ds.boresight["unit_vector"][pos], np.float64),
+            truth=[(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)], seed=int(ds.config["seed"]),
+            info={"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
+                  "frames": int(len(pos))})
+
+
+def load_benchmark_prior(checkpoint, data, fr: BenchmarkFrames, warn):
+    """(the checkpoint's prior, the frame settings of ``data`` unlike its training data's): refuses a
+    checkpoint of another camera; other differences are warned about and reported."""
+    from ..model.checkpoint import differences_warning, load_checkpoint
+    from .priors import load_prior
+    ckpt = load_checkpoint(checkpoint)
+    own = ckpt.render_config                     # older checkpoints: the benchmark dataset's
+    if own and own["camera"] != fr.config["camera"]:
+        raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
+                          f"({own['camera']} vs {fr.config['camera']}); benchmark it on frames of its camera")
+    diffs = ckpt.config_differences(fr.config)
+    if diffs:
+        warn(differences_warning(str(data), diffs, str(checkpoint)))
+    return load_prior(ckpt, None if own else dict(fr.config)), diffs
+
+
+def build_solvers(ctx, solvers: list[str]) -> tuple[dict, dict]:
+    """({name: solver} to run, {name: (first, second)} composed from two of them): a chain ``a>b`` whose
+    parts are both scored is composed from their per-frame answers instead of solving twice."""
+    from .registry import get
     built, composite = {}, {}
     for name in solvers:
         if name == "learned":
             continue
         parts = name.split(">")
         if len(parts) == 2 and all(p in solvers for p in parts):
-            # both parts are scored anyway: compose their per-frame answers instead of solving twice
             composite[name] = tuple(parts)
         else:
             built[name] = get(ctx, name)
-    labels = np.argmax(v_true @ centroids.T, axis=1)
-    search_labels = np.argmax(v_true @ search_centroids.T, axis=1)
-    cells = grid(n_values, corruption_n, corruptions, severities)
-    log(f"benchmark: {len(pos)} frames x {len(cells)} cells; solvers: {', '.join(solvers)}")
+    return built, composite
+
+
+def solve_all(solver, dets: list, fr: BenchmarkFrames) -> tuple[list, list]:
+    """(answers, seconds) of ``solver`` on each frame's detections; the benchmark's truth-ranked priors
+    receive each frame's probabilities."""
+    from .priors import OraclePrior
+    oracle = getattr(solver, "prior", None)
+    oracle = oracle if isinstance(oracle, OraclePrior) else None
+    results, secs = [], []
+    for j, d in enumerate(dets):
+        kw = {"probabilities": oracle.probabilities_for(fr.v_true[j], int(fr.index[j]))} if oracle is not None else {}
+        t0 = time.perf_counter()
+        results.append(solver.solve(d, fr.camera, fr.images[j], **kw))
+        secs.append(time.perf_counter() - t0)
+    return results, secs
+
+
+def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, learned, correct: tuple) -> dict:
+    """One row of the report: every solver on the cell's (corrupted, brightest-N) detections. ``learned``:
+    None, or (prior, its K centroids, true region labels, true fine-region labels or None, regions searched)
+    for the ``learned`` column; ``correct``: (correct_deg, correct_roll_deg)."""
+    cam = fr.camera
+    dets = [corrupt(t, cell["corruption"], cell["severity"], fr.seed, int(i), cam.width_px, cam.height_px)
+            .brightest(cell["n"]) for t, i in zip(fr.tables, fr.index)]
+    row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
+    answers = {}
+    for name, solver in built.items():
+        results, secs = answers[name] = solve_all(solver, dets, fr)
+        row["solvers"][name] = _summary(results, fr.truth, secs, *correct)
+    for name, (a, b) in composite.items():
+        (ra, sa), (rb, sb) = answers[a], answers[b]
+        first = [isinstance(x, Solution) for x in ra]
+        row["solvers"][name] = _summary([x if ok else y for x, y, ok in zip(ra, rb, first)], fr.truth,
+                                        [x if ok else x + y for x, y, ok in zip(sa, sb, first)], *correct)
+    if learned is not None:
+        prior, centroids, labels, search_labels, top_k = learned
+        row["solvers"]["learned"] = _learned_cell(prior, dets, fr.images, labels, fr.v_true, centroids,
+                                                  search_labels, top_k)
+    return row
+
+
+def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, log, warn) -> dict:
+    """run_benchmark once its arguments are checked and it holds the lock of ``out``: load the frames and the
+    prior, build the solvers, score every cell, write the outputs."""
+    from .registry import make_context
+    from .tetra import Tetra3Solver
+    t_start = time.perf_counter()
+    fr = load_frames(data, st["split"], st["frames"], with_images=bool(checkpoint))
+    tetra = Tetra3Solver(fr.camera, log=log)
+    prior, notes, diffs = None, [], {}
+    if checkpoint:
+        prior, diffs = load_benchmark_prior(checkpoint, data, fr, warn)
+        centroids = prior.centroids
+    else:
+        centroids = default_centroids()
+        dropped = [s for s in solvers if needs_learned_prior(s)]
+        if dropped:
+            notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
+        solvers = [s for s in solvers if not needs_learned_prior(s)]
+    ctx = make_context(fr.camera, prior=prior, search=st["search"], search_k=st["top_k"], focal_tol=st["focal_tol"],
+                       tetra=tetra, search_centroids=None if prior is not None else centroids, k_flag="--top-k")
+    level = getattr(ctx.prior, "level", "coarse")
+    built, composite = build_solvers(ctx, solvers)
+    labels = np.argmax(fr.v_true @ centroids.T, axis=1)
+    search_labels = np.argmax(fr.v_true @ ctx.search_centroids.T, axis=1)
+    learned = ((prior, centroids, labels, search_labels if level == "fine" else None, ctx.top_k)
+               if "learned" in solvers else None)
+    cells = grid(st["n_values"], st["corruption_n"], st["corruptions"], st["severities"])
+    log(f"benchmark: {len(fr.tables)} frames x {len(cells)} cells; solvers: {', '.join(solvers)}")
     rows = []
     for ci, cell in enumerate(cells):
-        dets = [corrupt(t, cell["corruption"], cell["severity"], seed, int(i), cam.width_px, cam.height_px)
-                .brightest(cell["n"]) for t, i in zip(tables, idx)]
-        row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
-        answers = {}
-        for name, solver in built.items():
-            results, secs = [], []
-            oracle = getattr(solver, "prior", None)
-            oracle = oracle if isinstance(oracle, OraclePrior) else None    # the benchmark's truth-ranked priors
-            for j, d in enumerate(dets):
-                kw = {}
-                if oracle is not None:
-                    kw["probabilities"] = oracle.probabilities_for(v_true[j], int(idx[j]))
-                t0 = time.perf_counter()
-                results.append(solver.solve(d, cam, images[j], **kw))
-                secs.append(time.perf_counter() - t0)
-            row["solvers"][name] = _summary(results, truth, secs, correct_deg, correct_roll_deg)
-            answers[name] = (results, secs)
-        for name, (a, b) in composite.items():
-            (ra, sa), (rb, sb) = answers[a], answers[b]
-            first = [isinstance(x, Solution) for x in ra]
-            row["solvers"][name] = _summary([x if ok else y for x, y, ok in zip(ra, rb, first)], truth,
-                                            [x if ok else x + y for x, y, ok in zip(sa, sb, first)],
-                                            correct_deg, correct_roll_deg)
-        if "learned" in solvers:
-            row["solvers"]["learned"] = _learned_cell(prior, dets, images, labels, v_true, centroids,
-                                                      search_labels if level == "fine" else None, top_k)
-        rows.append(row)
-        log(_cell_line(row, ci, len(cells)))
-    report = {"dataset": dataset_info, "camera": {"width_px": cam.width_px, "height_px": cam.height_px,
-                                                  "fov_deg": list(cam.fov_deg)},
+        rows.append(score_cell(cell, fr, built, composite, learned, (st["correct_deg"], st["correct_roll_deg"])))
+        log(_cell_line(rows[-1], ci, len(cells)))
+    report = {"dataset": fr.info, "camera": {"width_px": fr.camera.width_px, "height_px": fr.camera.height_px,
+                                             "fov_deg": list(fr.camera.fov_deg)},
               "checkpoint": str(checkpoint) if checkpoint else None, "solvers": list(built) + list(composite) + (
                   ["learned"] if "learned" in solvers else []),
-              "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
-              "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(search_centroids)),
-                                                              "top_k": top_k, "focal_tol": focal_tol},
-              "top_k": top_k, "notes": notes, "cells": rows,
+              "correct_definition": f"boresight error <= {st['correct_deg']} deg and roll error <= "
+                                    f"{st['correct_roll_deg']} deg",
+              "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(ctx.search_centroids)),
+                                                              "top_k": ctx.top_k, "focal_tol": st["focal_tol"]},
+              "top_k": ctx.top_k, "notes": notes, "config_differences": diffs, "cells": rows,
               "hardware": hardware_line() + ", one process",
               "tetra3rs_version": tetra.t3.__version__, "wall_time_s": time.perf_counter() - t_start}
+    write_outputs(report, out, log)
+    return report
+
+
+def write_outputs(report: dict, out: Path, log) -> None:
+    """benchmark.json, benchmark.md and the plots into ``out``."""
     write_json(out / "benchmark.json", report)
     atomic_write_text(out / "benchmark.md", markdown(report))
     plot(report, out)
     log(f"wrote {out / 'benchmark.json'}, benchmark.md and plots ({report['wall_time_s']:.0f} s)")
-    return report
 
 
 def _learned_cell(prior, dets, images, labels, v_true, centroids, search_labels, search_k) -> dict:

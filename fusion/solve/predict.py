@@ -42,6 +42,17 @@ Per frame:
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
    confidence) or an explicit refusal with its reason.
 
+A frame with no detection (blank, capped, overexposed, or a threshold too high for its
+exposure) gives no region probabilities and no attitude: its record says ``"status":
+"no_detections"`` with the reason (and, with ``--solve``, a refused solution saying so),
+one line goes to stderr, and like a refused solve it does not make the exit status 1.
+Every other record has ``"status": "ok"``.
+
+Data rendered with other frame settings than the checkpoint's training data (a skygen
+dataset folder given as frames, or ``--dataset``; the keys of
+:func:`fusion.model.checkpoint.frame_config_differences`) gets one WARNING line naming the
+keys (training -> data) and its records list them under ``config_differences``.
+
 Output: one JSON object per frame and line (stdout, or ``--out``); ``--overlay DIR`` writes
 ``DIR/<frame>.png`` with the detections drawn (green: matched to a catalog star by the
 solution, orange: unmatched, numbered brightest first). A frame that cannot be used
@@ -70,8 +81,9 @@ from skygen.instrument.detect import detect
 from skygen.runtime import atomic_path, atomic_write_bytes, dumps_json
 
 from ..errors import ConfigError
+from ..model.checkpoint import differences_warning, load_checkpoint
 from ..model.inputs import downsample
-from .base import Detections
+from .base import Detections, Refusal
 from .frames import FrameError, iter_inputs, mask_bad_pixels
 
 class Predictor:
@@ -106,7 +118,12 @@ class Predictor:
                 render_config = dict(ds.config)
         if camera is not None:
             render_config = camera_render_config(camera)
-        self.prior = load_prior(checkpoint, render_config) if checkpoint is not None else None
+        self.checkpoint = load_checkpoint(checkpoint) if checkpoint is not None else None
+        self.prior = load_prior(self.checkpoint, render_config) if self.checkpoint is not None else None
+        self.config_differences = {}        # --dataset's frame settings unlike the checkpoint's training data
+        if dataset is not None and render_config is not None and self.checkpoint is not None \
+                and self.checkpoint.render_config is not None:
+            self.config_differences = self.check_frame_settings(render_config, f"--dataset {dataset}", log)
         if self.prior is not None:
             render_config = self.prior.render_config
             k = len(getattr(self.prior, "coarse_centroids", self.prior.centroids))
@@ -146,6 +163,17 @@ class Predictor:
             self.solver = build_solver(name, self.camera, prior=self.prior, search=search, search_k=search_k,
                                        focal_tol=focal_tol, log=log, context=context)
 
+    def check_frame_settings(self, config: dict, what: str, warn=None) -> dict:
+        """The frame settings of data rendered with ``config`` that differ from the checkpoint's training data
+        (:meth:`fusion.model.checkpoint.Checkpoint.config_differences`; ``{}`` without a checkpoint), with one
+        WARNING line on ``warn`` when there are any."""
+        if self.checkpoint is None:
+            return {}
+        diffs = self.checkpoint.config_differences(config)
+        if diffs and warn is not None:
+            warn(differences_warning(what, diffs, self.checkpoint.source))
+        return diffs
+
     def check_shape(self, img: np.ndarray, source: str) -> None:
         want = (self.cfg.camera.height_px, self.cfg.camera.width_px)
         if img.shape != want:
@@ -169,14 +197,30 @@ class Predictor:
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, d.max_detections, self.background_box)
         return Detections.from_table(det), bg, sigma
 
+    def no_detections_reason(self, extra: dict) -> str:
+        """Why a frame without detections gets no prediction, with what to check."""
+        d = self.cfg.detection
+        if "noise_adu" in extra:
+            seen = (f"no star above {d.threshold_sigma:g} sigma in at least {d.min_area_px} px (background "
+                    f"{extra['background_adu']:.1f} ADU, noise {extra['noise_adu']:.2f} ADU)")
+        else:
+            seen = "its stored detection table is empty"
+        return (f"no detections: {seen}, so nothing to predict from; a blank, capped or saturated frame, or an "
+                "exposure too short for the camera's detection settings (--background-box 64 for sky glow)")
+
     def stored_image(self, img: np.ndarray) -> np.ndarray:
         """The frame at the model's stored size (what the image branch sees)."""
         return downsample(img, self.factor)
 
     def run(self, source: str, det: Detections, stored: np.ndarray | None, extra: dict) -> dict:
-        rec = {"frame": source, **extra, "n_detections": len(det),
+        rec = {"frame": source, "status": "ok", **extra, "n_detections": len(det),
                "detections": [[round(float(x), 3), round(float(y), 3), round(float(f), 1)]
                               for x, y, f in zip(det.x_px, det.y_px, det.flux_adu)]}
+        if not len(det):        # nothing to read: no region probabilities (they would be the model's bias)
+            rec.update({"status": "no_detections", "reason": self.no_detections_reason(extra)})
+            if self.solver is not None:
+                rec["solution"] = Refusal("no detections in the frame", self.solver.name).to_dict()
+            return rec
         probs = search_probs = None
         if self.prior is not None:
             t0 = time.perf_counter()
@@ -260,6 +304,7 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
                      lis_first=lis_first, solver=solver, log=lambda m: err(m), fov_range=fov_range)
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
+    differences = _dataset_differences(frames, pred, err)
     records, failed = [], 0
     with contextlib.ExitStack() as stack:
         # --out is written beside its final name and renamed when every frame is done: an interrupted or
@@ -281,6 +326,12 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
                     det, extra = Detections.from_table(table), {"detections_from": "dataset"}
                 rec = pred.run(source, det, stored, extra)
                 rec["total_ms"] = (time.perf_counter() - t0) * 1e3
+                diffs = {**pred.config_differences,
+                         **(differences.get(source.rsplit("#", 1)[0], {}) if img is None else {})}
+                if diffs:
+                    rec["config_differences"] = diffs
+                if rec["status"] == "no_detections":
+                    err(f"fusion predict: {source}: {rec['reason']}")
                 if overlay_dir:
                     name = Path(source.replace("#", "_")).name
                     overlay(Path(overlay_dir) / f"{Path(name).stem}.png", img if img is not None else stored, det, rec)
@@ -292,6 +343,23 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
             line = dumps_json(rec)
             (sink.write(line + "\n") if sink else log(line))
     return records, failed
+
+
+def _dataset_differences(frames: list[str], pred: Predictor, warn) -> dict[str, dict]:
+    """Per skygen dataset folder among ``frames``: its frame settings unlike the checkpoint's training data
+    (one WARNING line each on ``warn``); only those that differ are listed."""
+    out: dict[str, dict] = {}
+    if pred.checkpoint is None:
+        return out
+    from skygen.datasets.shards import open_dataset
+    for p in frames:
+        path = Path(p)
+        if path.is_dir() and (path / "manifest.json").exists() and str(path) not in out:
+            with open_dataset(path) as ds:
+                diffs = pred.check_frame_settings(dict(ds.config), str(path), warn)
+            if diffs:
+                out[str(path)] = diffs
+    return out
 
 
 def _camera_of_first_frame(frames: list[str], fov_range) -> dict:

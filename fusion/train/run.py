@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from skygen.runtime import atomic_save_numpy, write_json
+from skygen.runtime import atomic_save_numpy, hardware, write_json
 
 from ..config import FusionConfig
 from ..errors import ConfigError
@@ -337,7 +337,7 @@ def run(cfg: FusionConfig, out: Path, ckpt: Checkpoint | None, info: D.DistInfo,
                         else cfg.model.pretrained or "scratch"),
                "warm_start_val": warm_val, "wall_time_s": time.perf_counter() - t_start,
                "samples_seen": int(sum(h.get("train_samples", 0) for h in history)),
-               "versions": template.versions, "dataset": template.dataset}
+               "versions": template.versions, "dataset": template.dataset, "hardware": hardware(device)}
     if info.is_main:
         write_json(out / "summary.json", summary)
         say(f"done: best epoch {best['epoch']} val top1 {best.get('val_top1', float('nan')):.3f}; run folder {out}")
