@@ -331,6 +331,9 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
                    help="skygen detector: background per PX x PX box (e.g. 64; for ground frames with sky glow or "
                         "gradients); 0: one level per frame (default: the camera's detection.background_box_px, "
                         "0 unless set, as the renders and the training)")
+    p.add_argument("--channel", choices=("luminance", "r", "g", "b", "sum"), default="luminance",
+                   help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
+                        "one of the r, g, b planes, or their sum")
     p.add_argument("--detector", choices=("skygen", "tetra3rs"), default="skygen",
                    help="skygen (default; what models are trained on) or tetra3rs's extractor (local background, "
                         "matched filter: more stars on ground frames with sky gradients; without --checkpoint only)")
@@ -339,6 +342,7 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
 def _run_predict(args: argparse.Namespace) -> int:
     from .solve.predict import predict
     _, failed = predict(args.frames, args.checkpoint, camera=args.camera, dataset=args.dataset, solve=args.solve,
+                        channel=args.channel,
                         top_k=args.top_k, detector=args.detector, overlay_dir=args.overlay, out=args.out,
                         max_frames=args.max_frames, search=args.search, search_k=args.search_k,
                         focal_tol=args.focal_tol, background_box=args.background_box, lis_first=args.lis_first,

@@ -230,12 +230,16 @@ def _run_calibrate(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- fit-camera
 def _add_fit_camera(p: argparse.ArgumentParser) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME", help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
-                    "monochrome full-resolution read-out each, all of one size) or folders of them")
+                    "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF read as one plane, see --channel) or folders of them")
+    p.add_argument("--channel", choices=("luminance", "r", "g", "b", "sum"), default="luminance",
+                   help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
+                        "one of the r, g, b planes, or their sum")
     p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
     p.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
     p.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
                     help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
-                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~20 s)")
+                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~35 s for 5-30; "
+                    "a range whose database would pass 500 MB is refused, naming a narrower one)")
     p.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
                     "(default 5.5; only the written focal_length_mm depends on it)")
     p.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
@@ -253,6 +257,7 @@ def _run_fit_camera(args: argparse.Namespace) -> int:
     report = args.report or str(Path(args.out).with_suffix("")) + "-report"
     rec = fit_camera(args.frames, args.out, camera=args.camera, fov_range=args.fov_range,
                      pixel_pitch_um=args.pixel_pitch, pixel_aspect=args.pixel_aspect, epoch_yr=args.epoch,
+                     channel=args.channel,
                      report_dir=report, command=command, log=lambda m: print(m, file=sys.stderr))
     g, c = rec["geometry"], rec["compare"]
     print(f"wrote {args.out}: {len(rec['solved'])} of {len(rec['frames'])} frames solved"

@@ -78,7 +78,9 @@ class PhotometryConfig:
 
 @dataclass(frozen=True)
 class SensorConfig:
-    exposure_s: float = param(0.1, lo=0, lo_open=True, hi=3600, doc="integration time, s")
+    exposure_s: float = param(0.1, lo=0, lo_open=True, hi=3600, doc="integration time, s (too short for the detection "
+                              "limit to leave 0.5 catalog stars per field on average: refused, naming the exposure "
+                              "that would)")
     qe_peak: float = param(0.6, lo=0, lo_open=True, hi=1, doc="peak quantum efficiency (scales the built-in CMOS QE curve)")
     gain_e_per_adu: float = param(3.3, lo=0, lo_open=True, hi=1000, doc="conversion gain, e-/ADU")
     read_noise_e: float = param(5.0, lo=0, hi=1000, doc="read noise, e- rms (Gaussian, zero mean)")

@@ -232,13 +232,42 @@ def merge_overrides(data: dict, overrides: list[str] | tuple[str, ...]) -> dict:
     return data
 
 
+#: leading bytes of binary files a user may give by mistake (a frame, a shard, an archive)
+_BINARY_MAGIC = {b"\x89PNG": "a PNG image", b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image",
+                 b"\x89HDF": "an HDF5 file", b"\x93NUMPY": "a NumPy .npy file", b"PK\x03\x04": "a zip archive",
+                 b"\x1f\x8b": "a gzip file", b"\xff\xd8\xff": "a JPEG image", b"SIMPLE  =": "a FITS file",
+                 b"%PDF": "a PDF document"}
+
+
+def _decode_text(raw: bytes, path: Path) -> str:
+    """``raw`` as UTF-8 text (a UTF-8 byte-order mark dropped), or :class:`ConfigError` saying what it is.
+
+    A binary file (known leading bytes, or a NUL among the first 8 KiB, as ``file`` and git
+    tell text from binary) is "not a YAML text file"; text in another encoding (Latin-1 "µm"
+    in a comment) names the first byte that is not UTF-8 and where it is."""
+    kind = next((name for magic, name in _BINARY_MAGIC.items() if raw.startswith(magic)), None)
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ConfigError(f"config file {path}: a UTF-16 text file, not UTF-8: save it as UTF-8")
+    if kind is None and b"\x00" in raw[:8192]:
+        kind = "a binary file"
+    if kind is not None:
+        raise ConfigError(f"config file {path}: not a YAML text file ({kind}); give the YAML config file")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ConfigError(f"config file {path}: not a UTF-8 text file (byte 0x{raw[exc.start]:02x} at offset "
+                          f"{exc.start}, line {line}): save it as UTF-8") from None
+
+
 def read_yaml(path: str | Path) -> dict:
-    """Read a YAML mapping, with a clear error for a missing or malformed file."""
+    """Read a YAML mapping, with a clear error for a missing, binary, non-UTF-8 or malformed file."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    text = _decode_text(raw, path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -77,9 +77,13 @@ def test_any_value_is_accepted_or_rejected_with_the_key(key, value):
 SMALL = ["camera.width_px=128", "camera.height_px=128", "camera.pixel_pitch_um=44", "output.image_size_px=32"]
 
 
+# A box of configs whose frames see stars: 44 um pixels collect 64 times the dark current and sky of
+# 5.5 um ones, so a 1 ms exposure, a 4 px defocus, 50 e- read noise or a 60 C sensor leave a
+# 5 deg field under 0.5 detectable stars and are refused (test_a_config_that_detects_no_star_...);
+# the corner of this box (15 deg, 0.1 s, sigma 2 px Moffat, 20 e-, 40 C) needs 0.05 s.
 @settings(max_examples=12, deadline=None)
-@given(exposure=st.floats(0.001, 2.0), sigma=st.floats(0.3, 4.0), psf=st.sampled_from(["gaussian", "moffat", "airy"]),
-       read=st.floats(0, 50), temp=st.floats(-40, 60), fov=st.floats(5, 60), blur=st.floats(0, 3))
+@given(exposure=st.floats(0.1, 2.0), sigma=st.floats(0.3, 2.0), psf=st.sampled_from(["gaussian", "moffat", "airy"]),
+       read=st.floats(0, 20), temp=st.floats(-40, 40), fov=st.floats(15, 60), blur=st.floats(0, 3))
 def test_valid_configs_render_a_frame(exposure, sigma, psf, read, temp, fov, blur):
     cfg = load_config(overrides=SMALL + [f"sensor.exposure_s={exposure}", f"optics.psf_sigma_px={sigma}",
                                          f"optics.psf={psf}", f"sensor.read_noise_e={read}",
@@ -110,3 +114,75 @@ def test_a_camera_file_missing_its_focal_length_is_refused(tmp_path):
                        ).camera.focal_length_mm == 35.0
     cam.write_text("sensor:\n  exposure_s: 0.05\n")
     assert load_config(cam).camera.width_px == 1024
+
+
+# ------------------------------------------------------------------------------ files that are not YAML text
+def test_a_binary_file_given_as_config_is_refused_in_one_line(tmp_path, capsys):
+    import cv2
+    import numpy as np
+    png = tmp_path / "frame.png"
+    cv2.imwrite(str(png), np.zeros((8, 8), np.uint8))
+    with pytest.raises(ConfigError) as exc:
+        load_config(png)
+    assert str(exc.value) == f"config file {png}: not a YAML text file (a PNG image); give the YAML config file"
+    blob = tmp_path / "weights.yaml"
+    blob.write_bytes(b"camera:\n  width_px: 1024\x00\x01\x02")
+    with pytest.raises(ConfigError, match=r"not a YAML text file \(a binary file\)"):
+        load_config(blob)
+    from skygen.cli import main
+    assert main(["render", "--config", str(png), "--n", "1", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a YAML text file (a PNG image)" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "d").exists()
+
+
+def test_a_latin1_camera_file_names_the_byte_and_where_it_is(tmp_path):
+    text = ("camera:\n  width_px: 1024\n  height_px: 768\n  pixel_pitch_um: 6.9   # 6.9 \u00b5m, binned 2 x 2\n"
+            "  focal_length_mm: 35.0\n")
+    cam = tmp_path / "cam.yaml"
+    cam.write_bytes(text.encode("latin-1"))
+    offset = text.encode("latin-1").index(b"\xb5")
+    with pytest.raises(ConfigError) as exc:
+        load_config(cam)
+    assert str(exc.value) == (f"config file {cam}: not a UTF-8 text file (byte 0xb5 at offset {offset}, line 4): "
+                              "save it as UTF-8")
+    cam.write_bytes(text.encode("utf-16"))                  # with its byte-order mark
+    with pytest.raises(ConfigError, match="a UTF-16 text file, not UTF-8: save it as UTF-8"):
+        load_config(cam)
+    cam.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))   # UTF-8, even with a byte-order mark: read
+    assert load_config(cam).camera.pixel_pitch_um == 6.9
+
+
+# ------------------------------------------------------------------------------ configs that detect no star
+def test_a_config_that_detects_no_star_is_refused_naming_the_keys():
+    import re
+    for exposure in ("0.0001", "1e-300"):
+        with pytest.raises(ConfigError) as exc:
+            Renderer(load_config(overrides=[f"sensor.exposure_s={exposure}"]))
+        msg = str(exc.value)
+        assert msg.startswith("this config detects no star in most frames: its detection limit is Hp -")
+        assert "sensor.exposure_s" in msg and "optics.aperture_mm" in msg and "sensor.gain_e_per_adu" in msg
+        assert "\n" not in msg
+    # a gain slip (1000 e-/ADU: quantisation noise of 290 e-) is refused too
+    with pytest.raises(ConfigError, match=r"sensor\.gain_e_per_adu \(1000 e-/ADU\)"):
+        Renderer(load_config(overrides=["sensor.gain_e_per_adu=1000"]))
+    # the exposure the message names is the physics: at it the detection limit reaches the magnitude it names
+    with pytest.raises(ConfigError) as exc:
+        Renderer(load_config(overrides=["sensor.exposure_s=0.001"]))
+    need_mag, need_s = re.search(r"Hp (-?[\d.]+) needs >= ([\d.e+-]+) s", str(exc.value)).groups()
+    at = Renderer(load_config(overrides=[f"sensor.exposure_s={float(need_s) * 1.001}"]))
+    assert at.detection_limit_mag == pytest.approx(float(need_mag), abs=0.01)
+    with pytest.raises(ConfigError, match="detects no star"):
+        Renderer(load_config(overrides=[f"sensor.exposure_s={float(need_s) * 0.95}"]))
+
+
+def test_faint_but_useful_configs_still_render():
+    # 0.58 detectable stars per 20 deg field (fusion's sparse-frame test): kept
+    r = Renderer(load_config(overrides=["camera.width_px=256", "camera.height_px=256", "camera.fov_deg=20",
+                                        "output.image_size_px=64", "detection.threshold_sigma=150"]))
+    assert 2.0 < r.detection_limit_mag < 2.5
+    # a robustness sweep drowns the stars on purpose: the read-noise corruption is not held against the config
+    assert Renderer(load_config(overrides=["corruptions.read_noise=1000"])).detection_limit_mag < 1.0   # Hp 2.1 needed
+    # a narrow camera whose field holds under 0.5 catalogue stars of any magnitude: the catalogue's thinness,
+    # not these keys' fault
+    Renderer(load_config(overrides=["camera.fov_deg=0.3"]))

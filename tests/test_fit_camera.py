@@ -124,7 +124,10 @@ def test_blank_saturated_colour_and_starless_frames_are_dropped_with_reasons(tmp
                                                 "fov_deg": 10.0}, "output": {"image_size_px": 32}}))
     assert main(["fit-camera", blank, sat, colour, noise, "--camera", str(start), "--out", str(tmp_path / "c.yaml")]) == 2
     err = capsys.readouterr().err
-    assert "colour" in err and "blank frame" in err and "saturated frame" in err and "too few stars" in err
+    assert "blank frame" in err and "saturated frame" in err and "too few stars" in err
+    # a colour frame is read as one plane, saying so, then judged like the others (noise: too few stars)
+    assert f"fit-camera: {colour}: colour frame (RGB, 8 bit) read as one plane: luminance" in err
+    assert f"dropped {colour}: too few stars" in err
     last = err.strip().splitlines()[-1]
     assert last.startswith("skygen fit-camera: error: no frame solved (4 dropped)")
 
@@ -166,3 +169,81 @@ def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
     g = G.fit_geometry([fs], cam, sky, 3.0)
     assert {"k1", "k2", "cx", "cy"} <= set(g.fixed) and "at least" in g.fixed["k1"]
     assert g.camera.f_px == pytest.approx(2400.0, rel=2e-3) and g.rms_px < 0.3
+
+
+# ------------------------------------------------------------------------------ frames of two cameras
+def _renders_of_another_lens(folder: Path, n: int, focal_mm: float = 25.0) -> list[str]:
+    """``n`` renders of the Blackfly sensor behind a ``focal_mm`` lens, stored as the real frames are (12 bit x 16)."""
+    from skygen.render.frame import Renderer
+    cfg = load_config(BLACKFLY, [f"camera.focal_length_mm={focal_mm}", "output.full_res=true", f"n_frames={n}",
+                                 "seed=5", "sensor.exposure_s=0.5", "corruptions.cosmic_rays=0"])
+    r = Renderer(cfg)
+    paths = []
+    for i in range(n):
+        paths.append(_frame(folder / f"render{focal_mm:g}mm_{i}.tiff",
+                            (r.render(i).image_full.astype(np.uint32) * 16).clip(0, 65535).astype(np.uint16)))
+    return paths
+
+
+def test_a_frame_of_another_lens_is_dropped_by_name_and_the_fit_is_the_others(tmp_path):
+    """Three real Blackfly frames (35 mm) and one render at 25 mm of the same sensor: the render is dropped,
+    saying why, and the camera is the one the three give alone (about 8 s)."""
+    from skygen.instrument.camera import Camera
+    from skygen.real import fit_camera as F
+    from skygen.sky.catalog import SkyIndex, load_catalog
+    real = [str(REAL / n) for n in sorted(_listed())[:3]]
+    other = _renders_of_another_lens(tmp_path, 1)
+    said = []
+
+    def geometry(paths):
+        fr = F.load_frames(paths, said.append)
+        cam0 = Camera.from_config(load_config(BLACKFLY).camera)
+        solved = F.solve_frames(fr, cam0, None, said.append)
+        sky = SkyIndex(load_catalog(), 2019.6, 10.0)
+        return fr, solved, F.fit_joint_geometry(solved, cam0, None, sky, fr, said.append)
+
+    fr, solved, (g, kept) = geometry(real + other)
+    assert len(solved) == 4                                         # the render solves, on its own, at 16 deg
+    assert [fs.name for fs in kept] == real and fr.other_camera == set(other)
+    (_, why), = [d for d in fr.dropped if d[0] == other[0]]
+    assert "match catalogue stars under the fitted camera" in why and "another camera or lens" in why
+    assert any(line.startswith(f"fit-camera: dropped {other[0]}: only ") for line in said)
+    assert g.camera.fov_deg[0] == pytest.approx(np.mean([_listed()[Path(n).name] for n in real]), abs=0.05)
+    _, _, (alone, _) = geometry(real)
+    assert g.camera.f_px == pytest.approx(alone.camera.f_px, rel=1e-9) and g.rms_px == pytest.approx(alone.rms_px)
+
+
+def test_frames_of_two_cameras_without_a_majority_are_refused(tmp_path, capsys):
+    """One real frame, one render at 25 mm, the field searched: neither camera is the majority (about 6 s)."""
+    real = str(REAL / min(_listed()))
+    other = _renders_of_another_lens(tmp_path, 1)[0]
+    assert main(["fit-camera", real, other, "--fov-range", "11", "17", "--pixel-pitch", "6.9",
+                 "--out", str(tmp_path / "c.yaml")]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("skygen fit-camera: error: frames of more than one camera? only 1 of 2 solved frames "
+                           "agree with the fitted camera")
+    assert "render25mm_0.tiff" in last and last.endswith("give the frames of one camera and lens")
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_disagreements_name_each_reason():
+    """The three tests of a frame against the fitted camera, on made-up fit results."""
+    from types import SimpleNamespace
+
+    from skygen.instrument.camera import Camera
+    from skygen.real import fit_camera as F
+    from skygen.real.fit_geometry import FrameSolution
+    det = {"x_px": np.zeros(50), "y_px": np.zeros(50), "flux_adu": np.ones(50)}
+    fields = {"a": 11.42, "b": 11.43, "c": 11.44, "few": 11.43, "wide": 16.1, "off": 11.42}
+    frames = [FrameSolution(n, det, np.eye(3), f) for n, f in fields.items()]
+    rng = np.random.default_rng(0)
+    n_match = {"a": 40, "b": 40, "c": 40, "few": 3, "wide": 30, "off": 30}
+    resid = [rng.normal(0, 2.0 if n == "off" else 0.1, (n_match[n], 2)) for n in fields]
+    g = SimpleNamespace(camera=Camera(1024, 768, 5020.0, 511.5, 383.5), residuals=resid, rms_px=0.2,
+                        keep=[np.ones(n_match[n], bool) for n in fields])
+    bad = F.disagreements(frames, g)
+    assert set(bad) == {"few", "wide", "off"}
+    assert bad["few"].startswith("only 3 of its 50 detections match catalogue stars under the fitted camera")
+    assert bad["wide"].startswith("solved at a 16.10 deg field, the other frames at 11.43 deg (41 % apart)")
+    assert "px rms from the fitted camera's projection, over 1.00 px" in bad["off"]
+    assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off"]

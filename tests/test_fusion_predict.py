@@ -44,7 +44,8 @@ def test_readers_agree_and_bad_files_say_why(tmp_path):
     (tmp_path / "empty.tiff").write_bytes(b"")
     (tmp_path / "junk.png").write_bytes(b"not a png at all")
     np.save(tmp_path / "cube.npy", np.zeros((2, 3, 4)))
-    for name, words in [("colour.png", "colour"), ("empty.tiff", "empty"), ("junk.png", "not a readable"),
+    assert read_frame(tmp_path / "colour.png", log=lambda m: None).shape == (12, 20)   # colour: one plane
+    for name, words in [("empty.tiff", "empty"), ("junk.png", "not a readable"),
                         ("cube.npy", "colour or multi-plane"), ("missing.fits", "no such file"),
                         ("eight.jpg2", "unsupported")]:
         if name == "eight.jpg2":

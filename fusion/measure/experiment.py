@@ -53,9 +53,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 from skygen.config import load_config as load_render_config
+from skygen.configlib import read_yaml
 from skygen.datasets.build import render_dataset
 from skygen.datasets.shards import open_dataset
 
@@ -137,7 +137,7 @@ def load_preset(name_or_path: str | Path) -> Preset:
     if not path.exists():
         names = ", ".join(sorted(p.stem for p in PRESET_DIR.glob("*.yaml")))
         raise ConfigError(f"experiment preset {name_or_path!r} not found; available: {names}")
-    raw = yaml.safe_load(path.read_text()) or {}
+    raw = read_yaml(path)              # one line, not a traceback, for a file that is not UTF-8 YAML
     try:
         sec = raw["sections"]
         present = tuple(s for s in SECTIONS if s in sec or (s == "labels" and "soft_kappas" in sec))

@@ -16,11 +16,12 @@ from skygen.real.frames import FRAME_SUFFIXES, FrameError, frame_files, mask_bad
 __all__ = ["FRAME_SUFFIXES", "FrameError", "frame_files", "iter_inputs", "mask_bad_pixels", "read_frame"]
 
 
-def iter_inputs(paths: list[str], max_frames: int | None):
+def iter_inputs(paths: list[str], max_frames: int | None, channel: str = "luminance"):
     """(source name, full image or None, detections table or None, stored image or None, error) per frame.
 
     A skygen dataset folder gives its first ``max_frames`` stored frames; any other folder its
-    first ``max_frames`` frame files by name (an error entry when it holds none)."""
+    first ``max_frames`` frame files by name (an error entry when it holds none). Colour frame files
+    become one plane (``channel``: see :func:`skygen.real.frames.read_frame`)."""
     for p in paths:
         path = Path(p)
         if path.is_dir() and (path / "manifest.json").exists():
@@ -35,13 +36,13 @@ def iter_inputs(paths: list[str], max_frames: int | None):
                 yield str(path), None, None, None, (f"{path}: folder holds no frame files "
                                                     f"({', '.join(FRAME_SUFFIXES)}) and is not a skygen dataset")
             for f in files[:max_frames]:
-                yield from _one_file(f)
+                yield from _one_file(f, channel)
             continue
-        yield from _one_file(path)
+        yield from _one_file(path, channel)
 
 
-def _one_file(path: Path):
+def _one_file(path: Path, channel: str):
     try:
-        yield str(path), read_frame(path), None, None, None
+        yield str(path), read_frame(path, channel), None, None, None
     except FrameError as exc:
         yield str(path), None, None, None, str(exc)

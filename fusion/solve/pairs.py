@@ -1,7 +1,7 @@
 """The catalogue pair index of the fine stage: every star pair of a camera's catalogue cut, by separation.
 
 Built once per (catalogue stars, largest separation) and cached on disk beside the tetra3rs
-database (``$FUSION_CACHE`` or ``~/.cache/fusion``, folder ``pairs/``): unordered pairs
+database (``$SKYGEN_CACHE`` (or the legacy ``$FUSION_CACHE``), else ``~/.cache/skygen``, folder ``pairs/``): unordered pairs
 ``(first[q], second[q])`` (``first < second``, rows of the catalogue cut) with their angular
 separation ``sep[q]`` in radians, sorted ascending, for every pair closer than ``max_sep``. The
 candidates of a detection pair are a range of it, found by binary search (:meth:`PairIndex.range`):

@@ -290,15 +290,16 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
 def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
             detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
             err=None, search="fine", search_k=None, focal_tol=0.02, background_box=None,
-            lis_first=False, solver=None, fov_range=None) -> tuple[list[dict], int]:
-    """Run the pipeline on every frame; returns (records, number of failed frames)."""
+            lis_first=False, solver=None, fov_range=None, channel="luminance") -> tuple[list[dict], int]:
+    """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
+    become one plane (``channel``: luminance, r, g, b or sum)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
     if fov_range is not None and not 0 < fov_range[0] < fov_range[1] < 120:
         raise ConfigError(f"--fov-range {fov_range[0]:g} {fov_range[1]:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
     if fov_range is not None and camera is None and checkpoint is None:
-        camera = _camera_of_first_frame(frames, fov_range)
+        camera = _camera_of_first_frame(frames, fov_range, channel)
     pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
                      search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
                      lis_first=lis_first, solver=solver, log=lambda m: err(m), fov_range=fov_range)
@@ -310,7 +311,7 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
         # --out is written beside its final name and renamed when every frame is done: an interrupted or
         # failed run (a full disk) leaves no file with fewer lines than frames that looks whole
         sink = stack.enter_context(open(stack.enter_context(atomic_path(out)), "w")) if out else None
-        for source, img, table, stored, error in iter_inputs(frames, max_frames):
+        for source, img, table, stored, error in iter_inputs(frames, max_frames, channel):
             t0 = time.perf_counter()
             try:
                 if error:
@@ -362,10 +363,10 @@ def _dataset_differences(frames: list[str], pred: Predictor, warn) -> dict[str, 
     return out
 
 
-def _camera_of_first_frame(frames: list[str], fov_range) -> dict:
+def _camera_of_first_frame(frames: list[str], fov_range, channel: str = "luminance") -> dict:
     """Config data of a camera the size of the first readable frame, its field the middle of ``fov_range``
     (``--fov-range`` without ``--camera``: the field is searched; pixel pitch is irrelevant to solving)."""
-    for _, img, _, _, error in iter_inputs(frames, 1):
+    for _, img, _, _, error in iter_inputs(frames, 1, channel):
         if img is not None:
             h, w = img.shape
             return {"camera": {"width_px": int(w), "height_px": int(h), "pixel_pitch_um": 5.5,

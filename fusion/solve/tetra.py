@@ -23,7 +23,7 @@ Conventions (checked on rendered frames by ``tests/test_solvers.py``)
 
 Database and centroid conversion: :mod:`skygen.real.platesolve` (shared with ``skygen fit-camera``):
 ``SolverDatabase.generate_from_gaia`` for the camera's horizontal field of view (or a range of
-fields, ``fov_range``), cached on disk (``$FUSION_CACHE`` or ``~/.cache/fusion``); a database for
+fields, ``fov_range``), cached on disk (``$SKYGEN_CACHE`` (or the legacy ``$FUSION_CACHE``), else ``~/.cache/skygen``); a database for
 a 20° field builds in about a second.
 """
 

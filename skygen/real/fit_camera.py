@@ -3,17 +3,23 @@
     skygen fit-camera FRAME... --out camera.yaml [--camera START.yaml | --fov-range LO HI] [--pixel-pitch UM]
                       [--pixel-aspect A] [--epoch YEAR] [--report DIR]
 
-1. Read the frames (:mod:`skygen.real.frames`); all must have one size. Values are divided by the scale
-   they carry (:func:`skygen.real.fit_pixels.value_scale`: 12-bit data stored x16 in 16-bit TIFF).
-   Blank (constant) and saturated frames, colour and unreadable files are dropped with the reason.
+1. Read the frames (:mod:`skygen.real.frames`; colour frames become one plane, luminance by default,
+   saying so); all must have one size. Values are divided by the scale they carry
+   (:func:`skygen.real.fit_pixels.value_scale`: 12-bit data stored x16 in 16-bit TIFF). Blank (constant)
+   and saturated frames, multi-plane and unreadable files are dropped with the reason.
 2. Detect stars (skygen's detector, 5 sigma, >= 3 px, a background per 64 px box) and solve each
    frame lost-in-space with tetra3rs (:mod:`skygen.real.platesolve`): from the start camera, or, with
    ``--fov-range`` (default without a camera file: 5-30 deg), searching the horizontal field in that
-   range (the first search of a range builds and caches a database: ~20 s for 5-30 deg). Unsolved frames are dropped with
-   the solver's reason.
+   range (the first search of a range builds and caches a database: ~35 s for 5-30 deg; a range whose
+   database would pass 500 MB is refused first, naming a narrower one). Unsolved frames are dropped
+   with the solver's reason.
 3. Geometry (:mod:`skygen.real.fit_geometry`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted
-   together by least squares; terms the data cannot constrain are fixed, and the report says why.
+   together by least squares; terms the data cannot constrain are fixed, and the report says why. Frames
+   the fitted camera does not explain (their own solved field over 3 % from the others', fewer than 4
+   matched stars, or residuals over 3 x the fit's rms) are dropped with the reason and the fit made
+   again without them; when they are half the solved frames or more, the fit is refused (frames of
+   more than one camera?). Their pixels are left out of steps 4-6 too.
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, gain/bias/read noise from the
    mean-variance relation, PSF (Gaussian or Moffat), hot pixels, the photometric zero point.
 5. Detector settings: the threshold and background box that find the most catalogue stars net of
@@ -50,6 +56,12 @@ THRESHOLDS = (3.0, 4.0, 5.0, 6.0, 8.0)
 DEFAULT_FOV_RANGE = (5.0, 30.0)     # searched when neither a camera file nor a range is given
 PITCH_DEFAULT_UM = 5.5              # skygen's default camera's pixel pitch
 BOXES = (0, BOX_PX)
+#: a frame the fitted camera does not explain is dropped (:func:`disagreements`): its own solved field more
+#: than this far (relative) from the other frames', fewer matched stars than a lost-in-space solution
+#: needs, or residuals this many times the fit's rms
+FIELD_TOLERANCE = 0.03
+MIN_MATCHED = 4
+RMS_FACTOR = 3.0
 
 
 class FitError(SkygenError):
@@ -57,9 +69,10 @@ class FitError(SkygenError):
 
 
 # ----------------------------------------------------------------------------------- input
-def read_frames(paths: list[str], log) -> tuple[list[str], list[np.ndarray], list[tuple[str, str]]]:
-    """(names, images, dropped): unreadable, colour or empty files are dropped with their one-line reason;
-    frames of different sizes are refused."""
+def read_frames(paths: list[str], log, channel: str = "luminance") -> tuple[list[str], list[np.ndarray],
+                                                                            list[tuple[str, str]]]:
+    """(names, images, dropped): unreadable, multi-plane or empty files are dropped with their one-line reason
+    (colour frames become one plane by ``channel``, saying so); frames of different sizes are refused."""
     from skygen.real.frames import FrameError, frame_files, read_frame
     files: list[Path] = []
     for p in paths:
@@ -68,7 +81,7 @@ def read_frames(paths: list[str], log) -> tuple[list[str], list[np.ndarray], lis
     names, imgs, dropped = [], [], []
     for f in files:
         try:
-            imgs.append(read_frame(f))
+            imgs.append(read_frame(f, channel, log=lambda m: log(f"fit-camera: {m}")))
             names.append(str(f))
         except FrameError as exc:
             dropped.append((str(f), str(exc)))
@@ -131,14 +144,67 @@ def _image_size(w: int, h: int, want: int = 256) -> int:
 
 # ----------------------------------------------------------------------------------- the fit
 def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None, pixel_pitch_um=None,
-               pixel_aspect=None, epoch_yr=None, report_dir=None, command: str = "", log=print) -> dict:
-    """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record."""
-    from skygen.real import fit_geometry as G
-    from skygen.real import fit_pixels as P
+               pixel_aspect=None, epoch_yr=None, report_dir=None, command: str = "", log=print,
+               channel: str = "luminance") -> dict:
+    """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
+
+    ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
     from skygen.sky.catalog import SkyIndex, load_catalog
-    from skygen.instrument.detect import detect
-    from skygen.real.platesolve import load_database
     t0 = time.perf_counter()
+    fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
+    fr = load_frames(paths, log, channel)
+    cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape)
+    cam0 = Camera.from_config(cfg0.camera)
+    epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
+    table = load_catalog(cfg0.catalog.path)
+    sky = SkyIndex(table, epoch, 10.0)
+    solved = solve_frames(fr, cam0, fov_range, log)
+    t_solve = time.perf_counter() - t0
+    g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
+    t_geom = time.perf_counter() - t0
+    px = measure_pixels(fr, solved, g, cfg0, sky, log)
+    model = fit_model_terms(cfg0, g, px, solved, fr, table, pixel_pitch_um, with_start=camera is not None)
+    timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
+    record = _record(fr.names, fr.dropped, solved, g, cam0, g.camera, px["mv"], px["meas"], px["zp_real"],
+                     model["exposure"], model["real_stats"], model["before"], model["after"], model["cfg"],
+                     fr.scale, fr.sat, fov_range, camera, command, timing, epoch)
+    record["notes"] = notes
+    from skygen.real.fit_report import write_camera_yaml, write_report
+    write_camera_yaml(out, model["cfg"], record, command)
+    if report_dir is not None:
+        write_report(report_dir, record, [fr.image_of(fs.name) for fs in solved][:1], g)
+    return record
+
+
+@dataclasses.dataclass
+class Frames:
+    """The usable frames of a fit: names, images (divided by their value ``scale``), their background
+    statistics (:func:`skygen.real.fit_pixels.background`, filled by :func:`solve_frames`), the frames
+    dropped so far with the reason, and the data's bit depth and saturation level (scaled ADU)."""
+    names: list
+    imgs: list
+    dropped: list
+    scale: int
+    bits: int
+    sat: float
+    bgs: list = dataclasses.field(default_factory=list)
+    other_camera: set = dataclasses.field(default_factory=set)    # names dropped as not the fitted camera's
+
+    def image_of(self, name: str) -> np.ndarray:
+        return self.imgs[self.names.index(name)]
+
+    def background_of(self, name: str) -> dict:
+        return self.bgs[self.names.index(name)]
+
+    def drop(self, name: str, why: str, log) -> None:
+        self.dropped.append((name, why))
+        log(f"fit-camera: dropped {name}: {why}")
+
+
+def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log) -> tuple:
+    """(field range, pixel pitch, notes): the defaults filled in and said, the options checked before any work
+    (a field range whose solver database would be too large is refused here, not after reading the frames)."""
+    from skygen.real.platesolve import check_database_size
     if pixel_aspect is not None and not 0.1 <= pixel_aspect <= 10:
         raise ConfigError(f"--pixel-aspect {pixel_aspect:g}: pixel height / width between 0.1 and 10")
     notes = []
@@ -150,56 +216,144 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
         pixel_pitch_um = PITCH_DEFAULT_UM
         notes.append(f"no --pixel-pitch: {pixel_pitch_um:g} um assumed (only camera.focal_length_mm depends on it; "
                      "the field, and so every render, does not)")
+    if camera is None and 0 < fov_range[0] < fov_range[1] < 120:      # other ranges: start_config says why
+        check_database_size(fov_range[0], fov_range[1])
     for n in notes:
         log(f"fit-camera: {n}")
-    names, raw, dropped = read_frames(paths, log)
+    return fov_range, pixel_pitch_um, notes
+
+
+def load_frames(paths: list[str], log, channel: str = "luminance") -> Frames:
+    """Step 1: read the frames, divide by the scale their values carry, drop blank and saturated ones."""
+    from skygen.real import fit_pixels as P
+    names, raw, dropped = read_frames(paths, log, channel)
     scale, bits, sat = P.value_scale(raw)
-    imgs = [im / scale for im in raw]
-    keep = []
-    for n, im in zip(names, imgs):
+    fr = Frames([], [], dropped, scale, bits, sat)
+    for n, im in zip(names, (im / scale for im in raw)):
         why = usable(im, sat)
         if why:
-            dropped.append((n, why))
-            log(f"fit-camera: dropped {n}: {why}")
+            fr.drop(n, why, log)
         else:
-            keep.append((n, im))
-    if not keep:
+            fr.names.append(n)
+            fr.imgs.append(im)
+    if not fr.imgs:
         raise FitError("no usable frame: " + "; ".join(f"{Path(n).name}: {w}" for n, w in dropped[:4]))
-    names, imgs = [k[0] for k in keep], [k[1] for k in keep]
-    cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, imgs[0].shape)
-    cam0 = Camera.from_config(cfg0.camera)
-    epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
+    return fr
+
+
+def solve_frames(fr: Frames, cam0: Camera, fov_range, log) -> list:
+    """Step 2: background statistics and detections of every frame, then a lost-in-space solution
+    (:class:`skygen.real.fit_geometry.FrameSolution`); unsolved frames are dropped with the solver's reason."""
+    from skygen.instrument.detect import detect
+    from skygen.real import fit_geometry as G
+    from skygen.real import fit_pixels as P
+    from skygen.real.platesolve import load_database
     if fov_range is None:
         db = load_database(cam0.fov_deg[0], log=log)
     else:
         db = load_database(fov_range[0], log=log, fov_max_deg=fov_range[1])
-    table = load_catalog(cfg0.catalog.path)
-    sky = SkyIndex(table, epoch, 10.0)
-    bgs, frames = [], []
-    for n, im in zip(names, imgs):
-        bgs.append(P.background(im, BOX_PX))
+    frames = []
+    for n, im in zip(fr.names, fr.imgs):
+        fr.bgs.append(P.background(im, BOX_PX))
         det, _, _ = detect(im, DETECT["threshold_sigma"], DETECT["min_area_px"], 200, BOX_PX)
         R, fov, why = G.solve_frame(db, det, cam0, fov_range)
         frames.append(G.FrameSolution(n, det, R, fov, why))
         if why:
-            dropped.append((n, why))
-            log(f"fit-camera: dropped {n}: {why}")
+            fr.drop(n, why, log)
     solved = [fs for fs in frames if fs.solved]
     if not solved:
-        raise FitError(f"no frame solved ({len(dropped)} dropped): " + "; ".join(
-            f"{Path(n).name}: {why}" for n, why in dropped[:3]) + (" ..." if len(dropped) > 3 else ""))
-    t_solve = time.perf_counter() - t0
+        raise FitError(f"no frame solved ({len(fr.dropped)} dropped): " + "; ".join(
+            f"{Path(n).name}: {why}" for n, why in fr.dropped[:3]) + (" ..." if len(fr.dropped) > 3 else ""))
+    return solved
+
+
+def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, log) -> tuple:
+    """Step 3: the joint geometry fit (:func:`skygen.real.fit_geometry.fit_geometry`, a 6 px then a 2.5 px
+    match radius); the frames whose own solution disagrees with the fitted camera (:func:`disagreements`)
+    are dropped and the fit made again from the others' own solutions, as if only they had been given.
+    Unless the frames that agree are a majority: then it refuses (frames of more than one camera?).
+    One frame has no other to disagree with: its fit stands. Returns (fit, the frames kept)."""
+    own = {fs.name: fs.R for fs in solved}          # each frame's lost-in-space solution
+    said: list[str] = []                            # the fit's notes, kept back until it stands
+    g = _fit_two_radii(solved, cam0, fov_range, sky, said.append)
+    bad = disagreements(solved, g) if len(solved) > 1 else {}
+    if not bad:
+        for m in said:
+            log(m)
+        return g, solved
+    kept = [fs for fs in solved if fs.name not in bad]
+    if 2 * len(kept) <= len(solved):
+        others = [Path(n).name for n in bad]
+        first = next(iter(bad.values()))
+        raise FitError(f"frames of more than one camera? only {len(kept)} of {len(solved)} solved frames agree with "
+                       f"the fitted camera (field {g.camera.fov_deg[0]:.2f} deg); the other {len(bad)} "
+                       f"({', '.join(others[:3])}{' ...' if len(others) > 3 else ''}) do not, e.g. {others[0]}: "
+                       f"{first}; give the frames of one camera and lens"
+                       + ("" if kept or fov_range is not None else
+                          " (if they are, the camera file's field may be far from theirs: try --fov-range)"))
+    for n, why in bad.items():
+        fr.drop(n, why, log)
+        fr.other_camera.add(n)
+    for fs in kept:
+        fs.R = own[fs.name]
+    return _fit_two_radii(kept, cam0, fov_range, sky, log), kept
+
+
+def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):
+    """The joint fit at a 6 px match radius (its attitudes replace the solutions), then at 2.5 px; from the
+    start camera, or with a field range from the median field of :func:`majority_field`."""
+    from skygen.real import fit_geometry as G
     start_cam = cam0
     if fov_range is not None:                       # the field the solver found is the fit's start
-        fov = float(np.median([fs.fov_deg for fs in solved]))
+        fov = float(np.median([fs.fov_deg for fs in majority_field(solved)]))
         start_cam = dataclasses.replace(cam0, f_px=cam0.width_px / 2 / np.tan(np.radians(fov) / 2))
     g = G.fit_geometry(solved, start_cam, sky, 6.0, log=lambda m: None)
     for fs, R in zip(solved, g.rotations):
         fs.R = R
-    g = G.fit_geometry(solved, g.camera, sky, 2.5, log=log)
-    cam = g.camera
-    t_geom = time.perf_counter() - t0
-    # ------------------------------------------------------------------ pixels
+    return G.fit_geometry(solved, g.camera, sky, 2.5, log=log)
+
+
+def majority_field(solved: list, tol: float = FIELD_TOLERANCE) -> list:
+    """The solved frames whose lost-in-space field agrees (within ``tol``, relative) with the most others:
+    the start of the joint fit is their median field, not one pulled between two lenses' fields."""
+    f = np.array([fs.fov_deg for fs in solved])
+    support = [np.flatnonzero(np.abs(f / fi - 1) <= tol) for fi in f]
+    return [solved[i] for i in max(support, key=len)]
+
+
+def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE) -> dict:
+    """{frame name: why} for the solved frames that the fitted camera does not explain: fewer matched
+    catalogue stars than a lost-in-space solution needs (:data:`MIN_MATCHED`), a residual rms over
+    :data:`RMS_FACTOR` x the fit's (and over 1 px), or a solved field more than ``tol`` from the field
+    the frames it does explain were solved at (tetra3rs's field, comparable frame to frame; the
+    fitted pinhole field differs from it by the distortion)."""
+    matched = np.array([int(m.sum()) for m in g.keep])
+    rms = np.array([np.sqrt(np.mean(np.sum(r ** 2, 1))) if len(r) else np.inf for r in g.residuals])
+    good = matched >= MIN_MATCHED
+    ref = float(np.median([fs.fov_deg for fs, ok in zip(solved, good) if ok])) if good.any() else float("nan")
+    rms_cut = max(RMS_FACTOR * g.rms_px, 1.0)
+    bad = {}
+    for fs, n, r in zip(solved, matched, rms):
+        if n < MIN_MATCHED:
+            bad[fs.name] = (f"only {n} of its {len(fs.det['x_px'])} detections match catalogue stars under the fitted "
+                            f"camera (field {g.camera.fov_deg[0]:.2f} deg; its own solution: {fs.fov_deg:.2f} deg): "
+                            "a frame of another camera or lens, or a wrong solution")
+        elif abs(fs.fov_deg / ref - 1) > tol:
+            bad[fs.name] = (f"solved at a {fs.fov_deg:.2f} deg field, the other frames at {ref:.2f} deg "
+                            f"({100 * abs(fs.fov_deg / ref - 1):.0f} % apart): a frame of another camera or lens")
+        elif r > rms_cut:
+            bad[fs.name] = (f"its {n} matched stars sit {r:.2f} px rms from the fitted camera's projection, over "
+                            f"{rms_cut:.2f} px ({RMS_FACTOR:g} x the fit's {g.rms_px:.3f} px): a frame of another "
+                            "camera or lens, or a wrong solution")
+    return bad
+
+
+def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
+    """Step 4 and 5: gain, bias and read noise (mean-variance), PSF, hot pixels, the real zero point and
+    the detector settings, on the frames of the fitted camera (frames of another camera left out)."""
+    from skygen.real import fit_pixels as P
+    own = [n for n in fr.names if n not in fr.other_camera]
+    bgs = [fr.background_of(n) for n in own]
     mv = P.gain_from_mean_variance(np.concatenate([b["box_level"] for b in bgs]),
                                    np.concatenate([b["box_sigma"] for b in bgs]) ** 2,
                                    cfg0.sensor.read_noise_e, cfg0.sensor.fpn_adu, cfg0.sensor.bias_adu)
@@ -208,28 +362,38 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
     else:
         gain, bias, read = cfg0.sensor.gain_e_per_adu, float(cfg0.sensor.bias_adu), cfg0.sensor.read_noise_e
         log(f"fit-camera: gain, bias and read noise kept from the start camera: {mv['why']}")
-    by_name = {n: i for i, n in enumerate(names)}
-    sidx = [by_name[fs.name] for fs in solved]
+    cam = g.camera
+    s_imgs = [fr.image_of(fs.name) for fs in solved]
+    s_bgs = [fr.background_of(fs.name) for fs in solved]
     matched = [fs.det_index[m] for fs, m in zip(solved, g.keep)]
-    psf = P.psf_fit([imgs[i] for i in sidx], [bgs[i]["level_map"] for i in sidx], [fs.det for fs in solved],
-                    matched, cam.aspect, sat)
-    hot = P.hot_pixels(imgs, [b["level_map"] for b in bgs], [b["sigma_map"] for b in bgs])
-    zp_real, stars = _zero_point_real(solved, g, [bgs[i] for i in sidx], sat)
-    settings = choose_detector(solved, [imgs[i] for i in sidx], cam, g.rotations, sky)
-    level = float(np.median([b["level_adu"] for b in bgs]))
-    gradient = float(np.median([b["gradient_adu"] for b in bgs]))
-    meas = {"gain_e_per_adu": gain, "bias_adu": bias, "read_noise_e": read, "level_adu": level,
+    psf = P.psf_fit(s_imgs, [b["level_map"] for b in s_bgs], [fs.det for fs in solved], matched, cam.aspect, fr.sat)
+    hot = P.hot_pixels([fr.image_of(n) for n in own], [b["level_map"] for b in bgs], [b["sigma_map"] for b in bgs])
+    zp_real, stars = _zero_point_real(solved, g, s_bgs, fr.sat)
+    settings = choose_detector(solved, s_imgs, cam, g.rotations, sky)
+    meas = {"gain_e_per_adu": gain, "bias_adu": bias, "read_noise_e": read,
+            "level_adu": float(np.median([b["level_adu"] for b in bgs])),
             "centre_adu": float(np.median([b["centre_adu"] for b in bgs])),
             "corner_drop_adu": float(np.median([b["corner_drop_adu"] for b in bgs])),
-            "background_residual_adu": float(np.median([b["residual_std_adu"] for b in bgs])), "gradient_adu": gradient, "bits": bits, "psf": psf, "hot": hot, "settings": settings}
-    exposure = _exposure_from_stars(cfg0, stars, gain)
-    attitudes = [G.radec_roll(R) for R in g.rotations]
-    real_stats = [_measure_real(imgs[i], settings, sat, fs, g, k) for k, (i, fs) in enumerate(zip(sidx, solved))]
+            "background_residual_adu": float(np.median([b["residual_std_adu"] for b in bgs])),
+            "gradient_adu": float(np.median([b["gradient_adu"] for b in bgs])), "bits": fr.bits, "psf": psf,
+            "hot": hot, "settings": settings}
+    return {"mv": mv, "meas": meas, "zp_real": zp_real, "stars": stars}
+
+
+def fit_model_terms(cfg0, g, px: dict, solved: list, fr: Frames, table, pixel_pitch_um, with_start: bool) -> dict:
+    """Step 6: the measurements in the model's own terms (:func:`build_fitted`), the exposure corrected once
+    so that renders at the fitted attitudes give the real zero point, and the detections the catalogue
+    lacks made ``corruptions.false_stars``. Returns the config and the real / rendered statistics."""
+    from skygen.real.fit_geometry import radec_roll
+    cam, meas, sat = g.camera, px["meas"], fr.sat
+    exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
+    attitudes = [radec_roll(R) for R in g.rotations]
+    real_stats = [_measure_real(fr.image_of(fs.name), meas["settings"], sat, fs, g, k) for k, fs in enumerate(solved)]
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     render_zp = _render_stats(cfg, attitudes, table, sat)
     zp_sim = float(np.nanmedian([r["zero_point_mag"] for r in render_zp]))
-    if np.isfinite(zp_sim) and np.isfinite(zp_real):
-        exposure *= 10 ** (0.4 * (zp_real - zp_sim))
+    if np.isfinite(zp_sim) and np.isfinite(px["zp_real"]):
+        exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim))
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     # stars the catalogue lacks (Hipparcos is complete to about V 8; a real frame shows fainter ones): the
     # detections real frames have beyond the renders' become corruptions.false_stars (point sources at
@@ -240,17 +404,8 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
     if deficit > 0:
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     after = _render_stats(cfg, attitudes, table, sat) if deficit > 0 else render_det
-    before = _render_stats(cfg0, attitudes, table, 2 ** cfg0.sensor.bit_depth - 1) if camera is not None else None
-    t_total = time.perf_counter() - t0
-    record = _record(names, dropped, solved, g, cam0, cam, mv, meas, zp_real, exposure, real_stats, before, after,
-                     cfg, scale, sat, fov_range, camera, command, {"solve_s": t_solve, "geometry_s": t_geom,
-                                                               "total_s": t_total}, epoch)
-    record["notes"] = notes
-    from skygen.real.fit_report import write_camera_yaml, write_report
-    write_camera_yaml(out, cfg, record, command)
-    if report_dir is not None:
-        write_report(report_dir, record, [imgs[i] for i in sidx][:1], g)
-    return record
+    before = _render_stats(cfg0, attitudes, table, 2 ** cfg0.sensor.bit_depth - 1) if with_start else None
+    return {"cfg": cfg, "exposure": exposure, "real_stats": real_stats, "before": before, "after": after}
 
 
 def _zero_point_real(solved, g, bgs, sat):

@@ -1,12 +1,24 @@
 """Reading a user's frame files: PNG, TIFF (8 or 16 bit), FITS and ``.npy``.
 
 :func:`read_frame` returns one monochrome float32 image ``[y, x]`` in the file's own linear
-units, or raises :class:`FrameError` with the reason (unreadable, empty, colour, non-numeric).
+units, or raises :class:`FrameError` with the reason (unreadable, empty, multi-plane, non-numeric).
 PNG and TIFF are decoded by OpenCV with its log silenced: a damaged file gives our one line,
-not libtiff's warnings first. :func:`mask_bad_pixels` replaces non-finite pixels (NaN, ±inf:
-flagged pixels in float FITS or ``.npy`` frames) before detection. :func:`frame_files` lists
-the frame files of a folder. Used by ``skygen fit-camera`` and, through
-:mod:`fusion.solve.frames`, by ``fusion predict``.
+not libtiff's warnings first.
+
+Colour PNG and TIFF frames (RGB or RGBA, 8 or 16 bit; alpha dropped) become one plane, saying so
+in one line (``channel``, :data:`CHANNELS`): ``luminance`` (the default) is the Rec. 709 weighted sum
+0.2126 R + 0.7152 G + 0.0722 B of the values as stored. It keeps the file's range (the weights sum
+to 1, so saturation stays at the top) and leans on green, the plane a Bayer sensor samples twice
+and so the least noisy one; tetra3 greys colour frames the same way with the Rec. 601 weights
+(0.299, 0.587, 0.114). ``r``, ``g`` or ``b`` take one plane (stars seen through one filter); ``sum``
+adds the three, the charge a monochrome sensor would have collected: the best signal-to-noise for
+white stars when the planes' noise is alike, at up to three times the file's range. A monochrome
+frame that still holds a colour sensor's raw Bayer mosaic (a strong 2 x 2 pattern in its
+background) is read as it is, with a one-line warning (:func:`bayer_warning`).
+
+:func:`mask_bad_pixels` replaces non-finite pixels (NaN, ±inf: flagged pixels in float FITS or
+``.npy`` frames) before detection. :func:`frame_files` lists the frame files of a folder. Used by
+``skygen fit-camera`` and, through :mod:`fusion.solve.frames`, by ``fusion predict``.
 """
 
 from __future__ import annotations
@@ -15,9 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.errors import DatasetError
+from skygen.errors import ConfigError, DatasetError
 
 FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
+CHANNELS = ("luminance", "r", "g", "b", "sum")
+LUMINANCE_RGB = (0.2126, 0.7152, 0.0722)      # Rec. 709 (ITU-R BT.709) weights of R, G, B
+#: a monochrome frame is flagged as a raw Bayer mosaic when its four 2 x 2 sub-lattices' background
+#: levels differ by more than this factor (see :func:`bayer_warning`)
+BAYER_RATIO = 1.3
 
 
 class FrameError(DatasetError):
@@ -36,8 +53,15 @@ def _imread_quiet(path: Path):
         log.setLogLevel(level)
 
 
-def read_frame(path: str | Path) -> np.ndarray:
-    """A 2-D image from PNG/TIFF (8/16 bit), FITS or .npy; FrameError with the reason otherwise."""
+def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.ndarray:
+    """A 2-D float32 image ``[y, x]`` from PNG/TIFF (8/16 bit), FITS or .npy; FrameError with the reason otherwise.
+
+    A colour PNG or TIFF becomes one plane by ``channel`` (:data:`CHANNELS`; see the module doc) and a
+    monochrome frame that looks like a raw Bayer mosaic is flagged: each with one line through ``log``
+    (on stderr when None)."""
+    if channel not in CHANNELS:
+        raise ConfigError(f"channel {channel!r}: give one of {', '.join(CHANNELS)}")
+    say = log or _stderr
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
@@ -50,34 +74,9 @@ def read_frame(path: str | Path) -> np.ndarray:
         if suffix == ".npy":
             img = np.load(path, allow_pickle=False)
         elif suffix in (".fits", ".fit", ".fts"):
-            import warnings
-            from astropy.io import fits
-            with warnings.catch_warnings(record=True) as caught:     # astropy's own WARNING lines: ours instead
-                warnings.simplefilter("always")
-                try:
-                    with fits.open(path, memmap=False) as hdul:
-                        img = next((h.data for h in hdul if h.data is not None and np.ndim(h.data) >= 2), None)
-                except Exception:
-                    truncated = next((str(w.message) for w in caught if "truncated" in str(w.message)), None)
-                    if truncated:
-                        raise FrameError(f"{path}: truncated FITS file ({truncated.rstrip('.')}); "
-                                         "copy it again from its source") from None
-                    raise
-            if img is None:
-                raise FrameError(f"{path}: no image HDU with 2-D data")
+            img = _read_fits(path)
         else:
-            img = _imread_quiet(path)
-            if img is None:
-                raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
-            if suffix in (".tif", ".tiff"):
-                import cv2
-                pages = cv2.imcount(str(path))
-                if pages > 1:                     # reading page 1 alone would drop the others without a word
-                    raise FrameError(f"{path}: a multi-page TIFF ({pages} pages); give one frame per file")
-            if img.ndim == 3 and img.shape[2] in (3, 4):
-                img = img[:, :, :3]
-                if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]):
-                    img = img[:, :, 0]           # grey stored as RGB: one channel
+            img = _read_png_tiff(path, suffix, channel, say)
     except FrameError:
         raise
     except Exception as exc:                      # decoders raise many types for damaged files
@@ -87,12 +86,107 @@ def read_frame(path: str | Path) -> np.ndarray:
         img = img[0]
     if img.ndim != 2:
         kind = "not an image" if img.ndim < 2 else "colour or multi-plane image"
-        raise FrameError(f"{path}: {kind} (shape {img.shape}); give one monochrome 2-D sensor read-out")
+        raise FrameError(f"{path}: {kind} (shape {img.shape}); give one monochrome 2-D sensor read-out "
+                         "(colour is read from RGB or RGBA PNG and TIFF files)")
     if img.size == 0:
         raise FrameError(f"{path}: image has no pixels")
     if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
         raise FrameError(f"{path}: pixel type {img.dtype} is not a real number (integer or float pixels only)")
-    return img.astype(np.float32)
+    img = img.astype(np.float32)
+    warning = bayer_warning(img)
+    if warning:
+        say(f"{path}: {warning}")
+    return img
+
+
+def _read_fits(path: Path) -> np.ndarray:
+    import warnings
+    from astropy.io import fits
+    with warnings.catch_warnings(record=True) as caught:     # astropy's own WARNING lines: ours instead
+        warnings.simplefilter("always")
+        try:
+            with fits.open(path, memmap=False) as hdul:
+                img = next((h.data for h in hdul if h.data is not None and np.ndim(h.data) >= 2), None)
+        except Exception:
+            truncated = next((str(w.message) for w in caught if "truncated" in str(w.message)), None)
+            if truncated:
+                raise FrameError(f"{path}: truncated FITS file ({truncated.rstrip('.')}); "
+                                 "copy it again from its source") from None
+            raise
+    if img is None:
+        raise FrameError(f"{path}: no image HDU with 2-D data")
+    return img
+
+
+def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> np.ndarray:
+    img = _imread_quiet(path)
+    if img is None:
+        raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
+    if suffix in (".tif", ".tiff"):
+        import cv2
+        pages = cv2.imcount(str(path))
+        if pages > 1:                     # reading page 1 alone would drop the others without a word
+            raise FrameError(f"{path}: a multi-page TIFF ({pages} pages); give one frame per file")
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        alpha = img.shape[2] == 4
+        bgr = img[:, :, :3]                       # OpenCV's order: B, G, R (, A)
+        if np.array_equal(bgr[:, :, 0], bgr[:, :, 1]) and np.array_equal(bgr[:, :, 0], bgr[:, :, 2]):
+            return bgr[:, :, 0]                   # grey stored as RGB: one channel
+        plane, how = to_one_plane(bgr[:, :, ::-1], channel)
+        bits = 8 * img.dtype.itemsize
+        say(f"{path}: colour frame ({'RGBA' if alpha else 'RGB'}, {bits} bit{'; alpha dropped' if alpha else ''}) "
+            f"read as one plane: {how}")
+        return plane
+    return img
+
+
+def to_one_plane(rgb: np.ndarray, channel: str = "luminance") -> tuple[np.ndarray, str]:
+    """(float32 plane ``[y, x]``, how it was made) of an ``[y, x, (R, G, B)]`` image (see the module doc)."""
+    rgb = np.asarray(rgb, np.float32)
+    if channel == "luminance":
+        w = LUMINANCE_RGB
+        return (w[0] * rgb[..., 0] + w[1] * rgb[..., 1] + w[2] * rgb[..., 2],
+                f"luminance {w[0]} R + {w[1]} G + {w[2]} B (Rec. 709; --channel r, g, b or sum for another)")
+    if channel == "sum":
+        return rgb.sum(axis=2), "R + G + B (up to 3 x the file's range)"
+    if channel in ("r", "g", "b"):
+        return rgb[..., "rgb".index(channel)].copy(), f"the {channel.upper()} plane"
+    raise ConfigError(f"channel {channel!r}: give one of {', '.join(CHANNELS)}")
+
+
+def bayer_warning(img: np.ndarray) -> str:
+    """'' or one line when a monochrome frame looks like a colour sensor's raw Bayer mosaic.
+
+    Star fields are mostly background, so the interquartile mean of each of the four 2 x 2
+    sub-lattices is its background level; behind different colour filters they differ (the sky
+    and any lamp light are coloured), through one filter they agree. Flagged when the brightest
+    level exceeds the faintest by :data:`BAYER_RATIO` and the pattern is not a mere row or
+    column offset (even/odd read-out channels of a monochrome sensor: ``l00 + l11 = l01 + l10``;
+    a Bayer R, G, G, B mosaic is not of that form unless R + B = 2 G)."""
+    h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+    if h < 16 or w < 16:
+        return ""
+    step = max(1, int(np.sqrt(h * w / 4 / 250_000)))          # at most ~250 k cells looked at
+    grid = img[:h, :w].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3).reshape(h // 2, w // 2, 4)
+    cells = grid[::step, ::step].reshape(-1, 4).astype(np.float64)          # one row per 2 x 2 cell
+    cells = cells[np.all(np.isfinite(cells), axis=1)]
+    if len(cells) < 64:
+        return ""
+    q = np.sort(cells, axis=0)[len(cells) // 4: (3 * len(cells)) // 4 + 1]
+    lev = q.mean(axis=0)                                       # order: (0,0), (0,1), (1,0), (1,1)
+    spread = lev.max() - lev.min()
+    if not lev.min() > 0 or lev.max() / lev.min() <= BAYER_RATIO:
+        return ""
+    if abs(lev[0] + lev[3] - lev[1] - lev[2]) < 0.25 * spread:
+        return ""                                              # rows or columns offset, not a colour mosaic
+    return (f"looks like a raw Bayer mosaic (the background of its four 2 x 2 sub-lattices is "
+            f"{', '.join(f'{v:.4g}' for v in lev)}: {lev.max() / lev.min():.2f} x apart); debayer it or give one "
+            "colour plane")
+
+
+def _stderr(message: str) -> None:
+    import sys
+    print(message, file=sys.stderr, flush=True)
 
 
 def mask_bad_pixels(img: np.ndarray, source: str = "frame") -> tuple[np.ndarray, int]:

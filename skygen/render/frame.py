@@ -28,6 +28,9 @@ from skygen.instrument.sensor import Exposure, read_out, sensor_maps
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 BLUR_STEP_PX = 0.25   # sub-exposure spacing of a motion-blurred star
+#: fewest catalogue stars above the detection limit a field must hold on average: below it most
+#: frames (Poisson P(0) > 60 %) show no star at all, which no solver and no model can use
+MIN_DETECTABLE_PER_FIELD = 0.5
 
 
 @dataclass
@@ -123,6 +126,7 @@ class Renderer:
         table = catalog if catalog is not None else load_catalog(cfg.catalog.path)
         # the magnitude limit is in Hp; a V-band catalog is shifted onto the same scale
         self.mag_offset_to_hp = cfg.photometry.hp_minus_v if table.band == "V" else 0.0
+        self._check_detectable_per_field(table)
         self.sky = SkyIndex(table, cfg.epoch_yr, self.mag_limit - self.mag_offset_to_hp)
         if cfg.catalog.mag_limit is not None:
             self._check_stars_per_field(table)
@@ -135,19 +139,67 @@ class Renderer:
         self._corner = self.camera.corner_radius_rad()
 
     # ------------------------------------------------------------------ helpers
-    def noise_e(self) -> float:
-        """Background noise per pixel in electrons (shot, read, quantisation, FPN)."""
+    def noise_e(self, extra_read_e: float | None = None) -> float:
+        """Background noise per pixel in electrons (shot, read, quantisation, FPN).
+
+        ``extra_read_e``: the read-noise corruption's extra e- rms (None: the current level)."""
+        extra = self.levels["read_noise"] if extra_read_e is None else extra_read_e
+        return float(np.sqrt(self.background_e + self._floor_e2(extra)))
+
+    def _floor_e2(self, extra_read_e: float) -> float:
+        """Variance (e-^2) of the noise that does not grow with the exposure: read, quantisation, FPN."""
         s = self.cfg.sensor
         g = s.gain_e_per_adu
-        return float(np.sqrt(self.background_e + s.read_noise_e ** 2 + self.levels["read_noise"] ** 2
-                             + g * g / 12.0 + (g * s.fpn_adu) ** 2))
+        return s.read_noise_e ** 2 + extra_read_e ** 2 + g * g / 12.0 + (g * s.fpn_adu) ** 2
+
+    def _field_sr(self) -> float:
+        """Solid angle of the rectangular field, steradians."""
+        fx, fy = (np.radians(v) for v in self.camera.fov_deg)
+        return float(4 * np.arcsin(np.sin(fx / 2) * np.sin(fy / 2)))
+
+    def _check_detectable_per_field(self, table: StarTable) -> None:
+        """Refuse sensor and optics settings whose detection limit leaves a field under
+        :data:`MIN_DETECTABLE_PER_FIELD` catalogue stars on average (a unit slip such as
+        ``sensor.exposure_s=0.0001``: Hp -1.5, no star on the sky is that bright), when a fainter
+        limit would give them (a narrow camera with a thin catalog is not these keys' fault and
+        passes). The limit is taken without the read-noise corruption: a robustness sweep may
+        drown the stars on purpose."""
+        field_sr = self._field_sr()
+        mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
+        needed = int(np.ceil(MIN_DETECTABLE_PER_FIELD * 4 * np.pi / field_sr))   # stars on the sky for that
+        limit = self._detection_limit(extra_read_e=0.0)
+        if needed > len(mags) or (np.isfinite(limit) and limit >= mags[needed - 1]):
+            return
+        per_field = np.searchsorted(mags, limit, side="right") * field_sr / (4 * np.pi)
+        need_mag = float(mags[needed - 1])
+        s, fx, fy = self.cfg.sensor, *self.camera.fov_deg
+        raise ConfigError(
+            f"this config detects no star in most frames: its detection limit is Hp {limit:.2f} (a solar-type star "
+            f"whose peak pixel reaches detection.threshold_sigma={self.cfg.detection.threshold_sigma:g}), which "
+            f"leaves {per_field:.2g} catalog stars per {fx:.1f} x {fy:.1f} deg field (at least "
+            f"{MIN_DETECTABLE_PER_FIELD:g} needs Hp {need_mag:.2f}); check the units of sensor.exposure_s "
+            f"({s.exposure_s:g} s: Hp {need_mag:.2f} needs >= {self._exposure_for_limit(need_mag):.3g} s), "
+            f"optics.aperture_mm ({self.cfg.optics.aperture_mm:g}) and sensor.gain_e_per_adu "
+            f"({s.gain_e_per_adu:g} e-/ADU), or lower detection.threshold_sigma")
+
+    def _exposure_for_limit(self, mag_hp: float) -> float:
+        """The exposure (s) at which a solar-type star of ``mag_hp`` reaches the detection threshold in
+        its peak pixel, the rest of the config kept: solves (F p t)^2 = k^2 (b t + c) for t, with F the
+        star's e-/s, p the peak fraction, k the threshold, b the background e-/px/s, c the floor variance."""
+        o, s = self.cfg.optics, self.cfg.sensor
+        F = float(self.photometry.electrons_per_s(np.array([mag_hp]), np.array([0.65]))[0])
+        p = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
+        k2 = self.cfg.detection.threshold_sigma ** 2
+        b, c = self.background_e / s.exposure_s, self._floor_e2(0.0)
+        a = (F * p) ** 2
+        return float((k2 * b + np.sqrt(k2 * k2 * b * b + 4 * a * k2 * c)) / (2 * a))
 
     def _check_stars_per_field(self, table: StarTable) -> None:
         """Refuse an explicit ``catalog.mag_limit`` so bright that a field holds under one star
         on average, when a fainter limit would give one (a narrow camera with a thin catalog
         is not this key's fault and passes)."""
         fx, fy = (np.radians(v) for v in self.camera.fov_deg)
-        field_sr = 4 * np.arcsin(np.sin(fx / 2) * np.sin(fy / 2))      # solid angle of the rectangular field
+        field_sr = self._field_sr()
         per_field = len(self.sky) * field_sr / (4 * np.pi)
         mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
         needed = int(np.ceil(4 * np.pi / field_sr))                    # stars on the sky for 1 per field
@@ -160,11 +212,12 @@ class Renderer:
                           f"field on average: frames would be nearly empty. Give catalog.mag_limit >= {need:.1f} "
                           f"(1 star per field), or null (detection limit + catalog.mag_margin = Hp {auto:.2f})")
 
-    def _detection_limit(self) -> float:
-        """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold."""
+    def _detection_limit(self, extra_read_e: float | None = None) -> float:
+        """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold
+        (``extra_read_e``: as :meth:`noise_e`)."""
         o = self.cfg.optics
         peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
-        e_needed = self.cfg.detection.threshold_sigma * self.noise_e() / peak
+        e_needed = self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e) / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
 
     def saturation_warning(self) -> str | None:
