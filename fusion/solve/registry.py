@@ -29,17 +29,23 @@ line can list the names cheaply; builders import what they need.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+
+if TYPE_CHECKING:                  # names for the annotations only: importing them here would load torch
+    from skygen.instrument.camera import Camera
+
+    from .priors import RegionPrior
+    from .tetra import Tetra3Solver
 
 
 @dataclass
 class SolverContext:
     """What a builder may use: the camera, a shared tetra3rs solver, the prior and the search settings."""
-    camera: object                          # skygen.instrument.camera.Camera
-    tetra: object                           # fusion.solve.tetra.Tetra3Solver (its database loaded once)
-    prior: object | None = None             # a RegionPrior at its search level (learned solvers)
+    camera: Camera
+    tetra: Tetra3Solver                     # its database loaded once, shared by every solver built
+    prior: RegionPrior | None = None        # at its search level (learned solvers)
     search_centroids: np.ndarray | None = None   # regions the oracle priors rank (benchmark)
     top_k: int = 20                         # regions the fine stage searches, most probable first
     focal_tol: float = 0.02                 # relative focal-length uncertainty the fine stage fits within
@@ -120,11 +126,17 @@ def _tetra3rs_learned_fine_whole_sky(ctx: SolverContext):
     return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine>whole-sky"))
 
 
+def _oracle_centroids(ctx: SolverContext) -> np.ndarray:
+    if ctx.search_centroids is None:
+        raise ValueError("an oracle prior ranks regions: give SolverContext.search_centroids (the benchmark does)")
+    return ctx.search_centroids
+
+
 @register_solver("oracle-prior", prior="oracle", doc="benchmark only: the true region ranked first")
 def _oracle(ctx: SolverContext):
     from .fine import CoarseToFineSolver
     from .priors import OraclePrior
-    return CoarseToFineSolver(ctx.tetra, OraclePrior(ctx.search_centroids, 1.0), name="oracle-prior",
+    return CoarseToFineSolver(ctx.tetra, OraclePrior(_oracle_centroids(ctx), 1.0), name="oracle-prior",
                               top_k=ctx.top_k, focal_tol=ctx.focal_tol)
 
 
@@ -132,7 +144,7 @@ def _oracle(ctx: SolverContext):
 def _sim85(ctx: SolverContext):
     from .fine import CoarseToFineSolver
     from .priors import OraclePrior
-    return CoarseToFineSolver(ctx.tetra, OraclePrior(ctx.search_centroids, 0.85, seed=1), name="sim85-prior",
+    return CoarseToFineSolver(ctx.tetra, OraclePrior(_oracle_centroids(ctx), 0.85, seed=1), name="sim85-prior",
                               top_k=ctx.top_k, focal_tol=ctx.focal_tol)
 
 

@@ -342,32 +342,33 @@ class Dataset:
         return np.flatnonzero(self.frames["split"] == SPLIT_NAMES.index(split))
 
     # -- lazy access -------------------------------------------------------------
-    def _locate(self, i: int) -> tuple[_Shard, int]:
+    def _locate(self, i: int) -> tuple[_Shard, h5py.File, int]:
+        """The shard holding frame ``i``, its open file (opened on first use) and the row within it."""
         if not 0 <= i < len(self):
             raise IndexError(f"frame {i} out of range for a dataset of {len(self)} frames")
         k = int(np.searchsorted(self._starts, i, side="right") - 1)
         sh = self.shards[k]
         if sh.handle is None:
             sh.handle = open_shard_file(sh.path)
-        return sh, i - sh.frame_start
+        return sh, sh.handle, i - sh.frame_start
 
     def __post_init__(self) -> None:
         # first frame of each shard, for the per-frame lookup in _locate (computed once)
         self._starts = np.array([s.frame_start for s in self.shards])
 
     def image(self, i: int, full_res: bool = False) -> np.ndarray:
-        sh, j = self._locate(i)
+        sh, h, j = self._locate(i)
         name = "images_full" if full_res else "images"
-        if name not in sh.handle:
+        if name not in h:
             raise DatasetError(f"{sh.path}: no '{name}' (render with --full-res to store them)")
         try:
-            return sh.handle[name][j]
+            return h[name][j]
         except OSError as exc:
             raise DatasetError(f"{sh.path}: cannot read {name}[{j}] (damaged shard?): {exc}") from None
 
     def _table(self, group: str, i: int) -> dict:
-        sh, j = self._locate(i)
-        g = sh.handle[group]
+        sh, h, j = self._locate(i)
+        g = h[group]
         fields = STAR_FIELDS if group == "stars" else DETECTION_FIELDS
         try:
             if sh.major == 1:         # flat columns, rows of frame j at offsets[j]:offsets[j+1]
@@ -386,8 +387,8 @@ class Dataset:
         return self._table("stars", i)
 
     def corruption_log(self, i: int) -> dict:
-        sh, j = self._locate(i)
-        raw = sh.handle["corruptions/log"][j]
+        sh, h, j = self._locate(i)
+        raw = h["corruptions/log"][j]
         return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
 
     def close(self) -> None:
@@ -425,7 +426,7 @@ def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
         arrays = {}
         for k, spec in fields.items():
             name = f"{group}/{k}"
-            shape = (n,) + (spec[1] if group == "boresight" else ())
+            shape = (n, *spec[1]) if group == "boresight" else (n,)   # boresight specs carry a row shape
             try:
                 d = f[name]
                 if d.dtype != np.dtype(spec[0]) or d.shape != shape:
