@@ -54,7 +54,10 @@ def split_comment(command: str) -> tuple[list[str], str]:
 
 
 def test_the_pages_have_commands_to_check():
-    assert len(shell_commands(ROOT / "README.md")) >= 30
+    """The README is a short front door (issue 34): its commands and the guides' are checked together."""
+    per_page = {page.name: len(shell_commands(page)) for page in PAGES}
+    assert per_page["README.md"] >= 8, per_page
+    assert sum(per_page.values()) >= 30, per_page
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
