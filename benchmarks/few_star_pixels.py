@@ -50,10 +50,10 @@ def star_counts(data: str, split: str, ns: list[int], max_frames: int | None = N
             with torch.no_grad():
                 rows, mask = peaks.peaks(img)
             px = rows[0, mask[0], :2].numpy()
-            tx, ty = g.normalised(true["x_px"], true["y_px"])     # the coordinate branch's convention
+            tx, ty = g.normalised(true["x_px"], true["y_px"])  # the coordinate branch's convention
             if len(px) and len(tx):
                 d = np.hypot(tx[:, None] - px[None, :, 0], ty[:, None] - px[None, :, 1]).min(1)
-                seen = d < 2.0 / g.image_px                                  # within one stored pixel
+                seen = d < 2.0 / g.image_px  # within one stored pixel
             else:
                 seen = np.zeros(len(tx), bool)
             order = np.argsort(-np.asarray(det["flux_adu"]), kind="stable")
@@ -62,8 +62,12 @@ def star_counts(data: str, split: str, ns: list[int], max_frames: int | None = N
             below.append(int((seen & ~np.isin(true["hip_id"], det_hip)).sum()))
             for n in ns:
                 beyond[n].append(int((seen & ~np.isin(true["hip_id"], det_hip[:n])).sum()))
-    return {"frames": len(pos), "detected_mean": float(np.mean(detected)), "below_threshold_mean": float(np.mean(below)),
-            "beyond_n_mean": {n: float(np.mean(v)) for n, v in beyond.items()}}
+    return {
+        "frames": len(pos),
+        "detected_mean": float(np.mean(detected)),
+        "below_threshold_mean": float(np.mean(below)),
+        "beyond_n_mean": {n: float(np.mean(v)) for n, v in beyond.items()},
+    }
 
 
 def main() -> None:
@@ -84,17 +88,30 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name, path in named.items():
             for n in [None, *ns]:
-                r = evaluate_checkpoint(path, args.data, args.split, Path(tmp) / name, keep_brightest=n,
-                                        max_frames=args.max_frames, log=lambda *a: None)
-                scores.setdefault(name, {})["all" if n is None else n] = {"top1": r["top1"], "top5": r["top5"],
-                                                                          "median_deg": r["angular_error"]["median_deg"]}
+                r = evaluate_checkpoint(
+                    path,
+                    args.data,
+                    args.split,
+                    Path(tmp) / name,
+                    keep_brightest=n,
+                    max_frames=args.max_frames,
+                    log=lambda *a: None,
+                )
+                scores.setdefault(name, {})["all" if n is None else n] = {
+                    "top1": r["top1"],
+                    "top5": r["top5"],
+                    "median_deg": r["angular_error"]["median_deg"],
+                }
     cpu = platform.processor() or platform.machine()
-    lines = [f"Frames of `{args.data}` ({args.split}, {counts['frames']} frames; {counts['detected_mean']:.1f} "
-             f"detections and {counts['below_threshold_mean']:.1f} image-visible undetected stars per frame), cut to "
-             f"their brightest N detections, the image untouched; top-1 at K = 15 (top-5 in brackets). "
-             f"CPU: {cpu}, {os.cpu_count()} cores.", "",
-             "| N | stars the image shows beyond the N | " + " | ".join(named) + " |",
-             "|---|---|" + "---|" * len(named)]
+    lines = [
+        f"Frames of `{args.data}` ({args.split}, {counts['frames']} frames; {counts['detected_mean']:.1f} "
+        f"detections and {counts['below_threshold_mean']:.1f} image-visible undetected stars per frame), cut to "
+        f"their brightest N detections, the image untouched; top-1 at K = 15 (top-5 in brackets). "
+        f"CPU: {cpu}, {os.cpu_count()} cores.",
+        "",
+        "| N | stars the image shows beyond the N | " + " | ".join(named) + " |",
+        "|---|---|" + "---|" * len(named),
+    ]
     for n in ["all", *ns]:
         extra = "" if n == "all" else f"{counts['beyond_n_mean'][n]:.1f}"
         cells = [f"{100 * scores[k][n]['top1']:.1f} % ({100 * scores[k][n]['top5']:.1f})" for k in named]
@@ -105,9 +122,22 @@ def main() -> None:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "few-star.md").write_text(text + "\n")
-        (out / "few-star.json").write_text(json.dumps({"data": args.data, "split": args.split, "counts": counts,
-                                                       "checkpoints": named, "scores": scores, "cpu": cpu,
-                                                       "cores": os.cpu_count()}, indent=2, default=str) + "\n")
+        (out / "few-star.json").write_text(
+            json.dumps(
+                {
+                    "data": args.data,
+                    "split": args.split,
+                    "counts": counts,
+                    "checkpoints": named,
+                    "scores": scores,
+                    "cpu": cpu,
+                    "cores": os.cpu_count(),
+                },
+                indent=2,
+                default=str,
+            )
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

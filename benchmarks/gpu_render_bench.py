@@ -37,7 +37,7 @@ from skygen.render.frame import Renderer
 
 def bench_numpy(cfg, frames: int) -> dict:
     r = Renderer(cfg)
-    r.downsample(r.rasterise(r.scene(0))[0])                     # warm-up (LUTs, caches)
+    r.downsample(r.rasterise(r.scene(0))[0])  # warm-up (LUTs, caches)
     t_scene = t_raster = 0.0
     for i in range(frames):
         t0 = time.perf_counter()
@@ -51,11 +51,12 @@ def bench_numpy(cfg, frames: int) -> dict:
 
 def bench_torch(cfg, device: str, batch: int, frames: int) -> dict:
     from skygen.render.torch_frames import TorchRenderer
+
     tr = TorchRenderer(cfg, device)
     sync = torch.cuda.synchronize if tr.device.type == "cuda" else (lambda: None)
     g = torch.Generator(device=tr.device)
     g.manual_seed(0)
-    tr.rasterise(tr.scenes(range(batch)), g)                      # warm-up
+    tr.rasterise(tr.scenes(range(batch)), g)  # warm-up
     sync()
     t_scene = t_raster = 0.0
     done = 0
@@ -73,9 +74,16 @@ def bench_torch(cfg, device: str, batch: int, frames: int) -> dict:
 
 
 def _row(backend: str, device: str, batch: int, n: int, t_scene: float, t_raster: float) -> dict:
-    return {"backend": backend, "device": device, "batch": batch, "frames": n,
-            "scene_ms": 1e3 * t_scene / n, "raster_ms": 1e3 * t_raster / n,
-            "fps_total": n / (t_scene + t_raster), "fps_raster": n / t_raster}
+    return {
+        "backend": backend,
+        "device": device,
+        "batch": batch,
+        "frames": n,
+        "scene_ms": 1e3 * t_scene / n,
+        "raster_ms": 1e3 * t_raster / n,
+        "fps_total": n / (t_scene + t_raster),
+        "fps_raster": n / t_raster,
+    }
 
 
 def device_name(device: str) -> str:
@@ -88,8 +96,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=64, help="frames per row (rounded up to whole batches)")
     ap.add_argument("--batch-sizes", default="1,8,32", help="torch batch sizes, comma-separated")
-    ap.add_argument("--devices", default="cpu,cuda", help="torch devices to try (cuda rows print 'pending a GPU' "
-                                                          "when no CUDA device is available)")
+    ap.add_argument(
+        "--devices",
+        default="cpu,cuda",
+        help="torch devices to try (cuda rows print 'pending a GPU' when no CUDA device is available)",
+    )
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's own choice)")
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. sensor.sampler=exact")
     ap.add_argument("--out", help="also write the rows as JSON")
@@ -106,21 +117,37 @@ def main(argv=None) -> int:
             pending += [("torch", dev, b) for b in batches]
             continue
         rows += [bench_torch(cfg, dev, b, a.frames) for b in batches]
-    print(f"# render throughput — {cfg.camera.width_px}x{cfg.camera.height_px} frames stored at "
-          f"{cfg.output.image_size_px}x{cfg.output.image_size_px}, sampler {cfg.sensor.sampler}, "
-          f"torch {torch.__version__} ({torch.get_num_threads()} CPU threads), {platform.python_version()}"
-          f"{', overrides ' + ' '.join(a.set) if a.set else ''}\n")
-    print("| backend | device | batch | scene ms/frame (host) | raster ms/frame | frames/s (scene + raster) "
-          "| frames/s (raster only) |")
+    print(
+        f"# render throughput — {cfg.camera.width_px}x{cfg.camera.height_px} frames stored at "
+        f"{cfg.output.image_size_px}x{cfg.output.image_size_px}, sampler {cfg.sensor.sampler}, "
+        f"torch {torch.__version__} ({torch.get_num_threads()} CPU threads), {platform.python_version()}"
+        f"{', overrides ' + ' '.join(a.set) if a.set else ''}\n"
+    )
+    print(
+        "| backend | device | batch | scene ms/frame (host) | raster ms/frame | frames/s (scene + raster) "
+        "| frames/s (raster only) |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['backend']} | {r['device']} ({device_name(r['device'])}) | {r['batch']} | {r['scene_ms']:.2f} | "
-              f"{r['raster_ms']:.2f} | {r['fps_total']:.1f} | {r['fps_raster']:.1f} |")
+        print(
+            f"| {r['backend']} | {r['device']} ({device_name(r['device'])}) | {r['batch']} | {r['scene_ms']:.2f} | "
+            f"{r['raster_ms']:.2f} | {r['fps_total']:.1f} | {r['fps_raster']:.1f} |"
+        )
     for backend, dev, b in pending:
         print(f"| {backend} | {dev} | {b} | pending a GPU | pending a GPU | pending a GPU | pending a GPU |")
     if a.out:
-        Path(a.out).write_text(json.dumps({"rows": rows, "pending": pending, "overrides": a.set,
-                                           "torch": torch.__version__, "threads": torch.get_num_threads()}, indent=1))
+        Path(a.out).write_text(
+            json.dumps(
+                {
+                    "rows": rows,
+                    "pending": pending,
+                    "overrides": a.set,
+                    "torch": torch.__version__,
+                    "threads": torch.get_num_threads(),
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

@@ -32,8 +32,9 @@ from fusion.train.distributed import DistInfo
 from fusion.train.run import train_loader
 
 
-def bench(cfg_path: str, data: str, overrides: tuple[str, ...], workers: int, batches: int,
-          device: torch.device) -> dict:
+def bench(
+    cfg_path: str, data: str, overrides: tuple[str, ...], workers: int, batches: int, device: torch.device
+) -> dict:
     warm = 2 * workers + 2
     base = [f"data.path={data}", f"train.workers={workers}", "train.progress=false"]
     steps = warm + batches
@@ -65,17 +66,30 @@ def bench(cfg_path: str, data: str, overrides: tuple[str, ...], workers: int, ba
         nbytes += sum(v.numel() * v.element_size() for v in batch.values() if isinstance(v, torch.Tensor))
     t = time.perf_counter() - t0
     k = max(1, n // cfg.train.batch_size)
-    return {"stream": "shards" if cfg.stream.kind == "none" else cfg.stream.kind, "workers": workers, "batch": cfg.train.batch_size, "samples": n,
-            "samples_per_s": n / t, "mb_per_batch": nbytes / k / 1e6, "wait_ms": 1e3 * wait / k,
-            "copy_ms": 1e3 * copy / k, "first_batches_s": t0 - t_start}
+    return {
+        "stream": "shards" if cfg.stream.kind == "none" else cfg.stream.kind,
+        "workers": workers,
+        "batch": cfg.train.batch_size,
+        "samples": n,
+        "samples_per_s": n / t,
+        "mb_per_batch": nbytes / k / 1e6,
+        "wait_ms": 1e3 * wait / k,
+        "copy_ms": 1e3 * copy / k,
+        "first_batches_s": t0 - t_start,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, help="skygen dataset folder (its config drives the stream)")
     ap.add_argument("--config", default="configs/paper.yaml", help="training preset (default configs/paper.yaml)")
-    ap.add_argument("--workers", type=int, nargs="+", default=[max(1, (os.cpu_count() or 2) - 1)],
-                    help="DataLoader process counts, one row each (default: all cores but one)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        nargs="+",
+        default=[max(1, (os.cpu_count() or 2) - 1)],
+        help="DataLoader process counts, one row each (default: all cores but one)",
+    )
     ap.add_argument("--batches", type=int, default=100, help="timed batches per row")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=None, help="also write the rows as JSON")
@@ -84,17 +98,34 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device(a.device)
     rows = [bench(a.config, a.data, tuple(a.overrides), w, a.batches, device) for w in a.workers]
     name = torch.cuda.get_device_name(0) if device.type == "cuda" else "cpu"
-    print(f"# training loader alone: {a.config} {' '.join(a.overrides)} to {name}, "
-          f"{os.cpu_count()} logical CPUs, torch {torch.__version__}\n")
-    print("| stream | loader processes | batch | samples/s | MB per batch | wait ms/batch | to-device ms/batch | first batches (s) |")
+    print(
+        f"# training loader alone: {a.config} {' '.join(a.overrides)} to {name}, "
+        f"{os.cpu_count()} logical CPUs, torch {torch.__version__}\n"
+    )
+    print(
+        "| stream | loader processes | batch | samples/s | MB per batch | wait ms/batch | to-device ms/batch | first "
+        "batches (s) |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['stream']} | {r['workers']} | {r['batch']} | {r['samples_per_s']:,.0f} | {r['mb_per_batch']:.1f} "
-              f"| {r['wait_ms']:.1f} | {r['copy_ms']:.1f} | {r['first_batches_s']:.1f} |")
+        print(
+            f"| {r['stream']} | {r['workers']} | {r['batch']} | {r['samples_per_s']:,.0f} | {r['mb_per_batch']:.1f} "
+            f"| {r['wait_ms']:.1f} | {r['copy_ms']:.1f} | {r['first_batches_s']:.1f} |"
+        )
     if a.out:
         with open(a.out, "w") as f:
-            json.dump({"rows": rows, "device": name, "torch": torch.__version__, "config": a.config,
-                       "overrides": a.overrides, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}, f, indent=2)
+            json.dump(
+                {
+                    "rows": rows,
+                    "device": name,
+                    "torch": torch.__version__,
+                    "config": a.config,
+                    "overrides": a.overrides,
+                    "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                },
+                f,
+                indent=2,
+            )
     return 0
 
 

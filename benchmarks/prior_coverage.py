@@ -24,9 +24,10 @@ import numpy as np
 
 
 def coverage(checkpoint: str, data: str, split: str, frames: int, n_values, k_values) -> dict:
-    from skygen.datasets.shards import open_dataset
     from fusion.solve.base import Detections
     from fusion.solve.priors import load_prior
+    from skygen.datasets.shards import open_dataset
+
     prior = load_prior(checkpoint, level="fine")
     if prior.fine_centroids is None:
         raise SystemExit(f"{checkpoint}: trained without fine regions (labels.fine_k); nothing to compare")
@@ -46,30 +47,51 @@ def coverage(checkpoint: str, data: str, split: str, frames: int, n_values, k_va
             rank_c.append(int(np.sum(pc > pc[lc])))
             rank_f.append(int(np.sum(pf > pf[lf])))
         rank_c, rank_f = np.array(rank_c), np.array(rank_f)
-        rows.append({"n": n, "coarse_top1": float(np.mean(rank_c < 1)), "coarse_top3": float(np.mean(rank_c < 3)),
-                     "fine": {str(k): float(np.mean(rank_f < k)) for k in k_values}})
-    return {"checkpoint": str(checkpoint), "data": str(data), "split": split, "frames": int(len(pos)),
-            "regions": kc, "fine_regions": kf, "sky_fraction": {"coarse_top3": 3 / kc,
-                                                                **{str(k): k / kf for k in k_values}},
-            "rows": rows, "hardware": f"{platform.machine()} CPU",
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        rows.append(
+            {
+                "n": n,
+                "coarse_top1": float(np.mean(rank_c < 1)),
+                "coarse_top3": float(np.mean(rank_c < 3)),
+                "fine": {str(k): float(np.mean(rank_f < k)) for k in k_values},
+            }
+        )
+    return {
+        "checkpoint": str(checkpoint),
+        "data": str(data),
+        "split": split,
+        "frames": int(len(pos)),
+        "regions": kc,
+        "fine_regions": kf,
+        "sky_fraction": {"coarse_top3": 3 / kc, **{str(k): k / kf for k in k_values}},
+        "rows": rows,
+        "hardware": f"{platform.machine()} CPU",
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
 
 
 def markdown(r: dict) -> str:
     ks = list(r["rows"][0]["fine"])
     sky = r["sky_fraction"]
-    lines = [f"# Region coverage of `{r['checkpoint']}`", "",
-             f"`python benchmarks/prior_coverage.py` on {r['frames']} {r['split']} frames of `{r['data']}` "
-             f"({r['hardware']}, {r['created_utc']}): share of frames whose true region is among the model's top "
-             f"choices, by brightest-N detections kept; {r['regions']} regions, {r['fine_regions']} fine regions. "
-             "Sky searched: average fraction of the sphere the listed regions cover.", "",
-             "| N | top-1 of K | top-3 of K | " + " | ".join(f"fine top-{k}" for k in ks) + " |",
-             "|---|---|---|" + "---|" * len(ks),
-             f"| sky searched | {100 / r['regions']:.1f} % | {100 * sky['coarse_top3']:.1f} % | "
-             + " | ".join(f"{100 * sky[k]:.1f} %" for k in ks) + " |"]
+    lines = [
+        f"# Region coverage of `{r['checkpoint']}`",
+        "",
+        f"`python benchmarks/prior_coverage.py` on {r['frames']} {r['split']} frames of `{r['data']}` "
+        f"({r['hardware']}, {r['created_utc']}): share of frames whose true region is among the model's top "
+        f"choices, by brightest-N detections kept; {r['regions']} regions, {r['fine_regions']} fine regions. "
+        "Sky searched: average fraction of the sphere the listed regions cover.",
+        "",
+        "| N | top-1 of K | top-3 of K | " + " | ".join(f"fine top-{k}" for k in ks) + " |",
+        "|---|---|---|" + "---|" * len(ks),
+        f"| sky searched | {100 / r['regions']:.1f} % | {100 * sky['coarse_top3']:.1f} % | "
+        + " | ".join(f"{100 * sky[k]:.1f} %" for k in ks)
+        + " |",
+    ]
     for row in r["rows"]:
-        lines.append(f"| {row['n']} | {100 * row['coarse_top1']:.0f} % | {100 * row['coarse_top3']:.0f} % | "
-                     + " | ".join(f"{100 * row['fine'][k]:.0f} %" for k in ks) + " |")
+        lines.append(
+            f"| {row['n']} | {100 * row['coarse_top1']:.0f} % | {100 * row['coarse_top3']:.0f} % | "
+            + " | ".join(f"{100 * row['fine'][k]:.0f} %" for k in ks)
+            + " |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -23,19 +23,27 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from skygen.instrument import corruptions as corr
-from skygen.sky.attitude import attitude_matrix, sample_boresight
 from skygen.config import load_config
 from skygen.datasets.build import render_dataset
+from skygen.instrument import corruptions as corr
 from skygen.instrument.detect import detect
-from skygen.render.frame import Renderer
 from skygen.instrument.sensor import Exposure, read_out
+from skygen.render.frame import Renderer
+from skygen.sky.attitude import attitude_matrix, sample_boresight
 
 
 def stage_times(cfg, n: int) -> dict:
     r = Renderer(cfg)
-    t = {k: 0.0 for k in ("scene: attitude + catalog cone + projection", "optics: PSF stamps",
-                          "sensor: noise, defects, ADC", "detection + matching", "downsample 1024->256")}
+    t = {
+        k: 0.0
+        for k in (
+            "scene: attitude + catalog cone + projection",
+            "optics: PSF stamps",
+            "sensor: noise, defects, ADC",
+            "detection + matching",
+            "downsample 1024->256",
+        )
+    }
     keys = list(t)
     sh = (cfg.camera.height_px, cfg.camera.width_px)
     for i in range(n):
@@ -47,8 +55,9 @@ def stage_times(cfg, n: int) -> dict:
         star_e = np.zeros(sh, np.float32)
         boxes = r._deposit(stars, star_e)
         t2 = time.perf_counter()
-        full, _ = read_out(Exposure(star_e, None, boxes, r.background_e), cfg.sensor, r.maps,
-                           corr.stage_rng(cfg.seed, i, "noise"))
+        full, _ = read_out(
+            Exposure(star_e, None, boxes, r.background_e), cfg.sensor, r.maps, corr.stage_rng(cfg.seed, i, "noise")
+        )
         t3 = time.perf_counter()
         det, _, _ = detect(full, cfg.detection.threshold_sigma, cfg.detection.min_area_px)
         t4 = time.perf_counter()
@@ -85,23 +94,40 @@ def main(argv=None) -> int:
     stages = stage_times(cfg, min(a.frames, 200))
     runs = {}
     for w in sorted({int(x) for x in a.workers.split(",")}):
-        pipeline(cfg, w) if not runs else None       # warm the page cache and imports once
+        pipeline(cfg, w) if not runs else None  # warm the page cache and imports once
         sec = pipeline(cfg, w)
         runs[w] = {"seconds": sec, "frames_per_s": a.frames / sec, "ms_per_frame_per_core": 1e3 * sec * w / a.frames}
     cpu = platform.processor() or platform.machine()
-    print(f"# skygen render benchmark — {os.cpu_count()} cores ({cpu}), {platform.python_version()}, "
-          f"{a.frames} frames of {cfg.camera.width_px}x{cfg.camera.height_px}, default physics\n")
+    print(
+        f"# skygen render benchmark — {os.cpu_count()} cores ({cpu}), {platform.python_version()}, "
+        f"{a.frames} frames of {cfg.camera.width_px}x{cfg.camera.height_px}, default physics\n"
+    )
     print("| stage (one core) | ms/frame |\n|---|---:|")
     for k, v in stages.items():
         print(f"| {k} | {v:.2f} |")
-    print("\n| pipeline: render_dataset (render + detect + store + gzip + sha256) | frames/s | ms/frame/core | 50,000 frames |")
+    print(
+        "\n| pipeline: render_dataset (render + detect + store + gzip + sha256) | frames/s | ms/frame/core | 50,000 "
+        "frames |"
+    )
     print("|---|---:|---:|---:|")
     for w, r in runs.items():
-        print(f"| {w} worker(s) | {r['frames_per_s']:.1f} | {r['ms_per_frame_per_core']:.1f} | "
-              f"{50000 / r['frames_per_s'] / 60:.1f} min |")
+        print(
+            f"| {w} worker(s) | {r['frames_per_s']:.1f} | {r['ms_per_frame_per_core']:.1f} | "
+            f"{50000 / r['frames_per_s'] / 60:.1f} min |"
+        )
     if a.out:
-        Path(a.out).write_text(json.dumps({"stages_ms": stages, "pipeline": runs, "frames": a.frames,
-                                           "cores": os.cpu_count(), "overrides": a.set}, indent=1))
+        Path(a.out).write_text(
+            json.dumps(
+                {
+                    "stages_ms": stages,
+                    "pipeline": runs,
+                    "frames": a.frames,
+                    "cores": os.cpu_count(),
+                    "overrides": a.set,
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

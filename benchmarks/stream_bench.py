@@ -27,18 +27,21 @@ from pathlib import Path
 
 import numpy as np
 
-
-ROWS = {"detections": ("detections", None), "frames (full)": ("frames", "full"),
-        "frames (binned)": ("frames", "binned")}
+ROWS = {
+    "detections": ("detections", None),
+    "frames (full)": ("frames", "full"),
+    "frames (binned)": ("frames", "binned"),
+}
 
 
 def _run(row: str, n: int, batch: int, rank: int, world: int) -> tuple[float, float, int]:
     from skygen.config import load_config
     from skygen.stream.samples import SampleStream
+
     kind, renderer = ROWS[row]
     s = SampleStream(load_config(), kind, frames_renderer=renderer or "binned")
     if kind == "detections":
-        s.batch(np.arange(batch) + 10**9)              # warm-up (caches, first allocation, JIT)
+        s.batch(np.arange(batch) + 10**9)  # warm-up (caches, first allocation, JIT)
     else:
         s.frames_batch(np.arange(4) + 10**9)
     t0, c0 = time.perf_counter(), time.process_time()
@@ -62,16 +65,30 @@ def _worker(args):
 def measure(kind: str, n: int, batch: int, workers: int) -> dict:
     if workers == 1:
         wall, cpu, made = _run(kind, n, batch, 0, 1)
-        return {"kind": kind, "workers": 1, "samples": made, "wall_s": wall, "per_s": made / wall,
-                "per_cpu_s": made / cpu, "ms_per_sample_core": 1000 * cpu / made}
+        return {
+            "kind": kind,
+            "workers": 1,
+            "samples": made,
+            "wall_s": wall,
+            "per_s": made / wall,
+            "per_cpu_s": made / cpu,
+            "ms_per_sample_core": 1000 * cpu / made,
+        }
     with mp.get_context("fork").Pool(workers) as pool:
         t0 = time.perf_counter()
         res = pool.map(_worker, [(kind, n, batch, r, workers) for r in range(workers)])
         wall = time.perf_counter() - t0
     made = sum(r[2] for r in res)
     cpu = sum(r[1] for r in res)
-    return {"kind": kind, "workers": workers, "samples": made, "wall_s": wall, "per_s": made / wall,
-            "per_cpu_s": made / cpu, "ms_per_sample_core": 1000 * cpu / made}
+    return {
+        "kind": kind,
+        "workers": workers,
+        "samples": made,
+        "wall_s": wall,
+        "per_s": made / wall,
+        "per_cpu_s": made / cpu,
+        "ms_per_sample_core": 1000 * cpu / made,
+    }
 
 
 def main(argv=None) -> int:
@@ -86,33 +103,46 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     load_before = os.getloadavg()[0]
     rows = []
-    for row, n, batch in (("detections", a.detections, a.batch), ("frames (full)", a.frames, 1),
-                          ("frames (binned)", a.binned, a.frames_batch)):
+    for row, n, batch in (
+        ("detections", a.detections, a.batch),
+        ("frames (full)", a.frames, 1),
+        ("frames (binned)", a.binned, a.frames_batch),
+    ):
         if n <= 0:
             continue
         rows.append(measure(row, n, batch, 1))
         if a.workers > 1:
             rows.append(measure(row, n, batch, a.workers))
-    host = f"{platform.machine()}{(' ' + platform.processor()) if platform.processor() else ''}, {os.cpu_count()} logical CPUs"
+    host = (
+        f"{platform.machine()}{(' ' + platform.processor()) if platform.processor() else ''}, {os.cpu_count()} "
+        "logical CPUs"
+    )
     threads = os.environ.get("OMP_NUM_THREADS", "unset")
     load = (load_before, os.getloadavg()[0])
-    lines = [f"stream throughput ({host}; OMP_NUM_THREADS={threads}; default camera 1024² stored at 256², "
-             f"corruptions at defaults; 1-min load average {load[0]:.1f} before, {load[1]:.1f} after: "
-             "other work shares the CPUs when it exceeds the processes used here)", "",
-             "| kind | processes | samples | samples/s (wall) | samples per CPU-second | ms per sample per core |",
-             "|---|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"stream throughput ({host}; OMP_NUM_THREADS={threads}; default camera 1024² stored at 256², "
+        f"corruptions at defaults; 1-min load average {load[0]:.1f} before, {load[1]:.1f} after: "
+        "other work shares the CPUs when it exceeds the processes used here)",
+        "",
+        "| kind | processes | samples | samples/s (wall) | samples per CPU-second | ms per sample per core |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['kind']} | {r['workers']} | {r['samples']} | {r['per_s']:,.0f} | {r['per_cpu_s']:,.0f} | "
-                     f"{r['ms_per_sample_core']:.3f} |")
+        lines.append(
+            f"| {r['kind']} | {r['workers']} | {r['samples']} | {r['per_s']:,.0f} | {r['per_cpu_s']:,.0f} | "
+            f"{r['ms_per_sample_core']:.3f} |"
+        )
     text = "\n".join(lines)
     print(text)
     if a.write:
         out = Path(__file__).resolve().parents[1] / "results" / "skygen"
         out.mkdir(parents=True, exist_ok=True)
-        (out / "stream_bench.json").write_text(json.dumps({"host": host, "load_average_1min": load, "rows": rows},
-                                                         indent=2))
-        (out / "stream_bench.md").write_text(text + "\n\nCommand: `OMP_NUM_THREADS=1 python benchmarks/stream_bench.py "
-                                             "--write`\n")
+        (out / "stream_bench.json").write_text(
+            json.dumps({"host": host, "load_average_1min": load, "rows": rows}, indent=2)
+        )
+        (out / "stream_bench.md").write_text(
+            text + "\n\nCommand: `OMP_NUM_THREADS=1 python benchmarks/stream_bench.py --write`\n"
+        )
     return 0
 
 

@@ -7,7 +7,8 @@ Each row: one batch of random inputs of the right shapes (``fusion.measure.timin
 put on the device once, then ``--steps`` timed steps of the real training code
 (``fusion.train.loop.train_one_epoch``: autocast, focal loss, backward, AdamW, schedule, its
 once-per-step host sync) after 5 untimed ones. ``--deterministic`` sets torch's deterministic
-algorithms as ``fusion train`` does by default (``train.deterministic``); without it they are off. Compare with a run's ``samples/s`` (metrics.csv)
+algorithms as ``fusion train`` does by default (``train.deterministic``); without it they are off. Compare with a run's
+``samples/s`` (metrics.csv)
 to tell whether the device or the loader limits a training run. Prints one Markdown table.
 """
 
@@ -41,7 +42,7 @@ def bench(cfg_path: str, overrides: tuple[str, ...], batch: int, device: torch.d
     dtype = autocast_dtype(amp, device)
     scaler = torch.amp.GradScaler(device.type, enabled=dtype == torch.float16)
     loss = FocalLoss(None, cfg.loss.gamma).to(device)
-    on_dev = {k: (v if k == "label" else v.to(device)) for k, v in item.items()}   # the loop compares labels on the host
+    on_dev = {k: (v if k == "label" else v.to(device)) for k, v in item.items()}  # the loop compares labels on the host
 
     def run(n: int) -> float:
         r = train_one_epoch(model, [on_dev] * n, loss, opt, sched, scaler, device, amp_dtype=dtype)
@@ -51,9 +52,14 @@ def bench(cfg_path: str, overrides: tuple[str, ...], batch: int, device: torch.d
     if device.type == "cuda":
         torch.cuda.synchronize()
     t = run(steps)
-    return {"model": cfg.model.name, "batch": batch, "amp": str(dtype).replace("torch.", "") if dtype else "fp32",
-            "step_ms": 1e3 * t / steps, "samples_per_s": batch * steps / t,
-            "peak_mem_gib": (torch.cuda.max_memory_allocated() / 2**30) if device.type == "cuda" else None}
+    return {
+        "model": cfg.model.name,
+        "batch": batch,
+        "amp": str(dtype).replace("torch.", "") if dtype else "fp32",
+        "step_ms": 1e3 * t / steps,
+        "samples_per_s": batch * steps / t,
+        "peak_mem_gib": (torch.cuda.max_memory_allocated() / 2**30) if device.type == "cuda" else None,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,14 +69,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--amp", default="auto", choices=("auto", "bf16", "fp16", "off"))
     ap.add_argument("--steps", type=int, default=30)
-    ap.add_argument("--deterministic", action="store_true",
-                    help="torch deterministic algorithms, as fusion train sets them (train.deterministic)")
+    ap.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="torch deterministic algorithms, as fusion train sets them (train.deterministic)",
+    )
     ap.add_argument("--out", default=None, help="also write the rows as JSON")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. model.name=swinv2_tiny")
     a = ap.parse_args(argv)
     device = torch.device(a.device)
-    if a.deterministic:          # as fusion.train.run.setup_torch, before the first cuBLAS call
+    if a.deterministic:  # as fusion.train.run.setup_torch, before the first cuBLAS call
         import os
+
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
@@ -85,8 +95,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {r['model']} | {r['batch']} | {r['amp']} | {r['step_ms']:.1f} | {r['samples_per_s']:.0f} | {mem} |")
     if a.out:
         with open(a.out, "w") as f:
-            json.dump({"rows": rows, "device": name, "torch": torch.__version__, "config": a.config,
-                       "overrides": a.overrides, "deterministic": a.deterministic, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}, f, indent=2)
+            json.dump(
+                {
+                    "rows": rows,
+                    "device": name,
+                    "torch": torch.__version__,
+                    "config": a.config,
+                    "overrides": a.overrides,
+                    "deterministic": a.deterministic,
+                    "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                },
+                f,
+                indent=2,
+            )
     return 0
 
 

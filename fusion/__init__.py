@@ -28,12 +28,20 @@ from skygen.lazy import lazy_attributes
 __version__ = "0.1.0"
 
 _LAZY = {
-    "load_config": ".config", "build_config": ".config", "FusionConfig": ".config",
-    "Checkpoint": ".model.checkpoint", "load_checkpoint": ".model.checkpoint",
-    "create_model": ".model.networks", "Preprocessor": ".model.inputs", "Regions": ".model.regions",
+    "load_config": ".config",
+    "build_config": ".config",
+    "FusionConfig": ".config",
+    "Checkpoint": ".model.checkpoint",
+    "load_checkpoint": ".model.checkpoint",
+    "create_model": ".model.networks",
+    "Preprocessor": ".model.inputs",
+    "Regions": ".model.regions",
     "evaluate_checkpoint": ".measure.evaluate",
-    "Predictor": ".solve.predict", "build_solver": ".solve.registry", "SOLVERS": ".solve.registry",
-    "load_prior": ".solve.priors", "run_benchmark": ".solve.benchmark",
+    "Predictor": ".solve.predict",
+    "build_solver": ".solve.registry",
+    "SOLVERS": ".solve.registry",
+    "load_prior": ".solve.priors",
+    "run_benchmark": ".solve.benchmark",
 }
 
 if TYPE_CHECKING:

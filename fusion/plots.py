@@ -15,8 +15,10 @@ from skygen.runtime import atomic_write_bytes
 
 def _figure():
     import matplotlib
+
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
+
     return plt
 
 
@@ -88,8 +90,15 @@ def plot_confusion(cm: np.ndarray, path: str | Path, title: str = "confusion mat
         for i in range(k):
             for j in range(k):
                 if cm[i, j]:
-                    ax.text(j, i, str(cm[i, j]), ha="center", va="center", fontsize=7,
-                            color="black" if norm[i, j] > 0.5 else "white")
+                    ax.text(
+                        j,
+                        i,
+                        str(cm[i, j]),
+                        ha="center",
+                        va="center",
+                        fontsize=7,
+                        color="black" if norm[i, j] > 0.5 else "white",
+                    )
     ax.set_xlabel("predicted class")
     ax.set_ylabel("true class")
     ax.set_title(title)

@@ -18,12 +18,28 @@ from pathlib import Path
 SMOKE_DIRECTIONS = {"ra_deg": [10, 60, 120, 170, 220, 260, 300, 340], "dec_deg": [50, -20, 10, -60, 30, -5, 70, -40]}
 
 KINDS = {
-    "smoke": ["n_frames=300", "output.shard_size=150", "camera.width_px=256", "camera.height_px=256",
-              "camera.fov_deg=20", "output.image_size_px=64", "attitude.mode=list",
-              f"attitude.ra_deg={SMOKE_DIRECTIONS['ra_deg']}", f"attitude.dec_deg={SMOKE_DIRECTIONS['dec_deg']}",
-              "attitude.roll_range_deg=[0, 20]", "output.split_fractions=[0.6, 0.2, 0.2]"],
-    "uniform": ["n_frames=120", "output.shard_size=60", "camera.width_px=512", "camera.height_px=512",
-                "camera.fov_deg=20", "output.image_size_px=128", "output.split_fractions=[0.5, 0.25, 0.25]"],
+    "smoke": [
+        "n_frames=300",
+        "output.shard_size=150",
+        "camera.width_px=256",
+        "camera.height_px=256",
+        "camera.fov_deg=20",
+        "output.image_size_px=64",
+        "attitude.mode=list",
+        f"attitude.ra_deg={SMOKE_DIRECTIONS['ra_deg']}",
+        f"attitude.dec_deg={SMOKE_DIRECTIONS['dec_deg']}",
+        "attitude.roll_range_deg=[0, 20]",
+        "output.split_fractions=[0.6, 0.2, 0.2]",
+    ],
+    "uniform": [
+        "n_frames=120",
+        "output.shard_size=60",
+        "camera.width_px=512",
+        "camera.height_px=512",
+        "camera.fov_deg=20",
+        "output.image_size_px=128",
+        "output.split_fractions=[0.5, 0.25, 0.25]",
+    ],
 }
 
 _CACHE: dict[str, Path] = {}
@@ -42,6 +58,7 @@ def render_small(out: str | Path, overrides: list[str]) -> Path:
     """Render a dataset from skygen's defaults plus ``overrides`` into ``out`` (one process, no bar)."""
     from skygen.config import load_config
     from skygen.datasets.build import render_dataset
+
     render_dataset(load_config(overrides=overrides), out, workers=1, progress=False)
     return Path(out)
 
@@ -60,16 +77,20 @@ class Killed(Exception):
 def killing_log(prefix: str):
     """A ``log`` callback for :func:`fusion.train.train` that raises :class:`Killed` at the
     first message starting with ``prefix`` (e.g. ``"epoch 2/3"``: killed after epoch 2)."""
+
     def log(msg, *a, **k):
         if msg.startswith(prefix):
             raise Killed(msg)
+
     return log
 
 
 def assert_same_run(a, b) -> None:
     """Two run folders ended with identical weights and metric history (times aside)."""
     import torch
+
     from .model.checkpoint import load_checkpoint
+
     ca, cb = load_checkpoint(Path(a) / "last.pt"), load_checkpoint(Path(b) / "last.pt")
     for name, tensor in ca.model.items():
         assert torch.equal(tensor, cb.model[name]), name

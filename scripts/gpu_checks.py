@@ -57,9 +57,19 @@ from pathlib import Path
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
-FILES = ("summary.json", "log.txt", "timing.json", "render_bench.json", "metrics.csv",
-         "config.yaml", "eval-test.json", "eval-test.md", "eval-brightest.json", "best.pt")
-MAX_FILES, MAX_BYTES = 8, 16 * 2**20      # what the device tool brings back
+FILES = (
+    "summary.json",
+    "log.txt",
+    "timing.json",
+    "render_bench.json",
+    "metrics.csv",
+    "config.yaml",
+    "eval-test.json",
+    "eval-test.md",
+    "eval-brightest.json",
+    "best.pt",
+)
+MAX_FILES, MAX_BYTES = 8, 16 * 2**20  # what the device tool brings back
 PAPER = "configs/paper.yaml"
 
 
@@ -80,8 +90,13 @@ class Session:
         self.log.write(f"\n### [{step}] {' '.join(cmd)}\n")
         self.log.flush()
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         code = None
         try:
             if interrupt_s is not None:
@@ -109,22 +124,31 @@ def env_info() -> dict:
     info = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
     try:
         import torch
+
         info["torch"] = torch.__version__
         info["cuda_available"] = torch.cuda.is_available()
         if torch.cuda.is_available():
             p = torch.cuda.get_device_properties(0)
-            info.update(gpu=p.name, gpu_memory_gib=round(p.total_memory / 2**30, 1),
-                        multiprocessors=p.multi_processor_count, bf16=torch.cuda.is_bf16_supported())
-    except Exception as exc:              # the record says what failed; the steps still run
+            info.update(
+                gpu=p.name,
+                gpu_memory_gib=round(p.total_memory / 2**30, 1),
+                multiprocessors=p.multi_processor_count,
+                bf16=torch.cuda.is_bf16_supported(),
+            )
+    except Exception as exc:  # the record says what failed; the steps still run
         info["torch_error"] = repr(exc)
     try:
         import timm
+
         info["timm"] = timm.__version__
     except Exception as exc:
         info["timm_error"] = repr(exc)
     if shutil.which("nvidia-smi"):
-        r = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
-                           capture_output=True, text=True)
+        r = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+        )
         info["nvidia_smi"] = r.stdout.strip()
     return info
 
@@ -134,20 +158,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="folder for the (at most eight) result files")
     ap.add_argument("--device", default="cuda", choices=("cuda", "cpu"))
     ap.add_argument("--train-seconds", type=float, default=210.0, help="target length of the training run")
-    ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1),
-                    help="loader / render processes (default: all cores but one)")
-    ap.add_argument("--model", default="swinv2_tiny",
-                    help="model.name of the paper-preset training run (default swinv2_tiny)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=max(1, (os.cpu_count() or 2) - 1),
+        help="loader / render processes (default: all cores but one)",
+    )
+    ap.add_argument(
+        "--model", default="swinv2_tiny", help="model.name of the paper-preset training run (default swinv2_tiny)"
+    )
     ap.add_argument("--config", default=PAPER, help=f"training preset of step 6 (default {PAPER})")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="one more override of the training run (repeatable)")
-    ap.add_argument("--epochs", type=int, default=None, help="epochs of the training run (default: sized to --train-seconds)")
-    ap.add_argument("--data-like", default=None, metavar="PRESET",
-                    help="render an experiment preset's dataset (e.g. cpu30) instead of the default 2,400 frames")
-    ap.add_argument("--few-star", default="", help="comma list of N: also evaluate on test frames cut to their brightest N")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="one more override of the training run (repeatable)",
+    )
+    ap.add_argument(
+        "--epochs", type=int, default=None, help="epochs of the training run (default: sized to --train-seconds)"
+    )
+    ap.add_argument(
+        "--data-like",
+        default=None,
+        metavar="PRESET",
+        help="render an experiment preset's dataset (e.g. cpu30) instead of the default 2,400 frames",
+    )
+    ap.add_argument(
+        "--few-star", default="", help="comma list of N: also evaluate on test frames cut to their brightest N"
+    )
     ap.add_argument("--skip", default="", help="comma-separated steps to skip: tests,timing,render,train")
-    ap.add_argument("--work", default=str(ROOT / "runs" / "gpu-checks"),
-                    help="folder for the dataset, the run and the timing files (default runs/gpu-checks)")
+    ap.add_argument(
+        "--work",
+        default=str(ROOT / "runs" / "gpu-checks"),
+        help="folder for the dataset, the run and the timing files (default runs/gpu-checks)",
+    )
     ap.add_argument("--quick", action="store_true", help="check the script itself on a CPU (tiny sizes)")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -162,17 +207,23 @@ def main(argv: list[str] | None = None) -> int:
     data = work / "eval-data"
 
     if "tests" not in skip:
-        s.run("tests", [PY, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "gpu",
-                        "tests/test_render_torch.py"], 120)
+        s.run(
+            "tests",
+            [PY, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "gpu", "tests/test_render_torch.py"],
+            120,
+        )
 
     if a.data_like:
         sys.path.insert(0, str(ROOT))
         from fusion.measure.experiment import load_preset
+
         preset = load_preset(a.data_like)
         render = ["--n", str(preset.dataset_n)] + [x for o in preset.dataset_overrides for x in ("--set", o)]
     else:
         render = ["--n", "120" if a.quick else "2400", "--seed", "7", "--set", "output.split_fractions=[0.05,0.15,0.8]"]
-    s.run("data", skygen + ["render", *render, "--workers", str(a.workers), "--out", str(data), "--force", "--quiet"], 240)
+    s.run(
+        "data", skygen + ["render", *render, "--workers", str(a.workers), "--out", str(data), "--force", "--quiet"], 240
+    )
     if (data / "manifest.json").exists():
         man = json.loads((data / "manifest.json").read_text())
         s.summary["data"] = {k: man.get(k) for k in ("dataset_id", "content_id", "n_frames")}
@@ -184,16 +235,51 @@ def main(argv: list[str] | None = None) -> int:
         for prec, b in combos:
             f = work / f"timing-{prec}-b{b}.json"
             f.parent.mkdir(parents=True, exist_ok=True)
-            rc = s.run("timing", fusion + ["timing", "--config", "configs/paper.yaml", "--device", a.device,
-                                           "--precision", prec, "--batch", str(b), "--iters", "10" if a.quick else "50",
-                                           "--warmup", "2" if a.quick else "10", "--mode", "both", "--out", str(f)], 120)
+            rc = s.run(
+                "timing",
+                fusion
+                + [
+                    "timing",
+                    "--config",
+                    "configs/paper.yaml",
+                    "--device",
+                    a.device,
+                    "--precision",
+                    prec,
+                    "--batch",
+                    str(b),
+                    "--iters",
+                    "10" if a.quick else "50",
+                    "--warmup",
+                    "2" if a.quick else "10",
+                    "--mode",
+                    "both",
+                    "--out",
+                    str(f),
+                ],
+                120,
+            )
             if rc == 0 and f.exists():
                 timing[f"{prec}-b{b}"] = json.loads(f.read_text())
         (out / "timing.json").write_text(json.dumps(timing, indent=2))
 
     if "render" not in skip and not a.quick:
-        s.run("render", [PY, "benchmarks/gpu_render_bench.py", "--frames", "512", "--batch-sizes", "1,32,128",
-                         "--devices", a.device, "--out", str(out / "render_bench.json")], 150)
+        s.run(
+            "render",
+            [
+                PY,
+                "benchmarks/gpu_render_bench.py",
+                "--frames",
+                "512",
+                "--batch-sizes",
+                "1,32,128",
+                "--devices",
+                a.device,
+                "--out",
+                str(out / "render_bench.json"),
+            ],
+            150,
+        )
 
     if "train" not in skip:
         train_step(s, a, fusion, work, data, timing)
@@ -210,14 +296,20 @@ def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing:
     """Steps 6 and 7: size the run to ``--train-seconds``, train it on the frames stream, evaluate it."""
     paper = a.config == PAPER and not a.quick
     cfg = "configs/smoke.yaml" if a.quick else a.config
-    common = ["stream.render_backend=numpy", f"train.workers={a.workers}", f"train.device={a.device}",
-              "train.patience=null", "train.progress=false"]
+    common = [
+        "stream.render_backend=numpy",
+        f"train.workers={a.workers}",
+        f"train.device={a.device}",
+        "train.patience=null",
+        "train.progress=false",
+    ]
     if paper:
         per_epoch = 16384
         common += [f"model.name={a.model}", f"stream.samples_per_epoch={per_epoch}", "optim.warmup_epochs=1"]
     else:
         sys.path.insert(0, str(ROOT))
         from fusion.config import load_config
+
         per_epoch = 128 if a.quick else int(load_config(cfg).stream.samples_per_epoch)
         common += [f"stream.samples_per_epoch={per_epoch}"] + (["train.batch_size=32"] if a.quick else [])
     common += list(a.set)
@@ -238,13 +330,17 @@ def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing:
         # a two-epoch probe of the same preset; its second epoch (loaders warm) gives the rate
         probe = work / "probe"
         n = 64 if a.quick else max(per_epoch // 4, 8192)
-        s.run("probe", train + ["--out", str(probe), "train.epochs=2"] + common + [f"stream.samples_per_epoch={n}"], 240)
+        s.run(
+            "probe", train + ["--out", str(probe), "train.epochs=2"] + common + [f"stream.samples_per_epoch={n}"], 240
+        )
         rows = (probe / "metrics.csv").read_text().splitlines() if (probe / "metrics.csv").exists() else []
         if len(rows) >= 3:
             head, last = rows[0].split(","), rows[-1].split(",")
             rate = n / float(last[head.index("epoch_time_s")])
         rate = rate or 200.0
-    if a.epochs is None:     # margins: the forward-time guess was 2-3x the H200 run's rate (the guard stops it), a probe is measured
+    if (
+        a.epochs is None
+    ):  # margins: the forward-time guess was 2-3x the H200 run's rate (the guard stops it), a probe is measured
         epochs = max(2, int((0.7 if paper else 0.85) * rate * a.train_seconds / per_epoch))
         plan["estimated_samples_per_s"] = round(rate, 1)
     else:
@@ -253,21 +349,39 @@ def train_step(s: Session, a, fusion: list[str], work: Path, data: Path, timing:
     s.summary["train_plan"] = plan
     s.save()
     run_dir = work / "train"
-    rc = s.run("train", train + ["--out", str(run_dir), f"train.epochs={epochs}"] + common,
-               limit_s=1.35 * a.train_seconds + 45, interrupt_s=1.35 * a.train_seconds)
+    rc = s.run(
+        "train",
+        train + ["--out", str(run_dir), f"train.epochs={epochs}"] + common,
+        limit_s=1.35 * a.train_seconds + 45,
+        interrupt_s=1.35 * a.train_seconds,
+    )
     for name in ("metrics.csv", "config.yaml"):
         if (run_dir / name).exists():
             shutil.copy(run_dir / name, s.out / name)
     if (run_dir / "summary.json").exists():
-        s.summary["train_summary"] = {k: v for k, v in json.loads((run_dir / "summary.json").read_text()).items()
-                                      if k not in ("dataset", "config")}
+        s.summary["train_summary"] = {
+            k: v
+            for k, v in json.loads((run_dir / "summary.json").read_text()).items()
+            if k not in ("dataset", "config")
+        }
     if not (run_dir / "best.pt").exists():
         if rc != 0:
             s.log.write("### [train] no best.pt: the run finished no epoch\n")
         return
     ev = work / "eval"
-    evaluate = fusion + ["evaluate", "--checkpoint", str(run_dir / "best.pt"), "--data", str(data),
-                         "--split", "test", "--out", str(ev), "--workers", str(min(8, a.workers))]
+    evaluate = fusion + [
+        "evaluate",
+        "--checkpoint",
+        str(run_dir / "best.pt"),
+        "--data",
+        str(data),
+        "--split",
+        "test",
+        "--out",
+        str(ev),
+        "--workers",
+        str(min(8, a.workers)),
+    ]
     s.run("eval", evaluate, 180)
     for name in ("eval-test.json", "eval-test.md"):
         if (ev / name).exists():

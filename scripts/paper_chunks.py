@@ -32,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-MORE_CHUNKS = 75     # EX_TEMPFAIL: not finished yet, run again
+MORE_CHUNKS = 75  # EX_TEMPFAIL: not finished yet, run again
 NO_PROGRESS = 3
 
 
@@ -73,14 +73,25 @@ def run_chunk(cmd: list[str], seconds: float) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="skygen dataset folder (render it first, e.g. skygen render --n 50000)")
+    ap.add_argument(
+        "--data", required=True, help="skygen dataset folder (render it first, e.g. skygen render --n 50000)"
+    )
     ap.add_argument("--out", required=True, help="run folder")
-    ap.add_argument("--config", default="configs/paper.yaml", help="preset for the first chunk (default configs/paper.yaml)")
-    ap.add_argument("--chunk-minutes", type=float, default=9.0,
-                    help="stop a chunk after this long (default 9: with the 30 s grace it stays under 10 minutes)")
+    ap.add_argument(
+        "--config", default="configs/paper.yaml", help="preset for the first chunk (default configs/paper.yaml)"
+    )
+    ap.add_argument(
+        "--chunk-minutes",
+        type=float,
+        default=9.0,
+        help="stop a chunk after this long (default 9: with the 30 s grace it stays under 10 minutes)",
+    )
     ap.add_argument("--max-chunks", type=int, help="run at most this many chunks, then exit (75: run again)")
-    ap.add_argument("--launcher", default=f"{shlex.quote(sys.executable)} -m fusion.cli",
-                    help='how to start fusion, e.g. "torchrun --nproc_per_node 8 -m fusion.cli" (default: this python)')
+    ap.add_argument(
+        "--launcher",
+        default=f"{shlex.quote(sys.executable)} -m fusion.cli",
+        help='how to start fusion, e.g. "torchrun --nproc_per_node 8 -m fusion.cli" (default: this python)',
+    )
     ap.add_argument("--dry-run", action="store_true", help="print the next chunk's command and exit")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the first chunk")
     a = ap.parse_args(argv)
@@ -107,12 +118,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"chunk {chunks}: exit {code}, {time.monotonic() - t0:.0f} s, epochs {before} -> {after}", flush=True)
         if (Path(a.out) / "summary.json").exists():
             continue
-        if code not in (0, 130, -signal.SIGINT, -signal.SIGKILL):      # 130: fusion stopped by our SIGINT
+        if code not in (0, 130, -signal.SIGINT, -signal.SIGKILL):  # 130: fusion stopped by our SIGINT
             print(f"fusion train failed (exit {code}); fix the error above and run again", file=sys.stderr)
             return code
         if after <= before:
-            print(f"no epoch finished in {a.chunk_minutes} min: an epoch must fit in one chunk (use more GPUs, "
-                  "a larger --chunk-minutes where allowed, or fewer frames)", file=sys.stderr)
+            print(
+                f"no epoch finished in {a.chunk_minutes} min: an epoch must fit in one chunk (use more GPUs, "
+                "a larger --chunk-minutes where allowed, or fewer frames)",
+                file=sys.stderr,
+            )
             return NO_PROGRESS
 
 

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from skygen.errors import SkygenError
-from skygen.runtime import StopRequested as Terminated          # SIGTERM -> cleanup -> the resume hint
+from skygen.runtime import StopRequested as Terminated  # SIGTERM -> cleanup -> the resume hint
 
 EPILOG = """examples:
   skygen render --n 2000 --workers 2            # into data/sky-n2000-s0
@@ -53,6 +53,7 @@ def _parse_slice(text: str | None) -> tuple[int, int]:
 
 def _load(args):
     from skygen.config import load_config
+
     sets = list(args.set or [])
     if getattr(args, "n", None) is not None:
         sets.append(f"n_frames={args.n}")
@@ -66,8 +67,12 @@ def _load(args):
 def _config_args(p: argparse.ArgumentParser, with_n: bool = True) -> None:
     """--config, --set, --seed (and --n): the one config system's options, shared by several commands."""
     p.add_argument("--config", metavar="FILE.yaml", help="YAML config (keys as in `skygen config`)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override one config key, e.g. --set sensor.exposure_s=0.05 (repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override one config key, e.g. --set sensor.exposure_s=0.05 (repeatable)",
+    )
     if with_n:
         p.add_argument("--n", type=int, help="number of frames (config n_frames; default 1000)")
     p.add_argument("--seed", type=int, help="dataset seed (config seed; default 0)")
@@ -76,14 +81,21 @@ def _config_args(p: argparse.ArgumentParser, with_n: bool = True) -> None:
 # --------------------------------------------------------------------------- render
 def _add_render(p: argparse.ArgumentParser) -> None:
     _config_args(p)
-    p.add_argument("--out", help="output folder (default data/sky-n{N}-s{SEED}); locked while rendering: a "
-                   "second render into it is refused, naming the first")
+    p.add_argument(
+        "--out",
+        help="output folder (default data/sky-n{N}-s{SEED}); locked while rendering: a "
+        "second render into it is refused, naming the first",
+    )
     p.add_argument("--workers", type=int, default=0, help="worker processes, >= 1 (default 0: all cores)")
     p.add_argument("--full-res", action="store_true", help="also store full-resolution frames")
-    p.add_argument("--slice", metavar="I/K", help="render only slice I of K (job arrays, counting from 0). "
-                   "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
-                   "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
-                   "once; the last slice to finish writes manifest.json")
+    p.add_argument(
+        "--slice",
+        metavar="I/K",
+        help="render only slice I of K (job arrays, counting from 0). "
+        "Slices are whole shards (output.shard_size frames, default 1000): shard k belongs to slice "
+        "k mod K, so K may not exceed the number of shards. Slices may render into one folder at "
+        "once; the last slice to finish writes manifest.json",
+    )
     p.add_argument("--force", action="store_true", help="replace a different dataset found in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -91,6 +103,7 @@ def _add_render(p: argparse.ArgumentParser) -> None:
 def _run_render(args: argparse.Namespace) -> int:
     from skygen.datasets.build import render_dataset
     from skygen.runtime import stop_on_sigterm
+
     cfg = _load(args)
     out = Path(args.out) if args.out else _default_out(cfg.n_frames, cfg.seed)
     i, k = _parse_slice(args.slice)
@@ -98,10 +111,13 @@ def _run_render(args: argparse.Namespace) -> int:
         raise SkygenError(f"--workers {args.workers}: give a number of worker processes >= 1 (0 = all cores)")
     workers = args.workers or os.cpu_count() or 1
     with stop_on_sigterm():
-        man = render_dataset(cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force,
-                             progress=not args.quiet)
-    print(f"{man['n_frames']} frames in {len(man['shards'])} shard(s) at {out}  "
-          f"(train {man['splits']['train']}, val {man['splits']['val']}, test {man['splits']['test']})")
+        man = render_dataset(
+            cfg, out, workers=workers, slice_index=i, num_slices=k, force=args.force, progress=not args.quiet
+        )
+    print(
+        f"{man['n_frames']} frames in {len(man['shards'])} shard(s) at {out}  "
+        f"(train {man['splits']['train']}, val {man['splits']['val']}, test {man['splits']['test']})"
+    )
     print(f"look at it:  skygen inspect {out}   |   skygen preview {out} --out {out}/preview.png")
     return 0
 
@@ -114,6 +130,7 @@ def _add_inspect(p: argparse.ArgumentParser) -> None:
 
 def _run_inspect(args: argparse.Namespace) -> int:
     from skygen.datasets.summary import inspect_dataset
+
     print(inspect_dataset(args.path, as_json=args.json))
     return 0
 
@@ -129,6 +146,7 @@ def _add_preview(p: argparse.ArgumentParser) -> None:
 
 def _run_preview(args: argparse.Namespace) -> int:
     from skygen.datasets.preview import preview
+
     out = preview(args.path, args.out, n=args.n, split=args.split, start=args.start)
     print(f"wrote {out}")
     return 0
@@ -141,8 +159,9 @@ def _add_validate(p: argparse.ArgumentParser) -> None:
 
 
 def _run_validate(args: argparse.Namespace) -> int:
-    from skygen.errors import DatasetError
     from skygen.datasets.validate import validate
+    from skygen.errors import DatasetError
+
     if not Path(args.path).exists():
         raise DatasetError(f"{args.path}: no such dataset folder or shard file")
     report = validate(args.path, checksums=not args.no_checksums)
@@ -158,9 +177,12 @@ def _add_merge(p: argparse.ArgumentParser) -> None:
 
 def _run_merge(args: argparse.Namespace) -> int:
     from skygen.datasets.merge import merge_datasets
+
     man = merge_datasets(args.inputs, args.out)
-    print(f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
-          f"{man['n_shards']} shards (no frame data copied; shards are referenced by relative path)")
+    print(
+        f"merged {len(args.inputs)} folders into {args.out}/manifest.json: {man['n_frames']} frames in "
+        f"{man['n_shards']} shards (no frame data copied; shards are referenced by relative path)"
+    )
     return 0
 
 
@@ -175,8 +197,10 @@ def _add_catalog(p: argparse.ArgumentParser) -> None:
 
 def _run_catalog(args: argparse.Namespace) -> int:
     from skygen.sky.catalog import load_catalog
+
     if args.action == "fetch":
         from skygen.sky.vizier import fetch
+
         out = Path(args.out or f"catalogs/{args.catalog}.npz")
         out.parent.mkdir(parents=True, exist_ok=True)
         stars = fetch(args.catalog, out, args.mag_limit)
@@ -184,6 +208,7 @@ def _run_catalog(args: argparse.Namespace) -> int:
         return 0
     table = load_catalog(args.path)
     import numpy as np
+
     print(f"source: {table.source}\nstars: {len(table)}\nepoch: J{table.epoch_yr}\nband: {table.band}")
     for m in (3, 4, 5, 6, 7, 8, 9):
         print(f"  {table.band} <= {m}: {int(np.sum(table.mag <= m))}")
@@ -203,16 +228,20 @@ def _add_calibrate(p: argparse.ArgumentParser) -> None:
 def _run_calibrate(args: argparse.Namespace) -> int:
     from skygen.stream import calibration as cal
     from skygen.stream import emulator as emu
+
     if args.path:
         if args.config or args.set:
-            raise SkygenError("calibrate: give either a dataset DIR (its own config is used) or --config/--set "
-                              "(frames are rendered), not both")
+            raise SkygenError(
+                "calibrate: give either a dataset DIR (its own config is used) or --config/--set "
+                "(frames are rendered), not both"
+            )
         model = cal.calibrate_from_dataset(args.path, args.max_frames)
     else:
         cfg = _load(args)
         bar = None
         if not args.quiet:
             from tqdm import tqdm
+
             bar = tqdm(total=args.frames, desc="calibration frames", unit="frame")
         model = cal.calibrate_from_renders(cfg, args.frames, progress=(lambda k, n: bar.update(1)) if bar else None)
         if bar:
@@ -220,56 +249,108 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     emu.save(model, args.out)
     c = model.completeness
     u50 = float(emu.U_EDGES[np.argmax(c >= 0.5)]) if (c >= 0.5).any() else float("nan")
-    print(f"wrote {args.out}: {model.info['frames']} frames, {model.info['matched_rows']} matched isolated "
-          f"detections, threshold {model.threshold_e:.0f} e-, 50 % completeness at {10 ** u50:.2f} x threshold, "
-          f"pairs of stars at 10 x threshold merged below {model.blend_radius_px(10 * model.threshold_e):.1f} px, {model.info['spurious_per_frame']:.2f} spurious "
-          "detections per frame")
+    print(
+        f"wrote {args.out}: {model.info['frames']} frames, {model.info['matched_rows']} matched isolated "
+        f"detections, threshold {model.threshold_e:.0f} e-, 50 % completeness at {10**u50:.2f} x threshold, "
+        f"pairs of stars at 10 x threshold merged below {model.blend_radius_px(10 * model.threshold_e):.1f} px, "
+        f"{model.info['spurious_per_frame']:.2f} spurious "
+        "detections per frame"
+    )
     return 0
 
 
 # --------------------------------------------------------------------------- fit-camera
 def _add_fit_camera(p: argparse.ArgumentParser) -> None:
-    p.add_argument("frames", nargs="+", metavar="FRAME", help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
-                    "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF read as one plane, see --channel) or folders of them")
-    p.add_argument("--channel", choices=("luminance", "r", "g", "b", "sum"), default="luminance",
-                   help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
-                        "one of the r, g, b planes, or their sum")
+    p.add_argument(
+        "frames",
+        nargs="+",
+        metavar="FRAME",
+        help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
+        "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF read as one plane, see "
+        "--channel) or folders of them",
+    )
+    p.add_argument(
+        "--channel",
+        choices=("luminance", "r", "g", "b", "sum"),
+        default="luminance",
+        help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
+        "one of the r, g, b planes, or their sum",
+    )
     p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
     p.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
-    p.add_argument("--fov-range", nargs=2, type=float, metavar=("LO", "HI"),
-                    help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
-                    "(default without --camera: 5 30; the first search of a range builds a cached database, ~35 s for 5-30; "
-                    "a range whose database would pass 500 MB is refused, naming a narrower one)")
-    p.add_argument("--pixel-pitch", type=float, metavar="UM", help="without --camera: pixel width, micrometres "
-                    "(default 5.5; only the written focal_length_mm depends on it)")
-    p.add_argument("--pixel-aspect", type=float, metavar="A", help="start value of pixel height / width "
-                    "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height")
-    p.add_argument("--epoch", type=float, metavar="YEAR", help="when the frames were taken, Julian year (catalogue "
-                    "proper motions; default the camera file's epoch_yr)")
-    p.add_argument("--report", metavar="DIR", help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png "
-                    "(default: beside --out, OUT-report/)")
+    p.add_argument(
+        "--fov-range",
+        nargs=2,
+        type=float,
+        metavar=("LO", "HI"),
+        help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
+        "(default without --camera: 5 30; the first search of a range builds a cached database, ~35 s for 5-30; "
+        "a range whose database would pass 500 MB is refused, naming a narrower one)",
+    )
+    p.add_argument(
+        "--pixel-pitch",
+        type=float,
+        metavar="UM",
+        help="without --camera: pixel width, micrometres (default 5.5; only the written focal_length_mm depends on it)",
+    )
+    p.add_argument(
+        "--pixel-aspect",
+        type=float,
+        metavar="A",
+        help="start value of pixel height / width "
+        "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height",
+    )
+    p.add_argument(
+        "--epoch",
+        type=float,
+        metavar="YEAR",
+        help="when the frames were taken, Julian year (catalogue proper motions; default the camera file's epoch_yr)",
+    )
+    p.add_argument(
+        "--report",
+        metavar="DIR",
+        help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png (default: beside --out, OUT-report/)",
+    )
 
 
 def _run_fit_camera(args: argparse.Namespace) -> int:
     import shlex
+
     from skygen.real.fit_camera import fit_camera
+
     command = "skygen fit-camera " + " ".join(shlex.quote(a) for a in (args.argv or []))
     report = args.report or str(Path(args.out).with_suffix("")) + "-report"
-    rec = fit_camera(args.frames, args.out, camera=args.camera, fov_range=args.fov_range,
-                     pixel_pitch_um=args.pixel_pitch, pixel_aspect=args.pixel_aspect, epoch_yr=args.epoch,
-                     channel=args.channel,
-                     report_dir=report, command=command, log=lambda m: print(m, file=sys.stderr))
+    rec = fit_camera(
+        args.frames,
+        args.out,
+        camera=args.camera,
+        fov_range=args.fov_range,
+        pixel_pitch_um=args.pixel_pitch,
+        pixel_aspect=args.pixel_aspect,
+        epoch_yr=args.epoch,
+        channel=args.channel,
+        report_dir=report,
+        command=command,
+        log=lambda m: print(m, file=sys.stderr),
+    )
     g, c = rec["geometry"], rec["compare"]
-    print(f"wrote {args.out}: {len(rec['solved'])} of {len(rec['frames'])} frames solved"
-          + (f" ({len(rec['dropped'])} dropped: see above)" if rec["dropped"] else "")
-          + f"; field {g['fov_deg']:.4f} deg, aspect {g['aspect']:.4f}, {g['n_matched']} stars at {g['rms_px']:.3f} px rms; "
-          f"fitted {', '.join(g['fitted'])}" + (f", fixed {', '.join(g['fixed'])}" if g["fixed"] else "")
-          + f"; in {rec['timing_s']['total_s']:.1f} s")
-    print(f"renders vs real (medians): background {c['background_adu']['fitted']:.1f} / {c['background_adu']['real']:.1f} "
-          f"ADU, noise {c['noise_adu']['fitted']:.2f} / {c['noise_adu']['real']:.2f} ADU, detections "
-          f"{c['detections']['fitted']:.0f} / {c['detections']['real']:.0f}, star width "
-          f"{c['star_sigma_px']['fitted']:.2f} / {c['star_sigma_px']['real']:.2f} px, zero point "
-          f"{c['zero_point_mag']['fitted']:.2f} / {c['zero_point_mag']['real']:.2f} mag")
+    print(
+        f"wrote {args.out}: {len(rec['solved'])} of {len(rec['frames'])} frames solved"
+        + (f" ({len(rec['dropped'])} dropped: see above)" if rec["dropped"] else "")
+        + f"; field {g['fov_deg']:.4f} deg, aspect {g['aspect']:.4f}, {g['n_matched']} stars at {g['rms_px']:.3f} px "
+        f"rms; "
+        f"fitted {', '.join(g['fitted'])}"
+        + (f", fixed {', '.join(g['fixed'])}" if g["fixed"] else "")
+        + f"; in {rec['timing_s']['total_s']:.1f} s"
+    )
+    print(
+        f"renders vs real (medians): background {c['background_adu']['fitted']:.1f} / "
+        f"{c['background_adu']['real']:.1f} "
+        f"ADU, noise {c['noise_adu']['fitted']:.2f} / {c['noise_adu']['real']:.2f} ADU, detections "
+        f"{c['detections']['fitted']:.0f} / {c['detections']['real']:.0f}, star width "
+        f"{c['star_sigma_px']['fitted']:.2f} / {c['star_sigma_px']['real']:.2f} px, zero point "
+        f"{c['zero_point_mag']['fitted']:.2f} / {c['zero_point_mag']['real']:.2f} mag"
+    )
     print(f"report: {report}/REPORT.md")
     print(f"use it:  skygen render --config {args.out} ...   |   fusion predict FRAME... --camera {args.out} --solve")
     return 0
@@ -283,9 +364,13 @@ def _add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", type=int, default=0, help="first sample index (default 0)")
     p.add_argument("--batch", type=int, default=1024, help="detections: samples per vectorised batch")
     p.add_argument("--calibration", help="detector calibration JSON (default: the shipped one for the default camera)")
-    p.add_argument("--range", action="append", metavar="NAME=LO:HI",
-                    help="per-sample severity range of a corruption (false_stars, dropout, centroid_noise, "
-                    "magnitude_noise), e.g. --range dropout=0:0.3 (repeatable)")
+    p.add_argument(
+        "--range",
+        action="append",
+        metavar="NAME=LO:HI",
+        help="per-sample severity range of a corruption (false_stars, dropout, centroid_noise, "
+        "magnitude_noise), e.g. --range dropout=0:0.3 (repeatable)",
+    )
     p.add_argument("--out", help="also write the detection sets to this HDF5 file (shard table layout)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -293,9 +378,11 @@ def _add_stream(p: argparse.ArgumentParser) -> None:
 def _run_stream(args: argparse.Namespace) -> int:
     import json
     import time
+
     from skygen.config import config_dict
     from skygen.datasets.detection_sets import write_detection_sets
     from skygen.stream.samples import SampleStream, stream_summary
+
     if args.n < 1:
         raise SkygenError(f"--n {args.n}: need at least 1 sample")
     if args.start < 0:
@@ -312,25 +399,41 @@ def _run_stream(args: argparse.Namespace) -> int:
     stream = SampleStream(cfg, args.kind, calibration=args.calibration, level_ranges=ranges)
     t0, c0 = time.perf_counter(), time.process_time()
     if args.kind == "detections":
-        batches = [stream.batch(range(a, min(a + args.batch, args.start + args.n)))
-                   for a in range(args.start, args.start + args.n, args.batch)]
+        batches = [
+            stream.batch(range(a, min(a + args.batch, args.start + args.n)))
+            for a in range(args.start, args.start + args.n, args.batch)
+        ]
     else:
         from skygen.stream.samples import frames_as_batch
+
         batches = [frames_as_batch([stream.frame(i) for i in range(args.start, args.start + args.n)])]
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     summary = stream_summary(batches)
-    summary.update({"kind": args.kind, "start": args.start, "wall_s": wall, "samples_per_s": args.n / wall,
-                    "samples_per_cpu_s": args.n / max(cpu, 1e-9)})
+    summary.update(
+        {
+            "kind": args.kind,
+            "start": args.start,
+            "wall_s": wall,
+            "samples_per_s": args.n / wall,
+            "samples_per_cpu_s": args.n / max(cpu, 1e-9),
+        }
+    )
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         d, m = summary["detections_per_sample"], summary["detected_mag"]
-        print(f"{args.n} {args.kind} samples from index {args.start} in {wall:.2f} s: {summary['samples_per_s']:.0f} "
-              f"samples/s ({summary['samples_per_cpu_s']:.0f} per CPU-second)")
-        print(f"detections per sample: mean {d['mean']:.1f}, median {d['median']:.0f}, p10-p90 {d['p10']:.0f}-"
-              f"{d['p90']:.0f}, min {d['min']}, max {d['max']}; fewer than 3: {100 * summary['fewer_than_3']:.1f} %")
-        print(f"detected catalog stars Hp: p10 {m['p10']:.2f}, median {m['median']:.2f}, p90 {m['p90']:.2f}; "
-              f"spurious detections {100 * summary['spurious_share']:.2f} %")
+        print(
+            f"{args.n} {args.kind} samples from index {args.start} in {wall:.2f} s: {summary['samples_per_s']:.0f} "
+            f"samples/s ({summary['samples_per_cpu_s']:.0f} per CPU-second)"
+        )
+        print(
+            f"detections per sample: mean {d['mean']:.1f}, median {d['median']:.0f}, p10-p90 {d['p10']:.0f}-"
+            f"{d['p90']:.0f}, min {d['min']}, max {d['max']}; fewer than 3: {100 * summary['fewer_than_3']:.1f} %"
+        )
+        print(
+            f"detected catalog stars Hp: p10 {m['p10']:.2f}, median {m['median']:.2f}, p90 {m['p90']:.2f}; "
+            f"spurious detections {100 * summary['spurious_share']:.2f} %"
+        )
     if args.out:
         write_detection_sets(batches, args.out, config_dict(cfg))
         print(f"wrote {args.out}")
@@ -346,7 +449,9 @@ def _add_config(p: argparse.ArgumentParser) -> None:
 
 def _run_config(args: argparse.Namespace) -> int:
     import yaml
+
     from skygen.config import config_dict, config_help
+
     if args.keys:
         print(config_help())
         return 0
@@ -354,59 +459,82 @@ def _run_config(args: argparse.Namespace) -> int:
     print(yaml.safe_dump(config_dict(cfg), sort_keys=False), end="")
     if args.summary:
         from skygen.render.frame import Renderer
+
         r = Renderer(cfg)
         fx, fy = r.camera.fov_deg
-        print(f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
-              f"detection limit Hp {r.detection_limit_mag:.2f}, rendering to Hp {r.mag_limit:.2f} "
-              f"({len(r.sky)} stars), background {r.background_e:.2f} e-/px, noise {r.noise_e():.2f} e-/px")
+        print(
+            f"# FOV {fx:.2f} x {fy:.2f} deg, {r.camera.pixel_scale_arcsec:.1f} arcsec/px, "
+            f"detection limit Hp {r.detection_limit_mag:.2f}, rendering to Hp {r.mag_limit:.2f} "
+            f"({len(r.sky)} stars), background {r.background_e:.2f} e-/px, noise {r.noise_e():.2f} e-/px"
+        )
     return 0
 
 
 SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
-    "render": (dict(help="render a dataset (resumes an interrupted one)",
-                       description="Render frames into HDF5 shards plus manifest.json. Re-running the same "
-                       "command resumes; Ctrl-C never leaves a broken shard."),
-               _add_render, _run_render),
-    "inspect": (dict(help="counts, splits, star and detection histograms, config summary"),
-               _add_inspect, _run_inspect),
-    "preview": (dict(help="PNG grid of frames with detections and true stars"),
-               _add_preview, _run_preview),
-    "validate": (dict(help="check schema, shapes, value ranges and checksums"),
-               _add_validate, _run_validate),
-    "merge": (dict(help="combine slices or compatible datasets into one (no data copied)",
-                       description="Write OUT/manifest.json listing the shards of several dataset folders: "
-                       "slices of one job-array render, or datasets whose configs differ only in seed, "
-                       "n_frames or storage options. Incompatible inputs are refused with the differing keys."),
-               _add_merge, _run_merge),
-    "catalog": (dict(help="show the catalog, or fetch another one from VizieR (online)"),
-               _add_catalog, _run_catalog),
-    "calibrate": (dict(help="fit the detector emulator of the detections stream",
-                        description="Fit the detector emulator (skygen.stream.emulator) to the real detector: from a "
-                        "rendered dataset DIR (its frames and config), or, without DIR, from --frames frames "
-                        "rendered for --config/--set in their own random streams. The calibration is valid for "
-                        "that camera, optics, photometry, sensor and detector only; streams refuse it for "
-                        "any other."),
-               _add_calibrate, _run_calibrate),
-    "fit-camera": (dict(help="fit a camera file to a real sensor from its own star frames",
-                        description="Solve real star frames (tetra3rs lost-in-space), then fit the camera to all of "
-                        "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
-                        "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
-                        "noise (background mean-variance), sky level, gradient and vignetting, PSF (Gaussian or "
-                        "Moffat), hot pixels, the photometric zero point (as exposure x throughput) and the "
-                        "detector settings. Writes a camera YAML that `skygen render --config` and `fusion predict "
-                        "--camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
-                        "already described."),
-               _add_fit_camera, _run_fit_camera),
-    "stream": (dict(help="synthesise training samples on the fly; print throughput and statistics",
-                        description="Make --n samples of an endless stream (sample i is a pure function of "
-                        "config, seed, kind and i) and print what a model would see. 'detections' uses the "
-                        "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' adds the stored-size "
-                        "image, drawn directly at that size (skygen.render.binned, equal in distribution to `skygen "
-                        "render`'s), with emulated detections; a config it cannot reproduce renders and detects "
-                        "like `skygen render` (with a warning)."),
-               _add_stream, _run_stream),
-    "config": (dict(help="print the resolved config, or every key with --keys"),
-               _add_config, _run_config),
+    "render": (
+        dict(
+            help="render a dataset (resumes an interrupted one)",
+            description="Render frames into HDF5 shards plus manifest.json. Re-running the same "
+            "command resumes; Ctrl-C never leaves a broken shard.",
+        ),
+        _add_render,
+        _run_render,
+    ),
+    "inspect": (dict(help="counts, splits, star and detection histograms, config summary"), _add_inspect, _run_inspect),
+    "preview": (dict(help="PNG grid of frames with detections and true stars"), _add_preview, _run_preview),
+    "validate": (dict(help="check schema, shapes, value ranges and checksums"), _add_validate, _run_validate),
+    "merge": (
+        dict(
+            help="combine slices or compatible datasets into one (no data copied)",
+            description="Write OUT/manifest.json listing the shards of several dataset folders: "
+            "slices of one job-array render, or datasets whose configs differ only in seed, "
+            "n_frames or storage options. Incompatible inputs are refused with the differing keys.",
+        ),
+        _add_merge,
+        _run_merge,
+    ),
+    "catalog": (dict(help="show the catalog, or fetch another one from VizieR (online)"), _add_catalog, _run_catalog),
+    "calibrate": (
+        dict(
+            help="fit the detector emulator of the detections stream",
+            description="Fit the detector emulator (skygen.stream.emulator) to the real detector: from a "
+            "rendered dataset DIR (its frames and config), or, without DIR, from --frames frames "
+            "rendered for --config/--set in their own random streams. The calibration is valid for "
+            "that camera, optics, photometry, sensor and detector only; streams refuse it for "
+            "any other.",
+        ),
+        _add_calibrate,
+        _run_calibrate,
+    ),
+    "fit-camera": (
+        dict(
+            help="fit a camera file to a real sensor from its own star frames",
+            description="Solve real star frames (tetra3rs lost-in-space), then fit the camera to all of "
+            "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
+            "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
+            "noise (background mean-variance), sky level, gradient and vignetting, PSF (Gaussian or "
+            "Moffat), hot pixels, the photometric zero point (as exposure x throughput) and the "
+            "detector settings. Writes a camera YAML that `skygen render --config` and `fusion predict "
+            "--camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
+            "already described.",
+        ),
+        _add_fit_camera,
+        _run_fit_camera,
+    ),
+    "stream": (
+        dict(
+            help="synthesise training samples on the fly; print throughput and statistics",
+            description="Make --n samples of an endless stream (sample i is a pure function of "
+            "config, seed, kind and i) and print what a model would see. 'detections' uses the "
+            "calibrated detector emulator (no pixels, ~0.1 ms/sample); 'frames' adds the stored-size "
+            "image, drawn directly at that size (skygen.render.binned, equal in distribution to `skygen "
+            "render`'s), with emulated detections; a config it cannot reproduce renders and detects "
+            "like `skygen render` (with a warning).",
+        ),
+        _add_stream,
+        _run_stream,
+    ),
+    "config": (dict(help="print the resolved config, or every key with --keys"), _add_config, _run_config),
 }
 
 
@@ -414,9 +542,13 @@ def build_parser() -> argparse.ArgumentParser:
     """The parser of every command (imports no torch: ``skygen --help`` stays light)."""
     from skygen import __version__
     from skygen.datasets.shards import SCHEMA_VERSION
-    p = argparse.ArgumentParser(prog="skygen", description="Physically-based star-tracker frame generator "
-                                "writing shareable HDF5 shards.", epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    p = argparse.ArgumentParser(
+        prog="skygen",
+        description="Physically-based star-tracker frame generator writing shareable HDF5 shards.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--version", action="version", version=f"skygen {__version__} (writes schema {SCHEMA_VERSION})")
     sub = p.add_subparsers(dest="command", required=True)
     for name, (texts, add, run) in SUBCOMMANDS.items():
@@ -434,20 +566,26 @@ def main(argv: list[str] | None = None) -> int:
     except SkygenError as exc:
         print(f"skygen {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except Terminated:               # before KeyboardInterrupt, of which it is a kind
-        print(f"\nskygen {args.command}: terminated (SIGTERM); finished shards are kept — run the same command "
-              "again to resume.", file=sys.stderr)
+    except Terminated:  # before KeyboardInterrupt, of which it is a kind
+        print(
+            f"\nskygen {args.command}: terminated (SIGTERM); finished shards are kept — run the same command "
+            "again to resume.",
+            file=sys.stderr,
+        )
         return 143
     except KeyboardInterrupt:
-        print(f"\nskygen {args.command}: interrupted; finished shards are kept — run the same command "
-              "again to resume.", file=sys.stderr)
+        print(
+            f"\nskygen {args.command}: interrupted; finished shards are kept — run the same command again to resume.",
+            file=sys.stderr,
+        )
         return 130
-    except BrokenPipeError:      # `skygen inspect DIR | head`: the reader has gone; stop quietly
+    except BrokenPipeError:  # `skygen inspect DIR | head`: the reader has gone; stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0
-    except OSError as exc:       # an unwritable --out, a full disk: one line, not a traceback
+    except OSError as exc:  # an unwritable --out, a full disk: one line, not a traceback
         from skygen.runtime import describe_os_error
+
         print(f"skygen {args.command}: error: {describe_os_error(exc)}", file=sys.stderr)
         return 1
 

@@ -21,8 +21,16 @@ INF = float("inf")
 
 @dataclass(frozen=True)
 class CatalogConfig:
-    path: Optional[str] = param(None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)")
-    mag_limit: Optional[float] = param(None, lo=0, hi=20, doc="faintest Hp magnitude rendered (the brightest star is Hp -1.1; a limit leaving under 1 star per field on average is refused); None: detection limit + mag_margin")
+    path: Optional[str] = param(
+        None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)"
+    )
+    mag_limit: Optional[float] = param(
+        None,
+        lo=0,
+        hi=20,
+        doc="faintest Hp magnitude rendered (the brightest star is Hp -1.1; a limit leaving under 1 star per field on "
+        "average is refused); None: detection limit + mag_margin",
+    )
     mag_margin: float = param(1.0, lo=0, hi=10, doc="mag fainter than the computed detection limit still rendered")
 
 
@@ -31,7 +39,9 @@ class AttitudeConfig:
     mode: str = param("uniform", choices=("uniform", "region", "list"), doc="how boresights are drawn")
     ra_deg: tuple[float, ...] = param((), lo=0, hi=360, hi_open=True, doc="mode=list: boresight RA values")
     dec_deg: tuple[float, ...] = param((), lo=-90, hi=90, doc="mode=list: boresight Dec values")
-    roll_deg: tuple[float, ...] = param((), lo=0, hi=360, hi_open=True, doc="mode=list: roll values (empty: drawn from roll_range_deg)")
+    roll_deg: tuple[float, ...] = param(
+        (), lo=0, hi=360, hi_open=True, doc="mode=list: roll values (empty: drawn from roll_range_deg)"
+    )
     region_ra_deg: float = param(0.0, lo=0, hi=360, hi_open=True, doc="mode=region: centre RA")
     region_dec_deg: float = param(0.0, lo=-90, hi=90, doc="mode=region: centre Dec")
     region_radius_deg: float = param(10.0, lo=0, hi=180, lo_open=True, doc="mode=region: cap radius")
@@ -43,8 +53,12 @@ class CameraConfig:
     width_px: int = param(1024, lo=16, hi=16384, doc="sensor columns")
     height_px: int = param(1024, lo=16, hi=16384, doc="sensor rows")
     pixel_pitch_um: float = param(5.5, lo=0, lo_open=True, hi=100, doc="pixel pitch, micrometres")
-    focal_length_mm: float = param(15.97, lo=0, lo_open=True, hi=10000, doc="focal length, mm (ignored if fov_deg is set)")
-    fov_deg: Optional[float] = param(None, lo=0, lo_open=True, hi=120, hi_open=True, doc="horizontal FOV; overrides focal_length_mm")
+    focal_length_mm: float = param(
+        15.97, lo=0, lo_open=True, hi=10000, doc="focal length, mm (ignored if fov_deg is set)"
+    )
+    fov_deg: Optional[float] = param(
+        None, lo=0, lo_open=True, hi=120, hi_open=True, doc="horizontal FOV; overrides focal_length_mm"
+    )
     principal_x_px: Optional[float] = param(None, doc="principal point x (None: sensor centre)")
     principal_y_px: Optional[float] = param(None, doc="principal point y (None: sensor centre)")
     k1: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^2 coefficient")
@@ -52,9 +66,14 @@ class CameraConfig:
     k3: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^6 coefficient")
     p1: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p1")
     p2: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p2")
-    pixel_aspect: float = param(1.0, lo=0.1, hi=10, doc="pixel height / pixel width, dimensionless (1: square; 2: "
-                                "rows twice as tall as columns are wide, e.g. interlaced frames stored at half "
-                                "height); pixel_pitch_um and fov_deg are along x")
+    pixel_aspect: float = param(
+        1.0,
+        lo=0.1,
+        hi=10,
+        doc="pixel height / pixel width, dimensionless (1: square; 2: "
+        "rows twice as tall as columns are wide, e.g. interlaced frames stored at half "
+        "height); pixel_pitch_um and fov_deg are along x",
+    )
 
 
 @dataclass(frozen=True)
@@ -64,45 +83,75 @@ class OpticsConfig:
     psf: str = param("gaussian", choices=("gaussian", "moffat", "airy"), doc="PSF profile")
     psf_sigma_px: float = param(1.2, lo=0.2, hi=20, doc="Gaussian sigma (defocus); for moffat/airy the same-FWHM width")
     moffat_beta: float = param(3.0, lo=1.1, hi=20, doc="Moffat beta")
-    vignetting: float = param(0.0, lo=0, hi=0.9, doc="relative illumination loss at the sensor corner (cos^4-like), 0: off")
+    vignetting: float = param(
+        0.0, lo=0, hi=0.9, doc="relative illumination loss at the sensor corner (cos^4-like), 0: off"
+    )
 
 
 @dataclass(frozen=True)
 class PhotometryConfig:
-    zero_point_ph_s_cm2_a: float = param(1004.5, lo=0, lo_open=True, doc="V=0 photon flux density at 550 nm, photons/s/cm^2/Angstrom (Bessell et al. 1998)")
+    zero_point_ph_s_cm2_a: float = param(
+        1004.5,
+        lo=0,
+        lo_open=True,
+        doc="V=0 photon flux density at 550 nm, photons/s/cm^2/Angstrom (Bessell et al. 1998)",
+    )
     hp_minus_v: float = param(0.1, lo=-2, hi=2, doc="Hp - V assumed to convert catalog Hp to V")
     colour: bool = param(True, doc="blackbody spectrum from B-V through the QE curve (False: flat spectrum)")
     default_bv: float = param(0.65, lo=-0.5, hi=3, doc="B-V used when a star has none (solar)")
-    sky_mag_arcsec2: float = param(22.5, lo=10, hi=30, doc="diffuse sky (zodiacal light) surface brightness, V mag/arcsec^2")
+    sky_mag_arcsec2: float = param(
+        22.5, lo=10, hi=30, doc="diffuse sky (zodiacal light) surface brightness, V mag/arcsec^2"
+    )
 
 
 @dataclass(frozen=True)
 class SensorConfig:
-    exposure_s: float = param(0.1, lo=0, lo_open=True, hi=3600, doc="integration time, s (too short for the detection "
-                              "limit to leave 0.5 catalog stars per field on average: refused, naming the exposure "
-                              "that would)")
-    qe_peak: float = param(0.6, lo=0, lo_open=True, hi=1, doc="peak quantum efficiency (scales the built-in CMOS QE curve)")
+    exposure_s: float = param(
+        0.1,
+        lo=0,
+        lo_open=True,
+        hi=3600,
+        doc="integration time, s (too short for the detection "
+        "limit to leave 0.5 catalog stars per field on average: refused, naming the exposure "
+        "that would)",
+    )
+    qe_peak: float = param(
+        0.6, lo=0, lo_open=True, hi=1, doc="peak quantum efficiency (scales the built-in CMOS QE curve)"
+    )
     gain_e_per_adu: float = param(3.3, lo=0, lo_open=True, hi=1000, doc="conversion gain, e-/ADU")
     read_noise_e: float = param(5.0, lo=0, hi=1000, doc="read noise, e- rms (Gaussian, zero mean)")
     bias_adu: int = param(100, lo=0, hi=60000, doc="bias (offset) level, ADU")
-    fpn_adu: float = param(1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel")
+    fpn_adu: float = param(
+        1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel"
+    )
     prnu_frac: float = param(0.01, lo=0, hi=0.5, doc="photo-response non-uniformity, fractional rms, static per pixel")
     dark_current_e_s: float = param(125.0, lo=0, hi=1e6, doc="mean dark current at dark_reference_c, e-/s/pixel")
-    dark_reference_c: float = param(25.0, lo=-273.15, hi=200, doc="temperature at which dark_current_e_s holds, Celsius")
-    dark_doubling_c: float = param(6.5, lo=0, lo_open=True, hi=100, doc="temperature rise that doubles dark current, Celsius")
+    dark_reference_c: float = param(
+        25.0, lo=-273.15, hi=200, doc="temperature at which dark_current_e_s holds, Celsius"
+    )
+    dark_doubling_c: float = param(
+        6.5, lo=0, lo_open=True, hi=100, doc="temperature rise that doubles dark current, Celsius"
+    )
     temperature_c: float = param(20.0, lo=-273.15, hi=200, doc="sensor temperature, Celsius")
     full_well_e: float = param(13500.0, lo=1, hi=1e7, doc="full-well capacity, e-")
     bit_depth: int = param(12, lo=8, hi=16, doc="ADC bits")
     blooming: bool = param(True, doc="charge above full well spills along the column")
-    hot_pixel_dark_e_s: float = param(20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 0.5 dex rms)")
+    hot_pixel_dark_e_s: float = param(
+        20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 0.5 dex rms)"
+    )
     dead_pixel_fraction: float = param(1e-5, lo=0, hi=0.1, doc="fraction of pixels with no response (static map)")
     sensor_seed: int = param(1234, lo=0, doc="seed of the static sensor maps (PRNU, FPN, hot and dead pixels)")
-    sampler: str = param("fast", choices=("fast", "exact"), doc="noise sampler: fast (exact LUT for the uniform background) or exact (per-pixel numpy draws)")
+    sampler: str = param(
+        "fast",
+        choices=("fast", "exact"),
+        doc="noise sampler: fast (exact LUT for the uniform background) or exact (per-pixel numpy draws)",
+    )
 
 
 @dataclass(frozen=True)
 class CorruptionsConfig:
     """Severity of each registered corruption (see :mod:`skygen.instrument.corruptions`); 0 = off."""
+
     hotpixels: float = param(5e-5, lo=0, hi=0.05, doc="fraction of pixels that are hot (static map from sensor_seed)")
     cosmic_rays: float = param(5.0, lo=0, hi=1e5, doc="particle flux, hits/cm^2/s (tracks)")
     motion_blur: float = param(0.0, lo=0, hi=90, doc="angular rate magnitude, deg/s (random axis)")
@@ -119,32 +168,59 @@ class DetectionConfig:
     threshold_sigma: float = param(5.0, lo=1, hi=1000, doc="detection threshold above background, in background sigma")
     min_area_px: int = param(3, lo=1, hi=10000, doc="smallest connected component kept, pixels")
     max_detections: int = param(64, lo=1, hi=100000, doc="keep at most this many detections (brightest first)")
-    background_box_px: int = param(0, lo=0, hi=4096, doc="0: one background level and noise per frame; B >= 8: a local background per B x B px box, interpolated (frames with sky glow or gradients), px")
+    background_box_px: int = param(
+        0,
+        lo=0,
+        hi=4096,
+        doc="0: one background level and noise per frame; B >= 8: a local background per B x B px box, interpolated "
+        "(frames with sky glow or gradients), px",
+    )
     match_radius_px: float = param(2.0, lo=0, lo_open=True, hi=100, doc="detection-to-true-star match radius, px")
 
 
 @dataclass(frozen=True)
 class OutputConfig:
-    image_size_px: int = param(256, lo=8, hi=16384, doc="stored image width (area-averaged from the sensor by width_px/image_size_px; height scaled alike)")
+    image_size_px: int = param(
+        256,
+        lo=8,
+        hi=16384,
+        doc="stored image width (area-averaged from the sensor by width_px/image_size_px; height scaled alike)",
+    )
     full_res: bool = param(False, doc="also store the full-resolution frame")
-    compression: str = param("gzip", choices=("gzip", "lzf", "none", "blosc-zstd", "blosc-lz4"), doc="HDF5 image compression (blosc needs hdf5plugin)")
+    compression: str = param(
+        "gzip",
+        choices=("gzip", "lzf", "none", "blosc-zstd", "blosc-lz4"),
+        doc="HDF5 image compression (blosc needs hdf5plugin)",
+    )
     compression_level: int = param(4, lo=0, hi=9, doc="gzip/blosc level")
     shard_size: int = param(1000, lo=1, hi=1000000, doc="frames per shard file")
-    split_fractions: tuple[float, float, float] = param((0.8, 0.1, 0.1), lo=0, hi=1, doc="train/val/test fractions (contiguous frame ranges; a frame's content depends on its split and position in it, not on these)")
+    split_fractions: tuple[float, float, float] = param(
+        (0.8, 0.1, 0.1),
+        lo=0,
+        hi=1,
+        doc="train/val/test fractions (contiguous frame ranges; a frame's content depends on its split and position in "
+        "it, not on these)",
+    )
 
 
 @dataclass(frozen=True)
 class BackendConfig:
     """Which code rasterises the frames (see :mod:`skygen.render.torch_frames`). The scene is the same."""
-    backend: str = param("numpy", choices=("numpy", "torch"), doc="numpy: per-frame CPU renderer; torch: batches on render.device, noise equal in distribution")
+
+    backend: str = param(
+        "numpy",
+        choices=("numpy", "torch"),
+        doc="numpy: per-frame CPU renderer; torch: batches on render.device, noise equal in distribution",
+    )
     device: str = param("cpu", doc="render.backend=torch only: cpu, cuda or cuda:N")
     batch_size: int = param(16, lo=1, hi=4096, doc="render.backend=torch: frames rendered together on the device")
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    seed: int = param(0, lo=0, hi=2**63 - 1, doc="dataset seed; frame j of a split uses generators derived from "
-                      "(seed, split, j)")
+    seed: int = param(
+        0, lo=0, hi=2**63 - 1, doc="dataset seed; frame j of a split uses generators derived from (seed, split, j)"
+    )
     n_frames: int = param(1000, lo=1, hi=100_000_000, doc="number of frames (--n)")
     epoch_yr: float = param(2024.0, lo=1000, hi=3000, doc="observation epoch, Julian year (proper motion applied)")
     catalog: CatalogConfig = section(CatalogConfig)
@@ -164,33 +240,44 @@ def check_consistency(cfg: RenderConfig) -> None:
     a = cfg.attitude
     if a.mode == "list":
         if not a.ra_deg or len(a.ra_deg) != len(a.dec_deg):
-            raise ConfigError("attitude.ra_deg and attitude.dec_deg must be non-empty lists of equal length "
-                              "when attitude.mode=list")
+            raise ConfigError(
+                "attitude.ra_deg and attitude.dec_deg must be non-empty lists of equal length when attitude.mode=list"
+            )
         if a.roll_deg and len(a.roll_deg) != len(a.ra_deg):
             raise ConfigError("attitude.roll_deg must be empty or as long as attitude.ra_deg")
     if a.roll_range_deg[1] < a.roll_range_deg[0]:
         raise ConfigError(f"attitude.roll_range_deg: {list(a.roll_range_deg)} must be [lo, hi] with lo <= hi")
     cam, out = cfg.camera, cfg.output
     if cam.width_px % out.image_size_px:
-        raise ConfigError(f"output.image_size_px ({out.image_size_px}) must divide camera.width_px "
-                          f"({cam.width_px}) so that frames are area-averaged by an integer factor")
+        raise ConfigError(
+            f"output.image_size_px ({out.image_size_px}) must divide camera.width_px "
+            f"({cam.width_px}) so that frames are area-averaged by an integer factor"
+        )
     factor = cam.width_px // out.image_size_px
     if cam.height_px % factor:
-        raise ConfigError(f"camera.height_px ({cam.height_px}) must be a multiple of the downsampling factor "
-                          f"camera.width_px / output.image_size_px = {factor}: stored frames are "
-                          f"{out.image_size_px} x height_px/{factor}")
+        raise ConfigError(
+            f"camera.height_px ({cam.height_px}) must be a multiple of the downsampling factor "
+            f"camera.width_px / output.image_size_px = {factor}: stored frames are "
+            f"{out.image_size_px} x height_px/{factor}"
+        )
     if 0 < cfg.detection.background_box_px < 8:
-        raise ConfigError(f"detection.background_box_px={cfg.detection.background_box_px}: 0 (one background per "
-                          "frame) or a box of at least 8 px, e.g. 64")
+        raise ConfigError(
+            f"detection.background_box_px={cfg.detection.background_box_px}: 0 (one background per "
+            "frame) or a box of at least 8 px, e.g. 64"
+        )
     if abs(sum(out.split_fractions) - 1.0) > 1e-6:
         raise ConfigError(f"output.split_fractions {list(out.split_fractions)} must sum to 1")
-    if cfg.sensor.bias_adu >= 2 ** cfg.sensor.bit_depth:
-        raise ConfigError(f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
-                          f"2**sensor.bit_depth = {2 ** cfg.sensor.bit_depth}")
+    if cfg.sensor.bias_adu >= 2**cfg.sensor.bit_depth:
+        raise ConfigError(
+            f"sensor.bias_adu ({cfg.sensor.bias_adu}) must be below the ADC range "
+            f"2**sensor.bit_depth = {2**cfg.sensor.bit_depth}"
+        )
     r = cfg.render
     if cam.pixel_aspect != 1.0 and r.backend == "torch":
-        raise ConfigError(f"camera.pixel_aspect={cam.pixel_aspect:g} needs render.backend=numpy (the torch backend "
-                          "draws square pixels only)")
+        raise ConfigError(
+            f"camera.pixel_aspect={cam.pixel_aspect:g} needs render.backend=numpy (the torch backend "
+            "draws square pixels only)"
+        )
     if not re.fullmatch(r"cpu|cuda(:\d+)?", r.device):
         raise ConfigError(f"render.device: {r.device!r} is not allowed; expected cpu, cuda or cuda:N")
     if r.backend == "numpy" and r.device != "cpu":
@@ -218,14 +305,16 @@ def check_camera_section(data: dict, source: str) -> None:
     """Refuse a ``camera:`` section (from a file, after overrides) that lacks a key of
     :data:`CAMERA_FILE_KEYS`; a config without a camera section uses the default camera."""
     cam = data.get("camera")
-    if not isinstance(cam, dict):           # absent: the default camera; not a mapping: from_dict says so
+    if not isinstance(cam, dict):  # absent: the default camera; not a mapping: from_dict says so
         return
     missing = [" or ".join(group) for group in CAMERA_FILE_KEYS if not any(k in cam for k in group)]
     if missing:
-        raise ConfigError(f"{source}: its camera section lacks {', '.join(missing)}; a camera file must give "
-                          "width_px, height_px, pixel_pitch_um and focal_length_mm (or fov_deg), or the default "
-                          "20 deg camera's values would be mixed in (principal point and distortion may be left "
-                          "out: sensor centre, none)")
+        raise ConfigError(
+            f"{source}: its camera section lacks {', '.join(missing)}; a camera file must give "
+            "width_px, height_px, pixel_pitch_um and focal_length_mm (or fov_deg), or the default "
+            "20 deg camera's values would be mixed in (principal point and distortion may be left "
+            "out: sensor centre, none)"
+        )
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> RenderConfig:

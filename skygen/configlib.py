@@ -15,6 +15,7 @@ import math
 import re
 import types
 import typing
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +26,18 @@ from skygen.errors import ConfigError
 _SCI = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 
-def param(default: Any, *, lo: float | None = None, hi: float | None = None,
-          lo_open: bool = False, hi_open: bool = False, choices: tuple | None = None,
-          doc: str = "") -> Any:
+def param(
+    default: Any,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    choices: tuple | None = None,
+    doc: str = "",
+) -> Any:
     """A dataclass field with validation metadata (range, choices) and a help text."""
-    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open,
-            "choices": choices, "doc": doc}
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices, "doc": doc}
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (configs are immutable)")
     return dataclasses.field(default=default, metadata=meta)
@@ -41,7 +48,7 @@ def section(cls: type) -> Any:
     return dataclasses.field(default_factory=cls, metadata={"section": True})
 
 
-def _describe_range(meta: dict) -> str:
+def _describe_range(meta: Mapping) -> str:
     parts = []
     if meta.get("choices"):
         return "one of " + ", ".join(repr(c) for c in meta["choices"])
@@ -53,7 +60,7 @@ def _describe_range(meta: dict) -> str:
 
 
 def _type_name(tp: Any) -> str:
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):     # Optional[float] -> "float or null"
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):  # Optional[float] -> "float or null"
         return " or ".join("null" if a is type(None) else _type_name(a) for a in typing.get_args(tp))
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
@@ -63,17 +70,17 @@ class NonFiniteError(ConfigError):
 
 
 _NONFINITE_WORDS = {"nan", "inf", "infinity"}
-_BOOL_WORDS = {False: ("off", "false", "no", "n"), True: ("on", "true", "yes", "y")}   # YAML 1.1 booleans
+_BOOL_WORDS = {False: ("off", "false", "no", "n"), True: ("on", "true", "yes", "y")}  # YAML 1.1 booleans
 
 
-def _nonfinite(value: Any, key: str, meta: dict | None) -> NonFiniteError:
+def _nonfinite(value: Any, key: str, meta: Mapping | None) -> NonFiniteError:
     shown = value.strip() if isinstance(value, str) else repr(value)
     allowed = _describe_range(meta or {})
     allowed = "a finite number" if allowed == "any value of the right type" else f"a finite number {allowed}"
     return NonFiniteError(f"{key}: {shown} is not a finite number; give {allowed}")
 
 
-def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
+def _coerce(value: Any, tp: Any, key: str, meta: Mapping | None = None) -> Any:
     """Check ``value`` against annotation ``tp``; return it converted (lists to tuples).
 
     ``meta`` (the field's :func:`param` metadata) only words the messages: NaN and
@@ -89,7 +96,7 @@ def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
             try:
                 return _coerce(value, arg, key, meta)
             except NonFiniteError:
-                raise                 # a number, just not a usable one: say so, not "expected Optional"
+                raise  # a number, just not a usable one: say so, not "expected Optional"
             except ConfigError:
                 pass
         raise ConfigError(f"{key}: expected {_type_name(tp)}, got {value!r}")
@@ -116,9 +123,9 @@ def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
         return value
     if tp is float:
         if isinstance(value, str) and _SCI.fullmatch(value.strip()):
-            value = float(value)      # YAML 1.1 reads 1e-4 (no dot) as a string
+            value = float(value)  # YAML 1.1 reads 1e-4 (no dot) as a string
         if isinstance(value, str) and value.strip().lower().lstrip("+-.") in _NONFINITE_WORDS:
-            raise _nonfinite(value, key, meta)      # YAML reads `nan` and `inf` (no dot) as strings
+            raise _nonfinite(value, key, meta)  # YAML reads `nan` and `inf` (no dot) as strings
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
         value = float(value)
@@ -131,15 +138,17 @@ def _coerce(value: Any, tp: Any, key: str, meta: dict | None = None) -> Any:
             words = [w for w in _BOOL_WORDS[value] if w in ((meta or {}).get("choices") or ())]
             if len(words) == 1:
                 return words[0]
-            raise ConfigError(f"{key}: expected a string, got {value!r} (YAML reads off/on/no/yes as "
-                              f"true/false: quote the value, e.g. {key.rsplit('.', 1)[-1]}: \"off\")")
+            raise ConfigError(
+                f"{key}: expected a string, got {value!r} (YAML reads off/on/no/yes as "
+                f'true/false: quote the value, e.g. {key.rsplit(".", 1)[-1]}: "off")'
+            )
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {value!r}")
         return value
     raise TypeError(f"unsupported config annotation {tp!r} for {key}")
 
 
-def _check_range(value: Any, meta: dict, key: str) -> None:
+def _check_range(value: Any, meta: Mapping, key: str) -> None:
     if value is None:
         return
     values = value if isinstance(value, tuple) else (value,)
@@ -148,8 +157,9 @@ def _check_range(value: Any, meta: dict, key: str) -> None:
             raise ConfigError(f"{key}: {v!r} is not allowed; expected {_describe_range(meta)}")
         if isinstance(v, (int, float)) and not isinstance(v, bool):
             lo, hi = meta.get("lo"), meta.get("hi")
-            bad = (lo is not None and (v <= lo if meta["lo_open"] else v < lo)) or \
-                  (hi is not None and (v >= hi if meta["hi_open"] else v > hi))
+            bad = (lo is not None and (v <= lo if meta["lo_open"] else v < lo)) or (
+                hi is not None and (v >= hi if meta["hi_open"] else v > hi)
+            )
             if bad:
                 raise ConfigError(f"{key}: {v!r} is out of range; expected {_describe_range(meta)}")
 
@@ -166,8 +176,7 @@ def from_dict(cls: type, data: dict | None, prefix: str = "") -> Any:
         k = unknown[0]
         close = difflib.get_close_matches(str(k), fields, n=1)
         hint = f"; did you mean '{prefix}{close[0]}'?" if close else ""
-        raise ConfigError(f"unknown config key '{prefix}{k}'{hint} "
-                          f"(valid keys here: {', '.join(fields)})")
+        raise ConfigError(f"unknown config key '{prefix}{k}'{hint} (valid keys here: {', '.join(fields)})")
     kwargs = {}
     for name, f in fields.items():
         key = prefix + name
@@ -182,12 +191,14 @@ def from_dict(cls: type, data: dict | None, prefix: str = "") -> Any:
 
 def to_dict(obj: Any) -> dict:
     """A plain nested dict (tuples become lists) of a config dataclass."""
+
     def conv(v: Any) -> Any:
         if dataclasses.is_dataclass(v):
             return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
         if isinstance(v, tuple):
             return [conv(x) for x in v]
         return v
+
     return conv(obj)
 
 
@@ -220,6 +231,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 def merge_overrides(data: dict, overrides: list[str] | tuple[str, ...]) -> dict:
     """Apply dotted ``key=value`` overrides to a nested dict (returns a new dict)."""
     import copy
+
     data = copy.deepcopy(data)
     for text in overrides or ():
         path, value = parse_override(text)
@@ -233,10 +245,18 @@ def merge_overrides(data: dict, overrides: list[str] | tuple[str, ...]) -> dict:
 
 
 #: leading bytes of binary files a user may give by mistake (a frame, a shard, an archive)
-_BINARY_MAGIC = {b"\x89PNG": "a PNG image", b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image",
-                 b"\x89HDF": "an HDF5 file", b"\x93NUMPY": "a NumPy .npy file", b"PK\x03\x04": "a zip archive",
-                 b"\x1f\x8b": "a gzip file", b"\xff\xd8\xff": "a JPEG image", b"SIMPLE  =": "a FITS file",
-                 b"%PDF": "a PDF document"}
+_BINARY_MAGIC = {
+    b"\x89PNG": "a PNG image",
+    b"II*\x00": "a TIFF image",
+    b"MM\x00*": "a TIFF image",
+    b"\x89HDF": "an HDF5 file",
+    b"\x93NUMPY": "a NumPy .npy file",
+    b"PK\x03\x04": "a zip archive",
+    b"\x1f\x8b": "a gzip file",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"SIMPLE  =": "a FITS file",
+    b"%PDF": "a PDF document",
+}
 
 
 def _decode_text(raw: bytes, path: Path) -> str:
@@ -255,9 +275,11 @@ def _decode_text(raw: bytes, path: Path) -> str:
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise ConfigError(f"config file {path}: not a UTF-8 text file (byte 0x{raw[exc.start]:02x} at offset "
-                          f"{exc.start}, line {line}): save it as UTF-8") from None
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(
+            f"config file {path}: not a UTF-8 text file (byte 0x{raw[exc.start]:02x} at offset "
+            f"{exc.start}, line {line}): save it as UTF-8"
+        ) from None
 
 
 def read_yaml(path: str | Path) -> dict:
@@ -307,6 +329,5 @@ def describe(cls: type, prefix: str = "") -> list[tuple[str, Any, str, str]]:
         if f.metadata.get("section"):
             rows += describe(typing.get_type_hints(cls)[f.name], prefix + f.name + ".")
         else:
-            rows.append((prefix + f.name, f.default, _describe_range(f.metadata),
-                         f.metadata.get("doc", "")))
+            rows.append((prefix + f.name, f.default, _describe_range(f.metadata), f.metadata.get("doc", "")))
     return rows

@@ -53,7 +53,8 @@ CONVENTIONS = {
     "angles": "degrees unless the name ends in _rad",
     "celestial_frame": "ICRS; positions propagated with proper motion to epoch_yr",
     "camera_frame": "+z boresight towards the sky, +x along increasing column, +y along increasing row",
-    "roll": "position angle of image up (-y, towards row 0) from celestial north through east, degrees; roll 0: north up, east left",
+    "roll": "position angle of image up (-y, towards row 0) from celestial north through east, degrees; "
+    "roll 0: north up, east left",
     "quaternion": "[w, x, y, z] scalar first, unit, w >= 0, rotates camera-frame vectors into ICRS",
     "array_order": "images stored [y, x] = [row, col]",
     "pixel_centre": "centre of the top-left pixel is (x, y) = (0, 0); positions in full-resolution pixels",

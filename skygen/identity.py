@@ -28,8 +28,14 @@ import json
 import numpy as np
 
 # keys that do not change any frame's pixels or labels under the (split, j) keying
-STORAGE_KEYS = ("n_frames", "output.shard_size", "output.compression", "output.compression_level",
-                "output.full_res", "output.split_fractions")
+STORAGE_KEYS = (
+    "n_frames",
+    "output.shard_size",
+    "output.compression",
+    "output.compression_level",
+    "output.full_res",
+    "output.split_fractions",
+)
 
 
 # keys added after datasets and calibrations were made, with the value that reproduces the frames made

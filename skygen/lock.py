@@ -100,11 +100,11 @@ def _process_gone(info: dict) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return True
-    except PermissionError:       # exists, another user's
+    except PermissionError:  # exists, another user's
         pass
     stat = _proc_stat(pid)
     if stat is None:
-        return False              # cannot tell: assume it still runs
+        return False  # cannot tell: assume it still runs
     state, ticks = stat
     return state == "Z" or (info.get("start_ticks") is not None and ticks != info["start_ticks"])
 
@@ -122,8 +122,10 @@ def describe(info: dict, path: Path) -> str:
         return f"a process whose lock file {path} is empty or damaged"
     cmd = str(info.get("command", "?"))
     cmd = cmd if len(cmd) <= 160 else cmd[:157] + "..."
-    return (f"{info.get('what', '?')} (PID {info.get('pid')} on {info.get('host')}, started "
-            f"{info.get('started_utc', '?')}: {cmd})")
+    return (
+        f"{info.get('what', '?')} (PID {info.get('pid')} on {info.get('host')}, started "
+        f"{info.get('started_utc', '?')}: {cmd})"
+    )
 
 
 class FolderLock:
@@ -136,8 +138,16 @@ class FolderLock:
     The folder must exist. Releasing removes the lock file (only if it is still this one).
     """
 
-    def __init__(self, folder: str | Path, what: str = "skygen", *, name: str = "", shares: str | None = None,
-                 wait_s: float = 0.0, log=None):
+    def __init__(
+        self,
+        folder: str | Path,
+        what: str = "skygen",
+        *,
+        name: str = "",
+        shares: str | None = None,
+        wait_s: float = 0.0,
+        log=None,
+    ):
         self.folder = Path(folder)
         self.path = lock_path(folder, name)
         self.what, self.shares, self.wait_s = what, shares, wait_s
@@ -150,7 +160,7 @@ class FolderLock:
         young_unreadable_until = time.monotonic() + 2.0
         while True:
             holder = self._create()
-            if holder is None:                      # mine; now make sure nothing incompatible runs beside it
+            if holder is None:  # mine; now make sure nothing incompatible runs beside it
                 other = self._conflicting_other()
                 if other is None:
                     return self
@@ -169,15 +179,21 @@ class FolderLock:
     def _create(self) -> dict | None:
         """Create the lock file atomically; None on success, else the current holder."""
         token = uuid.uuid4().hex
-        info = {"what": self.what, "host": socket.gethostname(), "pid": os.getpid(),
-                "start_ticks": (_proc_stat(os.getpid()) or (None, None))[1],
-                "command": " ".join(sys.argv), "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "shares": self.shares, "token": token}
+        info = {
+            "what": self.what,
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "start_ticks": (_proc_stat(os.getpid()) or (None, None))[1],
+            "command": " ".join(sys.argv),
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "shares": self.shares,
+            "token": token,
+        }
         try:
             fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             holder = read_lock(self.path)
-            return holder if holder is not None else {"unreadable": True, "age_s": 0.0}   # just released: retry
+            return holder if holder is not None else {"unreadable": True, "age_s": 0.0}  # just released: retry
         try:
             os.write(fd, (json.dumps(info) + "\n").encode())
         except BaseException:
@@ -208,7 +224,7 @@ class FolderLock:
         guard = self.path.with_name(self.path.name + ".takeover")
         try:
             os.close(os.open(guard, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
-        except FileExistsError:           # another process is taking over; a guard left by a crash expires
+        except FileExistsError:  # another process is taking over; a guard left by a crash expires
             try:
                 if time.time() - guard.stat().st_mtime > UNREADABLE_STALE_S:
                     guard.unlink(missing_ok=True)
@@ -220,15 +236,18 @@ class FolderLock:
             now = read_lock(self.path)
             if now is not None and now.get("token") == seen.get("token") and is_stale(now):
                 self.path.unlink(missing_ok=True)
-                self.log(f"note: {self.folder}: took over the lock of {describe(now, self.path)}, "
-                         "which is no longer running")
+                self.log(
+                    f"note: {self.folder}: took over the lock of {describe(now, self.path)}, which is no longer running"
+                )
         finally:
             guard.unlink(missing_ok=True)
 
     def _refusal(self, path: Path, info: dict) -> str:
         if info.get("unreadable"):
-            return (f"{self.folder} is in use: lock file {path} is empty or damaged; if no skygen or fusion "
-                    f"process writes to {self.folder}, delete {path} and try again")
+            return (
+                f"{self.folder} is in use: lock file {path} is empty or damaged; if no skygen or fusion "
+                f"process writes to {self.folder}, delete {path} and try again"
+            )
         if info.get("host") != socket.gethostname():
             hint = f"wait for it to finish; if that job is no longer running, delete {path}"
         else:

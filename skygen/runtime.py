@@ -146,27 +146,53 @@ def hardware(device=None) -> dict:
     mem = None
     meminfo = _read("/proc/meminfo")
     if meminfo and meminfo.startswith("MemTotal"):
-        mem = round(int(meminfo.split()[1]) / 2 ** 20, 1)
-    hw = {"cpu_model": cpu_model(), "machine": platform.machine(), "logical_cores": os.cpu_count(),
-          "usable_cores": usable_cores(), "memory_gib": mem, "os": platform.platform(),
-          "python": platform.python_version(), "numpy": str(np.__version__),
-          "load_average_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+        mem = round(int(meminfo.split()[1]) / 2**20, 1)
+    hw = {
+        "cpu_model": cpu_model(),
+        "machine": platform.machine(),
+        "logical_cores": os.cpu_count(),
+        "usable_cores": usable_cores(),
+        "memory_gib": mem,
+        "os": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": str(np.__version__),
+        "load_average_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+    }
     if device is not None:
         import cv2
         import timm
         import torch
-        hw.update({"torch_threads": torch.get_num_threads(), "torch": str(torch.__version__),
-                   "timm": str(timm.__version__), "opencv": str(cv2.__version__), "device": str(device),
-                   "device_name": hw["cpu_model"]})
+
+        hw.update(
+            {
+                "torch_threads": torch.get_num_threads(),
+                "torch": str(torch.__version__),
+                "timm": str(timm.__version__),
+                "opencv": str(cv2.__version__),
+                "device": str(device),
+                "device_name": hw["cpu_model"],
+            }
+        )
         if device.type == "cuda":
             p = torch.cuda.get_device_properties(device)
-            hw.update({"device_name": torch.cuda.get_device_name(device), "cuda_capability": f"{p.major}.{p.minor}",
-                       "gpu_memory_gib": round(p.total_memory / 2 ** 30, 1), "cuda_runtime": torch.version.cuda,
-                       "cudnn": torch.backends.cudnn.version()})
+            hw.update(
+                {
+                    "device_name": torch.cuda.get_device_name(device),
+                    "cuda_capability": f"{p.major}.{p.minor}",
+                    "gpu_memory_gib": round(p.total_memory / 2**30, 1),
+                    "cuda_runtime": torch.version.cuda,
+                    "cudnn": torch.backends.cudnn.version(),
+                }
+            )
     tegra = _read("/etc/nv_tegra_release")
-    if tegra:   # a Jetson: record what docs/jetson.md asks for
-        hw.update({"jetson_board": _read("/proc/device-tree/model"), "l4t_release": tegra.splitlines()[0],
-                   "nvpmodel": _command(["nvpmodel", "-q"])})
+    if tegra:  # a Jetson: record what docs/jetson.md asks for
+        hw.update(
+            {
+                "jetson_board": _read("/proc/device-tree/model"),
+                "l4t_release": tegra.splitlines()[0],
+                "nvpmodel": _command(["nvpmodel", "-q"]),
+            }
+        )
     return hw
 
 
@@ -187,6 +213,7 @@ def pick_device(name: str = "auto", option: str = "--device", local_rank: int | 
     ``option`` when the device is unknown or not visible here.
     """
     import torch
+
     name = str(name)
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
@@ -241,6 +268,7 @@ def stop_on_sigterm() -> Iterator[None]:
     signal) it does nothing."""
     import signal
     import threading
+
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -256,6 +284,7 @@ def describe_os_error(exc: OSError) -> str:
     """One line for a file-system error a command met: what, which file, and what to do for a full disk."""
     import errno as _errno
     import re
+
     what = exc.strerror or str(exc)
     # a write goes through atomic_path's temporary ".NAME.tmpPID": name the file the user asked for
     where = ""

@@ -12,8 +12,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 # A 256 x 256 sensor with the default optics scaled so that the FOV stays 20 deg:
 # frames render in ~1 ms, so physics and format tests stay fast.
-SMALL = ["camera.width_px=256", "camera.height_px=256", "camera.pixel_pitch_um=22.0",
-         "output.image_size_px=64", "output.shard_size=20"]
+SMALL = [
+    "camera.width_px=256",
+    "camera.height_px=256",
+    "camera.pixel_pitch_um=22.0",
+    "output.image_size_px=64",
+    "output.shard_size=20",
+]
 
 
 @pytest.fixture(scope="session")
@@ -25,6 +30,7 @@ def small_overrides() -> list[str]:
 def small_dataset(tmp_path_factory) -> Path:
     from skygen.config import load_config
     from skygen.datasets.build import render_dataset
+
     out = tmp_path_factory.mktemp("data") / "small"
     render_dataset(load_config(overrides=SMALL + ["n_frames=50"]), out, workers=1, progress=False)
     return out
@@ -33,6 +39,7 @@ def small_dataset(tmp_path_factory) -> Path:
 def pytest_configure(config):
     # verified shard checksums are remembered under $XDG_CACHE_HOME/skygen: keep the tests' own
     import tempfile
+
     os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="skygen-test-cache-")
 
 

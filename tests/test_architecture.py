@@ -14,8 +14,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PARTS = ("model", "train", "measure", "solve")
 # part -> parts it must not import (experiment, which trains the runs it measures, may import train)
-FORBIDDEN = {"model": {"train", "measure", "solve"}, "train": {"measure", "solve"},
-             "measure": {"train", "solve"}, "solve": {"train", "measure"}}
+FORBIDDEN = {
+    "model": {"train", "measure", "solve"},
+    "train": {"measure", "solve"},
+    "measure": {"train", "solve"},
+    "solve": {"train", "measure"},
+}
 ALLOWED = {("fusion/measure/experiment.py", "train")}
 
 
@@ -34,7 +38,7 @@ def imported_modules(path: Path) -> set[str]:
             else:
                 name = node.module
             out.add(name)
-            out.update(f"{name}.{a.name}" for a in node.names)     # ``from fusion import train``
+            out.update(f"{name}.{a.name}" for a in node.names)  # ``from fusion import train``
     return out
 
 
@@ -58,8 +62,7 @@ def test_import_direction(part):
 # skygen's layers in the order data flows (docs/ARCHITECTURE.md): a module imports only its own
 # package and the layers below it. The core (top-level modules: config, errors, runtime, ...) is
 # layer 0; the command line sits above everything.
-SKYGEN_LAYERS = {"core": 0, "sky": 1, "instrument": 2, "render": 3, "datasets": 4, "stream": 5, "real": 5,
-                 "cli": 9}
+SKYGEN_LAYERS = {"core": 0, "sky": 1, "instrument": 2, "render": 3, "datasets": 4, "stream": 5, "real": 5, "cli": 9}
 
 
 def skygen_layer(module: str) -> str | None:
@@ -80,7 +83,7 @@ def skygen_violations() -> list[str]:
         rel = path.relative_to(ROOT)
         own = skygen_layer(".".join(rel.with_suffix("").parts))
         if rel.name == "__init__.py" and len(rel.parts) == 2:
-            continue                                     # skygen/__init__.py: the lazy facade over every layer
+            continue  # skygen/__init__.py: the lazy facade over every layer
         for mod in imported_modules(path):
             target = skygen_layer(mod)
             if target is None or target == own:
@@ -106,8 +109,12 @@ def test_skygen_layer_rule_catches_a_violation():
 
 
 def test_skygen_imports_no_fusion():
-    bad = [f"{p.relative_to(ROOT)} imports {m}" for p in sorted((ROOT / "skygen").rglob("*.py"))
-           for m in imported_modules(p) if m.split(".")[0] == "fusion"]
+    bad = [
+        f"{p.relative_to(ROOT)} imports {m}"
+        for p in sorted((ROOT / "skygen").rglob("*.py"))
+        for m in imported_modules(p)
+        if m.split(".")[0] == "fusion"
+    ]
     assert not bad, "\n".join(bad)
 
 
@@ -119,8 +126,11 @@ SHARED_MAY_IMPORT = {"config.py": set(), "errors.py": set(), "plots.py": set(), 
 @pytest.mark.parametrize("name", sorted(SHARED_MAY_IMPORT))
 def test_fusion_shared_modules_import_no_part(name):
     path = ROOT / "fusion" / name
-    bad = [f"fusion/{name} imports {m}" for m in imported_modules(path)
-           if part_of(m) and part_of(m) not in SHARED_MAY_IMPORT[name]]
+    bad = [
+        f"fusion/{name} imports {m}"
+        for m in imported_modules(path)
+        if part_of(m) and part_of(m) not in SHARED_MAY_IMPORT[name]
+    ]
     assert not bad, "\n".join(bad)
 
 
@@ -141,12 +151,25 @@ def test_the_rule_catches_a_violation(tmp_path, monkeypatch):
         fake.unlink()
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["train", "--help"], ["benchmark", "--help"], ["predict", "--help"],
-                                  ["timing", "--help"], ["export", "--help"], ["robustness", "--help"],
-                                  ["experiment", "--help"], ["evaluate", "--help"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--help"],
+        ["train", "--help"],
+        ["benchmark", "--help"],
+        ["predict", "--help"],
+        ["timing", "--help"],
+        ["export", "--help"],
+        ["robustness", "--help"],
+        ["experiment", "--help"],
+        ["evaluate", "--help"],
+    ],
+)
 def test_help_loads_no_torch(argv):
-    code = ("import sys\nfrom fusion.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
-            "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')" % argv)
+    code = (
+        "import sys\nfrom fusion.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
+        "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')" % argv
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().splitlines()[-1] == "NO-TORCH"
@@ -154,8 +177,10 @@ def test_help_loads_no_torch(argv):
 
 @pytest.mark.parametrize("argv", [["--help"], ["render", "--help"], ["fit-camera", "--help"], ["stream", "--help"]])
 def test_skygen_help_loads_no_torch(argv):
-    code = ("import sys\nfrom skygen.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
-            "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')" % argv)
+    code = (
+        "import sys\nfrom skygen.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
+        "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')" % argv
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().splitlines()[-1] == "NO-TORCH"
@@ -164,6 +189,7 @@ def test_skygen_help_loads_no_torch(argv):
 def test_skygen_cli_follows_the_command_pattern():
     """Each skygen command is an _add_NAME / _run_NAME pair registered in SUBCOMMANDS (as fusion's)."""
     from skygen import cli
+
     for name, (texts, add, run) in cli.SUBCOMMANDS.items():
         key = name.replace("-", "_")
         assert add.__name__ == f"_add_{key}" and run.__name__ == f"_run_{key}", name
@@ -171,10 +197,12 @@ def test_skygen_cli_follows_the_command_pattern():
 
 
 def test_public_api_is_lazy_and_complete():
-    code = ("import sys, fusion\nassert 'torch' not in sys.modules\n"
-            "names = [n for n in fusion.__all__ if n != '__version__']\n"
-            "missing = [n for n in names if getattr(fusion, n, None) is None]\n"
-            "print('MISSING', missing)")
+    code = (
+        "import sys, fusion\nassert 'torch' not in sys.modules\n"
+        "names = [n for n in fusion.__all__ if n != '__version__']\n"
+        "missing = [n for n in names if getattr(fusion, n, None) is None]\n"
+        "print('MISSING', missing)"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().endswith("MISSING []")

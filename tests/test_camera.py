@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS
 
-from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, quaternion_to_matrix, sample_boresight
-from skygen.instrument.camera import Camera
-from skygen.sky.catalog import radec_to_vec
 from skygen.config import load_config
+from skygen.instrument.camera import Camera
+from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, quaternion_to_matrix, sample_boresight
+from skygen.sky.catalog import radec_to_vec
 
 
 def make_wcs(cam: Camera, ra, dec, roll) -> WCS:
@@ -17,7 +17,7 @@ def make_wcs(cam: Camera, ra, dec, roll) -> WCS:
     w = WCS(naxis=2)
     w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
     w.wcs.crval = [ra, dec]
-    w.wcs.crpix = [cam.cx_px + 1, cam.cy_px + 1]       # FITS pixels are 1-based
+    w.wcs.crpix = [cam.cx_px + 1, cam.cy_px + 1]  # FITS pixels are 1-based
     # image x = -cos(roll) east + sin(roll) north ; image y = -sin(roll) east - cos(roll) north
     w.wcs.cd = scale * np.array([[-np.cos(r), -np.sin(r)], [np.sin(r), -np.cos(r)]])
     return w
@@ -29,7 +29,7 @@ def test_projection_matches_astropy_wcs(seed):
     cam = Camera.from_config(load_config().camera)
     ra, dec, roll = rng.uniform(0, 360), np.degrees(np.arcsin(rng.uniform(-1, 1))), rng.uniform(0, 360)
     if seed == 0:
-        dec = 89.9   # near the pole
+        dec = 89.9  # near the pole
     R = attitude_matrix(ra, dec, roll)
     x = rng.uniform(-0.5, cam.width_px - 0.5, 200)
     y = rng.uniform(-0.5, cam.height_px - 0.5, 200)
@@ -47,11 +47,11 @@ def test_roll_convention_north_up_east_left():
     east = radec_to_vec(np.radians(101.0), np.radians(20.0))
     xn, yn, _ = cam.project(north @ R)
     xe, ye, _ = cam.project(east @ R)
-    assert yn[0] < cam.cy_px - 10 and abs(xn[0] - cam.cx_px) < 1       # north is up
-    assert xe[0] < cam.cx_px - 10 and abs(ye[0] - cam.cy_px) < 1       # east is left
+    assert yn[0] < cam.cy_px - 10 and abs(xn[0] - cam.cx_px) < 1  # north is up
+    assert xe[0] < cam.cx_px - 10 and abs(ye[0] - cam.cy_px) < 1  # east is left
     R90 = attitude_matrix(100.0, 20.0, 90.0)
     xe, ye, _ = cam.project(east @ R90)
-    assert ye[0] < cam.cy_px - 10                                       # roll 90: east is up
+    assert ye[0] < cam.cy_px - 10  # roll 90: east is up
 
 
 def test_quaternion_round_trip_and_direction():
@@ -91,17 +91,24 @@ def test_uniform_boresights_are_isotropic():
     cfg = load_config().attitude
     pts = np.array([sample_boresight(cfg, i, np.random.default_rng(i)) for i in range(4000)])
     z = np.sin(np.radians(pts[:, 1]))
-    assert abs(z.mean()) < 0.05 and abs(np.mean(z ** 2) - 1 / 3) < 0.03     # uniform in sin(dec)
+    assert abs(z.mean()) < 0.05 and abs(np.mean(z**2) - 1 / 3) < 0.03  # uniform in sin(dec)
     assert pts[:, 0].min() >= 0 and pts[:, 0].max() < 360 and pts[:, 2].max() < 360
 
 
 def test_region_and_list_modes():
-    cfg = load_config(overrides=["attitude.mode=region", "attitude.region_ra_deg=80",
-                                 "attitude.region_dec_deg=-30", "attitude.region_radius_deg=5"]).attitude
+    cfg = load_config(
+        overrides=[
+            "attitude.mode=region",
+            "attitude.region_ra_deg=80",
+            "attitude.region_dec_deg=-30",
+            "attitude.region_radius_deg=5",
+        ]
+    ).attitude
     c = radec_to_vec(np.radians(80), np.radians(-30))
     for i in range(200):
         ra, dec, _ = sample_boresight(cfg, i, np.random.default_rng(i))
         assert np.degrees(np.arccos(radec_to_vec(np.radians(ra), np.radians(dec)) @ c)) <= 5 + 1e-9
-    cfg = load_config(overrides=["attitude.mode=list", "attitude.ra_deg=[1,2]", "attitude.dec_deg=[3,4]",
-                                 "attitude.roll_deg=[5,6]"]).attitude
+    cfg = load_config(
+        overrides=["attitude.mode=list", "attitude.ra_deg=[1,2]", "attitude.dec_deg=[3,4]", "attitude.roll_deg=[5,6]"]
+    ).attitude
     assert sample_boresight(cfg, 3, np.random.default_rng(0)) == (2.0, 4.0, 6.0)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.model.canonical import canonical_views, reference_rows, rotate_image, rotate_rows
 from fusion.config import build_config
+from fusion.model.canonical import canonical_views, reference_rows, rotate_image, rotate_rows
 from fusion.model.networks import create_model
 
 
@@ -35,7 +35,7 @@ def test_reference_skips_the_centre_and_padding():
     assert rows.tolist() == [[1, 2, 1]] and valid.tolist() == [[True, True, False]]
     cv, _, theta, views = canonical_views(coords, mask, "brightest", 3, 0.05, training=False)
     assert views == 1
-    np.testing.assert_allclose(cv[0, 1, :2].numpy(), [math.sqrt(0.5), 0.0], atol=1e-6)   # reference on +x
+    np.testing.assert_allclose(cv[0, 1, :2].numpy(), [math.sqrt(0.5), 0.0], atol=1e-6)  # reference on +x
 
 
 def test_rotate_rows_and_image_agree():
@@ -55,9 +55,16 @@ def test_rotate_rows_and_image_agree():
 @pytest.mark.parametrize("encoder", ["mlp", "set", "transformer"])
 @pytest.mark.parametrize("mode", ["brightest", "multi"])
 def test_canonical_models_are_rotation_invariant(encoder, mode):
-    cfg = build_config({"model": {"coord_encoder": encoder, "branches": {"image": False},
-                                  "canonical": {"mode": mode, "n_refs": 3},
-                                  "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+    cfg = build_config(
+        {
+            "model": {
+                "coord_encoder": encoder,
+                "branches": {"image": False},
+                "canonical": {"mode": mode, "n_refs": 3},
+                "heatmap": {"channels": [8, 16], "out_dim": 32},
+            }
+        }
+    )
     torch.manual_seed(0)
     model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
     coords, mask = _inputs()
@@ -77,12 +84,21 @@ def test_raw_inputs_are_not_invariant():
     model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
     coords, mask = _inputs()
     with torch.no_grad():
-        assert (model(None, _rotate(coords, 1.0) * mask[..., None], mask) - model(None, coords, mask)).abs().max() > 1e-3
+        assert (
+            model(None, _rotate(coords, 1.0) * mask[..., None], mask) - model(None, coords, mask)
+        ).abs().max() > 1e-3
 
 
 def test_multi_view_output_is_a_probability_average():
-    cfg = build_config({"model": {"coord_encoder": "set", "branches": {"image": False, "heatmap": False},
-                                  "canonical": {"mode": "multi", "n_refs": 3}}})
+    cfg = build_config(
+        {
+            "model": {
+                "coord_encoder": "set",
+                "branches": {"image": False, "heatmap": False},
+                "canonical": {"mode": "multi", "n_refs": 3},
+            }
+        }
+    )
     model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
     coords, mask = _inputs()
     with torch.no_grad():
@@ -94,9 +110,16 @@ def test_multi_view_output_is_a_probability_average():
 
 
 def test_canonical_image_branch_runs():
-    cfg = build_config({"model": {"image_backbone": "tiny_cnn", "coord_encoder": "transformer",
-                                  "canonical": {"mode": "multi", "image": True},
-                                  "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+    cfg = build_config(
+        {
+            "model": {
+                "image_backbone": "tiny_cnn",
+                "coord_encoder": "transformer",
+                "canonical": {"mode": "multi", "image": True},
+                "heatmap": {"channels": [8, 16], "out_dim": 32},
+            }
+        }
+    )
     model = create_model("star_fusion", 15, cfg.model, image_size=64, max_stars=20).eval()
     coords, mask = _inputs()
     with torch.no_grad():
@@ -112,9 +135,17 @@ def test_relative_flux_models_ignore_the_flux_scale(encoder):
     shifted = coords.clone()
     shifted[..., 2] = torch.where(mask, coords[..., 2] + math.log10(16.0), coords[..., 2])
     for relative in (True, False):
-        cfg = build_config({"model": {"coord_encoder": encoder, "branches": {"image": False},
-                                      "relative_flux": relative, "canonical": {"mode": "brightest"},
-                                      "heatmap": {"channels": [8, 16], "out_dim": 32}}})
+        cfg = build_config(
+            {
+                "model": {
+                    "coord_encoder": encoder,
+                    "branches": {"image": False},
+                    "relative_flux": relative,
+                    "canonical": {"mode": "brightest"},
+                    "heatmap": {"channels": [8, 16], "out_dim": 32},
+                }
+            }
+        )
         torch.manual_seed(0)
         model = create_model("star_fusion", 15, cfg.model, max_stars=20).eval()
         with torch.no_grad():
@@ -129,15 +160,25 @@ def test_relative_flux_models_ignore_the_flux_scale(encoder):
 def test_rotate_image_is_affine_grid_written_out():
     """rotate_image builds F.affine_grid's grid itself (ONNX has affine_grid only from opset 20): same grid."""
     import torch.nn.functional as F
+
     from fusion.model.canonical import rotate_image
+
     torch.manual_seed(0)
     img, th = torch.randn(4, 2, 32, 48), torch.randn(4)
     c, s = torch.cos(th), torch.sin(th)
     mat = torch.stack([torch.stack([c, -s, torch.zeros_like(c)], -1), torch.stack([s, c, torch.zeros_like(c)], -1)], 1)
-    ref = F.grid_sample(img, F.affine_grid(mat, list(img.shape), align_corners=False), mode="bilinear",
-                        padding_mode="zeros", align_corners=False)
+    ref = F.grid_sample(
+        img,
+        F.affine_grid(mat, list(img.shape), align_corners=False),
+        mode="bilinear",
+        padding_mode="zeros",
+        align_corners=False,
+    )
     torch.testing.assert_close(rotate_image(img, th), ref, atol=1e-4, rtol=0)
-    smooth = torch.linspace(0, 1, 48).repeat(1, 1, 32, 1)               # a smooth image: grids differ by an ulp
-    torch.testing.assert_close(rotate_image(smooth, th[:1]),
-                               F.grid_sample(smooth, F.affine_grid(mat[:1], list(smooth.shape), align_corners=False),
-                                             align_corners=False), atol=1e-5, rtol=0)
+    smooth = torch.linspace(0, 1, 48).repeat(1, 1, 32, 1)  # a smooth image: grids differ by an ulp
+    torch.testing.assert_close(
+        rotate_image(smooth, th[:1]),
+        F.grid_sample(smooth, F.affine_grid(mat[:1], list(smooth.shape), align_corners=False), align_corners=False),
+        atol=1e-5,
+        rtol=0,
+    )

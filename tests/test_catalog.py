@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from skygen.sky.catalog import SkyIndex, load_catalog, parse_hipparcos2, propagate, radec_to_vec
 from skygen.errors import CatalogError
+from skygen.sky.catalog import SkyIndex, load_catalog, parse_hipparcos2, propagate, radec_to_vec
 
 
 @pytest.fixture(scope="module")
@@ -28,18 +28,25 @@ def test_propagation_matches_astropy(hip):
     from astropy import units as u
     from astropy.coordinates import SkyCoord
     from astropy.time import Time
-    fast = np.argsort(-np.hypot(hip.pmra_mas_yr, hip.pmdec_mas_yr))[:200]   # the fastest stars
+
+    fast = np.argsort(-np.hypot(hip.pmra_mas_yr, hip.pmdec_mas_yr))[:200]  # the fastest stars
     sel = hip.select(np.isin(np.arange(len(hip)), fast))
     mine = propagate(sel, 2024.0)
-    c = SkyCoord(ra=sel.ra_rad * u.rad, dec=sel.dec_rad * u.rad, pm_ra_cosdec=sel.pmra_mas_yr * u.mas / u.yr,
-                 pm_dec=sel.pmdec_mas_yr * u.mas / u.yr, distance=1e6 * u.pc,
-                 obstime=Time(1991.25, format="jyear"), frame="icrs")
+    c = SkyCoord(
+        ra=sel.ra_rad * u.rad,
+        dec=sel.dec_rad * u.rad,
+        pm_ra_cosdec=sel.pmra_mas_yr * u.mas / u.yr,
+        pm_dec=sel.pmdec_mas_yr * u.mas / u.yr,
+        distance=1e6 * u.pc,
+        obstime=Time(1991.25, format="jyear"),
+        frame="icrs",
+    )
     ref = c.apply_space_motion(new_obstime=Time(2024.0, format="jyear"))
     v = radec_to_vec(ref.ra.rad, ref.dec.rad)
     err_mas = np.degrees(np.arccos(np.clip(np.sum(v * mine, 1), -1, 1))) * 3.6e6
     moved_mas = np.degrees(np.arccos(np.clip(np.sum(radec_to_vec(sel.ra_rad, sel.dec_rad) * mine, 1), -1, 1))) * 3.6e6
-    assert moved_mas.max() > 100_000          # Barnard's star moves ~5 arcmin in 33 years
-    assert err_mas.max() < 10.0             # 0.0001 px at 71 arcsec/px
+    assert moved_mas.max() > 100_000  # Barnard's star moves ~5 arcmin in 33 years
+    assert err_mas.max() < 10.0  # 0.0001 px at 71 arcsec/px
 
 
 def test_cone_matches_brute_force(hip):

@@ -31,11 +31,13 @@ def test_render_inspect_preview_validate(tmp_path, small_overrides, capsys):
 
 
 def test_bad_config_is_rejected_before_rendering(tmp_path, capsys):
-    for bad, words in ((["--set", "sensor.exposure_s=-1"], "sensor.exposure_s"),
-                       (["--set", "camera.fov_deg=0"], "camera.fov_deg"),
-                       (["--set", "optics.psf=square"], "optics.psf"),
-                       (["--set", "corruptions.sunburn=1"], "valid keys"),
-                       (["--slice", "4/3"], "--slice")):
+    for bad, words in (
+        (["--set", "sensor.exposure_s=-1"], "sensor.exposure_s"),
+        (["--set", "camera.fov_deg=0"], "camera.fov_deg"),
+        (["--set", "optics.psf=square"], "optics.psf"),
+        (["--set", "corruptions.sunburn=1"], "valid keys"),
+        (["--slice", "4/3"], "--slice"),
+    ):
         assert main(["render", "--n", "5", "--out", str(tmp_path / "x")] + bad) == 2
         assert words in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
@@ -56,15 +58,27 @@ def test_config_and_catalog_commands(capsys, tmp_path):
 
 
 # ------------------------------------------------------------------ rough edges a new user hit
-@pytest.mark.parametrize("args,needle", [
-    (["--set", "photometry.zero_point_ph_s_cm2_a=.inf"], "photometry.zero_point_ph_s_cm2_a: inf is not a finite number"),
-    (["--set", "camera.fov_deg=nan"], "camera.fov_deg: nan is not a finite number; give a finite number > 0 and < 120"),
-    (["--seed", str(2 ** 63)], "seed: 9223372036854775808 is out of range"),
-    (["--set", "catalog.mag_limit=-2"], "catalog.mag_limit: -2.0 is out of range; expected >= 0"),
-    (["--set", "catalog.mag_limit=2"], "catalog.mag_limit=2 leaves 46 catalog stars (the brightest is Hp -1.09), "
-                                       "0.44 per 20.0 x 20.0 deg field on average"),
-    (["--workers", "-1"], "--workers -1"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (
+            ["--set", "photometry.zero_point_ph_s_cm2_a=.inf"],
+            "photometry.zero_point_ph_s_cm2_a: inf is not a finite number",
+        ),
+        (
+            ["--set", "camera.fov_deg=nan"],
+            "camera.fov_deg: nan is not a finite number; give a finite number > 0 and < 120",
+        ),
+        (["--seed", str(2**63)], "seed: 9223372036854775808 is out of range"),
+        (["--set", "catalog.mag_limit=-2"], "catalog.mag_limit: -2.0 is out of range; expected >= 0"),
+        (
+            ["--set", "catalog.mag_limit=2"],
+            "catalog.mag_limit=2 leaves 46 catalog stars (the brightest is Hp -1.09), "
+            "0.44 per 20.0 x 20.0 deg field on average",
+        ),
+        (["--workers", "-1"], "--workers -1"),
+    ],
+)
 def test_render_refuses_with_one_line(tmp_path, capsys, args, needle):
     assert main(["render", "--n", "5", "--out", str(tmp_path / "x"), "--quiet", *args]) == 2
     err = capsys.readouterr().err.strip()
@@ -72,32 +86,51 @@ def test_render_refuses_with_one_line(tmp_path, capsys, args, needle):
     assert not (tmp_path / "x").exists()
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["--n", "0"], "--n 0: show at least 1 frame"),
-    (["--n", "-3"], "--n -3"),
-    (["--start", "500"], "--start 500: the whole dataset holds only 50 frames"),
-    (["--start", "-1"], "--start -1"),
-    (["--out", "name"], "give a file name ending in .png"),
-    (["--out", "nowhere/deeper/p.png"], "does not exist; create it first"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--n", "0"], "--n 0: show at least 1 frame"),
+        (["--n", "-3"], "--n -3"),
+        (["--start", "500"], "--start 500: the whole dataset holds only 50 frames"),
+        (["--start", "-1"], "--start -1"),
+        (["--out", "name"], "give a file name ending in .png"),
+        (["--out", "nowhere/deeper/p.png"], "does not exist; create it first"),
+    ],
+)
 def test_preview_refuses_nonsense(small_dataset, tmp_path, capsys, monkeypatch, args, needle):
     monkeypatch.chdir(tmp_path)
     assert main(["preview", str(small_dataset), *args]) == 2
     assert needle in capsys.readouterr().err
-    assert not list(tmp_path.iterdir())            # nothing written, no folder created
+    assert not list(tmp_path.iterdir())  # nothing written, no folder created
 
 
 def test_more_slices_than_shards_are_refused(tmp_path, small_overrides, capsys):
     """--n 10 --slice 5/10 gave 0 frames and exit 0: slices are whole shards."""
-    sets = sum((["--set", o] for o in small_overrides), [])         # output.shard_size=20
+    sets = sum((["--set", o] for o in small_overrides), [])  # output.shard_size=20
     out = tmp_path / "d"
     assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "slices are whole shards of output.shard_size=20 frames" in err
     assert "allows at most 1 slice(s)" in err and "output.shard_size=5 for 2 slices" in err
     assert not out.exists()
-    assert main(["render", "--n", "10", "--slice", "1/2", "--out", str(out), "--quiet", *sets,
-                 "--set", "output.shard_size=5"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--n",
+                "10",
+                "--slice",
+                "1/2",
+                "--out",
+                str(out),
+                "--quiet",
+                *sets,
+                "--set",
+                "output.shard_size=5",
+            ]
+        )
+        == 0
+    )
     assert "5 frames in 1 shard(s)" in capsys.readouterr().out
 
 
@@ -109,8 +142,24 @@ def test_a_magnitude_limit_giving_a_star_per_field_is_accepted(capsys):
 def test_preview_of_an_empty_split_and_validate_of_a_missing_path(tmp_path, small_overrides, capsys):
     out = tmp_path / "d"
     sets = sum((["--set", o] for o in small_overrides), [])
-    assert main(["render", "--n", "6", "--out", str(out), "--workers", "1", "--quiet",
-                 "--set", "output.split_fractions=[1, 0, 0]", *sets]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--n",
+                "6",
+                "--out",
+                str(out),
+                "--workers",
+                "1",
+                "--quiet",
+                "--set",
+                "output.split_fractions=[1, 0, 0]",
+                *sets,
+            ]
+        )
+        == 0
+    )
     assert main(["preview", str(out), "--split", "val", "--out", str(tmp_path / "p.png")]) == 2
     assert "split 'val' holds no frames" in capsys.readouterr().err
     assert main(["validate", str(tmp_path / "missing")]) == 2
@@ -119,8 +168,24 @@ def test_preview_of_an_empty_split_and_validate_of_a_missing_path(tmp_path, smal
 
 def test_an_exposure_that_saturates_every_pixel_is_warned_about(tmp_path, small_overrides, capsys):
     sets = sum((["--set", o] for o in small_overrides), [])
-    assert main(["render", "--n", "2", "--out", str(tmp_path / "d"), "--workers", "1", "--quiet",
-                 "--set", "sensor.exposure_s=3600", *sets]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--n",
+                "2",
+                "--out",
+                str(tmp_path / "d"),
+                "--workers",
+                "1",
+                "--quiet",
+                "--set",
+                "sensor.exposure_s=3600",
+                *sets,
+            ]
+        )
+        == 0
+    )
     assert "warning: every pixel saturates" in capsys.readouterr().err
 
 
@@ -136,13 +201,24 @@ def test_version_and_documented_positionals(capsys):
 
 def _skygen(*args, **kw) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "skygen.cli", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "skygen.cli", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 def test_inspect_into_a_closed_pipe_is_quiet(small_dataset):
-    p = subprocess.run(f"{sys.executable} -m skygen.cli inspect {small_dataset} | head -1", shell=True,
-                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    p = subprocess.run(
+        f"{sys.executable} -m skygen.cli inspect {small_dataset} | head -1",
+        shell=True,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert p.stdout.startswith("dataset") and "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr
 
 
@@ -168,11 +244,22 @@ def _alive(pid: int) -> bool:
 
 def _start_pool_render(tmp_path, small_overrides) -> tuple[subprocess.Popen, list[int]]:
     sets = sum((["--set", o] for o in small_overrides), [])
-    p = _skygen("render", "--n", "4000", "--workers", "2", "--quiet", "--out", str(tmp_path / "d"), *sets,
-                "--set", "output.shard_size=40")
+    p = _skygen(
+        "render",
+        "--n",
+        "4000",
+        "--workers",
+        "2",
+        "--quiet",
+        "--out",
+        str(tmp_path / "d"),
+        *sets,
+        "--set",
+        "output.shard_size=40",
+    )
     deadline = time.time() + 60
     while time.time() < deadline and not list((tmp_path / "d").glob("shard-*.h5")):
-        time.sleep(0.2)                  # the pool is up and writing
+        time.sleep(0.2)  # the pool is up and writing
     workers = [k for k in _children(p.pid) if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
     assert workers, "no pool workers found"
     return p, workers
@@ -190,7 +277,7 @@ def test_kill_9_leaves_no_workers_writing(tmp_path, small_overrides):
         time.sleep(0.1)
     assert not any(_alive(w) for w in workers)
     time.sleep(1.0)
-    assert len(list((tmp_path / "d").glob("shard-*.h5"))) <= at_kill + len(workers)   # at most the shard in hand
+    assert len(list((tmp_path / "d").glob("shard-*.h5"))) <= at_kill + len(workers)  # at most the shard in hand
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -205,17 +292,34 @@ def test_sigterm_says_how_to_resume(tmp_path, small_overrides):
 
 def test_a_second_render_or_merge_into_a_busy_folder_is_refused_naming_the_first(tmp_path, small_overrides, capsys):
     from skygen.lock import FolderLock, lock_path
+
     out = tmp_path / "d"
     out.mkdir()
     sets = sum((["--set", o] for o in small_overrides), [])
     with FolderLock(out, what="skygen render"):
-        for args in (["render", "--n", "5", "--out", str(out), "--quiet", *sets],
-                     ["render", "--n", "5", "--out", str(out), "--quiet", "--slice", "0/1", *sets],
-                     ["merge", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]):
+        for args in (
+            ["render", "--n", "5", "--out", str(out), "--quiet", *sets],
+            ["render", "--n", "5", "--out", str(out), "--quiet", "--slice", "0/1", *sets],
+            ["merge", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)],
+        ):
             if args[0] == "merge":
                 for name in ("a", "b"):
-                    assert main(["render", "--n", "4", "--seed", str(ord(name)), "--out", str(tmp_path / name),
-                                 "--quiet", *sets]) == 0
+                    assert (
+                        main(
+                            [
+                                "render",
+                                "--n",
+                                "4",
+                                "--seed",
+                                str(ord(name)),
+                                "--out",
+                                str(tmp_path / name),
+                                "--quiet",
+                                *sets,
+                            ]
+                        )
+                        == 0
+                    )
                 capsys.readouterr()
             assert main(args) == 2
             err = capsys.readouterr().err.strip()
@@ -228,13 +332,30 @@ def test_a_second_render_or_merge_into_a_busy_folder_is_refused_naming_the_first
 def test_two_renders_into_one_folder_at_once(tmp_path, small_overrides, capsys):
     """Issue 21: both exited 0 and the dataset was invalid in 1 of 4 trials."""
     from skygen.lock import lock_path
+
     p, _ = _start_pool_render(tmp_path, small_overrides)
     try:
         sets = sum((["--set", o] for o in small_overrides), [])
-        assert main(["render", "--n", "4000", "--workers", "1", "--quiet", "--out", str(tmp_path / "d"), *sets,
-                     "--set", "output.shard_size=40"]) == 2
+        assert (
+            main(
+                [
+                    "render",
+                    "--n",
+                    "4000",
+                    "--workers",
+                    "1",
+                    "--quiet",
+                    "--out",
+                    str(tmp_path / "d"),
+                    *sets,
+                    "--set",
+                    "output.shard_size=40",
+                ]
+            )
+            == 2
+        )
         assert f"is in use by skygen render (PID {p.pid} " in capsys.readouterr().err
     finally:
         p.send_signal(signal.SIGTERM)
         p.communicate(timeout=60)
-    assert p.returncode == 143 and not lock_path(tmp_path / "d").exists()     # released on SIGTERM
+    assert p.returncode == 143 and not lock_path(tmp_path / "d").exists()  # released on SIGTERM

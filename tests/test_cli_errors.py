@@ -32,21 +32,24 @@ def blank_frame(tmp_path):
 def test_an_unwritable_output_is_one_line_not_a_traceback(blank_frame, tmp_path, capsys):
     from fusion.cli import main as fusion
     from skygen.cli import main as skygen
+
     missing = tmp_path / "no-such-folder" / "p.jsonl"
     assert fusion(["predict", str(blank_frame), "--camera", CAMERA, "--out", str(missing)]) == 1
-    _one_error_line(capsys.readouterr().err, "fusion predict: error:", "No such file or directory",
-                    str(missing), "check the path")
+    _one_error_line(
+        capsys.readouterr().err, "fusion predict: error:", "No such file or directory", str(missing), "check the path"
+    )
     assert not missing.parent.exists()
     (tmp_path / "a-file").write_text("x")
     assert skygen(["preview", str(small_dataset("smoke")), "--out", str(tmp_path / "a-file" / "grid.png")]) == 2
     _one_error_line(capsys.readouterr().err, "skygen preview: error:", "a-file")
-    if Path("/proc/self").is_dir():                       # a folder that exists but takes no new files (Linux)
+    if Path("/proc/self").is_dir():  # a folder that exists but takes no new files (Linux)
         assert skygen(["preview", str(small_dataset("smoke")), "--out", "/proc/grid.png"]) == 1
         _one_error_line(capsys.readouterr().err, "skygen preview: error:", "/proc/grid.png")
 
 
 def test_a_camera_file_without_a_camera_is_refused(blank_frame, tmp_path, capsys):
     from fusion.cli import main as fusion
+
     for text in ("", "optics:\n  psf_sigma_px: 1.2\n"):
         cam = tmp_path / "cam.yaml"
         cam.write_text(text)
@@ -71,14 +74,15 @@ def test_frames_that_are_not_one_real_valued_image_are_refused(tmp_path):
 
 def test_a_swallowed_sigterm_still_stops_the_next_unit_of_work(monkeypatch):
     from skygen import runtime
+
     monkeypatch.setitem(runtime._STOP, "requested", False)
-    runtime.check_stop()                                   # nothing asked: carries on
+    runtime.check_stop()  # nothing asked: carries on
     try:
         runtime.request_stop()
     except runtime.StopRequested:
-        pass                                               # Python may swallow this one (a weakref callback) ...
+        pass  # Python may swallow this one (a weakref callback) ...
     with pytest.raises(runtime.StopRequested):
-        runtime.check_stop()                               # ... the next check raises it again
+        runtime.check_stop()  # ... the next check raises it again
 
 
 def test_stop_on_sigterm_raises_within_the_block_and_restores_the_handler():
@@ -88,11 +92,12 @@ def test_stop_on_sigterm_raises_within_the_block_and_restores_the_handler():
     import signal
 
     from skygen import runtime
+
     before = signal.getsignal(signal.SIGTERM)
     with pytest.raises(runtime.StopRequested):
         with runtime.stop_on_sigterm():
             os.kill(os.getpid(), signal.SIGTERM)
-            for _ in range(1000):                          # the handler runs between bytecodes
+            for _ in range(1000):  # the handler runs between bytecodes
                 pass
     assert signal.getsignal(signal.SIGTERM) is before
     assert issubclass(runtime.StopRequested, KeyboardInterrupt) and not issubclass(runtime.StopRequested, Exception)

@@ -11,18 +11,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skygen.datasets import build as dsmod
 from skygen.config import load_config
+from skygen.datasets import build as dsmod
 from skygen.datasets.build import render_dataset
-from skygen.errors import DatasetError
 from skygen.datasets.shards import open_dataset
 from skygen.datasets.validate import validate
+from skygen.errors import DatasetError
 
 
 def contents(path):
     with open_dataset(path) as ds:
-        return [(ds.image(i).tobytes(), ds.detections(i)["x_px"].tobytes(), ds.true_stars(i)["hip_id"].tobytes())
-                for i in range(len(ds))], dict(ds.boresight)
+        return [
+            (ds.image(i).tobytes(), ds.detections(i)["x_px"].tobytes(), ds.true_stars(i)["hip_id"].tobytes())
+            for i in range(len(ds))
+        ], dict(ds.boresight)
 
 
 def same_data(a, b) -> bool:
@@ -54,7 +56,7 @@ def test_resume_after_interrupt_is_identical(tmp_path, small_overrides, small_da
         render_dataset(cfg, tmp_path / "r", workers=1, progress=False)
     man = json.loads((tmp_path / "r" / "manifest.json").read_text())
     assert not man["complete"] and len(man["shards"]) == 1
-    assert not list((tmp_path / "r").glob(".*tmp*"))          # no half-written file left
+    assert not list((tmp_path / "r").glob(".*tmp*"))  # no half-written file left
     with pytest.raises(DatasetError, match="has not finished"):
         open_dataset(tmp_path / "r")
     monkeypatch.setattr(dsmod, "_render_shard", real)
@@ -95,7 +97,7 @@ def test_slices_rendered_at_once_into_one_folder(tmp_path, small_overrides, smal
     errs = [p.communicate(timeout=120)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0], errs
     assert validate(out).ok and same_data(small_dataset, out)
-    assert not list(out.glob(".skygen*"))                          # every lock released
+    assert not list(out.glob(".skygen*"))  # every lock released
 
 
 def test_other_dataset_in_folder_is_not_overwritten(tmp_path, small_overrides):
@@ -113,10 +115,11 @@ def test_other_dataset_in_folder_is_not_overwritten(tmp_path, small_overrides):
 
 def test_disk_full_leaves_existing_dataset_untouched(tmp_path, small_overrides, monkeypatch):
     import errno
+
     cfg = load_config(overrides=small_overrides + ["n_frames=40"])
     out = tmp_path / "full"
     render_dataset(cfg, out, progress=False)
-    (out / "shard-00001.h5").unlink()                 # force one shard to be rendered again
+    (out / "shard-00001.h5").unlink()  # force one shard to be rendered again
     before = {p.name: p.read_bytes() for p in out.iterdir()}
 
     def no_space(*a, **k):
@@ -132,6 +135,7 @@ def test_disk_full_leaves_existing_dataset_untouched(tmp_path, small_overrides, 
 def _enospc_after(n_ok: int, monkeypatch, module, name: str, partial: bool):
     """Make ``module.name`` fail with ENOSPC from its (n_ok + 1)-th call on, after writing half the bytes."""
     import errno
+
     real = getattr(module, name)
     calls = {"n": 0}
 
@@ -142,22 +146,25 @@ def _enospc_after(n_ok: int, monkeypatch, module, name: str, partial: bool):
         if partial:
             Path(path).write_bytes(bytes(data[: len(data) // 2]))
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
     monkeypatch.setattr(module, name, full_disk)
 
 
 @pytest.mark.parametrize("where", ["shard", "manifest"])
-def test_a_full_disk_stops_with_one_line_and_a_rerun_resumes(tmp_path, small_overrides, small_dataset, capsys,
-                                                             monkeypatch, where):
+def test_a_full_disk_stops_with_one_line_and_a_rerun_resumes(
+    tmp_path, small_overrides, small_dataset, capsys, monkeypatch, where
+):
     """Issue 21: ENOSPC printed its line, then the interpreter crashed in HDF5's teardown (exit 139)."""
-    from skygen.datasets import shards as skio
     from skygen.cli import main
+    from skygen.datasets import shards as skio
     from skygen.errors import SkygenError
+
     out = tmp_path / "full"
     args = ["render", "--n", "50", "--out", str(out), "--workers", "1", "--quiet"]
     args += sum((["--set", o] for o in small_overrides), [])
-    if where == "shard":      # the shard writer runs out of space half-way through its third shard
+    if where == "shard":  # the shard writer runs out of space half-way through its third shard
         _enospc_after(2, monkeypatch, skio, "_write_bytes", partial=True)
-    else:                     # the manifest after the second shard cannot be written
+    else:  # the manifest after the second shard cannot be written
         _enospc_after(2, monkeypatch, dsmod, "write_json_atomic", partial=False)
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
@@ -165,10 +172,10 @@ def test_a_full_disk_stops_with_one_line_and_a_rerun_resumes(tmp_path, small_ove
     with pytest.raises(SkygenError, match="the disk is full"):
         render_dataset(load_config(overrides=small_overrides + ["n_frames=50"]), out, progress=False)
     shards = sorted(out.glob("shard-*.h5"))
-    assert shards and all(validate(p).ok for p in shards)         # whatever is named shard-*.h5 is whole
+    assert shards and all(validate(p).ok for p in shards)  # whatever is named shard-*.h5 is whole
     assert not list(out.glob(".*tmp*"))
     assert not json.loads((out / "manifest.json").read_text())["complete"]
-    monkeypatch.undo()                                            # space freed
+    monkeypatch.undo()  # space freed
     assert main(args) == 0
     assert validate(out).ok and same_data(small_dataset, out)
 
@@ -193,6 +200,7 @@ def test_splits_are_contiguous_and_complete(small_dataset):
 
 def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dataset):
     from skygen.datasets.merge import merge_datasets
+
     cfg = load_config(overrides=small_overrides + ["n_frames=50"])
     for i in range(2):
         render_dataset(cfg, tmp_path / f"part{i}", workers=1, slice_index=i, num_slices=2, progress=False)
@@ -205,22 +213,28 @@ def test_merge_slices_from_separate_folders(tmp_path, small_overrides, small_dat
 
 def test_merge_compatible_datasets_and_refuse_others(tmp_path, small_overrides, small_dataset):
     from skygen.datasets.merge import merge_datasets
+
     render_dataset(load_config(overrides=small_overrides + ["n_frames=30", "seed=7"]), tmp_path / "b", progress=False)
     man = merge_datasets([small_dataset, tmp_path / "b"], tmp_path / "ab")
     assert man["n_frames"] == 80 and len(man["sources"]) == 2
     assert validate(tmp_path / "ab").ok
     with open_dataset(tmp_path / "ab") as ds:
         assert len(ds) == 80 and len(ds.indices("train")) == 40 + 24
-    render_dataset(load_config(overrides=small_overrides + ["n_frames=20", "sensor.gain_e_per_adu=2"]),
-                   tmp_path / "c", progress=False)
+    render_dataset(
+        load_config(overrides=small_overrides + ["n_frames=20", "sensor.gain_e_per_adu=2"]),
+        tmp_path / "c",
+        progress=False,
+    )
     with pytest.raises(DatasetError, match="sensor.gain_e_per_adu"):
         merge_datasets([small_dataset, tmp_path / "c"], tmp_path / "ac")
 
 
 def test_skygen_reads_without_torch(small_dataset):
-    code = ("import sys; sys.modules['torch'] = None\n"
-            "from skygen.datasets.shards import open_dataset; from skygen.datasets.validate import validate\n"
-            f"ds = open_dataset({str(small_dataset)!r}); ds.image(3); assert validate({str(small_dataset)!r}).ok\n")
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from skygen.datasets.shards import open_dataset; from skygen.datasets.validate import validate\n"
+        f"ds = open_dataset({str(small_dataset)!r}); ds.image(3); assert validate({str(small_dataset)!r}).ok\n"
+    )
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
@@ -248,6 +262,7 @@ def test_merge_refuses_datasets_that_share_frames(tmp_path, small_overrides, sma
     merged dataset would hold them twice; skygen merge refuses, naming the fix."""
     from skygen.cli import main
     from skygen.identity import dataset_frame_ids
+
     render_dataset(load_config(overrides=small_overrides + ["n_frames=30"]), tmp_path / "b", progress=False)
     assert main(["merge", str(small_dataset), str(tmp_path / "b"), "--out", str(tmp_path / "ab")]) == 2
     err = capsys.readouterr().err
@@ -255,8 +270,8 @@ def test_merge_refuses_datasets_that_share_frames(tmp_path, small_overrides, sma
     assert not (tmp_path / "ab" / "manifest.json").exists()
     with open_dataset(small_dataset) as a, open_dataset(tmp_path / "b") as b:
         shared = np.intersect1d(a.frames["frame_id"], b.frames["frame_id"])
-        assert len(shared) == 24 + 3 + 3            # b's whole train, val and test splits
-        for split in ("train", "val", "test"):      # never across splits
+        assert len(shared) == 24 + 3 + 3  # b's whole train, val and test splits
+        for split in ("train", "val", "test"):  # never across splits
             ia, ib = a.indices(split), b.indices(split)
             assert np.array_equal(a.image(int(ia[0])), b.image(int(ib[0])))
-        assert np.array_equal(dataset_frame_ids(a.config), a.frames["frame_id"])   # ids follow from the config
+        assert np.array_equal(dataset_frame_ids(a.config), a.frames["frame_id"])  # ids follow from the config

@@ -14,14 +14,15 @@ datasets = pytest.importorskip("datasets", reason="dev extra: pip install -e '.[
 @pytest.fixture(scope="module")
 def hf_rows(small_dataset, tmp_path_factory):
     files = sorted(str(p) for p in small_dataset.glob("shard-*.h5"))
-    return datasets.load_dataset("hdf5", data_files=files, split="train",
-                                 cache_dir=str(tmp_path_factory.mktemp("hf-cache")))
+    return datasets.load_dataset(
+        "hdf5", data_files=files, split="train", cache_dir=str(tmp_path_factory.mktemp("hf-cache"))
+    )
 
 
 def test_datasets_loads_shards_with_the_same_rows_as_skygen(small_dataset, hf_rows):
     with open_dataset(small_dataset) as ds:
         assert len(hf_rows) == len(ds) == 50
-        for i in (0, 7, 19, 20, 49):          # across shard boundaries (20 frames per shard)
+        for i in (0, 7, 19, 20, 49):  # across shard boundaries (20 frames per shard)
             row = hf_rows[i]
             assert np.array_equal(np.asarray(row["images"], np.uint16), ds.image(i))
             assert row["frames"]["index"] == ds.frames["index"][i]
@@ -42,14 +43,27 @@ def test_croissant_card_validates_and_names_the_loaded_columns(small_dataset, hf
     assert not meta.ctx.issues.errors and not meta.ctx.issues.warnings, meta.ctx.issues.report()
     card = json.loads((small_dataset / "croissant.json").read_text())
     assert card["conformsTo"] == "http://mlcommons.org/croissant/1.1"
-    columns = {f"{g}/{k}" if isinstance(v, dict) else g
-               for g, v in hf_rows.features.items() for k in (v if isinstance(v, dict) else [None])}
+    columns = {
+        f"{g}/{k}" if isinstance(v, dict) else g
+        for g, v in hf_rows.features.items()
+        for k in (v if isinstance(v, dict) else [None])
+    }
     named = {f["source"]["extract"]["column"] for f in card["recordSet"][0]["field"]}
     assert named <= columns and {"images", "frames/frame_id", "detections/x_px"} <= named
 
 
 def test_readme_card_says_what_how_camera_splits_licence_and_loading(small_dataset):
     text = (small_dataset / "README.md").read_text()
-    for words in ("## How it was made", "## Camera", "## Splits", "## Licence", "Hipparcos", "## How to load",
-                  "h5py", "open_dataset", "load_dataset(\"hdf5\"", "train 40, val 5, test 5"):
+    for words in (
+        "## How it was made",
+        "## Camera",
+        "## Splits",
+        "## Licence",
+        "Hipparcos",
+        "## How to load",
+        "h5py",
+        "open_dataset",
+        'load_dataset("hdf5"',
+        "train 40, val 5, test 5",
+    ):
         assert words in text, words

@@ -25,21 +25,21 @@ def frame_with_stars(xs, ys, flux, seed=0, size=512):
 
 def test_centroid_recovery_of_bright_stars():
     rng = np.random.default_rng(0)
-    gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)   # well separated
+    gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)  # well separated
     xs, ys = gx.ravel() + rng.uniform(-0.5, 0.5, 30), gy.ravel() + rng.uniform(-0.5, 0.5, 30)
     img = frame_with_stars(xs, ys, 20000.0)
     det, bg, sigma = detect(img)
     idx = match(det["x_px"], det["y_px"], xs, ys, np.ones(30), 2.0)
     assert (idx >= 0).sum() == 30
     err = np.hypot(det["x_px"][idx >= 0] - xs[idx[idx >= 0]], det["y_px"][idx >= 0] - ys[idx[idx >= 0]])
-    assert np.sqrt(np.mean(err ** 2)) < 0.05
+    assert np.sqrt(np.mean(err**2)) < 0.05
 
 
 def test_background_and_noise_estimate():
     img = frame_with_stars([], [], 0.0)
     s = load_config().sensor
     bg, sigma = estimate_background(img)
-    expected = np.sqrt((7.7 + s.read_noise_e ** 2) / s.gain_e_per_adu ** 2 + 1 / 12 + s.fpn_adu ** 2)
+    expected = np.sqrt((7.7 + s.read_noise_e**2) / s.gain_e_per_adu**2 + 1 / 12 + s.fpn_adu**2)
     assert abs(bg - (s.bias_adu + 7.7 / s.gain_e_per_adu - 0.5)) < 0.2
     assert abs(sigma / expected - 1) < 0.1
 
@@ -55,15 +55,15 @@ def test_brightest_first_and_match_is_one_to_one():
     both = np.maximum(img, img2)
     det, _, _ = detect(both)
     assert np.all(np.diff(det["flux_adu"]) <= 0)
-    idx = match(det["x_px"], det["y_px"], np.array([100.0, 100.5]), np.array([100.0, 100.0]),
-                np.array([1.0, 2.0]), 2.0)
-    assert sorted(idx[idx >= 0].tolist()) == [1]     # two stars, one detection: brightest claims it
+    idx = match(det["x_px"], det["y_px"], np.array([100.0, 100.5]), np.array([100.0, 100.0]), np.array([1.0, 2.0]), 2.0)
+    assert sorted(idx[idx >= 0].tolist()) == [1]  # two stars, one detection: brightest claims it
 
 
 def test_local_background_follows_a_sky_gradient():
     """Sky glow rising 80 ADU across the frame (ground frames): one global level loses the stars on
     the dark side under a sea of false pixels on the bright side; the box background finds every star."""
     from skygen.instrument.detect import background_map
+
     rng = np.random.default_rng(2)
     gx, gy = np.meshgrid(np.arange(6) * 80 + 40.0, np.arange(5) * 90 + 40.0)
     xs, ys = gx.ravel() + rng.uniform(-0.5, 0.5, 30), gy.ravel() + rng.uniform(-0.5, 0.5, 30)
@@ -73,10 +73,10 @@ def test_local_background_follows_a_sky_gradient():
     bg_flat, _ = estimate_background(flat)
     level, sigma = background_map(img, 64)
     assert level.shape == img.shape
-    assert np.abs(level - (bg_flat + ramp)).max() < 3.0                  # the ramp is followed
+    assert np.abs(level - (bg_flat + ramp)).max() < 3.0  # the ramp is followed
     det_global, _, _ = detect(img)
     det_local, _, _ = detect(img, background_box_px=64)
-    found = lambda d: (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) >= 0).sum()   # noqa: E731
+    found = lambda d: (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) >= 0).sum()  # noqa: E731
     assert found(det_global) < 25
     assert found(det_local) == 30 and len(det_local["x_px"]) <= 31
     # on a flat frame the local background gives the global detections
@@ -84,8 +84,8 @@ def test_local_background_follows_a_sky_gradient():
     b, _, _ = detect(flat, background_box_px=64)
     assert len(a["x_px"]) == len(b["x_px"]) == 30
     ia, ib = (match(d["x_px"], d["y_px"], xs, ys, np.ones(30), 2.0) for d in (a, b))
-    pos = lambda d, i: np.column_stack([d["x_px"], d["y_px"]])[np.argsort(i)]     # noqa: E731  (true-star order)
-    np.testing.assert_allclose(pos(b, ib), pos(a, ia), atol=0.05)   # box levels differ by noise
+    pos = lambda d, i: np.column_stack([d["x_px"], d["y_px"]])[np.argsort(i)]  # noqa: E731  (true-star order)
+    np.testing.assert_allclose(pos(b, ib), pos(a, ia), atol=0.05)  # box levels differ by noise
 
 
 @pytest.mark.parametrize("shape", [(768, 1024), (100, 70), (65, 64)])
@@ -93,7 +93,9 @@ def test_separable_background_interpolation_equals_bilinear_map_coordinates(shap
     """background_map interpolates its box mesh as weights @ mesh @ weights.T: the numbers of
     ndimage.map_coordinates(order=1) at the same fractional indices."""
     from scipy import ndimage
+
     from skygen.instrument.detect import _linear_weights
+
     rng = np.random.default_rng(1)
     h, w = shape
     pos_y = np.sort(rng.uniform(0, 9, h))
@@ -109,16 +111,21 @@ def test_box_backgrounds_at_once_equal_the_per_box_estimates(shape, box):
     noise of estimate_background, up to float32 summation order, including boxes holding a bright star
     (clipped away) and a quantised sky; partial edge boxes still go one at a time."""
     from skygen.instrument.detect import _whole_box_backgrounds, estimate_background
+
     rng = np.random.default_rng(4)
     h, w = shape
     yy, xx = np.mgrid[0:h, 0:w]
-    img = np.round(200 + 0.03 * xx + rng.normal(0, 3, shape))             # a gradient, integer ADU
-    img[h // 3:h // 3 + 4, w // 2:w // 2 + 4] += 5000                      # a star
+    img = np.round(200 + 0.03 * xx + rng.normal(0, 3, shape))  # a gradient, integer ADU
+    img[h // 3 : h // 3 + 4, w // 2 : w // 2 + 4] += 5000  # a star
     stride = 2 if box >= 32 else 1
     fy, fx = h // box, w // box
     level, sigma = _whole_box_backgrounds(img, box, stride, fy, fx)
-    ref = np.array([[estimate_background(img[i * box:(i + 1) * box, j * box:(j + 1) * box], stride)
-                     for j in range(fx)] for i in range(fy)])
+    ref = np.array(
+        [
+            [estimate_background(img[i * box : (i + 1) * box, j * box : (j + 1) * box], stride) for j in range(fx)]
+            for i in range(fy)
+        ]
+    )
     np.testing.assert_allclose(level, ref[..., 0], rtol=1e-6)
     np.testing.assert_allclose(sigma, ref[..., 1], rtol=1e-5)
-    assert np.all(np.abs(sigma - 3) < 1.0)          # the star is clipped: the noise stays the sky's
+    assert np.all(np.abs(sigma - 3) < 1.0)  # the star is clipped: the noise stays the sky's

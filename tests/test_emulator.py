@@ -16,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skygen.stream import calibration as cal
-from skygen.stream import emulator as emu
 from skygen import hashrng
 from skygen.config import load_config
 from skygen.render.frame import Renderer
+from skygen.stream import calibration as cal
+from skygen.stream import emulator as emu
 
 N_FRAMES = 160
 
@@ -36,7 +36,10 @@ def pairs():
     st = [f.stars for f in frames]
     fr = np.concatenate([np.full(len(s["x_px"]), k) for k, s in enumerate(st)])
     rows = np.concatenate([np.arange(len(s["x_px"])) for s in st])
-    cat = lambda k: np.concatenate([s[k] for s in st]).astype(np.float64)
+
+    def cat(k):
+        return np.concatenate([s[k] for s in st]).astype(np.float64)
+
     key = hashrng.stream_key(0, "@emulator-test")
     em = model.emulate(key, fr, rows, fr, cat("x_px"), cat("y_px"), cat("electrons"))
     sp = model.spurious_detections(key, np.arange(N_FRAMES), 1 << 40, cfg.camera.width_px, cfg.camera.height_px)
@@ -126,6 +129,7 @@ def test_blending_matches_the_real_detector(pairs):
     from skygen.instrument.detect import detect
     from skygen.instrument.psf import add_patch, gaussian_stamps
     from skygen.instrument.sensor import Exposure, read_out
+
     cfg, model = pairs[0], pairs[1]
     r = Renderer(cfg)
     rng = np.random.default_rng(7)
@@ -138,10 +142,15 @@ def test_blending_matches_the_real_detector(pairs):
                 img = np.zeros((cfg.camera.height_px, cfg.camera.width_px), np.float32)
                 x0, y0, ang = 500 + rng.random(), 500 + rng.random(), rng.uniform(0, np.pi)
                 xs, ys = np.array([x0, x0 + d * np.cos(ang)]), np.array([y0, y0 + d * np.sin(ang)])
-                boxes = [add_patch(img, y, x, p) for y, x, p in
-                         gaussian_stamps(xs, ys, np.full(2, mult * model.threshold_e), cfg.optics.psf_sigma_px)]
-                full, _ = read_out(Exposure(img, None, [b for b in boxes if b], r.background_e, None), cfg.sensor,
-                                   r.maps, rng, 0.0)
+                boxes = [
+                    add_patch(img, y, x, p)
+                    for y, x, p in gaussian_stamps(
+                        xs, ys, np.full(2, mult * model.threshold_e), cfg.optics.psf_sigma_px
+                    )
+                ]
+                full, _ = read_out(
+                    Exposure(img, None, [b for b in boxes if b], r.background_e, None), cfg.sensor, r.maps, rng, 0.0
+                )
                 det, _, _ = detect(full, cfg.detection.threshold_sigma, cfg.detection.min_area_px, 64)
                 two += int((np.hypot(det["x_px"] - x0, det["y_px"] - y0) < d + 4).sum() >= 2)
             split.append(two / 16)
@@ -151,6 +160,7 @@ def test_blending_matches_the_real_detector(pairs):
 
 def test_fit_from_a_dataset_matches_render_fit(tmp_path):
     from skygen.datasets.build import render_dataset
+
     cfg = load_config(overrides=["n_frames=40", "output.shard_size=40"])
     render_dataset(cfg, tmp_path / "ds", workers=1, progress=False)
     model = cal.calibrate_from_dataset(tmp_path / "ds")

@@ -26,7 +26,7 @@ def test_pair_index_holds_every_close_pair_once_sorted():
     assert len(got) == len(set(got)) == len(want) and set(got) == want
     assert np.all(np.diff(idx.sep) >= 0) and np.all(idx.first < idx.second)
     np.testing.assert_allclose(idx.sep, sep[idx.first, idx.second], atol=1e-12)
-    lo, hi = idx.range(0.1, 0.12)                              # a range is exactly the pairs in it
+    lo, hi = idx.range(0.1, 0.12)  # a range is exactly the pairs in it
     assert set(got[lo:hi]) == {(a, b) for a, b in want if 0.1 <= sep[a, b] <= 0.12}
 
 
@@ -40,9 +40,9 @@ def test_pair_index_cache_is_reused_never_confused_and_rebuilt_when_damaged(tmp_
     again = load_or_build(vec, 0.3, tmp_path)
     np.testing.assert_array_equal(again.sep, first.sep)
     monkeypatch.setattr(pairs_mod, "build_index", real_build)
-    other = load_or_build(random_catalogue(200, seed=1), 0.3, tmp_path)          # another catalogue cut
+    other = load_or_build(random_catalogue(200, seed=1), 0.3, tmp_path)  # another catalogue cut
     assert other.key != first.key and len(list(tmp_path.glob("pairs-*.npz"))) == 2
-    files[0].write_bytes(b"not a zip")                                          # damaged
+    files[0].write_bytes(b"not a zip")  # damaged
     lines = []
     fixed = load_or_build(vec, 0.3, tmp_path, log=lines.append)
     np.testing.assert_array_equal(fixed.sep, first.sep)
@@ -67,22 +67,25 @@ def test_compiled_scores_equal_brute_force(s):
     """Every hypothesis of an anchor pair scores as projecting all detections would (j through B)."""
     rng = np.random.default_rng(3)
     vec = random_catalogue(3000, seed=2)
-    tol = 2.0 / 2900.0                                      # 2 px at a 2,900 px focal length
+    tol = 2.0 / 2900.0  # 2 px at a 2,900 px focal length
     # a true attitude, the catalogue stars in its 20 deg field as detections (+ 2 false ones), at focal factor 1.01
     boresight = vec[7]
     cam_z = boresight
-    cam_x = np.cross([0, 0, 1.0], cam_z); cam_x /= np.linalg.norm(cam_x)
+    cam_x = np.cross([0, 0, 1.0], cam_z)
+    cam_x /= np.linalg.norm(cam_x)
     cam_y = np.cross(cam_z, cam_x)
-    rot = np.column_stack([cam_x, cam_y, cam_z])                 # camera -> sky
+    rot = np.column_stack([cam_x, cam_y, cam_z])  # camera -> sky
     cam = vec @ rot
-    inside = np.flatnonzero((cam[:, 2] > 0) & (np.abs(cam[:, 0] / cam[:, 2]) < 0.17) &
-                            (np.abs(cam[:, 1] / cam[:, 2]) < 0.17))[:6]
+    inside = np.flatnonzero(
+        (cam[:, 2] > 0) & (np.abs(cam[:, 0] / cam[:, 2]) < 0.17) & (np.abs(cam[:, 1] / cam[:, 2]) < 0.17)
+    )[:6]
     t = cam[inside, :2] / cam[inside, 2:3] * (1.01 if s else 1.0) + rng.normal(0, 0.05 * tol, (len(inside), 2))
     t = np.vstack([t, rng.uniform(-0.17, 0.17, (2, 2))])
     n = len(t)
     idx = build_index(vec, 0.7)
     i, j = 0, 1
-    u = np.column_stack([t, np.ones(n)]); u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u = np.column_stack([t, np.ones(n)])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
     d = math.acos(u[i] @ u[j])
     lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
     tol_n = (tol + min(s, 2 * tol / d) * np.hypot(*(t - t[i]).T)) if s else np.full(n, tol)
@@ -91,16 +94,35 @@ def test_compiled_scores_equal_brute_force(s):
     for k in range(n):
         if k in (i, j):
             continue
-        o, p, q = partner_table(0, len(idx), idx.first, idx.second, idx.sep, len(vec))   # every pair: a superset
+        o, p, q = partner_table(0, len(idx), idx.first, idx.second, idx.sep, len(vec))  # every pair: a superset
         offs[k] = o + base
-        parts.append(p); seps.append(q); base += len(p)
-    tried, A, B, K, S, R = anchor_hypotheses(i, j, t, lo, hi, idx.first, idx.second, idx.sep, vec,
-                                             np.ones(len(vec), bool), s, tol_n, offs, np.concatenate(parts),
-                                             np.concatenate(seps), np.array([0, 0, 1.0]), -1.0, 0)
+        parts.append(p)
+        seps.append(q)
+        base += len(p)
+    tried, A, B, K, S, R = anchor_hypotheses(
+        i,
+        j,
+        t,
+        lo,
+        hi,
+        idx.first,
+        idx.second,
+        idx.sep,
+        vec,
+        np.ones(len(vec), bool),
+        s,
+        tol_n,
+        offs,
+        np.concatenate(parts),
+        np.concatenate(seps),
+        np.array([0, 0, 1.0]),
+        -1.0,
+        0,
+    )
     assert tried == 2 * (hi - lo) == len(A) > 0
     for a, b, kf, score, r in zip(A, B, K, S, R):
         want, r_want = brute_force_scores(t, i, j, a, b, kf, vec, tol_n)
         assert score == want, (a, b)
         np.testing.assert_allclose(r, r_want, atol=1e-12)
     truth = np.flatnonzero((A == inside[0]) & (B == inside[1]))
-    assert len(truth) == 1 and S[truth[0]] == len(inside)          # the true hypothesis matches every real star
+    assert len(truth) == 1 and S[truth[0]] == len(inside)  # the true hypothesis matches every real star

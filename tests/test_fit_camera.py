@@ -20,23 +20,37 @@ REAL = ROOT / "real-frames" / "tetra3-blackfly"
 BLACKFLY = ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml"
 
 # the truth of the synthetic check: tall pixels, barrel distortion, a strong gradient
-TRUTH = {"camera": {"width_px": 512, "height_px": 256, "pixel_pitch_um": 11.0, "fov_deg": 16.0, "pixel_aspect": 2.0,
-                    "k1": 0.6},
-         "optics": {"psf_sigma_px": 1.3},
-         "sensor": {"exposure_s": 0.4, "gain_e_per_adu": 3.3, "read_noise_e": 5.0, "bias_adu": 100},
-         "corruptions": {"stray_light": 2500.0, "cosmic_rays": 0.0, "hotpixels": 2e-4},
-         "detection": {"max_detections": 200}, "output": {"image_size_px": 128}}
+TRUTH = {
+    "camera": {
+        "width_px": 512,
+        "height_px": 256,
+        "pixel_pitch_um": 11.0,
+        "fov_deg": 16.0,
+        "pixel_aspect": 2.0,
+        "k1": 0.6,
+    },
+    "optics": {"psf_sigma_px": 1.3},
+    "sensor": {"exposure_s": 0.4, "gain_e_per_adu": 3.3, "read_noise_e": 5.0, "bias_adu": 100},
+    "corruptions": {"stray_light": 2500.0, "cosmic_rays": 0.0, "hotpixels": 2e-4},
+    "detection": {"max_detections": 200},
+    "output": {"image_size_px": 128},
+}
 
 
 def _write_truth(folder: Path, n: int = 5) -> Path:
     from skygen.config import build_config
     from skygen.render.frame import Renderer
+
     cfg = build_config({**TRUTH, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
         cv2.imwrite(str(folder / f"frame{i}.png"), r.render(i).image_full.astype(np.uint16))
-    start = {"camera": {**TRUTH["camera"], "fov_deg": 16.0 * 1.01, "k1": 0.0},    # 1 % off, no distortion
-             "sensor": {"read_noise_e": 5.0}, "corruptions": {"cosmic_rays": 0.0}, "output": {"image_size_px": 128}}
+    start = {
+        "camera": {**TRUTH["camera"], "fov_deg": 16.0 * 1.01, "k1": 0.0},  # 1 % off, no distortion
+        "sensor": {"read_noise_e": 5.0},
+        "corruptions": {"cosmic_rays": 0.0},
+        "output": {"image_size_px": 128},
+    }
     (folder / "start.yaml").write_text(yaml.safe_dump(start))
     return folder
 
@@ -45,11 +59,25 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
     """About 12 s on one core: five 512 x 256 frames, tall pixels, k1 = 0.6, a 1000 e- gradient."""
     folder = _write_truth(tmp_path)
     out = tmp_path / "fitted.yaml"
-    assert main(["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out),
-                 "--report", str(tmp_path / "rep")]) == 0
+    assert (
+        main(
+            [
+                "fit-camera",
+                str(folder),
+                "--camera",
+                str(folder / "start.yaml"),
+                "--out",
+                str(out),
+                "--report",
+                str(tmp_path / "rep"),
+            ]
+        )
+        == 0
+    )
     fit = load_config(out)
     c = fit.camera
     from skygen.instrument.camera import Camera
+
     fov = Camera.from_config(c).fov_deg[0]
     # the fitted pinhole field against the true one; the fit sees distortion and focal length together
     assert fov == pytest.approx(16.0, rel=0.003)
@@ -63,6 +91,7 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
     rep = (tmp_path / "rep" / "REPORT.md").read_text()
     assert "residual" in rep and (tmp_path / "rep" / "fit.png").is_file()
     import json
+
     rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
     assert rec["geometry"]["rms_px"] < 0.3
     cmp = rec["compare"]
@@ -82,9 +111,23 @@ def test_two_real_frames(tmp_path):
     """Loose tolerances (two frames); the full numbers on eight: results/real-frames/FIT_CAMERA.md."""
     names = sorted(_listed())[2:4]
     out = tmp_path / "bf.yaml"
-    assert main(["fit-camera", *[str(REAL / n) for n in names], "--camera", str(BLACKFLY), "--out", str(out),
-                 "--report", str(tmp_path / "rep")]) == 0
+    assert (
+        main(
+            [
+                "fit-camera",
+                *[str(REAL / n) for n in names],
+                "--camera",
+                str(BLACKFLY),
+                "--out",
+                str(out),
+                "--report",
+                str(tmp_path / "rep"),
+            ]
+        )
+        == 0
+    )
     import json
+
     rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
     assert len(rec["solved"]) == 2
     assert rec["geometry"]["fov_deg"] == pytest.approx(np.mean([_listed()[n] for n in names]), abs=0.05)
@@ -106,7 +149,10 @@ def test_frames_of_different_sizes_are_refused(tmp_path, capsys):
     rng = np.random.default_rng(0)
     a = _frame(tmp_path / "a.png", rng.integers(0, 60000, (64, 80)).astype(np.uint16))
     b = _frame(tmp_path / "b.png", rng.integers(0, 60000, (64, 96)).astype(np.uint16))
-    assert main(["fit-camera", a, b, "--fov-range", "10", "20", "--pixel-pitch", "5", "--out", str(tmp_path / "c.yaml")]) == 2
+    assert (
+        main(["fit-camera", a, b, "--fov-range", "10", "20", "--pixel-pitch", "5", "--out", str(tmp_path / "c.yaml")])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "different sizes" in err[0]
 
@@ -120,9 +166,17 @@ def test_blank_saturated_colour_and_starless_frames_are_dropped_with_reasons(tmp
     colour = _frame(tmp_path / "colour.png", rng.integers(0, 255, (96, 128, 3)).astype(np.uint8))
     noise = _frame(tmp_path / "noise.png", (rng.normal(1000, 20, (96, 128))).astype(np.uint16))
     start = tmp_path / "start.yaml"
-    start.write_text(yaml.safe_dump({"camera": {"width_px": 128, "height_px": 96, "pixel_pitch_um": 5.0,
-                                                "fov_deg": 10.0}, "output": {"image_size_px": 32}}))
-    assert main(["fit-camera", blank, sat, colour, noise, "--camera", str(start), "--out", str(tmp_path / "c.yaml")]) == 2
+    start.write_text(
+        yaml.safe_dump(
+            {
+                "camera": {"width_px": 128, "height_px": 96, "pixel_pitch_um": 5.0, "fov_deg": 10.0},
+                "output": {"image_size_px": 32},
+            }
+        )
+    )
+    assert (
+        main(["fit-camera", blank, sat, colour, noise, "--camera", str(start), "--out", str(tmp_path / "c.yaml")]) == 2
+    )
     err = capsys.readouterr().err
     assert "blank frame" in err and "saturated frame" in err and "too few stars" in err
     # a colour frame is read as one plane, saying so, then judged like the others (noise: too few stars)
@@ -136,25 +190,42 @@ def test_fov_range_and_pixel_pitch_bounds(tmp_path, capsys):
     f = _frame(tmp_path / "a.png", np.random.default_rng(2).integers(0, 4000, (64, 64)).astype(np.uint16))
     assert main(["fit-camera", f, "--fov-range", "20", "10", "--out", str(tmp_path / "c.yaml")]) == 2
     assert "LO < HI" in capsys.readouterr().err
-    assert main(["fit-camera", f, "--fov-range", "10", "20", "--pixel-pitch", "0", "--out", str(tmp_path / "c.yaml")]) == 2
+    assert (
+        main(["fit-camera", f, "--fov-range", "10", "20", "--pixel-pitch", "0", "--out", str(tmp_path / "c.yaml")]) == 2
+    )
     assert "--pixel-pitch 0" in capsys.readouterr().err
 
 
 @pytest.mark.slow
 def test_a_field_range_without_the_solution_says_so(tmp_path, capsys):
     name = sorted(_listed())[6]
-    assert main(["fit-camera", str(REAL / name), "--fov-range", "25", "30", "--pixel-pitch", "6.9",
-                 "--out", str(tmp_path / "c.yaml")]) == 2
+    assert (
+        main(
+            [
+                "fit-camera",
+                str(REAL / name),
+                "--fov-range",
+                "25",
+                "30",
+                "--pixel-pitch",
+                "6.9",
+                "--out",
+                str(tmp_path / "c.yaml"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert "no lost-in-space solution" in err[-1] and "field-of-view range" in err[-1]
 
 
 def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
     """Distortion and principal point from one frame are fixed, with the reason, not over-fitted."""
+    from skygen.instrument.camera import Camera
     from skygen.real import fit_geometry as G
     from skygen.sky.attitude import attitude_matrix
-    from skygen.instrument.camera import Camera
     from skygen.sky.catalog import SkyIndex, load_catalog
+
     cam = Camera(640, 480, 2400.0, 319.5, 239.5)
     sky = SkyIndex(load_catalog(), 2024.0, 7.0)
     R = attitude_matrix(83.0, -5.0, 10.0)
@@ -162,8 +233,11 @@ def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
     x, y, front = cam.project(sky.vectors[idx] @ R)
     ok = front & cam.inside(x, y)
     rng = np.random.default_rng(0)
-    det = {"x_px": x[ok] + rng.normal(0, 0.1, ok.sum()), "y_px": y[ok] + rng.normal(0, 0.1, ok.sum()),
-           "flux_adu": np.ones(ok.sum())}
+    det = {
+        "x_px": x[ok] + rng.normal(0, 0.1, ok.sum()),
+        "y_px": y[ok] + rng.normal(0, 0.1, ok.sum()),
+        "flux_adu": np.ones(ok.sum()),
+    }
     assert ok.sum() >= 8
     fs = G.FrameSolution("one", det, R @ G._rotvec(np.array([1e-4, -2e-4, 3e-4])))
     g = G.fit_geometry([fs], cam, sky, 3.0)
@@ -175,13 +249,27 @@ def test_fit_degrades_gracefully_with_one_frame_of_few_stars():
 def _renders_of_another_lens(folder: Path, n: int, focal_mm: float = 25.0) -> list[str]:
     """``n`` renders of the Blackfly sensor behind a ``focal_mm`` lens, stored as the real frames are (12 bit x 16)."""
     from skygen.render.frame import Renderer
-    cfg = load_config(BLACKFLY, [f"camera.focal_length_mm={focal_mm}", "output.full_res=true", f"n_frames={n}",
-                                 "seed=5", "sensor.exposure_s=0.5", "corruptions.cosmic_rays=0"])
+
+    cfg = load_config(
+        BLACKFLY,
+        [
+            f"camera.focal_length_mm={focal_mm}",
+            "output.full_res=true",
+            f"n_frames={n}",
+            "seed=5",
+            "sensor.exposure_s=0.5",
+            "corruptions.cosmic_rays=0",
+        ],
+    )
     r = Renderer(cfg)
     paths = []
     for i in range(n):
-        paths.append(_frame(folder / f"render{focal_mm:g}mm_{i}.tiff",
-                            (r.render(i).image_full.astype(np.uint32) * 16).clip(0, 65535).astype(np.uint16)))
+        paths.append(
+            _frame(
+                folder / f"render{focal_mm:g}mm_{i}.tiff",
+                (r.render(i).image_full.astype(np.uint32) * 16).clip(0, 65535).astype(np.uint16),
+            )
+        )
     return paths
 
 
@@ -191,6 +279,7 @@ def test_a_frame_of_another_lens_is_dropped_by_name_and_the_fit_is_the_others(tm
     from skygen.instrument.camera import Camera
     from skygen.real import fit_camera as F
     from skygen.sky.catalog import SkyIndex, load_catalog
+
     real = [str(REAL / n) for n in sorted(_listed())[:3]]
     other = _renders_of_another_lens(tmp_path, 1)
     said = []
@@ -203,9 +292,9 @@ def test_a_frame_of_another_lens_is_dropped_by_name_and_the_fit_is_the_others(tm
         return fr, solved, F.fit_joint_geometry(solved, cam0, None, sky, fr, said.append)
 
     fr, solved, (g, kept) = geometry(real + other)
-    assert len(solved) == 4                                         # the render solves, on its own, at 16 deg
+    assert len(solved) == 4  # the render solves, on its own, at 16 deg
     assert [fs.name for fs in kept] == real and fr.other_camera == set(other)
-    (_, why), = [d for d in fr.dropped if d[0] == other[0]]
+    ((_, why),) = [d for d in fr.dropped if d[0] == other[0]]
     assert "match catalogue stars under the fitted camera" in why and "another camera or lens" in why
     assert any(line.startswith(f"fit-camera: dropped {other[0]}: only ") for line in said)
     assert g.camera.fov_deg[0] == pytest.approx(np.mean([_listed()[Path(n).name] for n in real]), abs=0.05)
@@ -217,11 +306,28 @@ def test_frames_of_two_cameras_without_a_majority_are_refused(tmp_path, capsys):
     """One real frame, one render at 25 mm, the field searched: neither camera is the majority (about 6 s)."""
     real = str(REAL / min(_listed()))
     other = _renders_of_another_lens(tmp_path, 1)[0]
-    assert main(["fit-camera", real, other, "--fov-range", "11", "17", "--pixel-pitch", "6.9",
-                 "--out", str(tmp_path / "c.yaml")]) == 2
+    assert (
+        main(
+            [
+                "fit-camera",
+                real,
+                other,
+                "--fov-range",
+                "11",
+                "17",
+                "--pixel-pitch",
+                "6.9",
+                "--out",
+                str(tmp_path / "c.yaml"),
+            ]
+        )
+        == 2
+    )
     last = capsys.readouterr().err.strip().splitlines()[-1]
-    assert last.startswith("skygen fit-camera: error: frames of more than one camera? only 1 of 2 solved frames "
-                           "agree with the fitted camera")
+    assert last.startswith(
+        "skygen fit-camera: error: frames of more than one camera? only 1 of 2 solved frames "
+        "agree with the fitted camera"
+    )
     assert "render25mm_0.tiff" in last and last.endswith("give the frames of one camera and lens")
     assert not (tmp_path / "c.yaml").exists()
 
@@ -233,14 +339,19 @@ def test_disagreements_name_each_reason():
     from skygen.instrument.camera import Camera
     from skygen.real import fit_camera as F
     from skygen.real.fit_geometry import FrameSolution
+
     det = {"x_px": np.zeros(50), "y_px": np.zeros(50), "flux_adu": np.ones(50)}
     fields = {"a": 11.42, "b": 11.43, "c": 11.44, "few": 11.43, "wide": 16.1, "off": 11.42}
     frames = [FrameSolution(n, det, np.eye(3), f) for n, f in fields.items()]
     rng = np.random.default_rng(0)
     n_match = {"a": 40, "b": 40, "c": 40, "few": 3, "wide": 30, "off": 30}
     resid = [rng.normal(0, 2.0 if n == "off" else 0.1, (n_match[n], 2)) for n in fields]
-    g = SimpleNamespace(camera=Camera(1024, 768, 5020.0, 511.5, 383.5), residuals=resid, rms_px=0.2,
-                        keep=[np.ones(n_match[n], bool) for n in fields])
+    g = SimpleNamespace(
+        camera=Camera(1024, 768, 5020.0, 511.5, 383.5),
+        residuals=resid,
+        rms_px=0.2,
+        keep=[np.ones(n_match[n], bool) for n in fields],
+    )
     bad = F.disagreements(frames, g)
     assert set(bad) == {"few", "wide", "off"}
     assert bad["few"].startswith("only 3 of its 50 detections match catalogue stars under the fitted camera")

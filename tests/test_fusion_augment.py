@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from fusion.model.inputs import FrameGeometry, Sample
-from fusion.train.augment import _gaussian_stamp, add_noise, augment, drop_stars, inject_false_stars, jitter, rotate
 from fusion.config import AugConfig
+from fusion.model.inputs import FrameGeometry, Sample
 from fusion.model.shards import read_sample
 from fusion.testing import small_dataset
+from fusion.train.augment import _gaussian_stamp, add_noise, augment, drop_stars, inject_false_stars, jitter, rotate
 from skygen.datasets.shards import open_dataset
 
 GEO = FrameGeometry(sensor_px=256, image_px=64, factor=4, bias_adu=100.0, max_adu=4095.0, psf_sigma_px=1.2)
@@ -17,13 +17,20 @@ GEO = FrameGeometry(sensor_px=256, image_px=64, factor=4, bias_adu=100.0, max_ad
 def synthetic(xs, ys, fluxes, geo=GEO, bg=103.0):
     """A flat background with Gaussian stars at full-resolution positions, and their detections."""
     img = np.full((geo.image_px, geo.image_px), bg, np.float32)
-    sig = np.sqrt(geo.psf_sigma_px ** 2 + geo.factor ** 2 / 12) / geo.factor
+    sig = np.sqrt(geo.psf_sigma_px**2 + geo.factor**2 / 12) / geo.factor
     for x, y, f in zip(xs, ys, fluxes):
         u, v = geo.to_stored(np.array([x, y]))
-        _gaussian_stamp(img, u, v, f / geo.factor ** 2, sig)
+        _gaussian_stamp(img, u, v, f / geo.factor**2, sig)
     n = len(xs)
-    return Sample(img, np.asarray(xs, float), np.asarray(ys, float), np.asarray(fluxes, np.float32),
-                  np.full(n, 20, np.int32), bg, 0.5).sorted()
+    return Sample(
+        img,
+        np.asarray(xs, float),
+        np.asarray(ys, float),
+        np.asarray(fluxes, np.float32),
+        np.full(n, 20, np.int32),
+        bg,
+        0.5,
+    ).sorted()
 
 
 def peak_near(img, u, v, r=2):
@@ -56,7 +63,7 @@ def test_rotation_moves_image_and_detections_together(theta):
 
 def test_rotation_by_90_degrees_is_exact_on_the_pixel_grid():
     img = np.full((64, 64), 100.0, np.float32)
-    img[10, 20] = 1000.0                 # stored (u, v) = (20, 10)
+    img[10, 20] = 1000.0  # stored (u, v) = (20, 10)
     x, y = GEO.to_full(np.array([20.0, 10.0]))
     s = Sample(img, np.array([x]), np.array([y]), np.array([1000.0], np.float32), np.array([4], np.int32), 100.0, 0.5)
     r = rotate(s, 90.0, GEO)
@@ -113,7 +120,7 @@ def test_dropout_removes_detections_and_optionally_the_star(erase):
     kept = {(round(x, 3), round(y, 3)) for x, y in zip(d.x_px, d.y_px)}
     dropped = [(x, y) for x, y in zip(s.x_px, s.y_px) if (round(x, 3), round(y, 3)) not in kept]
     assert 0 < len(dropped) < 4
-    for x, y in zip(d.x_px, d.y_px):             # kept stars still visible where the list says
+    for x, y in zip(d.x_px, d.y_px):  # kept stars still visible where the list says
         u, v = GEO.to_stored(np.array([x, y]))
         assert peak_near(d.image, u, v)[2] > s.background_adu + 50
     for x, y in dropped:
@@ -138,7 +145,7 @@ def test_false_stars_appear_in_image_and_list_brightest_first():
         # the painted signal integrates to the listed flux (stored pixels are block means)
         box = (slice(int(v) - 5, int(v) + 6), slice(int(u) - 5, int(u) + 6))
         if flux != s.flux_adu[0]:
-            painted = (f.image[box] - s.image[box]).sum() * GEO.factor ** 2
+            painted = (f.image[box] - s.image[box]).sum() * GEO.factor**2
             assert painted == pytest.approx(flux, rel=0.02)
 
 
@@ -152,7 +159,7 @@ def test_full_augmentation_keeps_every_detection_on_a_star():
             assert np.all(np.diff(a.flux_adu) <= 0)
             for x, y in zip(a.x_px[:4], a.y_px[:4]):
                 u, v = geo.to_stored(np.array([x, y]))
-                pu, pv, peak = peak_near(a.image, u, v, r=1)    # r=1: hot pixels and cosmic rays lie about
+                pu, pv, peak = peak_near(a.image, u, v, r=1)  # r=1: hot pixels and cosmic rays lie about
                 assert np.hypot(pu - u, pv - v) <= 1.5
                 assert peak > a.background_adu + 3 * a.noise_adu
 

@@ -33,16 +33,19 @@ def test_resume_from_the_run_folder_config(tmp_path):
     data = str(small_dataset("smoke"))
     run = tmp_path / "run"
     assert main(["train", "--data", data, "--out", str(run), "--config", SMOKE, "train.epochs=1"]) == 0
-    (run / "summary.json").unlink()          # pretend it was killed after its last checkpoint
+    (run / "summary.json").unlink()  # pretend it was killed after its last checkpoint
     assert main(["train", "--data", data, "--out", str(run), "--resume"]) == 0
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["train.nonsense=1"], "unknown config key 'train.nonsense'"),
-    (["train.epochs=abc"], "train.epochs: expected an integer"),
-    (["labels.k=1"], "labels.k: 1 is out of range"),
-    (["model.name=vgg"], "unknown model 'vgg'"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["train.nonsense=1"], "unknown config key 'train.nonsense'"),
+        (["train.epochs=abc"], "train.epochs: expected an integer"),
+        (["labels.k=1"], "labels.k: 1 is out of range"),
+        (["model.name=vgg"], "unknown model 'vgg'"),
+    ],
+)
 def test_bad_config_is_one_line_and_status_2(tmp_path, capsys, args, needle):
     rc = main(["train", "--data", str(small_dataset("smoke")), "--out", str(tmp_path / "r"), "--config", SMOKE, *args])
     assert rc == 2
@@ -77,12 +80,15 @@ def test_set_overrides_like_skygen_and_extending_a_finished_run(tmp_path, capsys
     assert summary["epochs_run"] == 2 and summary["last"]["epoch"] == 2
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["--batch-size", "0"], "--batch-size 0: must be at least 1"),
-    (["--max-frames", "0"], "--max-frames 0: must be at least 1"),
-    (["--max-frames", "-1"], "--max-frames -1: must be at least 1"),
-    (["--workers", "-1"], "--workers -1: must be at least 0"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--batch-size", "0"], "--batch-size 0: must be at least 1"),
+        (["--max-frames", "0"], "--max-frames 0: must be at least 1"),
+        (["--max-frames", "-1"], "--max-frames -1: must be at least 1"),
+        (["--workers", "-1"], "--workers -1: must be at least 0"),
+    ],
+)
 def test_evaluate_refuses_nonsense_numbers(tmp_path, capsys, args, needle):
     assert main(["evaluate", "--checkpoint", str(tmp_path), "--data", str(tmp_path), *args]) == 2
     err = capsys.readouterr().err.strip()
@@ -105,6 +111,7 @@ def test_cli_choices_match_the_library():
     """The command line lists choices without importing torch; they must be the library's own."""
     from fusion import cli
     from fusion.measure import experiment, export, timing
+
     assert cli.PRECISIONS == tuple(timing.PRECISIONS) and cli.TIMING_MODES == timing.MODES
     assert cli.EXPORTERS == export.EXPORTERS and cli.MASK_DTYPES == export.MASK_DTYPES
     assert cli.EXPERIMENT_SECTIONS == experiment.SECTIONS
@@ -112,7 +119,8 @@ def test_cli_choices_match_the_library():
 
 def test_a_run_too_large_for_a_cpu_says_so_with_its_size_and_pace():
     from fusion.train.run import loader_workers, pace_line
-    big = torch.nn.Linear(5000, 4000)                       # 20 M parameters
+
+    big = torch.nn.Linear(5000, 4000)  # 20 M parameters
     line = pace_line(2.0, 1000, 10, 64, big, torch.device("cpu"))
     assert "2.00 s per step of 64 samples" in line and "~33.3 min per epoch" in line and "~5.6 h" in line
     assert "20.0 M-parameter model is a GPU recipe" in line and "configs/cpu.yaml" in line
@@ -127,10 +135,13 @@ def test_after_an_interrupt_only_the_dataloader_worker_report_is_dropped(monkeyp
     from types import SimpleNamespace
 
     from fusion.cli import _quiet_worker_teardown
+
     seen = []
     monkeypatch.setattr(_sys, "unraisablehook", lambda u: seen.append(u.exc_value))
     _quiet_worker_teardown()
-    _sys.unraisablehook(SimpleNamespace(exc_value=RuntimeError("DataLoader worker (pid 7) is killed by signal: Terminated. ")))
+    _sys.unraisablehook(
+        SimpleNamespace(exc_value=RuntimeError("DataLoader worker (pid 7) is killed by signal: Terminated. "))
+    )
     other = RuntimeError("something else")
     _sys.unraisablehook(SimpleNamespace(exc_value=other))
     assert seen == [other]

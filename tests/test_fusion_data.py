@@ -4,11 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.model.inputs import FrameGeometry
-from fusion.model.shards import FrameDataset, count_sparse_frames, make_loader, read_sample, split_positions
-from fusion.model.inputs import encode_detections, normalise_image
 from fusion.errors import DatasetError
 from fusion.model.heatmap import rasterise
+from fusion.model.inputs import FrameGeometry, encode_detections, normalise_image
+from fusion.model.shards import FrameDataset, count_sparse_frames, make_loader, read_sample, split_positions
 from fusion.testing import render_small, small_dataset
 from fusion.train.augment import Augmenter
 from skygen.datasets.shards import open_dataset
@@ -23,10 +22,19 @@ def uniform():
 @pytest.fixture(scope="module")
 def sparse_path(tmp_path_factory):
     """Frames with 0, 1 or a few detections: a very high detection threshold."""
-    return render_small(tmp_path_factory.mktemp("sparse") / "ds",
-                        ["n_frames=40", "output.shard_size=40", "camera.width_px=256", "camera.height_px=256",
-                         "camera.fov_deg=20", "output.image_size_px=64", "detection.threshold_sigma=150",
-                         "output.split_fractions=[0.5, 0.25, 0.25]"])
+    return render_small(
+        tmp_path_factory.mktemp("sparse") / "ds",
+        [
+            "n_frames=40",
+            "output.shard_size=40",
+            "camera.width_px=256",
+            "camera.height_px=256",
+            "camera.fov_deg=20",
+            "output.image_size_px=64",
+            "detection.threshold_sigma=150",
+            "output.split_fractions=[0.5, 0.25, 0.25]",
+        ],
+    )
 
 
 def test_rows_are_the_brightest_detections_brightest_first(uniform):
@@ -38,7 +46,7 @@ def test_rows_are_the_brightest_detections_brightest_first(uniform):
         n = min(len(det["flux_adu"]), 6)
         assert mask.sum() == n and mask[:n].all()
         flux = 10 ** (coords[:n, 2] + 3.0) - 1
-        assert np.all(np.diff(flux) <= 1e-3 * flux[:-1])            # brightest first
+        assert np.all(np.diff(flux) <= 1e-3 * flux[:-1])  # brightest first
         top = np.sort(det["flux_adu"])[::-1][:n]
         np.testing.assert_allclose(flux, top, rtol=1e-4)
         # positions: sensor edges at -1 / +1, pixel centres inside
@@ -70,13 +78,21 @@ def test_frames_with_fewer_than_two_detections_are_kept_and_counted(sparse_path)
         assert expected > 0
         assert count_sparse_frames(ds, pos) == expected
         fd = FrameDataset(ds, pos, np.zeros(len(pos), int))
-        assert len(fd) == len(pos)            # nothing dropped
+        assert len(fd) == len(pos)  # nothing dropped
 
 
 def test_empty_split_is_a_clear_error(tmp_path):
-    path = render_small(tmp_path / "ds", ["n_frames=4", "camera.width_px=64", "camera.height_px=64",
-                                          "camera.fov_deg=20", "output.image_size_px=32",
-                                          "output.split_fractions=[1.0, 0.0, 0.0]"])
+    path = render_small(
+        tmp_path / "ds",
+        [
+            "n_frames=4",
+            "camera.width_px=64",
+            "camera.height_px=64",
+            "camera.fov_deg=20",
+            "output.image_size_px=32",
+            "output.split_fractions=[1.0, 0.0, 0.0]",
+        ],
+    )
     with open_dataset(path) as ds:
         with pytest.raises(DatasetError, match="split 'val' .* holds no frames"):
             split_positions(ds, "val")
@@ -126,6 +142,7 @@ def test_heatmap_ignores_padding_and_handles_empty_frames():
 def test_items_are_identical_with_fork_spawn_and_forkserver_workers():
     """The dataset pickles without HDF5 handles; augmented items depend on (seed, epoch, frame) only."""
     from fusion.config import AugConfig
+
     with open_dataset(small_dataset("smoke")) as ds:
         pos = np.arange(8)
         fd = FrameDataset(ds, pos, np.zeros(8, int), augment=Augmenter(AugConfig()), seed=3)
@@ -138,6 +155,7 @@ def test_items_are_identical_with_fork_spawn_and_forkserver_workers():
 
 def test_augmented_items_repeat_per_epoch_and_change_between_epochs():
     from fusion.config import AugConfig
+
     with open_dataset(small_dataset("smoke")) as ds:
         fd = FrameDataset(ds, np.arange(4), np.zeros(4, int), augment=Augmenter(AugConfig()), seed=0)
         a, b, c = fd[(1, 0)], fd[(1, 0)], fd[(1, 1)]
@@ -149,6 +167,7 @@ def test_forked_workers_do_not_deadlock_after_opencv_ran_in_the_parent():
     """OpenCV's thread pool does not survive fork; fusion keeps OpenCV single-threaded."""
     import subprocess
     import sys
+
     script = (
         "import numpy as np, cv2\n"
         "from fusion.config import AugConfig\n"
@@ -160,6 +179,7 @@ def test_forked_workers_do_not_deadlock_after_opencv_ran_in_the_parent():
         f"ds = open_dataset({str(small_dataset('smoke'))!r})\n"
         "fd = FrameDataset(ds, np.arange(8), np.zeros(8, int), augment=Augmenter(AugConfig()))\n"
         "next(iter(make_loader(fd, 4, shuffle=False, workers=1, start_method='fork')))\n"
-        "print('ok')\n")
+        "print('ok')\n"
+    )
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]

@@ -28,9 +28,13 @@ def run(tmp_path_factory) -> Path:
     """A one-epoch smoke run (its best.pt carries the training data's render config and a weights sha256)."""
     from fusion.config import load_config
     from fusion.train.run import train
+
     out = tmp_path_factory.mktemp("guards") / "run"
-    train(load_config(ROOT / "configs" / "smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1"]),
-          out, log=quiet)
+    train(
+        load_config(ROOT / "configs" / "smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1"]),
+        out,
+        log=quiet,
+    )
     return out
 
 
@@ -38,27 +42,40 @@ def run(tmp_path_factory) -> Path:
 def short_exposure(tmp_path_factory) -> Path:
     """Frames of the smoke camera at half the exposure (the issue's `--set sensor.exposure_s=0.05`), other seed."""
     smoke = [o for o in KINDS["smoke"] if not o.startswith("n_frames")]
-    return render_small(tmp_path_factory.mktemp("exp") / "short", smoke + ["n_frames=20", "seed=9",
-                                                                           "sensor.exposure_s=0.05"])
+    return render_small(
+        tmp_path_factory.mktemp("exp") / "short", smoke + ["n_frames=20", "seed=9", "sensor.exposure_s=0.05"]
+    )
 
 
 # ------------------------------------------------------------------ render settings that change frames
 def test_only_settings_that_change_frames_count_as_differences():
     from skygen.config import build_config, config_dict
+
     base = config_dict(build_config({}))
-    same_frames = {**base, "seed": 5, "n_frames": 7, "output": {**base["output"], "image_size_px": 128},
-                   "attitude": {**base["attitude"], "mode": "region"}, "render": {**base["render"], "batch_size": 3},
-                   "detection": {**base["detection"], "match_radius_px": 4.0}}
+    same_frames = {
+        **base,
+        "seed": 5,
+        "n_frames": 7,
+        "output": {**base["output"], "image_size_px": 128},
+        "attitude": {**base["attitude"], "mode": "region"},
+        "render": {**base["render"], "batch_size": 3},
+        "detection": {**base["detection"], "match_radius_px": 4.0},
+    }
     assert frame_config_differences(base, same_frames) == {}
-    assert frame_config_differences(base, {"camera": base["camera"]}) == {}     # omitted defaults are no difference
-    other = {**base, "sensor": {**base["sensor"], "exposure_s": 0.05},
-             "corruptions": {**base["corruptions"], "hotpixels": 1e-3},
-             "optics": {**base["optics"], "psf_sigma_px": 2.0}, "detection": {**base["detection"], "threshold_sigma": 4}}
+    assert frame_config_differences(base, {"camera": base["camera"]}) == {}  # omitted defaults are no difference
+    other = {
+        **base,
+        "sensor": {**base["sensor"], "exposure_s": 0.05},
+        "corruptions": {**base["corruptions"], "hotpixels": 1e-3},
+        "optics": {**base["optics"], "psf_sigma_px": 2.0},
+        "detection": {**base["detection"], "threshold_sigma": 4},
+    }
     assert frame_config_differences(base, other) == {
         "corruptions.hotpixels": {"training": 5e-05, "data": 1e-3},
         "detection.threshold_sigma": {"training": 5.0, "data": 4.0},
         "optics.psf_sigma_px": {"training": 1.2, "data": 2.0},
-        "sensor.exposure_s": {"training": 0.1, "data": 0.05}}
+        "sensor.exposure_s": {"training": 0.1, "data": 0.05},
+    }
 
 
 def test_evaluate_warns_loudly_about_another_exposure_and_records_it(run, short_exposure, tmp_path, capsys):
@@ -70,7 +87,7 @@ def test_evaluate_warns_loudly_about_another_exposure_and_records_it(run, short_
     assert len(warnings) == 2 and all(w.startswith("WARNING:") and "\n" not in w for w in warnings)
     assert "sensor.exposure_s 0.1 -> 0.05" in warnings[0] and "--set sensor.exposure_s=0.1" in warnings[0]
     (score,) = [line for line in lines if "top-1" in line]
-    assert "WARNING" in score and "sensor.exposure_s" in score                         # beside the score
+    assert "WARNING" in score and "sensor.exposure_s" in score  # beside the score
     assert "**Warning:**" in (tmp_path / "a" / "eval-test.md").read_text()
     # the data the model was trained on: nothing to say
     warnings.clear()
@@ -78,26 +95,32 @@ def test_evaluate_warns_loudly_about_another_exposure_and_records_it(run, short_
     assert same["config_differences"] == {} and warnings == []
     assert "Warning" not in (tmp_path / "b" / "eval-test.md").read_text()
     # through the command line: rc 0 (a robustness study does this on purpose), the warning on stderr
-    assert main(["evaluate", "--checkpoint", str(run), "--data", str(short_exposure), "--out", str(tmp_path / "c")]) == 0
+    assert (
+        main(["evaluate", "--checkpoint", str(run), "--data", str(short_exposure), "--out", str(tmp_path / "c")]) == 0
+    )
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING:")]
     assert err and all("sensor.exposure_s" in line for line in err)
 
 
 def evaluate_quietly(run, data, out, warnings, lines) -> dict:
     from fusion.measure.evaluate import evaluate_checkpoint
+
     return evaluate_checkpoint(run, data, "test", out, log=lines.append, warn=warnings.append)
 
 
 def test_predict_and_robustness_record_other_frame_settings(run, short_exposure, tmp_path, capsys):
     from fusion.measure.robustness import run_sweep
+
     out = tmp_path / "p.jsonl"
     assert main(["predict", str(short_exposure), "--checkpoint", str(run), "--max-frames", "2", "--out", str(out)]) == 0
     recs = [json.loads(line) for line in out.read_text().splitlines()]
     assert all(r["config_differences"] == {"sensor.exposure_s": {"training": 0.1, "data": 0.05}} for r in recs)
     err = [line for line in capsys.readouterr().err.splitlines() if "sensor.exposure_s 0.1 -> 0.05" in line]
     assert len(err) == 1 and err[0].startswith("WARNING:")
-    assert main(["predict", str(small_dataset("smoke")), "--checkpoint", str(run), "--max-frames", "2",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["predict", str(small_dataset("smoke")), "--checkpoint", str(run), "--max-frames", "2", "--out", str(out)])
+        == 0
+    )
     assert not any("config_differences" in json.loads(line) for line in out.read_text().splitlines())
     warnings = []
     report = run_sweep([run], short_exposure, "dropout", levels="0", progress=False, warn=warnings.append)
@@ -129,8 +152,8 @@ def test_a_flipped_byte_in_a_weight_tensor_is_refused(run, tmp_path):
     good = run / "best.pt"
     raw = torch.load(good, weights_only=True)
     assert raw["weights_sha256"] == weights_sha256(raw) and len(raw["weights_sha256"]) == 64
-    load_checkpoint(good)                                                     # intact: loads
-    key = max(raw["model"], key=lambda k: raw["model"][k].numel())            # the largest weight tensor
+    load_checkpoint(good)  # intact: loads
+    key = max(raw["model"], key=lambda k: raw["model"][k].numel())  # the largest weight tensor
     # one byte changed in memory and saved again as it was
     bytes_ = raw["model"][key].view(torch.uint8).reshape(-1)
     bytes_[len(bytes_) // 2] ^= 0x10
@@ -144,7 +167,7 @@ def test_a_flipped_byte_in_a_weight_tensor_is_refused(run, tmp_path):
     _, offset = _storage_of(good, key)
     data[offset + 5] ^= 0x01
     flipped.write_bytes(bytes(data))
-    with pytest.raises(CheckpointError, match="do not match the sha256"):   # torch itself reads it without a word
+    with pytest.raises(CheckpointError, match="do not match the sha256"):  # torch itself reads it without a word
         load_checkpoint(flipped)
 
 
@@ -158,16 +181,16 @@ def test_checkpoints_without_a_checksum_load_with_one_note(run, tmp_path):
     b = load_checkpoint(old, note=notes.append)
     assert a.num_classes == b.num_classes == 4 and a.weights_sha256 is None
     assert len(notes) == 1 and "predates checkpoint checksums" in notes[0] and "\n" not in notes[0]
-    a.save(tmp_path / "resaved.pt")                                           # saving again adds the checksum
+    a.save(tmp_path / "resaved.pt")  # saving again adds the checksum
     assert torch.load(tmp_path / "resaved.pt", weights_only=True)["weights_sha256"] == weights_sha256(raw)
-    verify_weights(raw | {"weights_sha256": weights_sha256(raw)}, "x")       # the digest is of the weights alone
+    verify_weights(raw | {"weights_sha256": weights_sha256(raw)}, "x")  # the digest is of the weights alone
 
 
 # ------------------------------------------------------------------ blank frames, learned solvers, outputs
 def test_a_blank_frame_gets_no_region_probabilities(run, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
     blank = tmp_path / "blank.npy"
-    np.save(blank, np.full((256, 256), 100.0, np.float32))                   # the smoke camera, no star
+    np.save(blank, np.full((256, 256), 100.0, np.float32))  # the smoke camera, no star
     out = tmp_path / "p.jsonl"
     assert main(["predict", str(blank), "--checkpoint", str(run), "--solve", "--out", str(out)]) == 0
     (rec,) = [json.loads(line) for line in out.read_text().splitlines()]
@@ -190,6 +213,7 @@ def test_learned_solvers_without_a_checkpoint_are_refused_before_any_work(solver
 def test_evaluate_checks_its_output_folder_before_loading_anything(run, tmp_path, monkeypatch):
     from fusion.measure import evaluate as ev
     from fusion.measure.evaluate import evaluate_checkpoint
+
     loaded = []
     monkeypatch.setattr(ev, "load_checkpoint", lambda p: loaded.append(p))
     (tmp_path / "a-file").write_text("x")
@@ -197,7 +221,7 @@ def test_evaluate_checks_its_output_folder_before_loading_anything(run, tmp_path
         evaluate_checkpoint(run, small_dataset("smoke"), "test", tmp_path / "a-file" / "sub", log=quiet)
     with pytest.raises(ConfigError, match="not a folder"):
         evaluate_checkpoint(run, small_dataset("smoke"), "test", tmp_path / "a-file", log=quiet)
-    if Path("/proc/self").is_dir():                      # exists, takes no new files (Linux)
+    if Path("/proc/self").is_dir():  # exists, takes no new files (Linux)
         with pytest.raises(ConfigError, match="/proc/x"):
             evaluate_checkpoint(run, small_dataset("smoke"), "test", "/proc/x", log=quiet)
     assert loaded == []
@@ -205,6 +229,7 @@ def test_evaluate_checks_its_output_folder_before_loading_anything(run, tmp_path
 
 def test_reports_name_their_hardware(run, tmp_path):
     from fusion.measure.evaluate import evaluate_checkpoint
+
     r = evaluate_checkpoint(run, small_dataset("smoke"), "test", tmp_path, log=quiet)
     assert r["hardware"]["logical_cores"] >= 1 and "torch" in r["hardware"]
     summary = json.loads((run / "summary.json").read_text())
@@ -214,6 +239,7 @@ def test_reports_name_their_hardware(run, tmp_path):
 # ------------------------------------------------------------------ fusion timing
 def test_timing_measures_one_thread_by_default_and_says_so(tmp_path):
     from fusion.measure import timing as tim
+
     before = torch.get_num_threads()
     kw = {"config": "configs/smoke.yaml", "image_size": 64, "iters": 3, "warmup": 1, "mode": "forward", "warn": quiet}
     r = tim.run_timing(**kw)
@@ -221,15 +247,16 @@ def test_timing_measures_one_thread_by_default_and_says_so(tmp_path):
     assert r["hardware"]["torch_threads"] == 1
     two = tim.run_timing(threads=2, **kw)
     assert two["settings"]["torch_threads"] == 2 and two["settings"]["threads_chosen_by"] == "--threads 2"
-    assert torch.get_num_threads() == before                                  # the caller's setting is restored
+    assert torch.get_num_threads() == before  # the caller's setting is restored
     with pytest.raises(ConfigError, match="--threads"):
         tim.run_timing(threads=-1, **kw)
 
 
 def test_a_bimodal_timing_is_flagged(monkeypatch):
     from fusion.measure import timing as tim
+
     quiet_machine = tim.stats_ms([1.0, 1.1, 0.9, 1.0, 1.2, 1.0, 1.1, 1.0, 0.9, 1.0], 1)
-    busy = tim.stats_ms([1.0] * 8 + [200.0, 190.0], 1)                   # median 1 ms, p90 ~190 ms
+    busy = tim.stats_ms([1.0] * 8 + [200.0, 190.0], 1)  # median 1 ms, p90 ~190 ms
     hw = {"load_average_1m": 3.5, "usable_cores": 2}
     assert tim.spread_warning("forward", quiet_machine, hw) is None
     line = tim.spread_warning("forward", busy, hw)
@@ -237,21 +264,27 @@ def test_a_bimodal_timing_is_flagged(monkeypatch):
     # in a run: the warning goes to warn and into the report
     monkeypatch.setattr(tim, "time_forward", lambda *a, **k: {**busy, "timer": "fake"})
     warnings = []
-    r = tim.run_timing(config="configs/smoke.yaml", image_size=64, iters=3, warmup=0, mode="forward",
-                       warn=warnings.append)
+    r = tim.run_timing(
+        config="configs/smoke.yaml", image_size=64, iters=3, warmup=0, mode="forward", warn=warnings.append
+    )
     assert r["warnings"] == warnings and len(warnings) == 1 and "bimodal" in warnings[0]
 
 
 def test_timing_refuses_a_batch_that_cannot_fit_and_an_unwritable_out(tmp_path, capsys, monkeypatch):
     from fusion.measure import timing as tim
+
     out = tmp_path / "t.json"
     assert main(["timing", "--config", "configs/smoke.yaml", "--batch", "100000000", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--batch 100000000" in err[0] and "GB available" in err[0] and not out.exists()
+
     # running out of memory later is one line too
     def oom(*a, **k):
-        raise RuntimeError("[enforce fail at alloc_cpu.cpp:117] . DefaultCPUAllocator: can't allocate memory: you "
-                           "tried to allocate 26843545600 bytes. Error code 12 (Cannot allocate memory)")
+        raise RuntimeError(
+            "[enforce fail at alloc_cpu.cpp:117] . DefaultCPUAllocator: can't allocate memory: you "
+            "tried to allocate 26843545600 bytes. Error code 12 (Cannot allocate memory)"
+        )
+
     monkeypatch.setattr(tim, "time_forward", oom)
     with pytest.raises(ConfigError, match="--batch 2: out of memory"):
         tim.run_timing(config="configs/smoke.yaml", image_size=64, batch=2, iters=1, warmup=0, mode="forward")

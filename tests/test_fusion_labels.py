@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from fusion.errors import ConfigError, DatasetError
-from fusion.model.regions import angular_distance_deg, assign, class_weights, radec_to_unit, soft_targets, spherical_kmeans
+from fusion.model.regions import (
+    angular_distance_deg,
+    assign,
+    class_weights,
+    radec_to_unit,
+    soft_targets,
+    spherical_kmeans,
+)
 
 
 def random_directions(n, seed=0):
@@ -61,7 +68,7 @@ def test_recovers_well_separated_clusters():
     assert err.max() < 1.0
     # every true cluster maps to exactly one label
     for i in range(6):
-        assert len(np.unique(res.labels[i * 50:(i + 1) * 50])) == 1
+        assert len(np.unique(res.labels[i * 50 : (i + 1) * 50])) == 1
 
 
 def test_too_few_distinct_directions_is_a_clear_error():
@@ -94,20 +101,21 @@ def test_centroids_are_fitted_on_the_training_split_only(tmp_path):
     from fusion.testing import small_dataset
     from fusion.train.data import prepare_data
     from skygen.datasets.shards import open_dataset
+
     path = small_dataset("uniform")
     cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4"])
     data = prepare_data(cfg)
     with open_dataset(path) as ds:
         v_train = ds.boresight["unit_vector"][ds.indices("train")]
         v_all = ds.boresight["unit_vector"]
-    expected = spherical_kmeans(v_train, 4, cfg.labels.seed, cfg.labels.n_init, cfg.labels.max_iter,
-                                cfg.labels.tol_deg)
+    expected = spherical_kmeans(v_train, 4, cfg.labels.seed, cfg.labels.n_init, cfg.labels.max_iter, cfg.labels.tol_deg)
     np.testing.assert_array_equal(data.regions.coarse, expected.centroids)
     with_all = spherical_kmeans(v_all, 4, cfg.labels.seed, cfg.labels.n_init)
     assert not np.allclose(with_all.centroids, data.regions.coarse)
     # validation frames are labelled against the fixed training centroids
-    np.testing.assert_array_equal(data.val.labels, assign(ds.boresight["unit_vector"][data.val.positions],
-                                                          data.regions.coarse))
+    np.testing.assert_array_equal(
+        data.val.labels, assign(ds.boresight["unit_vector"][data.val.positions], data.regions.coarse)
+    )
     data.ds.close()
 
 
@@ -130,21 +138,30 @@ def test_fine_regions_come_from_the_sky_not_the_dataset(tmp_path):
     from fusion.testing import KINDS, render_small, small_dataset
     from fusion.train.data import prepare_data
     from skygen.datasets import open_dataset
+
     other = render_small(tmp_path / "other", KINDS["uniform"] + ["n_frames=40", "seed=5"])
     regions = {}
     for kind, path in (("big", small_dataset("uniform")), ("small", other)):
         with open_dataset(path) as ds:
             n_train = len(ds.indices("train"))
-        cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4", "labels.fine_k=300",
-                                                 "stream.kind=detections", "labels.n_init=1",
-                                                 "model.branches.image=false"])
-        assert n_train < 300                      # more fine regions than the dataset has training frames
+        cfg = load_config(
+            "configs/smoke.yaml",
+            [
+                f"data.path={path}",
+                "labels.k=4",
+                "labels.fine_k=300",
+                "stream.kind=detections",
+                "labels.n_init=1",
+                "model.branches.image=false",
+            ],
+        )
+        assert n_train < 300  # more fine regions than the dataset has training frames
         data = prepare_data(cfg)
         data.ds.close()
         assert data.regions.fine.shape == (300, 3) and set(data.regions.groups) == set(range(4))
         regions[kind] = data.regions
     np.testing.assert_array_equal(regions["big"].fine, regions["small"].fine)
-    np.testing.assert_array_equal(regions["big"].coarse, regions["small"].coarse)   # stream: K regions too
+    np.testing.assert_array_equal(regions["big"].coarse, regions["small"].coarse)  # stream: K regions too
     # fitted on the sky: the fine regions' areas are even (largest cell < 2x the mean cell area)
     v = np.random.default_rng(1).standard_normal((50_000, 3))
     counts = np.bincount(assign(v / np.linalg.norm(v, axis=1, keepdims=True), regions["big"].fine), minlength=300)
@@ -155,6 +172,7 @@ def test_shard_training_keeps_the_k_regions_of_its_training_split():
     from fusion.config import load_config
     from fusion.testing import small_dataset
     from fusion.train.data import prepare_data
+
     path = small_dataset("uniform")
     cfg = load_config("configs/smoke.yaml", [f"data.path={path}", "labels.k=4", "labels.fine_k=50"])
     data = prepare_data(cfg)
@@ -169,6 +187,7 @@ def test_fine_regions_on_a_list_of_pointings_are_refused_with_the_reason():
     from fusion.config import load_config
     from fusion.testing import small_dataset
     from fusion.train.data import prepare_data
+
     cfg = load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "labels.fine_k=300"])
     with pytest.raises(ConfigError, match="8 distinct pointings"):
         prepare_data(cfg)

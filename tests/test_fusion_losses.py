@@ -29,7 +29,8 @@ def test_gamma_zero_with_class_weights_is_weighted_cross_entropy():
     logits, y = batch(1)
     alpha = torch.tensor([0.1, 0.4, 0.2, 0.2, 0.1])
     assert focal_loss(logits, y, alpha, 0.0).item() == pytest.approx(
-        F.cross_entropy(logits, y, weight=alpha).item(), rel=1e-5)
+        F.cross_entropy(logits, y, weight=alpha).item(), rel=1e-5
+    )
 
 
 def test_focal_term_down_weights_easy_samples():
@@ -46,8 +47,9 @@ def test_soft_one_hot_targets_equal_hard_labels():
     alpha = torch.tensor([0.3, 0.1, 0.2, 0.25, 0.15])
     q = F.one_hot(y, 5).float()
     for gamma in (0.0, 2.0):
-        assert focal_loss(logits, q, alpha, gamma).item() == pytest.approx(focal_loss(logits, y, alpha, gamma).item(),
-                                                                          rel=1e-6)
+        assert focal_loss(logits, q, alpha, gamma).item() == pytest.approx(
+            focal_loss(logits, y, alpha, gamma).item(), rel=1e-6
+        )
 
 
 def test_soft_targets_at_gamma_zero_are_soft_cross_entropy():

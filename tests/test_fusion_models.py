@@ -7,10 +7,21 @@ import torch
 
 from fusion.config import BranchesConfig, ModelConfig, build_config
 from fusion.errors import ConfigError
-from fusion.model.networks import MODELS, CoordMLP, SetEncoder, create_backbone, create_model, parameter_counts, resolve_model_config
+from fusion.model.networks import (
+    MODELS,
+    CoordMLP,
+    SetEncoder,
+    create_backbone,
+    create_model,
+    parameter_counts,
+    resolve_model_config,
+)
 
-TINY = ModelConfig(image_backbone="tiny_cnn", coord_hidden=32,
-                   heatmap=dataclasses.replace(ModelConfig().heatmap, canvas_px=32, channels=(8, 16), out_dim=16))
+TINY = ModelConfig(
+    image_backbone="tiny_cnn",
+    coord_hidden=32,
+    heatmap=dataclasses.replace(ModelConfig().heatmap, canvas_px=32, channels=(8, 16), out_dim=16),
+)
 
 
 def inputs(b=3, s=64, m=6, n_real=(6, 2, 0)):
@@ -24,8 +35,9 @@ def inputs(b=3, s=64, m=6, n_real=(6, 2, 0)):
     return image, coords, mask
 
 
-@pytest.mark.parametrize("image,heatmap,coords", [(1, 1, 1), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0),
-                                                  (1, 0, 1), (0, 1, 1)])
+@pytest.mark.parametrize(
+    "image,heatmap,coords", [(1, 1, 1), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1)]
+)
 def test_every_branch_subset_gives_k_finite_logits(image, heatmap, coords):
     cfg = dataclasses.replace(TINY, branches=BranchesConfig(bool(image), bool(heatmap), bool(coords)))
     model = create_model("star_fusion", 7, cfg, image_size=64)
@@ -54,7 +66,7 @@ def test_set_encoder_is_permutation_invariant_and_ignores_padding():
     perm = torch.randperm(6)
     assert torch.allclose(enc(coords[:, perm], mask[:, perm]), out, atol=1e-6)
     junk = coords.clone()
-    junk[~mask] = 5.0                       # what sits in padded rows does not matter
+    junk[~mask] = 5.0  # what sits in padded rows does not matter
     assert torch.allclose(enc(junk, mask), out, atol=1e-6)
 
 
@@ -104,9 +116,9 @@ def test_star_fusion_paper_size_and_swinv2_forward():
     model = create_model("star_fusion", 15, ModelConfig(), image_size=256)
     counts = parameter_counts(model)
     assert model.image.out_dim == 768
-    assert 27.5e6 < counts["image"] < 27.7e6          # timm swinv2_tiny_window8_256, num_classes=0
-    assert abs(counts["total"] - 29.8e6) < 0.5e6        # the paper reports 29.8 M
-    small = create_model("star_fusion", 15, ModelConfig(), image_size=128)   # same net at 128 px: fast on CPU
+    assert 27.5e6 < counts["image"] < 27.7e6  # timm swinv2_tiny_window8_256, num_classes=0
+    assert abs(counts["total"] - 29.8e6) < 0.5e6  # the paper reports 29.8 M
+    small = create_model("star_fusion", 15, ModelConfig(), image_size=128)  # same net at 128 px: fast on CPU
     img, c, m = inputs(b=2, s=128)
     out = small(img, c, m)
     assert out.shape == (2, 15) and torch.isfinite(out).all()
@@ -114,6 +126,7 @@ def test_star_fusion_paper_size_and_swinv2_forward():
 
 def test_pretrained_weights_from_a_file_with_in_chans_handling(tmp_path):
     import timm
+
     src = timm.create_model("resnet18", num_classes=0)
     path = tmp_path / "weights.pth"
     torch.save(src.state_dict(), path)
@@ -148,11 +161,11 @@ def test_detections_dropout_zeroes_the_detection_branches_of_some_training_sampl
     torch.manual_seed(1)
     z = model.train().forward_features(img, c, m)
     dropped = (z[:, n_img:] == 0).all(dim=1)
-    assert 16 <= int(dropped.sum()) <= 48                     # ~half of 64 samples (binomial, p 0.5: ±4 sigma)
-    assert not (z[:, :n_img] == 0).all(dim=1).any()           # the image features are never touched
+    assert 16 <= int(dropped.sum()) <= 48  # ~half of 64 samples (binomial, p 0.5: ±4 sigma)
+    assert not (z[:, :n_img] == 0).all(dim=1).any()  # the image features are never touched
     ev = model.eval().forward_features(img, c, m)
-    assert not (ev[:, n_img:] == 0).all(dim=1).any()          # evaluation: every branch, every sample
-    assert torch.allclose(ev[~dropped], z[~dropped].detach(), atol=1e-5)   # the kept samples: their features as they are
+    assert not (ev[:, n_img:] == 0).all(dim=1).any()  # evaluation: every branch, every sample
+    assert torch.allclose(ev[~dropped], z[~dropped].detach(), atol=1e-5)  # the kept samples: their features as they are
     for branches in (BranchesConfig(False, True, True), BranchesConfig(True, False, False)):
         with pytest.raises(ConfigError, match="detections_dropout"):
             create_model("star_fusion", 7, dataclasses.replace(cfg, branches=branches), image_size=64)

@@ -16,11 +16,12 @@ from fusion.testing import small_dataset
 from skygen.errors import SkygenError
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL = ROOT / "real-frames" / "tetra3-blackfly"   # shipped with the project (real-frames/README.md)
+REAL = ROOT / "real-frames" / "tetra3-blackfly"  # shipped with the project (real-frames/README.md)
 
 
 def _write_all(folder: Path, img16: np.ndarray) -> dict[str, Path]:
     from astropy.io import fits
+
     paths = {k: folder / f"frame.{k}" for k in ("npy", "tiff", "fits", "png")}
     np.save(paths["npy"], img16)
     cv2.imwrite(str(paths["tiff"]), img16)
@@ -30,7 +31,7 @@ def _write_all(folder: Path, img16: np.ndarray) -> dict[str, Path]:
 
 
 def test_readers_agree_and_bad_files_say_why(tmp_path):
-    img = (np.arange(12 * 20, dtype=np.uint16).reshape(12, 20) * 200)
+    img = np.arange(12 * 20, dtype=np.uint16).reshape(12, 20) * 200
     for name, p in _write_all(tmp_path, img).items():
         np.testing.assert_array_equal(read_frame(p), img.astype(np.float32)), name
     cv2.imwrite(str(tmp_path / "eight.png"), (img // 256).astype(np.uint8))
@@ -40,14 +41,18 @@ def test_readers_agree_and_bad_files_say_why(tmp_path):
     cv2.imwrite(str(tmp_path / "colour.png"), rgb)
     grey_rgb = np.repeat((img // 256).astype(np.uint8)[..., None], 3, axis=2)
     cv2.imwrite(str(tmp_path / "grey3.png"), grey_rgb)
-    assert read_frame(tmp_path / "grey3.png").shape == (12, 20)      # grey saved as RGB: accepted
+    assert read_frame(tmp_path / "grey3.png").shape == (12, 20)  # grey saved as RGB: accepted
     (tmp_path / "empty.tiff").write_bytes(b"")
     (tmp_path / "junk.png").write_bytes(b"not a png at all")
     np.save(tmp_path / "cube.npy", np.zeros((2, 3, 4)))
-    assert read_frame(tmp_path / "colour.png", log=lambda m: None).shape == (12, 20)   # colour: one plane
-    for name, words in [("empty.tiff", "empty"), ("junk.png", "not a readable"),
-                        ("cube.npy", "colour or multi-plane"), ("missing.fits", "no such file"),
-                        ("eight.jpg2", "unsupported")]:
+    assert read_frame(tmp_path / "colour.png", log=lambda m: None).shape == (12, 20)  # colour: one plane
+    for name, words in [
+        ("empty.tiff", "empty"),
+        ("junk.png", "not a readable"),
+        ("cube.npy", "colour or multi-plane"),
+        ("missing.fits", "no such file"),
+        ("eight.jpg2", "unsupported"),
+    ]:
         if name == "eight.jpg2":
             (tmp_path / name).write_bytes(b"x")
         with pytest.raises(FrameError, match=words):
@@ -60,6 +65,7 @@ def frame_and_truth(tmp_path_factory):
     from skygen.config import build_config
     from skygen.datasets.shards import open_dataset
     from skygen.render.frame import Renderer
+
     with open_dataset(small_dataset("smoke")) as ds:
         cfg = dict(ds.config)
     cfg["output"] = {**cfg["output"], "full_res": True}
@@ -72,6 +78,7 @@ def frame_and_truth(tmp_path_factory):
 def checkpoint(tmp_path_factory):
     from fusion.config import load_config
     from fusion.train.run import train
+
     out = tmp_path_factory.mktemp("run") / "run"
     cfg = load_config(ROOT / "configs" / "smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=2"])
     train(cfg, out, log=lambda *a, **k: None)
@@ -84,19 +91,35 @@ def _lines(path: Path) -> list[dict]:
 
 def test_predict_with_a_checkpoint_from_another_folder(checkpoint, frame_and_truth, tmp_path, monkeypatch):
     paths, f = frame_and_truth
-    monkeypatch.chdir(tmp_path)                         # the checkpoint carries camera and detector: any folder works
+    monkeypatch.chdir(tmp_path)  # the checkpoint carries camera and detector: any folder works
     out = tmp_path / "p.jsonl"
-    assert main(["predict", *map(str, paths.values()), "--checkpoint", str(checkpoint), "--top-k", "2",
-                 "--solve", "--overlay", str(tmp_path / "ov"), "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                *map(str, paths.values()),
+                "--checkpoint",
+                str(checkpoint),
+                "--top-k",
+                "2",
+                "--solve",
+                "--overlay",
+                str(tmp_path / "ov"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     recs = _lines(out)
     assert len(recs) == 4
     first = recs[0]
-    for r in recs[1:]:                                  # every format gives the same detections
+    for r in recs[1:]:  # every format gives the same detections
         assert r["detections"] == first["detections"]
     assert first["n_detections"] >= 5 and len(first["regions"]) == 2
     assert first["regions"][0]["probability"] >= first["regions"][1]["probability"]
     sol = first["solution"]
-    if sol["status"] == "solved":                       # solved: right; else an explicit refusal
+    if sol["status"] == "solved":  # solved: right; else an explicit refusal
         v = np.array(f.unit_vector)
         a, d = np.radians(sol["ra_deg"]), np.radians(sol["dec_deg"])
         got = np.array([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)])
@@ -107,14 +130,17 @@ def test_predict_with_a_checkpoint_from_another_folder(checkpoint, frame_and_tru
 
 
 def test_predict_camera_preset_solves_with_tetra3rs(frame_and_truth, tmp_path):
-    from skygen.datasets.shards import open_dataset
     import yaml
+
+    from skygen.datasets.shards import open_dataset
+
     paths, f = frame_and_truth
     with open_dataset(small_dataset("smoke")) as ds:
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
     out = tmp_path / "p.jsonl"
-    assert main(["predict", str(paths["tiff"]), "--camera", str(tmp_path / "cam.yaml"), "--solve",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["predict", str(paths["tiff"]), "--camera", str(tmp_path / "cam.yaml"), "--solve", "--out", str(out)]) == 0
+    )
     sol = _lines(out)[0]["solution"]
     assert sol["status"] == "solved" and sol["solver"] == "tetra3rs-lis"
     assert abs((sol["roll_deg"] - f.roll_deg + 180) % 360 - 180) < 0.1
@@ -126,8 +152,18 @@ def test_bad_frames_one_line_each_and_the_batch_continues(checkpoint, frame_and_
     (tmp_path / "empty.png").write_bytes(b"")
     np.save(tmp_path / "small.npy", np.zeros((10, 12), np.uint16))
     out = tmp_path / "p.jsonl"
-    rc = main(["predict", str(tmp_path / "empty.png"), str(paths["npy"]), str(tmp_path / "small.npy"),
-               "--checkpoint", str(checkpoint), "--out", str(out)])
+    rc = main(
+        [
+            "predict",
+            str(tmp_path / "empty.png"),
+            str(paths["npy"]),
+            str(tmp_path / "small.npy"),
+            "--checkpoint",
+            str(checkpoint),
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 1
     recs = _lines(out)
     assert "empty" in recs[0]["error"] and "regions" in recs[1] and "12 x 10 px" in recs[2]["error"]
@@ -144,26 +180,51 @@ def test_old_checkpoint_gets_one_clear_line(checkpoint, frame_and_truth, tmp_pat
     assert main(["predict", str(paths["npy"]), "--checkpoint", str(old)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "predates camera data" in err and "--dataset" in err
-    assert main(["predict", str(paths["npy"]), "--checkpoint", str(old), "--dataset", str(small_dataset("smoke")),
-                 "--out", str(tmp_path / "o.jsonl")]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(paths["npy"]),
+                "--checkpoint",
+                str(old),
+                "--dataset",
+                str(small_dataset("smoke")),
+                "--out",
+                str(tmp_path / "o.jsonl"),
+            ]
+        )
+        == 0
+    )
 
 
 def test_real_blackfly_frame_solves_to_the_listed_attitude(tmp_path):
     """One real frame (ESA tetra3 test data): tetra3rs via the camera preset agrees with the listed plate solution."""
     out = tmp_path / "r.jsonl"
     frame = REAL / "2019-07-29T204726_Alt60_Azi135_Try1.tiff"
-    assert main(["predict", str(frame), "--camera", str(ROOT / "configs/cameras/blackfly-s-imx265-35mm.yaml"),
-                 "--solve", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(frame),
+                "--camera",
+                str(ROOT / "configs/cameras/blackfly-s-imx265-35mm.yaml"),
+                "--solve",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     r = _lines(out)[0]
     assert r["shape"] == [768, 1024]
     sol = r["solution"]
     assert sol["status"] == "solved"
     assert abs(sol["ra_deg"] - 286.4356) * np.cos(np.radians(28.94)) < 0.01 and abs(sol["dec_deg"] - 28.9442) < 0.01
-    assert abs((sol["roll_deg"] - (151.367 + 180.0) + 180) % 360 - 180) < 0.05   # listed roll is tetra3rs's (+y)
+    assert abs((sol["roll_deg"] - (151.367 + 180.0) + 180) % 360 - 180) < 0.05  # listed roll is tetra3rs's (+y)
 
 
 def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extractor(tmp_path):
-    frame = REAL / "2019-07-29T204726_Alt40_Azi-45_Try1.tiff"        # sky gradient: skygen's detector finds 4 stars
+    frame = REAL / "2019-07-29T204726_Alt40_Azi-45_Try1.tiff"  # sky gradient: skygen's detector finds 4 stars
     cam = str(ROOT / "configs/cameras/blackfly-s-imx265-35mm.yaml")
     out = tmp_path / "r.jsonl"
     assert main(["predict", str(frame), "--camera", cam, "--solve", "--detector", "tetra3rs", "--out", str(out)]) == 0
@@ -181,11 +242,27 @@ def test_real_frame_with_few_skygen_detections_solves_with_the_tetra3rs_extracto
 
 def test_predict_on_a_dataset_folder(checkpoint, tmp_path):
     out = tmp_path / "d.jsonl"
-    assert main(["predict", str(small_dataset("smoke")), "--checkpoint", str(checkpoint), "--max-frames", "3",
-                 "--solve", "--top-k", "4", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(small_dataset("smoke")),
+                "--checkpoint",
+                str(checkpoint),
+                "--max-frames",
+                "3",
+                "--solve",
+                "--top-k",
+                "4",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     recs = _lines(out)
     assert len(recs) == 3 and all(r["detections_from"] == "dataset" for r in recs)
-    assert all(abs(sum(x["probability"] for x in r["regions"]) - 1) < 1e-5 for r in recs)   # K = 4, all listed
+    assert all(abs(sum(x["probability"] for x in r["regions"]) - 1) < 1e-5 for r in recs)  # K = 4, all listed
     assert all(r["solution"]["status"] in ("solved", "refused") for r in recs)
 
 
@@ -208,9 +285,11 @@ def test_search_options_are_checked(checkpoint, frame_and_truth, capsys):
 def test_predict_without_a_model_chains_lost_in_space_and_the_whole_sky_fine_stage(tmp_path):
     """--solve without a checkpoint: tetra3rs, then the whole-sky fine stage; --solver picks any registered one."""
     import yaml
+
     from fusion.errors import ConfigError
     from fusion.solve.predict import Predictor
     from skygen.datasets import open_dataset
+
     with open_dataset(small_dataset("smoke")) as ds:
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
     cam = str(tmp_path / "cam.yaml")
@@ -219,19 +298,22 @@ def test_predict_without_a_model_chains_lost_in_space_and_the_whole_sky_fine_sta
     assert Predictor(camera=cam, solve=True, solver="whole-sky").solver.name == "whole-sky"
     with pytest.raises(ConfigError, match="needs a learned prior"):
         Predictor(camera=cam, solve=True, solver="learned+fine")
-    with pytest.raises(SystemExit):                                     # a benchmark reference is not offered
+    with pytest.raises(SystemExit):  # a benchmark reference is not offered
         main(["predict", "x.npy", "--camera", cam, "--solve", "--solver", "oracle-prior"])
 
 
 def _strict(line: str) -> dict:
     def refuse(token):
         raise ValueError(f"non-strict JSON token {token}")
+
     return json.loads(line, parse_constant=refuse)
 
 
 def test_non_finite_pixels_are_bad_pixels_and_the_frame_still_solves(frame_and_truth, tmp_path, recwarn):
-    from skygen.datasets.shards import open_dataset
     import yaml
+
+    from skygen.datasets.shards import open_dataset
+
     paths, f = frame_and_truth
     with open_dataset(small_dataset("smoke")) as ds:
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
@@ -239,8 +321,21 @@ def test_non_finite_pixels_are_bad_pixels_and_the_frame_still_solves(frame_and_t
     img[5, 7], img[100, 3], img[200, 250] = np.nan, np.inf, -np.inf
     np.save(tmp_path / "nan.npy", img)
     out = tmp_path / "p.jsonl"
-    assert main(["predict", str(paths["npy"]), str(tmp_path / "nan.npy"), "--camera", str(tmp_path / "cam.yaml"),
-                 "--solve", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(paths["npy"]),
+                str(tmp_path / "nan.npy"),
+                "--camera",
+                str(tmp_path / "cam.yaml"),
+                "--solve",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     clean, bad = (_strict(line) for line in out.read_text().splitlines())
     assert (clean["bad_pixels"], bad["bad_pixels"]) == (0, 3)
     assert bad["n_detections"] == clean["n_detections"] >= 5
@@ -248,8 +343,9 @@ def test_non_finite_pixels_are_bad_pixels_and_the_frame_still_solves(frame_and_t
     assert abs(bad["solution"]["dec_deg"] - f.dec_deg) < 0.05
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
     np.save(tmp_path / "all-nan.npy", np.full(img.shape, np.nan, np.float32))
-    assert main(["predict", str(tmp_path / "all-nan.npy"), "--camera", str(tmp_path / "cam.yaml"),
-                 "--out", str(out)]) == 1
+    assert (
+        main(["predict", str(tmp_path / "all-nan.npy"), "--camera", str(tmp_path / "cam.yaml"), "--out", str(out)]) == 1
+    )
     assert "no finite pixel" in _strict(out.read_text())["error"]
 
 
@@ -277,6 +373,7 @@ def test_a_folder_of_frames_is_read_in_name_order(checkpoint, frame_and_truth, t
 @pytest.mark.parametrize("option,value", [("--top-k", "0"), ("--top-k", "-1"), ("--max-frames", "0")])
 def test_nonsense_counts_are_refused_in_one_line(checkpoint, frame_and_truth, option, value, capsys):
     from fusion.solve.predict import predict
+
     paths, _ = frame_and_truth
     assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), option, value]) == 2
     err = capsys.readouterr()
@@ -301,6 +398,7 @@ def test_a_truncated_tiff_is_one_line(capfd, tmp_path):
 def test_a_truncated_fits_is_one_line_of_ours(capfd, tmp_path):
     """astropy's own WARNING line about the truncation is not printed; ours names the file and says so."""
     from astropy.io import fits
+
     fits.writeto(tmp_path / "full.fits", np.random.default_rng(0).random((128, 128), np.float32))
     data = (tmp_path / "full.fits").read_bytes()
     (tmp_path / "cut.fits").write_bytes(data[: len(data) // 2])
@@ -322,7 +420,8 @@ def test_real_16_bit_frames_read_as_the_decoder_gives_them():
 def test_top_k_above_the_models_regions_says_it_reports_all(checkpoint, frame_and_truth, tmp_path, capsys):
     paths, _ = frame_and_truth
     out = tmp_path / "p.jsonl"
-    assert main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--top-k", "50",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["predict", str(paths["npy"]), "--checkpoint", str(checkpoint), "--top-k", "50", "--out", str(out)]) == 0
+    )
     assert "--top-k 50: the model has 4 regions; reporting all 4" in capsys.readouterr().err
     assert len(_lines(out)[0]["regions"]) == 4

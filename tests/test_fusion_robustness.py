@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from fusion import cli as fcli
-from fusion.measure import robustness as rob
 from fusion.errors import CheckpointError, ConfigError
+from fusion.measure import robustness as rob
 from fusion.testing import render_small, small_dataset
-from skygen.instrument import corruptions as corr
 from skygen.datasets.shards import open_dataset
+from skygen.instrument import corruptions as corr
 from skygen.render.perturb import perturbed_frames
 
 
@@ -23,9 +23,11 @@ def cli(argv: list[str]) -> int:
     """``fusion robustness ARGS`` through the real command line."""
     return fcli.main(["robustness", *argv])
 
+
 def _train(out, overrides=()):
     from fusion.config import load_config
     from fusion.train.run import train
+
     cfg = load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1", *overrides])
     train(cfg, out, log=lambda *a, **k: None)
     return out / "best.pt"
@@ -46,23 +48,26 @@ def data():
 def _clean_predictions(ckpt_path, data_path):
     """Predictions on the test split exactly as `fusion evaluate` makes them."""
     from fusion.model.checkpoint import load_checkpoint
-    from fusion.model.shards import FrameDataset, boresight_vectors, make_loader, split_positions
-    from fusion.model.regions import assign
     from fusion.model.inference import predict_batches as predict
+    from fusion.model.regions import assign
+    from fusion.model.shards import FrameDataset, boresight_vectors, make_loader, split_positions
+
     ckpt = load_checkpoint(ckpt_path)
     model, cfg = ckpt.build_model(), ckpt.fusion_config
     with open_dataset(data_path) as ds:
         pos = split_positions(ds, "test")
         labels = assign(boresight_vectors(ds, pos), ckpt.centroids)
         d = cfg.data
-        fd = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
-                          log_flux_offset=d.log_flux_offset)
+        fd = FrameDataset(
+            ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset
+        )
         out = predict(model, make_loader(fd, 64, shuffle=False), torch.device("cpu"))
     return np.argmax(out["logits"], axis=1)
 
 
 def test_severity_zero_of_every_corruption_is_the_clean_evaluation(ckpts, data, tmp_path):
     from fusion.measure.evaluate import evaluate_checkpoint
+
     clean = evaluate_checkpoint(ckpts["full"], data, "test", tmp_path / "eval", log=lambda *a: None)
     pred = _clean_predictions(ckpts["full"], data)
     for name in corr.REGISTRY:
@@ -75,33 +80,52 @@ def test_severity_zero_of_every_corruption_is_the_clean_evaluation(ckpts, data, 
 
 
 def test_sweep_repeats_exactly_for_a_seed_whatever_the_workers(ckpts, data):
-    kw = dict(levels="0,0.002", n=20, seed=3, progress=False)     # 20 frames: two chunks, so 2 processes
+    kw = dict(levels="0,0.002", n=20, seed=3, progress=False)  # 20 frames: two chunks, so 2 processes
     a = rob.run_sweep([ckpts["full"]], data, "hotpixels", workers=1, **kw)
     b = rob.run_sweep([ckpts["full"]], data, "hotpixels", workers=2, **kw)
     assert rob.csv_text(a["rows"]) == rob.csv_text(b["rows"])
     assert all(np.array_equal(x["pred"], y["pred"]) for x, y in zip(a["rows"], b["rows"]))
     assert a["frame_positions"] == b["frame_positions"] and len(a["frame_positions"]) == 20
     other = rob.run_sweep([ckpts["full"]], data, "dropout", levels="0.3", n=6, seed=4, progress=False)
-    assert other["frame_positions"] != a["frame_positions"]            # the seed picks the frames
+    assert other["frame_positions"] != a["frame_positions"]  # the seed picks the frames
     again = rob.run_sweep([ckpts["full"]], data, "dropout", levels="0.3", n=6, seed=4, progress=False)
     assert rob.csv_text(other["rows"]) == rob.csv_text(again["rows"])
 
 
 def test_all_corruptions_write_table_and_one_plot_per_corruption(ckpts, data, tmp_path):
     out = tmp_path / "sweep"
-    assert cli(["--corruption", "all", "--checkpoint", str(ckpts["full"]), str(ckpts["geometry"]),
-                "--data", str(data), "--n", "2", "--out", str(out)]) == 0
+    assert (
+        cli(
+            [
+                "--corruption",
+                "all",
+                "--checkpoint",
+                str(ckpts["full"]),
+                str(ckpts["geometry"]),
+                "--data",
+                str(data),
+                "--n",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     names = list(corr.REGISTRY)
     files = sorted(p.name for p in out.iterdir())
-    assert files == sorted(["robustness-all.json", "robustness-all.csv", "robustness-all.md"]
-                           + [f"robustness-{n}.png" for n in names])
+    assert files == sorted(
+        ["robustness-all.json", "robustness-all.csv", "robustness-all.md"] + [f"robustness-{n}.png" for n in names]
+    )
     for n in names:
         assert (out / f"robustness-{n}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads((out / "robustness-all.json").read_text())
     n_rows = 2 * sum(len(c.sweep) for c in corr.REGISTRY.values())
     assert len(report["rows"]) == n_rows and report["corruptions"] == names
-    assert {c["label"] for c in report["checkpoints"]} == {"star_fusion: image+heatmap+coords",
-                                                           "star_fusion: heatmap+coords"}
+    assert {c["label"] for c in report["checkpoints"]} == {
+        "star_fusion: image+heatmap+coords",
+        "star_fusion: heatmap+coords",
+    }
     rows = list(csv.DictReader(io.StringIO((out / "robustness-all.csv").read_text())))
     assert len(rows) == n_rows and tuple(rows[0]) == rob.CSV_COLUMNS
     for r in report["rows"]:
@@ -109,24 +133,29 @@ def test_all_corruptions_write_table_and_one_plot_per_corruption(ckpts, data, tm
         assert r["unit"] == corr.REGISTRY[r["corruption"]].unit
     md = (out / "robustness-all.md").read_text()
     assert all(f"## {n} ({corr.REGISTRY[n].unit}" in md for n in names)
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]          # no temporary folder left
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
 
 
 def test_unknown_corruption_lists_the_valid_names(ckpts, data, tmp_path, capsys):
     out = tmp_path / "out"
-    assert cli(["--corruption", "hotpixel", "--checkpoint", str(ckpts["full"]), "--data", str(data),
-                "--out", str(out)]) == 2
+    assert (
+        cli(["--corruption", "hotpixel", "--checkpoint", str(ckpts["full"]), "--data", str(data), "--out", str(out)])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "unknown corruption 'hotpixel'" in err and ", ".join(corr.REGISTRY) in err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
 
 
-@pytest.mark.parametrize("args, match", [
-    (["--corruption", "dropout", "--levels", "0,1.5"], "corruptions.dropout"),
-    (["--corruption", "centroid_noise", "--levels", "0,-1"], "negative"),
-    (["--corruption", "all", "--levels", "0,1"], "single --corruption"),
-    (["--corruption", "dropout", "--levels", "0,abc"], "not a number"),
-])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["--corruption", "dropout", "--levels", "0,1.5"], "corruptions.dropout"),
+        (["--corruption", "centroid_noise", "--levels", "0,-1"], "negative"),
+        (["--corruption", "all", "--levels", "0,1"], "single --corruption"),
+        (["--corruption", "dropout", "--levels", "0,abc"], "not a number"),
+    ],
+)
 def test_bad_severity_is_a_clear_error_and_writes_nothing(ckpts, data, tmp_path, args, match):
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match=match):
@@ -155,9 +184,18 @@ def test_a_failure_during_the_sweep_leaves_out_untouched(ckpts, data, tmp_path, 
 
 
 def test_checkpoint_for_another_image_size_is_refused(ckpts, tmp_path):
-    other = render_small(tmp_path / "ds32", ["n_frames=6", "output.shard_size=6", "camera.width_px=128",
-                                             "camera.height_px=128", "camera.fov_deg=20", "output.image_size_px=32",
-                                             "output.split_fractions=[0.5, 0.0, 0.5]"])
+    other = render_small(
+        tmp_path / "ds32",
+        [
+            "n_frames=6",
+            "output.shard_size=6",
+            "camera.width_px=128",
+            "camera.height_px=128",
+            "camera.fov_deg=20",
+            "output.image_size_px=32",
+            "output.split_fractions=[0.5, 0.0, 0.5]",
+        ],
+    )
     with pytest.raises(CheckpointError, match=r"trained on 64 x 64 images .* stores 32 x 32"):
         rob.robustness([ckpts["full"]], other, "dropout", tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
@@ -194,18 +232,36 @@ def test_damage_grows_with_severity_for_every_registered_corruption(data):
 def test_a_sweep_says_where_it_is_and_holds_its_out_folder(ckpts, data, tmp_path, capsys):
     from skygen.errors import FolderInUseError
     from skygen.lock import FolderLock
+
     out, lines = tmp_path / "out", []
-    rob.robustness([ckpts["full"], ckpts["geometry"]], data, "dropout", out, levels="0,0.5", n=3, progress=False,
-                   log=lines.append)
+    rob.robustness(
+        [ckpts["full"], ckpts["geometry"]], data, "dropout", out, levels="0,0.5", n=3, progress=False, log=lines.append
+    )
     progress = [line for line in lines if line.startswith("[")]
-    assert [p.split(":")[0] for p in progress] == ["[1/2] dropout 0 (probability)",
-                                                 "[2/2] dropout 0.5 (probability)"]
+    assert [p.split(":")[0] for p in progress] == ["[1/2] dropout 0 (probability)", "[2/2] dropout 0.5 (probability)"]
     assert all("3 frames in" in p and p.count("%") == 2 for p in progress)
     with FolderLock(out, what="fusion robustness"):
         with pytest.raises(FolderInUseError, match="in use by fusion robustness"):
             rob.robustness([ckpts["full"]], data, "dropout", out, levels="0", n=3, progress=False)
-        assert cli(["--corruption", "dropout", "--levels", "0", "--n", "3", "--checkpoint", str(ckpts["full"]),
-                    "--data", str(data), "--out", str(out)]) == 2
+        assert (
+            cli(
+                [
+                    "--corruption",
+                    "dropout",
+                    "--levels",
+                    "0",
+                    "--n",
+                    "3",
+                    "--checkpoint",
+                    str(ckpts["full"]),
+                    "--data",
+                    str(data),
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 2
+        )
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
 
 

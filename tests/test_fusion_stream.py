@@ -8,20 +8,18 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.model.inputs import FrameGeometry, Sample
-from fusion.model.checkpoint import load_checkpoint, load_matching_state
 from fusion.config import load_config
-from fusion.model.inputs import encode_detections
 from fusion.errors import ConfigError
-from fusion.train.stream import StreamBatches, make_stream_loader
-from fusion.model.inputs import encode_batch
+from fusion.model.checkpoint import load_checkpoint, load_matching_state
+from fusion.model.inputs import FrameGeometry, Sample, encode_batch, encode_detections
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train.run import train
+from fusion.train.stream import StreamBatches, make_stream_loader
+from skygen.config import build_config as build_render_config
+from skygen.datasets.shards import open_dataset
+from skygen.errors import SkygenError
 from skygen.stream import calibration as calib
 from skygen.stream import emulator as emu
-from skygen.config import build_config as build_render_config
-from skygen.errors import SkygenError
-from skygen.datasets.shards import open_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 quiet = lambda *a, **k: None  # noqa: E731
@@ -84,15 +82,15 @@ def test_few_star_training_keeps_the_brightest_few(smoke):
     got = few.make_batch(0)
     n_all, n = plain["n_detections"].numpy(), got["n_detections"].numpy()
     cut = n < np.minimum(n_all, 30)
-    assert 0.2 < cut.mean() < 0.8                              # about half the samples are cut ...
-    assert np.all(n[cut] >= 3) and np.all(n[cut] <= 5)         # ... to 3-5 detections
+    assert 0.2 < cut.mean() < 0.8  # about half the samples are cut ...
+    assert np.all(n[cut] >= 3) and np.all(n[cut] <= 5)  # ... to 3-5 detections
     assert np.array_equal(got["mask"].sum(1).numpy(), np.minimum(n, 30))
-    for j in range(len(n)):                                     # the kept rows are the brightest of the full set
+    for j in range(len(n)):  # the kept rows are the brightest of the full set
         k = int(got["mask"][j].sum())
         assert torch.equal(got["coords"][j, :k], plain["coords"][j, :k])
         assert not got["mask"][j, k:].any()
     assert torch.equal(got["label"], plain["label"])
-    assert torch.equal(few.make_batch(0)["coords"], got["coords"])          # a pure function of the index
+    assert torch.equal(few.make_batch(0)["coords"], got["coords"])  # a pure function of the index
     with pytest.raises(ConfigError, match="stream.few_stars"):
         _cfg(smoke, "stream.few_stars=[6, 3]")
 
@@ -101,23 +99,39 @@ def test_brightness_offset_shifts_every_log_flux_of_a_sample(smoke):
     plain = _batches(smoke).make_batch(0)
     got = _batches(smoke, brightness_mag=(-1.0, 2.0)).make_batch(0)
     m = plain["mask"]
-    d = (got["coords"][..., 2] - plain["coords"][..., 2])
+    d = got["coords"][..., 2] - plain["coords"][..., 2]
     assert torch.equal(got["coords"][..., :2], plain["coords"][..., :2]) and torch.equal(got["mask"], m)
     assert torch.all(d[~m] == 0)
-    for j in range(len(d)):                                    # one offset per sample, in [-2.5 * 2, 2.5 * 1] / 2.5
+    for j in range(len(d)):  # one offset per sample, in [-2.5 * 2, 2.5 * 1] / 2.5
         v = d[j][m[j]]
         assert torch.allclose(v, v[0].expand_as(v), atol=1e-5) and -0.8 - 1e-5 <= float(v[0]) <= 0.4 + 1e-5
-    assert d[m].std() > 0.1                                     # and it differs between samples
+    assert d[m].std() > 0.1  # and it differs between samples
 
 
 def _cfg(smoke, *extra):
     path, config, cal = smoke
-    return load_config(ROOT / "configs" / "smoke.yaml", [
-        f"data.path={path}", "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=256",
-        "stream.dropout=[0, 0.2]", "stream.false_stars=[0, 1]", "model.branches.image=false",
-        "model.coord_encoder=transformer", "model.transformer.dim=16", "model.transformer.layers=1",
-        "model.transformer.heads=2", "model.coord_hidden=32", "model.canonical.mode=multi", "train.batch_size=64",
-        "train.epochs=3", "data.max_stars=8", *extra])
+    return load_config(
+        ROOT / "configs" / "smoke.yaml",
+        [
+            f"data.path={path}",
+            "stream.kind=detections",
+            f"stream.calibration={cal}",
+            "stream.samples_per_epoch=256",
+            "stream.dropout=[0, 0.2]",
+            "stream.false_stars=[0, 1]",
+            "model.branches.image=false",
+            "model.coord_encoder=transformer",
+            "model.transformer.dim=16",
+            "model.transformer.layers=1",
+            "model.transformer.heads=2",
+            "model.coord_hidden=32",
+            "model.canonical.mode=multi",
+            "train.batch_size=64",
+            "train.epochs=3",
+            "data.max_stars=8",
+            *extra,
+        ],
+    )
 
 
 def test_stream_training_learns_and_resumes_exactly(smoke, tmp_path):
@@ -150,13 +164,33 @@ def test_frames_stream_three_branch_warm_start(smoke, tmp_path):
     """The recipe of configs/cpu-fusion.yaml in miniature: geometry on the detections stream,
     then the three-branch model fine-tuned on the frames stream from that checkpoint."""
     geo = tmp_path / "geo"
-    train(_cfg(smoke, "train.epochs=1", "model.branches.heatmap=true", "model.heatmap.channels=[4,8]",
-               "model.heatmap.out_dim=16", "model.heatmap.canvas_px=32"), geo, log=quiet)
+    train(
+        _cfg(
+            smoke,
+            "train.epochs=1",
+            "model.branches.heatmap=true",
+            "model.heatmap.channels=[4,8]",
+            "model.heatmap.out_dim=16",
+            "model.heatmap.canvas_px=32",
+        ),
+        geo,
+        log=quiet,
+    )
     lines = []
-    full = _cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
-                "model.branches.image=true", "model.image_backbone=tiny_cnn", "model.canonical.image=true",
-                "model.branches.heatmap=true", "model.heatmap.channels=[4,8]", "model.heatmap.out_dim=16",
-                "model.heatmap.canvas_px=32", f"model.init_from={geo / 'best.pt'}")
+    full = _cfg(
+        smoke,
+        "train.epochs=1",
+        "stream.kind=frames",
+        "stream.samples_per_epoch=64",
+        "model.branches.image=true",
+        "model.image_backbone=tiny_cnn",
+        "model.canonical.image=true",
+        "model.branches.heatmap=true",
+        "model.heatmap.channels=[4,8]",
+        "model.heatmap.out_dim=16",
+        "model.heatmap.canvas_px=32",
+        f"model.init_from={geo / 'best.pt'}",
+    )
     summary = train(full, tmp_path / "full", log=lambda m, *a, **k: lines.append(m))
     assert summary["epochs_run"] == 1 and np.isfinite(summary["best"]["val_loss"])
     warm = next(m for m in lines if m.startswith("warm start"))
@@ -190,18 +224,29 @@ def test_frames_stream_on_the_torch_renderer(smoke, tmp_path):
     CPU device), detections from the real detector; the same training step."""
     b = _batches(smoke)
     path, config, cal = smoke
-    tb = StreamBatches(config, "frames", np.eye(3), seed=3, batch=4, steps=2, max_stars=8, render_backend="torch",
-                       device="cpu")
+    tb = StreamBatches(
+        config, "frames", np.eye(3), seed=3, batch=4, steps=2, max_stars=8, render_backend="torch", device="cpu"
+    )
     nb = StreamBatches(config, "frames", np.eye(3), seed=3, batch=4, steps=2, max_stars=8)
     t, n = tb.make_batch(0), nb.make_batch(0)
-    assert torch.equal(t["index"], n["index"]) and torch.equal(t["label"], n["label"])   # same scenes
+    assert torch.equal(t["index"], n["index"]) and torch.equal(t["label"], n["label"])  # same scenes
     assert t["image"].shape == n["image"].shape and t["image"].dtype == torch.float32
     # same stars, independent noise: the images agree closely but not exactly
     assert 0 < (t["image"] - n["image"]).abs().mean() < 0.05
     del b
-    summary = train(_cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
-                         "stream.render_backend=torch", "model.branches.image=true",
-                         "model.image_backbone=tiny_cnn"), tmp_path / "t", log=quiet)
+    summary = train(
+        _cfg(
+            smoke,
+            "train.epochs=1",
+            "stream.kind=frames",
+            "stream.samples_per_epoch=64",
+            "stream.render_backend=torch",
+            "model.branches.image=true",
+            "model.image_backbone=tiny_cnn",
+        ),
+        tmp_path / "t",
+        log=quiet,
+    )
     assert summary["epochs_run"] == 1
 
 
@@ -209,28 +254,63 @@ def test_non_square_sensor_trains_on_shards_and_stream(tmp_path):
     """A 256 x 192 sensor (stored 64 x 48): shard training with augmentations and the image,
     and stream training with a calibration made for that camera."""
     from fusion.testing import render_small
-    ds = render_small(tmp_path / "ns", ["n_frames=120", "output.shard_size=60", "camera.width_px=256",
-                                        "camera.height_px=192", "camera.fov_deg=20", "output.image_size_px=64",
-                                        "output.split_fractions=[0.5, 0.25, 0.25]"])
+
+    ds = render_small(
+        tmp_path / "ns",
+        [
+            "n_frames=120",
+            "output.shard_size=60",
+            "camera.width_px=256",
+            "camera.height_px=192",
+            "camera.fov_deg=20",
+            "output.image_size_px=64",
+            "output.split_fractions=[0.5, 0.25, 0.25]",
+        ],
+    )
     with open_dataset(ds) as d:
         config = d.config
         assert d.image_shape == (48, 64)
     geo = FrameGeometry.from_render_config(config)
     x, y = geo.normalised(np.array([-0.5, 255.5, 127.5]), np.array([-0.5, 191.5, 95.5]))
     np.testing.assert_allclose(x, [-1, 1, 0])
-    np.testing.assert_allclose(y, [-0.75, 0.75, 0])          # one scale for both axes
-    base = [f"data.path={ds}", "labels.k=3", "model.image_backbone=tiny_cnn", "model.canonical.mode=multi",
-            "model.canonical.image=true", "model.coord_encoder=transformer", "model.transformer.dim=16",
-            "model.transformer.layers=1", "model.transformer.heads=2", "model.coord_hidden=32",
-            "model.heatmap.channels=[4,8]", "model.heatmap.out_dim=16", "model.heatmap.canvas_px=32",
-            "train.epochs=1", "train.batch_size=16", "train.workers=0", "data.max_stars=8"]
+    np.testing.assert_allclose(y, [-0.75, 0.75, 0])  # one scale for both axes
+    base = [
+        f"data.path={ds}",
+        "labels.k=3",
+        "model.image_backbone=tiny_cnn",
+        "model.canonical.mode=multi",
+        "model.canonical.image=true",
+        "model.coord_encoder=transformer",
+        "model.transformer.dim=16",
+        "model.transformer.layers=1",
+        "model.transformer.heads=2",
+        "model.coord_hidden=32",
+        "model.heatmap.channels=[4,8]",
+        "model.heatmap.out_dim=16",
+        "model.heatmap.canvas_px=32",
+        "train.epochs=1",
+        "train.batch_size=16",
+        "train.workers=0",
+        "data.max_stars=8",
+    ]
     s = train(load_config(ROOT / "configs" / "smoke.yaml", base), tmp_path / "shards", log=quiet)
     assert np.isfinite(s["best"]["val_loss"])
     cal = tmp_path / "ns-detector.json"
     emu.save(calib.calibrate_from_renders(build_render_config(config), 60), cal)
-    s = train(load_config(ROOT / "configs" / "smoke.yaml", base + [
-        "stream.kind=detections", f"stream.calibration={cal}", "stream.samples_per_epoch=64",
-        "model.branches.image=false"]), tmp_path / "stream", log=quiet)
+    s = train(
+        load_config(
+            ROOT / "configs" / "smoke.yaml",
+            base
+            + [
+                "stream.kind=detections",
+                f"stream.calibration={cal}",
+                "stream.samples_per_epoch=64",
+                "model.branches.image=false",
+            ],
+        ),
+        tmp_path / "stream",
+        log=quiet,
+    )
     assert np.isfinite(s["best"]["val_loss"])
 
 
@@ -255,6 +335,7 @@ def test_fine_regions_head(smoke, tmp_path):
     # the prior the coarse-to-fine search uses: fine regions, consistent with the K regions
     from fusion.solve.base import Detections
     from fusion.solve.priors import load_prior
+
     fine_prior = load_prior(tmp_path / "fine" / "best.pt", level="fine")
     coarse_prior = fine_prior.at_level("coarse")
     assert fine_prior.level == "fine" and fine_prior.centroids.shape == (8, 3)
@@ -274,6 +355,7 @@ def test_frames_stream_binned_by_default_full_selectable():
     distribution (same stars, independent noise), at any stored size the sensor bins to."""
     from skygen.config import config_dict
     from skygen.config import load_config as render_config
+
     assert load_config().stream.frames_renderer == "binned"
     assert load_config(overrides=["stream.frames_renderer=full"]).stream.frames_renderer == "full"
     with pytest.raises(ConfigError):
@@ -296,6 +378,7 @@ def test_frames_batches_send_stored_adu_for_a_gpu(smoke, tmp_path):
     path makes in the loader; 'auto' picks adu only for a CUDA device; the training step takes
     either."""
     from fusion.model.inference import batch_inputs
+
     path, config, cal = smoke
     kw = dict(seed=3, batch=4, steps=2, max_stars=8)
     flt = StreamBatches(config, "frames", np.eye(3), **kw).make_batch(1)
@@ -312,11 +395,22 @@ def test_frames_batches_send_stored_adu_for_a_gpu(smoke, tmp_path):
     with pytest.raises(ConfigError, match="image_transfer"):
         load_config(overrides=["stream.image_transfer=int8"])
     from fusion.train.data import prepare_data
+
     cfg = _cfg(smoke, "stream.kind=frames", "model.branches.image=true", "model.image_backbone=tiny_cnn")
     data = prepare_data(cfg)
     for dev, sent in (("cpu", False), ("cuda", True)):
         assert StreamBatches.from_config(cfg, data.ds.config, data.regions, device=torch.device(dev)).adu_images is sent
-    summary = train(_cfg(smoke, "train.epochs=1", "stream.kind=frames", "stream.samples_per_epoch=64",
-                         "stream.image_transfer=adu", "model.branches.image=true",
-                         "model.image_backbone=tiny_cnn"), tmp_path / "adu", log=quiet)
+    summary = train(
+        _cfg(
+            smoke,
+            "train.epochs=1",
+            "stream.kind=frames",
+            "stream.samples_per_epoch=64",
+            "stream.image_transfer=adu",
+            "model.branches.image=true",
+            "model.image_backbone=tiny_cnn",
+        ),
+        tmp_path / "adu",
+        log=quiet,
+    )
     assert summary["epochs_run"] == 1

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from fusion import cli as fcli
-from fusion.measure import timing as tim
 from fusion.errors import ConfigError
+from fusion.measure import timing as tim
 
 STAT_KEYS = {"median_ms", "p90_ms", "p99_ms", "mean_ms", "min_ms", "max_ms", "std_ms", "n", "throughput_per_s"}
 
@@ -18,6 +18,7 @@ STAT_KEYS = {"median_ms", "p90_ms", "p99_ms", "mean_ms", "min_ms", "max_ms", "st
 def cli(argv: list[str]) -> int:
     """``fusion timing ARGS`` through the real command line."""
     return fcli.main(["timing", *argv])
+
 
 def _check_stats(s: dict, iters: int) -> None:
     assert STAT_KEYS <= set(s)
@@ -29,15 +30,41 @@ def _check_stats(s: dict, iters: int) -> None:
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     out = tmp_path_factory.mktemp("timing") / "smoke.json"
-    assert cli(["--config", "configs/smoke.yaml", "--image-size", "64", "--iters", "4", "--warmup", "1",
-                "--batch", "2", "--mode", "both", "--out", str(out)]) == 0
+    assert (
+        cli(
+            [
+                "--config",
+                "configs/smoke.yaml",
+                "--image-size",
+                "64",
+                "--iters",
+                "4",
+                "--warmup",
+                "1",
+                "--batch",
+                "2",
+                "--mode",
+                "both",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     return json.loads(out.read_text())
 
 
 def test_json_has_every_section_with_positive_numbers(report):
     assert report["format"] == "fusion-timing" and report["format_version"] == 1
-    assert report["settings"] == {**report["settings"], "device": "cpu", "precision": "fp32", "batch": 2,
-                                  "iters": 4, "warmup": 1, "mode": "both"}
+    assert report["settings"] == {
+        **report["settings"],
+        "device": "cpu",
+        "precision": "fp32",
+        "batch": 2,
+        "iters": 4,
+        "warmup": 1,
+        "mode": "both",
+    }
     m = report["model"]
     assert m["name"] == "star_fusion" and m["image_backbone"] == "tiny_cnn" and m["image_size"] == 64
     p = report["parameters"]
@@ -49,8 +76,14 @@ def test_json_has_every_section_with_positive_numbers(report):
     _check_stats(report["forward"], 4)
     e = report["end2end"]
     _check_stats(e["total"], 4)
-    assert e["stage_order"] == ["detect", "downsample_normalise", "encode_coords", "to_device", "forward",
-                                "heatmap_rasterise"]
+    assert e["stage_order"] == [
+        "detect",
+        "downsample_normalise",
+        "encode_coords",
+        "to_device",
+        "forward",
+        "heatmap_rasterise",
+    ]
     for stage in e["stage_order"]:
         _check_stats(e["stages"][stage], 4)
     # the stages cover the chain: their medians add up to about the total (rasterisation is inside forward)
@@ -72,6 +105,7 @@ def test_flops_are_twice_the_macs_and_add_up_over_branches(report):
 def test_flop_count_matches_a_hand_count_for_a_linear_layer():
     """The counter's convention: 2 FLOPs per multiply-add (a Linear(a, b) on one row: 2ab)."""
     from fusion.model.networks import StarFusion
+
     model = StarFusion(3, coords=_Coords()).eval()
     f = tim.count_flops(model, 8, 6, torch.device("cpu"), torch.float32)
     # coords: Linear(24, 16); head: Linear(16, 3)
@@ -92,12 +126,12 @@ class _Coords(torch.nn.Module):
 
 def test_end_to_end_preprocessing_reproduces_the_stored_training_inputs():
     """Raw frame -> detect -> downsample/normalise -> rows equals what skygen stored for that frame."""
-    from fusion.model.inputs import FrameGeometry
     from fusion.config import load_config
-    from fusion.model.inputs import encode_detections, normalise_image
+    from fusion.model.inputs import FrameGeometry, encode_detections, normalise_image
     from fusion.model.shards import read_sample
     from fusion.testing import small_dataset
     from skygen.datasets.shards import open_dataset
+
     path = small_dataset("smoke")
     cfg = load_config("configs/smoke.yaml")
     with open_dataset(path) as ds:
@@ -113,8 +147,7 @@ def test_end_to_end_preprocessing_reproduces_the_stored_training_inputs():
 
 
 def test_reduced_precision_casts_the_model():
-    r = tim.run_timing(config="configs/smoke.yaml", image_size=64, precision="bf16", iters=2, warmup=1,
-                       mode="forward")
+    r = tim.run_timing(config="configs/smoke.yaml", image_size=64, precision="bf16", iters=2, warmup=1, mode="forward")
     assert r["settings"]["precision"] == "bf16" and "bfloat16" in r["settings"]["precision_note"]
     assert "end2end" not in r and r["forward"]["median_ms"] > 0
 
@@ -123,9 +156,13 @@ def test_a_checkpoint_is_timed_on_frames_of_its_own_training_camera(tmp_path):
     from fusion.config import load_config
     from fusion.testing import small_dataset
     from fusion.train.run import train
+
     data = small_dataset("smoke")
-    train(load_config("configs/smoke.yaml", [f"data.path={data}", "train.epochs=1"]), tmp_path / "run",
-          log=lambda *a, **k: None)
+    train(
+        load_config("configs/smoke.yaml", [f"data.path={data}", "train.epochs=1"]),
+        tmp_path / "run",
+        log=lambda *a, **k: None,
+    )
     r = tim.run_timing(checkpoint=tmp_path / "run" / "best.pt", iters=2, warmup=1)
     assert r["model"]["checkpoint"] == str(tmp_path / "run" / "best.pt") and r["model"]["num_classes"] == 4
     assert r["end2end"]["frame"]["sensor_px"] == [256, 256] and r["end2end"]["frame"]["downsample_factor"] == 4

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.model.checkpoint import load_checkpoint, load_model_state
 from fusion.config import load_config
 from fusion.errors import CheckpointError, RunFolderError
+from fusion.model.checkpoint import load_checkpoint, load_model_state
 from fusion.model.networks import create_model
 from fusion.testing import Killed, assert_same_run, killing_log, small_dataset
 from fusion.train.loop import WarmupCosine
@@ -38,9 +38,17 @@ def test_smoke_training_beats_chance_by_far(smoke_run):
     out, summary = smoke_run
     k = summary["num_classes"]
     assert k == 4
-    assert summary["best"]["val_top1"] >= max(0.75, 3 / k)      # chance is 1/K = 0.25
-    for name in ("best.pt", "last.pt", "metrics.csv", "config.yaml", "centroids.npy", "summary.json",
-                 "loss_curves.png", "lr_schedule.png"):
+    assert summary["best"]["val_top1"] >= max(0.75, 3 / k)  # chance is 1/K = 0.25
+    for name in (
+        "best.pt",
+        "last.pt",
+        "metrics.csv",
+        "config.yaml",
+        "centroids.npy",
+        "summary.json",
+        "loss_curves.png",
+        "lr_schedule.png",
+    ):
         assert (out / name).is_file(), name
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert len(rows) == summary["epochs_run"]
@@ -52,12 +60,31 @@ def test_smoke_training_beats_chance_by_far(smoke_run):
 def test_checkpoint_is_self_describing(smoke_run):
     out, _ = smoke_run
     raw = torch.load(out / "last.pt", weights_only=True)
-    for key in ("format", "format_version", "model", "optimizer", "scheduler", "scaler", "epoch", "config",
-                "centroids", "versions", "rng", "history", "best", "num_classes", "model_name", "branches",
-                "render_config", "dataset", "train_frame_ids", "fine_centroids"):
+    for key in (
+        "format",
+        "format_version",
+        "model",
+        "optimizer",
+        "scheduler",
+        "scaler",
+        "epoch",
+        "config",
+        "centroids",
+        "versions",
+        "rng",
+        "history",
+        "best",
+        "num_classes",
+        "model_name",
+        "branches",
+        "render_config",
+        "dataset",
+        "train_frame_ids",
+        "fine_centroids",
+    ):
         assert key in raw, key
     ckpt = load_checkpoint(out / "last.pt")
-    assert sorted(ckpt.to_dict()) == sorted(raw)          # one schema: what is loaded is what is saved
+    assert sorted(ckpt.to_dict()) == sorted(raw)  # one schema: what is loaded is what is saved
     assert ckpt.finished and ckpt.epoch == ckpt.config["train"]["epochs"]
     model, cfg = ckpt.build_model(), ckpt.fusion_config
     assert cfg.labels.k == 4 and model.num_classes == 4
@@ -96,7 +123,7 @@ def test_force_replaces_a_finished_run(tmp_path):
     (out / "notes.txt").write_text("mine")
     train(smoke_cfg("train.epochs=2"), out, force=True, log=quiet)
     assert load_checkpoint(out / "last.pt").epoch == 2
-    assert (out / "notes.txt").read_text() == "mine"      # only run files are deleted
+    assert (out / "notes.txt").read_text() == "mine"  # only run files are deleted
 
 
 def test_resume_with_another_k_is_refused(tmp_path):
@@ -165,23 +192,40 @@ def test_warmup_then_cosine_schedule():
 
 
 def test_soft_label_training_runs(tmp_path):
-    summary = train(smoke_cfg("train.epochs=2", "labels.soft_labels=true", "labels.kappa=5"), tmp_path / "soft",
-                    log=quiet)
+    summary = train(
+        smoke_cfg("train.epochs=2", "labels.soft_labels=true", "labels.kappa=5"), tmp_path / "soft", log=quiet
+    )
     assert np.isfinite(summary["best"]["val_loss"])
 
 
 def test_ddp_on_cpu_with_gloo_and_two_processes(tmp_path):
     out = tmp_path / "ddp"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "fusion.cli",
-           "train", "--data", str(small_dataset("smoke")), "--out", str(out), "--config", str(SMOKE),
-           "train.epochs=2", "data.max_frames=59", "train.eval_batch_size=1"]   # 30 vs 29 validation batches
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "fusion.cli",
+        "train",
+        "--data",
+        str(small_dataset("smoke")),
+        "--out",
+        str(out),
+        "--config",
+        str(SMOKE),
+        "train.epochs=2",
+        "data.max_frames=59",
+        "train.eval_batch_size=1",
+    ]  # 30 vs 29 validation batches
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-3000:]
     ckpt = load_checkpoint(out / "last.pt")
     assert ckpt.epoch == 2
     summary = (out / "summary.json").read_text()
     assert '"processes": 2' in summary
-    assert res.stdout.count("epoch 2/2") == 1            # only rank 0 reports and writes
+    assert res.stdout.count("epoch 2/2") == 1  # only rank 0 reports and writes
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert len(rows) == 2 and all(np.isfinite(float(r["val_loss"])) for r in rows)

@@ -8,9 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
-from skygen.errors import DatasetError
 from skygen.datasets.shards import SCHEMA_VERSION, open_dataset, open_shard_file
 from skygen.datasets.validate import validate
+from skygen.errors import DatasetError
 
 
 @pytest.fixture
@@ -40,6 +40,7 @@ def test_round_trip_and_self_description(small_dataset):
 
 def test_dataset_pickles_without_open_handles(small_dataset):
     import pickle
+
     with open_dataset(small_dataset) as ds:
         ds.image(0)
         clone = pickle.loads(pickle.dumps(ds))
@@ -106,6 +107,7 @@ def test_validate_catches_damage(copy, small_dataset, tmp_path):
 def test_validate_catches_shard_from_another_dataset(tmp_path, small_overrides, small_dataset):
     from skygen.config import load_config
     from skygen.datasets.build import render_dataset
+
     other = tmp_path / "other"
     render_dataset(load_config(overrides=small_overrides + ["n_frames=50", "seed=5"]), other, progress=False)
     mixed = tmp_path / "mixed"
@@ -113,16 +115,22 @@ def test_validate_catches_shard_from_another_dataset(tmp_path, small_overrides, 
     shutil.copy(other / "shard-00001.h5", mixed / "shard-00001.h5")
     man = json.loads((mixed / "manifest.json").read_text())
     om = json.loads((other / "manifest.json").read_text())
-    man["shards"][1] = om["shards"][1]                 # even with its checksum copied over
+    man["shards"][1] = om["shards"][1]  # even with its checksum copied over
     (mixed / "manifest.json").write_text(json.dumps(man))
     assert any("another dataset" in x for x in validate(mixed).problems)
 
 
-@pytest.mark.parametrize("damage, words", [
-    (lambda f: f["boresight/ra_deg"].__setitem__(0, np.nan), "NaN"),
-    (lambda f: (f.__delitem__("frames/split"), f.create_dataset("frames/split", data=np.zeros(20, "f4"))), "float32"),
-    (lambda f: f.__delitem__("boresight/dec_deg"), "missing"),
-])
+@pytest.mark.parametrize(
+    "damage, words",
+    [
+        (lambda f: f["boresight/ra_deg"].__setitem__(0, np.nan), "NaN"),
+        (
+            lambda f: (f.__delitem__("frames/split"), f.create_dataset("frames/split", data=np.zeros(20, "f4"))),
+            "float32",
+        ),
+        (lambda f: f.__delitem__("boresight/dec_deg"), "missing"),
+    ],
+)
 def test_damaged_labels_name_file_and_dataset(copy, damage, words):
     with h5py.File(copy / "shard-00001.h5", "r+") as f:
         damage(f)
@@ -133,14 +141,14 @@ def test_damaged_labels_name_file_and_dataset(copy, damage, words):
         open_dataset(copy)
 
 
-SCHEMA1 = Path(__file__).parent / "data" / "schema1-dataset"   # written by skygen 0.1.0 at commit 8cffe5a
+SCHEMA1 = Path(__file__).parent / "data" / "schema1-dataset"  # written by skygen 0.1.0 at commit 8cffe5a
 
 
 def test_schema1_dataset_still_reads_through_the_one_reader():
     """A 1.x dataset (flat tables + offsets) reads through open_dataset with the 2.x API."""
     with open_dataset(SCHEMA1) as ds:
         assert ds.schema_version.startswith("1.") and len(ds) == 10
-        with h5py.File(SCHEMA1 / "shard-00001.h5") as f:       # frame 7 = row 2 of the second shard
+        with h5py.File(SCHEMA1 / "shard-00001.h5") as f:  # frame 7 = row 2 of the second shard
             lo, hi = f["detections/offsets"][2:4]
             want = f["detections/x_px"][lo:hi]
             slo, shi = f["stars/offsets"][2:4]
@@ -158,16 +166,37 @@ def test_schema1_dataset_still_reads_through_the_one_reader():
 def test_tables_of_empty_or_equal_length_rows_round_trip(tmp_path, counts):
     """Per-frame variable-length rows survive frames without detections and frames of equal counts."""
     from types import SimpleNamespace
-    from skygen.datasets.shards import DETECTION_FIELDS, STAR_FIELDS, write_shard
+
     from skygen.config import config_dict, load_config
+    from skygen.datasets.shards import DETECTION_FIELDS, STAR_FIELDS, write_shard
+
     cfg = config_dict(load_config(overrides=["n_frames=3"]))
     table = lambda fields, k: {n: np.arange(k).astype(v[0]) for n, v in fields.items()}  # noqa: E731
-    frames = [SimpleNamespace(index=i, split=0, index_in_split=i, frame_id=i, n_stars=k, n_detections=k,
-                              background_adu=0.0, noise_adu=1.0, ra_deg=0.0, dec_deg=0.0, roll_deg=0.0,
-                              unit_vector=np.array([1.0, 0, 0]), quaternion=np.array([1.0, 0, 0, 0]),
-                              image=np.zeros((4, 4), np.uint16), image_full=None, downsample_factor=1,
-                              stars=table(STAR_FIELDS, k), detections=table(DETECTION_FIELDS, k), applied={}, log={})
-              for i, k in enumerate(counts)]
+    frames = [
+        SimpleNamespace(
+            index=i,
+            split=0,
+            index_in_split=i,
+            frame_id=i,
+            n_stars=k,
+            n_detections=k,
+            background_adu=0.0,
+            noise_adu=1.0,
+            ra_deg=0.0,
+            dec_deg=0.0,
+            roll_deg=0.0,
+            unit_vector=np.array([1.0, 0, 0]),
+            quaternion=np.array([1.0, 0, 0, 0]),
+            image=np.zeros((4, 4), np.uint16),
+            image_full=None,
+            downsample_factor=1,
+            stars=table(STAR_FIELDS, k),
+            detections=table(DETECTION_FIELDS, k),
+            applied={},
+            log={},
+        )
+        for i, k in enumerate(counts)
+    ]
     write_shard(tmp_path / "s.h5", frames, config=cfg, shard_index=0, frame_start=0)
     with h5py.File(tmp_path / "s.h5") as f:
         assert f["detections/x_px"].shape == (len(counts),)
@@ -179,20 +208,22 @@ def test_a_same_size_edit_with_its_mtime_restored_is_caught(copy):
     """The verified-read cache must not trust size + mtime alone: both are easy to restore."""
     import os
     import time
+
     from skygen.datasets.shards import verify_checksums
+
     with open_dataset(copy) as ds:
         assert verify_checksums(ds) == len(ds.shards)
-        assert verify_checksums(ds) == 0                        # remembered
-    time.sleep(0.05)          # file timestamps tick coarsely (ms): let the edit's ctime differ
+        assert verify_checksums(ds) == 0  # remembered
+    time.sleep(0.05)  # file timestamps tick coarsely (ms): let the edit's ctime differ
     p = copy / "shard-00001.h5"
     st = p.stat()
     data = bytearray(p.read_bytes())
     data[len(data) // 2] ^= 0xFF
     p.write_bytes(bytes(data))
-    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))            # size and mtime as verified
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))  # size and mtime as verified
     assert (p.stat().st_size, p.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
     with open_dataset(copy) as ds:
         with pytest.raises(DatasetError, match="shard-00001.h5: sha256 differs"):
             verify_checksums(ds)
-    rep = validate(copy)                                       # validate always hashes
+    rep = validate(copy)  # validate always hashes
     assert not rep.ok and any("shard-00001.h5: sha256 differs" in x for x in rep.problems)

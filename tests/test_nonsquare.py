@@ -11,8 +11,14 @@ from skygen.config import load_config
 from skygen.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
-WIDE = ["camera.width_px=256", "camera.height_px=192", "camera.pixel_pitch_um=22.0", "output.image_size_px=64",
-        "output.shard_size=10", "n_frames=10"]
+WIDE = [
+    "camera.width_px=256",
+    "camera.height_px=192",
+    "camera.pixel_pitch_um=22.0",
+    "output.image_size_px=64",
+    "output.shard_size=10",
+    "n_frames=10",
+]
 
 
 def test_config_accepts_non_square_with_an_integer_factor():
@@ -28,6 +34,7 @@ def test_camera_presets_load():
         assert cfg.camera.width_px % cfg.output.image_size_px == 0, p
     bf = load_config(ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml")
     from skygen.instrument.camera import Camera
+
     cam = Camera.from_config(bf.camera)
     assert (cam.width_px, cam.height_px) == (1024, 768)
     assert cam.fov_deg[0] == pytest.approx(11.53, abs=0.01) and cam.fov_deg[1] == pytest.approx(8.66, abs=0.01)
@@ -37,6 +44,7 @@ def test_render_store_validate_non_square(tmp_path):
     from skygen.datasets.build import render_dataset
     from skygen.datasets.shards import open_dataset
     from skygen.datasets.validate import validate
+
     out = tmp_path / "wide"
     render_dataset(load_config(overrides=WIDE), out, workers=1, progress=False)
     with open_dataset(out) as ds:
@@ -55,5 +63,6 @@ def test_fusion_geometry_of_a_non_square_sensor():
     """fusion takes non-square sensors (training on them: tests/test_fusion_stream.py)."""
     from fusion.model.inputs import FrameGeometry
     from skygen.config import config_dict
+
     geo = FrameGeometry.from_render_config(config_dict(load_config(overrides=WIDE)))
     assert (geo.sensor_px, geo.sensor_h, geo.image_px, geo.image_h, geo.factor) == (256, 192, 64, 48, 4)

@@ -34,10 +34,26 @@ def test_help_and_next_command(tmp_path, capsys):
 @pytest.mark.slow
 def test_one_chunk_trains_the_smoke_preset(tmp_path):
     from fusion.testing import small_dataset
+
     out = tmp_path / "run"
-    code = chunks.main(["--data", str(small_dataset("smoke")), "--out", str(out), "--config",
-                        str(ROOT / "configs" / "smoke.yaml"), "--max-chunks", "1", "--chunk-minutes", "8",
-                        "--launcher", f"{sys.executable} -m fusion.cli", "train.epochs=2", "train.progress=false"])
+    code = chunks.main(
+        [
+            "--data",
+            str(small_dataset("smoke")),
+            "--out",
+            str(out),
+            "--config",
+            str(ROOT / "configs" / "smoke.yaml"),
+            "--max-chunks",
+            "1",
+            "--chunk-minutes",
+            "8",
+            "--launcher",
+            f"{sys.executable} -m fusion.cli",
+            "train.epochs=2",
+            "train.progress=false",
+        ]
+    )
     assert code == 0 and (out / "summary.json").exists() and chunks.epochs_done(out) == 2
 
 
@@ -47,15 +63,35 @@ def test_gpu_checks_quick_on_the_cpu(tmp_path):
     stopped by its guard or finished, its evaluation whole and cut to the brightest 3 detections;
     at most the eight files the device tool brings back."""
     import json
+
     spec = importlib.util.spec_from_file_location("gpu_checks", ROOT / "scripts" / "gpu_checks.py")
     gc = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gc)
     out = tmp_path / "out"
-    assert gc.main(["--out", str(out), "--work", str(tmp_path / "work"), "--quick", "--device", "cpu",
-                    "--skip", "tests,timing", "--train-seconds", "30", "--workers", "1",
-                    "--few-star", "3"]) == 0
+    assert (
+        gc.main(
+            [
+                "--out",
+                str(out),
+                "--work",
+                str(tmp_path / "work"),
+                "--quick",
+                "--device",
+                "cpu",
+                "--skip",
+                "tests,timing",
+                "--train-seconds",
+                "30",
+                "--workers",
+                "1",
+                "--few-star",
+                "3",
+            ]
+        )
+        == 0
+    )
     assert {p.name for p in out.iterdir()} <= set(gc.FILES) and len(list(out.iterdir())) <= gc.MAX_FILES
-    assert (out / "best.pt").exists()       # 7 files without it: a small checkpoint comes back
+    assert (out / "best.pt").exists()  # 7 files without it: a small checkpoint comes back
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"]["data"]["commands"][0]["rc"] == 0
     assert summary["steps"]["eval"]["commands"][0]["rc"] == 0

@@ -7,23 +7,30 @@ import numpy as np
 import pytest
 import torch
 
-from skygen.datasets.shards import open_dataset
 from fusion.config import BranchesConfig, DataConfig, ModelConfig, build_config
 from fusion.errors import ConfigError
 from fusion.model.canonical import canonical_views
 from fusion.model.inputs import Preprocessor
-from fusion.model.shards import read_sample
 from fusion.model.networks import PeakSet, create_model, resolve_model_config
+from fusion.model.shards import read_sample
+from skygen.datasets.shards import open_dataset
 
 
-def _star_field(size=64, stars=((20.3, 30.7, 60.0), (45.6, 12.2, 30.0), (9.8, 50.1, 15.0)), hot=((40, 10, 200.0),),
-                sigma_psf=1.0, noise=2.0, bias=100.0, seed=0):
+def _star_field(
+    size=64,
+    stars=((20.3, 30.7, 60.0), (45.6, 12.2, 30.0), (9.8, 50.1, 15.0)),
+    hot=((40, 10, 200.0),),
+    sigma_psf=1.0,
+    noise=2.0,
+    bias=100.0,
+    seed=0,
+):
     """A quantised frame (ADU): Gaussian stars (x, y, peak in noise sigmas), one-pixel hot pixels."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:size, :size].astype(np.float64)
     img = bias + rng.normal(0, noise, (size, size))
     for x, y, snr in stars:
-        img += snr * noise * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma_psf ** 2))
+        img += snr * noise * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma_psf**2))
     for x, y, snr in hot:
         img[y, x] += snr * noise
     return torch.from_numpy(np.round(img).astype(np.float32))[None, None]
@@ -38,13 +45,13 @@ def test_peaks_are_the_stars_at_subpixel_positions_and_hot_pixels_are_dropped():
     img = _star_field()
     rows, mask = PeakSet(16, threshold=5.0).peaks(img)
     got = rows[0, mask[0]]
-    assert len(got) == 3                                    # three stars, no hot pixel, no noise peak
-    for (x, y, _), row in zip(((20.3, 30.7, 0), (45.6, 12.2, 0), (9.8, 50.1, 0)), got):   # strongest first
+    assert len(got) == 3  # three stars, no hot pixel, no noise peak
+    for (x, y, _), row in zip(((20.3, 30.7, 0), (45.6, 12.2, 0), (9.8, 50.1, 0)), got):  # strongest first
         ex, ey = _norm(x, y, 64)
         # within 0.25 px: a 3 x 3 centroid is pulled towards the peak pixel by up to ~0.2 px
         assert abs(row[0] - ex) < 0.25 * 2 / 64 and abs(row[1] - ey) < 0.25 * 2 / 64
-    assert (got[:, 2].diff() < 0).all()                     # log flux falls with the star's brightness
-    assert ((got[:, 3] > 0.1) & (got[:, 3] < 0.9)).all()    # spread by the PSF
+    assert (got[:, 2].diff() < 0).all()  # log flux falls with the star's brightness
+    assert ((got[:, 3] > 0.1) & (got[:, 3] < 0.9)).all()  # spread by the PSF
     # the hot pixel is a token when the sharpness cut is off, and it is the sharpest
     rows, mask = PeakSet(16, threshold=5.0, max_sharpness=1.0).peaks(img)
     assert mask[0].sum() == 4 and rows[0, mask[0], 3].max() > 0.9
@@ -95,9 +102,16 @@ def test_peak_tokens_are_rotated_with_the_detections():
     pos = [_norm(x, y, 64) for x, y in ((20.3, 30.7), (45.6, 12.2), (9.8, 50.1))]
     coords = torch.tensor([[[x, y, 1.0 - 0.3 * i] for i, (x, y) in enumerate(pos)]], dtype=torch.float32)
     mask = torch.ones(1, 3, dtype=torch.bool)
-    cfg = build_config({"model": {"image_backbone": "peak_set", "branches": {"image": True, "heatmap": False,
-                                  "coords": False}, "canonical": {"mode": "brightest", "image": True},
-                                  "peaks": {"max_peaks": 8}}})
+    cfg = build_config(
+        {
+            "model": {
+                "image_backbone": "peak_set",
+                "branches": {"image": True, "heatmap": False, "coords": False},
+                "canonical": {"mode": "brightest", "image": True},
+                "peaks": {"max_peaks": 8},
+            }
+        }
+    )
     model = create_model("star_fusion", 15, cfg.model, image_size=64).eval()
     seen = {}
     enc = model.image.backbone.encoder
@@ -110,8 +124,9 @@ def test_peak_tokens_are_rotated_with_the_detections():
 
 
 def test_grid_cnn_with_image_px_binning_and_bad_binning():
-    cfg = dataclasses.replace(ModelConfig(image_backbone="grid_cnn", image_px=32),
-                              branches=BranchesConfig(True, False, False))
+    cfg = dataclasses.replace(
+        ModelConfig(image_backbone="grid_cnn", image_px=32), branches=BranchesConfig(True, False, False)
+    )
     model = create_model("star_fusion", 5, cfg, image_size=64)
     assert model.image.bin == 2
     out = model(torch.rand(2, 1, 64, 64), torch.zeros(2, 4, 3), torch.zeros(2, 4, dtype=torch.bool))

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from skygen.instrument import corruptions as corr
 from skygen.datasets.shards import open_dataset
+from skygen.instrument import corruptions as corr
 from skygen.render.perturb import perturbed_frames
 
 
@@ -31,5 +31,6 @@ def test_rerendered_clean_equals_stored_and_extra_changes_it(small_dataset):
 
 def test_out_of_range_severity_is_refused(small_dataset):
     from skygen.errors import ConfigError
+
     with open_dataset(small_dataset) as ds, pytest.raises(ConfigError, match="corruptions.dropout"):
         perturbed_frames(ds, "dropout", 1.5, ds.indices("test"))

@@ -18,16 +18,16 @@ def test_zero_point_by_hand():
 
 
 def test_colour_response():
-    assert bv_to_temperature(np.array([0.65]))[0] == pytest.approx(5800, rel=0.03)   # the Sun
+    assert bv_to_temperature(np.array([0.65]))[0] == pytest.approx(5800, rel=0.03)  # the Sun
     assert bv_to_temperature(np.array([0.0]))[0] > 9000
     cfg = load_config()
     p = Photometry.from_config(cfg.optics, cfg.photometry, cfg.sensor)
     e = p.electrons_per_s(np.array([5.0, 5.0]), np.array([0.0, 1.6]))
-    assert e[1] > e[0]          # at equal V, a red star gives more electrons in a red-sensitive CMOS
+    assert e[1] > e[0]  # at equal V, a red star gives more electrons in a red-sensitive CMOS
 
 
 def test_detection_limit_is_derived_from_the_sensor():
-    dark_sky = ["photometry.sky_mag_arcsec2=30"]       # else the sky grows with the aperture too
+    dark_sky = ["photometry.sky_mag_arcsec2=30"]  # else the sky grows with the aperture too
     base = Renderer(load_config(overrides=dark_sky))
     bigger = Renderer(load_config(overrides=dark_sky + ["optics.aperture_mm=14"]))
     noisier = Renderer(load_config(overrides=dark_sky + ["sensor.read_noise_e=20"]))

@@ -6,13 +6,21 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS
 
-from skygen.sky.attitude import attitude_matrix
-from skygen.instrument.camera import Camera
-from skygen.sky.catalog import radec_to_vec
 from skygen.config import load_config
+from skygen.instrument.camera import Camera
+from skygen.sky.attitude import attitude_matrix
+from skygen.sky.catalog import radec_to_vec
 
-TALL = ["camera.width_px=512", "camera.height_px=256", "camera.fov_deg=20", "camera.pixel_aspect=2",
-        "output.image_size_px=512", "output.full_res=true", "corruptions.cosmic_rays=0", "corruptions.hotpixels=0"]
+TALL = [
+    "camera.width_px=512",
+    "camera.height_px=256",
+    "camera.fov_deg=20",
+    "camera.pixel_aspect=2",
+    "output.image_size_px=512",
+    "output.full_res=true",
+    "corruptions.cosmic_rays=0",
+    "corruptions.hotpixels=0",
+]
 
 
 def test_unproject_inverts_project_with_aspect_and_distortion():
@@ -43,6 +51,7 @@ def test_projection_matches_a_wcs_with_tall_pixels():
 
 def test_rendered_tall_pixel_frame_puts_stars_where_projection_says():
     from skygen.render.frame import Renderer
+
     cfg = load_config(overrides=TALL + ["sensor.exposure_s=0.5"])
     r = Renderer(cfg)
     errs, shapes, n = [], [], 0
@@ -58,7 +67,7 @@ def test_rendered_tall_pixel_frame_puts_stars_where_projection_says():
         img = f.image_full.astype(float) - f.background_adu
         for a, b in zip(det["x_px"][ok][sel][:5], det["y_px"][ok][sel][:5]):
             xi, yi = int(round(a)), int(round(b))
-            st = np.clip(img[yi - 4:yi + 5, xi - 6:xi + 7], 0, None)
+            st = np.clip(img[yi - 4 : yi + 5, xi - 6 : xi + 7], 0, None)
             yy, xx = np.mgrid[-4:5, -6:7]
             t = st.sum()
             mx, my = (st * xx).sum() / t, (st * yy).sum() / t
@@ -75,19 +84,21 @@ def test_rendered_tall_pixel_frame_puts_stars_where_projection_says():
 def test_stamp_is_round_on_the_sky(psf):
     """Second moments of a noise-free stamp: rows measure sigma / aspect, columns sigma (plus the pixel's 1/12)."""
     from skygen.instrument.psf import stamp
+
     s, aspect = 1.5, 2.0
     y0, x0, p = stamp(0.2, -0.3, 1.0, psf, s, 3.0, aspect)
-    yy, xx = np.mgrid[y0:y0 + p.shape[0], x0:x0 + p.shape[1]]
+    yy, xx = np.mgrid[y0 : y0 + p.shape[0], x0 : x0 + p.shape[1]]
     assert p.sum() == pytest.approx(1.0)
     assert (p * xx).sum() == pytest.approx(0.2, abs=0.01) and (p * yy).sum() == pytest.approx(-0.3, abs=0.01)
     vx, vy = (p * (xx - 0.2) ** 2).sum() - 1 / 12, (p * (yy + 0.3) ** 2).sum() - 1 / 12
-    assert vy * aspect ** 2 == pytest.approx(vx, rel=0.03)
+    assert vy * aspect**2 == pytest.approx(vx, rel=0.03)
     if psf == "gaussian":
         assert np.sqrt(vx) == pytest.approx(s, rel=0.01)
 
 
 def test_sky_background_scales_with_pixel_area():
     from skygen.render.frame import Renderer
+
     square = Renderer(load_config(overrides=TALL[:3] + ["output.image_size_px=512"]))
     tall = Renderer(load_config(overrides=TALL))
     assert tall.sky_e == pytest.approx(2 * square.sky_e, rel=1e-9)
@@ -95,6 +106,7 @@ def test_sky_background_scales_with_pixel_area():
 
 def test_torch_backend_refuses_tall_pixels():
     from skygen.errors import ConfigError
+
     with pytest.raises(ConfigError, match="pixel_aspect"):
         load_config(overrides=TALL + ["render.backend=torch"])
 
@@ -104,6 +116,7 @@ def test_tetra3rs_solves_a_tall_pixel_frame():
     from fusion.solve.base import Detections, Solution
     from fusion.solve.tetra import Tetra3Solver
     from skygen.render.frame import Renderer
+
     cfg = load_config(overrides=TALL + ["sensor.exposure_s=0.5"])
     r = Renderer(cfg)
     solver = Tetra3Solver(r.camera)

@@ -32,8 +32,8 @@ def test_a_field_range_with_a_huge_database_is_refused_naming_one_that_fits():
     assert P.estimate_database(2.6, 119.0)["mb"] <= P.MAX_DATABASE_MB < P.estimate_database(2.5, 119.0)["mb"]
     with pytest.raises(ConfigError, match="too narrow for a lost-in-space search over a range: give the camera"):
         P.check_database_size(1.0, 2.0)
-    assert P.check_database_size(5.0, 30.0)["mb"] < 200            # the default fit-camera range: allowed
-    assert P.check_database_size(1.0, None)["mb"] > 1000           # one field (a known camera) is never refused
+    assert P.check_database_size(5.0, 30.0)["mb"] < 200  # the default fit-camera range: allowed
+    assert P.check_database_size(1.0, None)["mb"] > 1000  # one field (a known camera) is never refused
 
 
 def test_the_refusal_comes_before_any_build(tmp_path):

@@ -19,9 +19,11 @@ REAL = ROOT / "real-frames" / "tetra3-blackfly"
 def test_camera_of_any_size_needs_no_storage_settings(tmp_path):
     """770 rows are no multiple of 1024 / 256: a camera file without an output section still predicts."""
     from fusion.solve.predict import Predictor
+
     cam = tmp_path / "odd.yaml"
-    cam.write_text(yaml.safe_dump({"camera": {"width_px": 1024, "height_px": 770, "pixel_pitch_um": 6.9,
-                                              "focal_length_mm": 35.0}}))
+    cam.write_text(
+        yaml.safe_dump({"camera": {"width_px": 1024, "height_px": 770, "pixel_pitch_um": 6.9, "focal_length_mm": 35.0}})
+    )
     pred = Predictor(camera=cam)
     assert (pred.camera.width_px, pred.camera.height_px) == (1024, 770)
     img = np.random.default_rng(0).normal(100, 3, (770, 1024)).astype(np.float32)
@@ -32,9 +34,16 @@ def test_camera_of_any_size_needs_no_storage_settings(tmp_path):
 
 def test_fitted_camera_background_box_is_the_default(tmp_path):
     from fusion.solve.predict import Predictor
+
     cam = tmp_path / "c.yaml"
-    cam.write_text(yaml.safe_dump({"camera": {"width_px": 640, "height_px": 480, "pixel_pitch_um": 5.0,
-                                              "fov_deg": 12.0}, "detection": {"background_box_px": 64}}))
+    cam.write_text(
+        yaml.safe_dump(
+            {
+                "camera": {"width_px": 640, "height_px": 480, "pixel_pitch_um": 5.0, "fov_deg": 12.0},
+                "detection": {"background_box_px": 64},
+            }
+        )
+    )
     assert Predictor(camera=cam).background_box == 64
     assert Predictor(camera=cam, background_box=0).background_box == 0
 
@@ -46,8 +55,23 @@ def test_fov_range_solves_real_frames_and_finds_the_field(tmp_path, capsys):
         listed = {r["file"]: float(r["fov_deg"]) for r in csv.DictReader(f)}
     names = sorted(listed)[2:4]
     out = tmp_path / "p.jsonl"
-    assert main(["predict", *[str(REAL / n) for n in names], "--fov-range", "10", "13", "--solve",
-                 "--background-box", "64", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                *[str(REAL / n) for n in names],
+                "--fov-range",
+                "10",
+                "13",
+                "--solve",
+                "--background-box",
+                "64",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     recs = [json.loads(line) for line in out.read_text().splitlines()]
     for n, r in zip(names, recs):
         sol = r["solution"]

@@ -7,7 +7,7 @@ from skygen.instrument.psf import gaussian_stamps, stamp, streak
 
 
 def centroid(y0, x0, patch):
-    yy, xx = np.mgrid[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]]
+    yy, xx = np.mgrid[y0 : y0 + patch.shape[0], x0 : x0 + patch.shape[1]]
     return (patch * xx).sum() / patch.sum(), (patch * yy).sum() / patch.sum()
 
 
@@ -30,10 +30,14 @@ def test_flux_conserved_and_centroid_exact(psf, sigma):
 
 def test_gaussian_stamp_is_exact_pixel_integral():
     from scipy.integrate import dblquad
-    y0, x0, p = stamp(5.3, 7.8, 1e6, "gaussian", 1.1)   # bright: the stamp reaches 6.8 sigma
+
+    y0, x0, p = stamp(5.3, 7.8, 1e6, "gaussian", 1.1)  # bright: the stamp reaches 6.8 sigma
     p = p / 1e6
-    g = lambda yy, xx: np.exp(-((xx - 5.3) ** 2 + (yy - 7.8) ** 2) / (2 * 1.1 ** 2)) / (2 * np.pi * 1.1 ** 2)
-    j, i = 8 - y0, 5 - x0                          # pixel (x=5, y=8)
+
+    def g(yy, xx):
+        return np.exp(-((xx - 5.3) ** 2 + (yy - 7.8) ** 2) / (2 * 1.1**2)) / (2 * np.pi * 1.1**2)
+
+    j, i = 8 - y0, 5 - x0  # pixel (x=5, y=8)
     ref, _ = dblquad(g, 4.5, 5.5, 7.5, 8.5)
     assert p[j, i] == pytest.approx(ref, rel=1e-6)
 

@@ -15,12 +15,14 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-MADE_BY_DEMO = ("data/demo", "runs/demo")          # the Makefile's DEMO and RUN
+MADE_BY_DEMO = ("data/demo", "runs/demo")  # the Makefile's DEMO and RUN
 # flags whose value is written, not read
 OUTPUT_FLAGS = {"--out", "--onnx", "--overlay", "--report", "--write-config", "--engine"}
 # tokens that stand for the user's own files in examples
-PLACEHOLDER = re.compile(r"^(FRAME|CK|DIR|D|FILE|PATH|frame|sky|cube|grid|detector|star_fusion|mine|sets|my-|your)\b"
-                         r"|\.\.\.|^/scratch/|^\$")
+PLACEHOLDER = re.compile(
+    r"^(FRAME|CK|DIR|D|FILE|PATH|frame|sky|cube|grid|detector|star_fusion|mine|sets|my-|your)\b"
+    r"|\.\.\.|^/scratch/|^\$"
+)
 
 
 def shell_commands(page: Path) -> list[tuple[int, str]]:
@@ -64,6 +66,7 @@ def test_the_pages_have_commands_to_check():
 def test_every_command_parses(page):
     from fusion.cli import build_parser as fusion_parser
     from skygen.cli import build_parser as skygen_parser
+
     parsers = {"skygen": skygen_parser(), "fusion": fusion_parser()}
     bad = []
     for n, command in shell_commands(page):
@@ -111,18 +114,19 @@ def test_every_input_path_exists_or_is_made_first(page):
                 ok = any(ROOT.glob(path))
             else:
                 ok = (ROOT / path).exists()
-            ok = ok and not path.startswith(("data/", "runs/"))   # ignored by git: not in a fresh clone
+            ok = ok and not path.startswith(("data/", "runs/"))  # ignored by git: not in a fresh clone
             ok = ok or any(path == m or path.startswith(m.rstrip("/") + "/") for m in made)
             ok = ok or re.search(r"\b(after|from|needs|made by|written by|produced by)\b", comment)
             if not ok:
                 bad.append(f"{page.name}:{n}: {path!r} in `{command[:90]}`")
         made += outputs
-        if argv[:2] == ["skygen", "render"] and "--out" not in argv:   # its default folder
+        if argv[:2] == ["skygen", "render"] and "--out" not in argv:  # its default folder
             n_frames = argv[argv.index("--n") + 1] if "--n" in argv else "?"
             seed = argv[argv.index("--seed") + 1] if "--seed" in argv else "0"
             made.append(f"data/sky-n{n_frames}-s{seed}")
-    assert not bad, "inputs nothing on the page makes (run it first, or say in a comment what makes it):\n" \
-        + "\n".join(bad)
+    assert not bad, "inputs nothing on the page makes (run it first, or say in a comment what makes it):\n" + "\n".join(
+        bad
+    )
 
 
 def test_quickstart_demo_recipe_runs_at_small_size(tmp_path):
@@ -134,10 +138,24 @@ def test_quickstart_demo_recipe_runs_at_small_size(tmp_path):
     if not (bin_dir / "skygen").exists():
         pytest.skip("the skygen/fusion entry points are not installed beside this python")
     demo, run = tmp_path / "demo", tmp_path / "run"
-    r = subprocess.run([make, "-C", str(ROOT), "demo", f"BIN={bin_dir}", f"STAMP={ROOT / 'Makefile'}",
-                        f"DEMO={demo}", f"RUN={run}", "DEMO_N=200", "WORKERS=2",
-                        "DEMO_TRAIN=--set train.epochs=1 --set stream.samples_per_epoch=512 --set train.batch_size=64"],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            make,
+            "-C",
+            str(ROOT),
+            "demo",
+            f"BIN={bin_dir}",
+            f"STAMP={ROOT / 'Makefile'}",
+            f"DEMO={demo}",
+            f"RUN={run}",
+            "DEMO_N=200",
+            "WORKERS=2",
+            "DEMO_TRAIN=--set train.epochs=1 --set stream.samples_per_epoch=512 --set train.batch_size=64",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert (demo / "preview.png").stat().st_size > 10_000
     assert (run / "best.pt").exists() and (run / "eval-test" / "eval-test.md").exists()

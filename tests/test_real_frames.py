@@ -38,14 +38,20 @@ def _rgb(h=40, w=60, dtype=np.uint8, seed=0):
     """Distinct R, G, B planes ([y, x, (R, G, B)]) of integer type ``dtype``."""
     rng = np.random.default_rng(seed)
     top = np.iinfo(dtype).max
-    return np.stack([rng.integers(0, top // 3, (h, w)), rng.integers(top // 3, 2 * top // 3, (h, w)),
-                     rng.integers(2 * top // 3, top, (h, w))], axis=2).astype(dtype)
+    return np.stack(
+        [
+            rng.integers(0, top // 3, (h, w)),
+            rng.integers(top // 3, 2 * top // 3, (h, w)),
+            rng.integers(2 * top // 3, top, (h, w)),
+        ],
+        axis=2,
+    ).astype(dtype)
 
 
 @pytest.mark.parametrize("dtype, alpha", [(np.uint8, False), (np.uint16, True)])
 def test_colour_frames_become_one_plane_saying_so(tmp_path, dtype, alpha):
     rgb = _rgb(dtype=dtype)
-    bgr = rgb[:, :, ::-1]                                         # OpenCV writes B, G, R (, A)
+    bgr = rgb[:, :, ::-1]  # OpenCV writes B, G, R (, A)
     if alpha:
         a = np.random.default_rng(1).integers(0, np.iinfo(dtype).max, rgb.shape[:2]).astype(dtype)
         bgr = np.dstack([bgr, a])
@@ -57,8 +63,12 @@ def test_colour_frames_become_one_plane_saying_so(tmp_path, dtype, alpha):
     np.testing.assert_allclose(img, LUMINANCE_RGB[0] * r + LUMINANCE_RGB[1] * g + LUMINANCE_RGB[2] * b, rtol=1e-6)
     assert img.shape == rgb.shape[:2] and img.dtype == np.float32
     kind = f"RGBA, {8 * np.dtype(dtype).itemsize} bit; alpha dropped" if alpha else "RGB, 8 bit"
-    assert said == [(f"{path}: colour frame ({kind}) read as one plane: luminance 0.2126 R + 0.7152 G + 0.0722 B "
-                     "(Rec. 709; --channel r, g, b or sum for another)")]
+    assert said == [
+        (
+            f"{path}: colour frame ({kind}) read as one plane: luminance 0.2126 R + 0.7152 G + 0.0722 B "
+            "(Rec. 709; --channel r, g, b or sum for another)"
+        )
+    ]
     # one plane by name, in R, G, B order whatever OpenCV's order, or their sum
     for k, name in enumerate("rgb"):
         np.testing.assert_array_equal(read_frame(path, name, log=lambda m: None), rgb[:, :, k].astype(np.float32))
@@ -75,7 +85,7 @@ def test_grey_stored_as_rgb_is_read_without_a_note_and_the_default_note_goes_to_
     read_frame(tmp_path / "colour.tiff")
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "colour.tiff: colour frame (RGB, 16 bit) read as one plane" in err[0]
-    np.save(tmp_path / "cube.npy", np.zeros((3, 8, 8)))          # planes of a cube: order unknown, refused
+    np.save(tmp_path / "cube.npy", np.zeros((3, 8, 8)))  # planes of a cube: order unknown, refused
     with pytest.raises(FrameError, match="colour or multi-plane image"):
         read_frame(tmp_path / "cube.npy")
 
@@ -90,21 +100,23 @@ def _star_field(h=128, w=160, levels=(100, 100, 100, 100), seed=2):
     img = rng.poisson(bg).astype(np.float64)
     yy, xx = np.mgrid[0:h, 0:w]
     for y, x in rng.uniform(8, min(h, w) - 8, (12, 2)):
-        img += 3000 * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 1.5 ** 2))
+        img += 3000 * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 1.5**2))
     return np.clip(img, 0, 65535).astype(np.uint16)
 
 
 def test_a_raw_bayer_mosaic_stored_as_mono_is_flagged_in_one_line(tmp_path):
-    cases = {"bayer.png": (40, 90, 90, 30),          # R G / G B behind the night sky's colour: flagged
-             "mono.png": (100, 100, 100, 100),       # one filter: nothing
-             "columns.png": (30, 45, 30, 45),        # even/odd column offsets of a mono sensor: not a mosaic
-             "faint.png": (100, 104, 104, 98)}       # a bias under a weakly coloured sky: under 1.3 x, not flagged
+    cases = {
+        "bayer.png": (40, 90, 90, 30),  # R G / G B behind the night sky's colour: flagged
+        "mono.png": (100, 100, 100, 100),  # one filter: nothing
+        "columns.png": (30, 45, 30, 45),  # even/odd column offsets of a mono sensor: not a mosaic
+        "faint.png": (100, 104, 104, 98),
+    }  # a bias under a weakly coloured sky: under 1.3 x, not flagged
     said = {}
     for name, levels in cases.items():
         cv2.imwrite(str(tmp_path / name), _star_field(levels=levels))
         lines = []
         img = read_frame(tmp_path / name, log=lines.append)
-        assert img.shape == (128, 160)                              # read as it is either way
+        assert img.shape == (128, 160)  # read as it is either way
         said[name] = lines
     assert len(said["bayer.png"]) == 1 and "looks like a raw Bayer mosaic" in said["bayer.png"][0]
     assert said["bayer.png"][0].endswith("debayer it or give one colour plane")

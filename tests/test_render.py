@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from skygen.instrument import corruptions as corr
 from skygen.config import config_dict, load_config
+from skygen.instrument import corruptions as corr
 from skygen.render.frame import Renderer
 
 CLEAN = [f"corruptions.{name}=0" for name in corr.REGISTRY]
@@ -38,7 +38,7 @@ def test_true_stars_are_where_the_detector_finds_them():
         f = r.render(i)
         ok = f.detections["star_index"] >= 0
         s = f.detections["star_index"][ok]
-        bright = f.stars["mag"][s] < r.detection_limit_mag - 1.5      # isolated bright stars
+        bright = f.stars["mag"][s] < r.detection_limit_mag - 1.5  # isolated bright stars
         dx = f.detections["x_px"][ok][bright] - f.stars["x_px"][s][bright]
         dy = f.detections["y_px"][ok][bright] - f.stars["y_px"][s][bright]
         errs.append(np.hypot(dx, dy))
@@ -52,11 +52,13 @@ def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     omega, n, taus = r._motion(np.random.default_rng(0))
     assert n > 10 and abs(np.degrees(np.linalg.norm(omega)) - 1.0) < 1e-12
     from skygen.sky.attitude import attitude_matrix
+
     stars = r._stars(attitude_matrix(10, 20, 30), omega, taus)
     star_e = np.zeros((1024, 1024), np.float32)
     r._deposit(stars, star_e)
-    inside = r.camera.inside(stars["paths"][0].min(1), stars["paths"][1].min(1), -12) & \
-        r.camera.inside(stars["paths"][0].max(1), stars["paths"][1].max(1), -12)
+    inside = r.camera.inside(stars["paths"][0].min(1), stars["paths"][1].min(1), -12) & r.camera.inside(
+        stars["paths"][0].max(1), stars["paths"][1].max(1), -12
+    )
     assert inside.sum() > 10
     # the mid-exposure position is the mean of the sub-exposure positions (to 2nd order)
     mid_x = stars["paths"][0].mean(1)
@@ -72,7 +74,7 @@ def test_registry_matches_config_and_rejects_unknown_names():
         corr.get("hot_pixels")
     for c in corr.REGISTRY.values():
         assert c.sweep[0] == 0 and list(c.sweep) == sorted(c.sweep) and c.unit and c.description
-        corr.with_level(load_config(), c.name, c.sweep[-1])     # every sweep level is a valid config
+        corr.with_level(load_config(), c.name, c.sweep[-1])  # every sweep level is a valid config
 
 
 @pytest.mark.parametrize("name", list(corr.REGISTRY))
@@ -89,6 +91,7 @@ def damage(r: Renderer, limit: float, frames=range(20)) -> float:
     detections that are not catalog stars + (1 - rank correlation of detected flux with
     true brightness)."""
     from scipy.stats import spearmanr
+
     err, rank = [], []
     false = ndet = 0
     for i in frames:
@@ -99,8 +102,11 @@ def damage(r: Renderer, limit: float, frames=range(20)) -> float:
         ndet += len(d["hip_id"])
         for s in bright:
             j = np.flatnonzero(d["star_index"] == s)
-            err.append(min(np.hypot(d["x_px"][j[0]] - f.stars["x_px"][s], d["y_px"][j[0]] - f.stars["y_px"][s]), 2.0)
-                       if len(j) else 2.0)
+            err.append(
+                min(np.hypot(d["x_px"][j[0]] - f.stars["x_px"][s], d["y_px"][j[0]] - f.stars["y_px"][s]), 2.0)
+                if len(j)
+                else 2.0
+            )
         sel = np.isin(d["star_index"], bright)
         if sel.sum() > 3:
             rank.append(1 - spearmanr(d["flux_adu"][sel], -f.stars["mag"][d["star_index"][sel]]).statistic)
@@ -126,8 +132,10 @@ def test_extra_severity_stacks_on_the_dataset_and_zero_is_identity():
 
 
 def test_corruption_log_records_what_happened(small_overrides):
-    cfg = load_config(overrides=small_overrides + ["corruptions.cosmic_rays=20000", "corruptions.false_stars=3",
-                                                   "corruptions.dropout=0.3"])
+    cfg = load_config(
+        overrides=small_overrides
+        + ["corruptions.cosmic_rays=20000", "corruptions.false_stars=3", "corruptions.dropout=0.3"]
+    )
     f = Renderer(cfg).render(0)
     assert f.log["cosmic_rays"]["n_hits"] > 0 and "false_stars" in f.log and "dropout" in f.log
     assert f.applied["cosmic_rays"] == 20000 and f.applied["motion_blur"] == 0
@@ -138,10 +146,22 @@ def test_a_frame_with_detections_but_no_catalog_star(small_overrides):
     """Only false sources (a one-star catalog far from the boresight, cosmic rays): every
     detection is false (hip_id -1), no IndexError."""
     from skygen.sky.catalog import StarTable
-    one = StarTable(np.array([1]), np.array([0.0]), np.array([-1.5]), np.zeros(1), np.zeros(1),
-                    np.array([3.0], np.float32), np.array([0.6], np.float32), 1991.25, "test")
-    cfg = load_config(overrides=small_overrides + ["attitude.mode=list", "attitude.ra_deg=[180]",
-                                                   "attitude.dec_deg=[60]", "corruptions.cosmic_rays=3000"])
+
+    one = StarTable(
+        np.array([1]),
+        np.array([0.0]),
+        np.array([-1.5]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([3.0], np.float32),
+        np.array([0.6], np.float32),
+        1991.25,
+        "test",
+    )
+    cfg = load_config(
+        overrides=small_overrides
+        + ["attitude.mode=list", "attitude.ra_deg=[180]", "attitude.dec_deg=[60]", "corruptions.cosmic_rays=3000"]
+    )
     f = Renderer(cfg, catalog=one).render(0)
     assert len(f.stars["hip_id"]) == 0 and len(f.detections["hip_id"]) > 0
     assert np.all(f.detections["hip_id"] == -1) and np.all(f.detections["star_index"] == -1)

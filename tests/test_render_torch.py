@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from skygen.instrument import corruptions as corr
 from skygen.config import load_config
 from skygen.errors import ConfigError
+from skygen.instrument import corruptions as corr
 from skygen.render.frame import Renderer
 from skygen.render.torch_frames import TorchRenderer, render_batch
 
@@ -27,8 +27,15 @@ def numpy_star_light(r: Renderer, scene) -> np.ndarray:
     return out.astype(np.float64)
 
 
-@pytest.mark.parametrize("extra", [[], ["corruptions.motion_blur=1.0", "corruptions.false_stars=3"],
-                                   ["optics.psf=moffat"], ["optics.psf=airy", "corruptions.motion_blur=0.5"]])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        [],
+        ["corruptions.motion_blur=1.0", "corruptions.false_stars=3"],
+        ["optics.psf=moffat"],
+        ["optics.psf=airy", "corruptions.motion_blur=0.5"],
+    ],
+)
 def test_same_scene_and_same_star_light_as_numpy(small, extra):
     tr = TorchRenderer(load_config(overrides=small + extra))
     ref = Renderer(load_config(overrides=small + extra))
@@ -67,8 +74,17 @@ def test_flux_is_conserved(small, blur):
 
 
 def quiet(small, **sensor):
-    sets = small + CLEAN + ["sensor.fpn_adu=0", "sensor.prnu_frac=0", "sensor.dead_pixel_fraction=0",
-                            "sensor.gain_e_per_adu=1.7", "sensor.read_noise_e=3.0"]
+    sets = (
+        small
+        + CLEAN
+        + [
+            "sensor.fpn_adu=0",
+            "sensor.prnu_frac=0",
+            "sensor.dead_pixel_fraction=0",
+            "sensor.gain_e_per_adu=1.7",
+            "sensor.read_noise_e=3.0",
+        ]
+    )
     return sets + [f"sensor.{k}={v}" for k, v in sensor.items()]
 
 
@@ -81,7 +97,7 @@ def test_background_noise_matches_formula(small, sampler, lam):
     star = torch.zeros(4, H * W)
     adu, _ = tr.read_out(star, None, torch.tensor(lam), torch.Generator().manual_seed(0))
     x = adu.double().numpy().ravel() - tr.cfg.sensor.bias_adu
-    mean, var = lam / g - 0.5, (lam + 9.0) / g ** 2 + 1 / 12
+    mean, var = lam / g - 0.5, (lam + 9.0) / g**2 + 1 / 12
     assert abs(x.mean() - mean) < 5 * np.sqrt(var / x.size)
     assert abs(x.var() / var - 1) < 5 * np.sqrt(2 / x.size) + 0.01
 
@@ -89,7 +105,9 @@ def test_background_noise_matches_formula(small, sampler, lam):
 def test_fast_background_probabilities_are_exact(small):
     """The LUT draw of the uniform background against the exact ADU distribution (chi^2)."""
     from scipy import stats
+
     from skygen.instrument.sensor import background_sampler
+
     tr = TorchRenderer(load_config(overrides=quiet(small)))
     smp = background_sampler(12.0, 3.0, 1.7)
     adu = tr._dense_background(12.0, (8, H * W), torch.Generator().manual_seed(3))
@@ -104,26 +122,32 @@ def test_fast_background_probabilities_are_exact(small):
 @pytest.mark.parametrize("sampler", ["fast", "exact"])
 def test_shot_noise_of_star_light_and_prnu(small, sampler):
     """Illuminated pixels: variance = signal * prnu + background + read^2 (in e-, gain 1) + 1/12."""
-    tr = TorchRenderer(load_config(overrides=quiet(small, sampler=sampler, gain_e_per_adu=1.0, read_noise_e=2.0,
-                                                   full_well_e=1e6, prnu_frac=0.02)))
+    tr = TorchRenderer(
+        load_config(
+            overrides=quiet(
+                small, sampler=sampler, gain_e_per_adu=1.0, read_noise_e=2.0, full_well_e=1e6, prnu_frac=0.02
+            )
+        )
+    )
     signal = 500.0
     star = torch.full((4, H * W), signal)
     adu, _ = tr.read_out(star, None, torch.tensor(10.0), torch.Generator().manual_seed(1))
     x = adu.double().numpy().reshape(4, -1) - tr.cfg.sensor.bias_adu
     lam = signal * tr.prnu.double().numpy() + 10.0
-    resid = x - (lam - 0.5)                     # remove the static PRNU pattern, keep the noise
+    resid = x - (lam - 0.5)  # remove the static PRNU pattern, keep the noise
     assert abs(resid.mean()) < 0.1
     assert abs(resid.var() / (lam.mean() + 4.0 + 1 / 12) - 1) < 0.02
 
 
 def test_hot_pixels_cosmic_rays_and_saturation(small):
-    tr = TorchRenderer(load_config(overrides=small + CLEAN + ["corruptions.hotpixels=2e-3",
-                                                              "corruptions.cosmic_rays=20000"]))
+    tr = TorchRenderer(
+        load_config(overrides=small + CLEAN + ["corruptions.hotpixels=2e-3", "corruptions.cosmic_rays=20000"])
+    )
     scenes = tr.scenes(range(3))
     assert sum(len(sc.cosmic_rays) for sc in scenes) > 3
     charge = tr.cosmic_charge(scenes)
     want = sum(p.sum() for sc in scenes for _, _, p in sc.cosmic_rays)
-    assert float(charge.double().sum()) == pytest.approx(want, rel=1e-5)       # tracks are clipped inside already
+    assert float(charge.double().sum()) == pytest.approx(want, rel=1e-5)  # tracks are clipped inside already
     full = tr.rasterise(scenes, full_res=True).full.view(3, -1).numpy()
     hot = full[:, tr.base.maps.hot_index]
     assert np.median(hot) > np.median(full) + 50
@@ -135,11 +159,13 @@ def test_hot_pixels_cosmic_rays_and_saturation(small):
         adu, bloomed = t2.read_out(star, None, torch.tensor(t2.base.background_e), torch.Generator().manual_seed(2))
         img = adu.view(H, W).numpy()
         assert bloomed == [1]
-        assert img[100, 100] == min(2 ** 12 - 1, np.floor(13500 / 3.3) + t2.offset[100 * W + 100].item()) or \
-            img[100, 100] >= 2 ** 12 - 1 - 10
+        assert (
+            img[100, 100] == min(2**12 - 1, np.floor(13500 / 3.3) + t2.offset[100 * W + 100].item())
+            or img[100, 100] >= 2**12 - 1 - 10
+        )
         col = img[:, 100] - np.median(img)
-        assert (col > 1000).sum() >= 2e5 / 13500 - 2          # the charge spread over ~15 rows
-        assert (img[:, 99] - np.median(img)).max() < 1000     # but not into the next column
+        assert (col > 1000).sum() >= 2e5 / 13500 - 2  # the charge spread over ~15 rows
+        assert (img[:, 99] - np.median(img)).max() < 1000  # but not into the next column
 
 
 @pytest.mark.parametrize("sampler", ["fast", "exact"])
@@ -148,15 +174,15 @@ def test_a_saturating_star_blooms_and_keeps_its_charge(small, sampler):
     sc = tr.scenes([2])[0]
     st = sc.stars
     s = int(np.argmin((st["x_px"] - W / 2) ** 2 + (st["y_px"] - H / 2) ** 2))
-    flux = 2e6       # the central column alone fills ~47 pixels: the spill runs far beyond the star's stamp
+    flux = 2e6  # the central column alone fills ~47 pixels: the spill runs far beyond the star's stamp
     st["electrons"] = np.where(np.arange(len(st["electrons"])) == s, flux, st["electrons"])
     b = tr.rasterise([sc], torch.Generator().manual_seed(4), full_res=True)
     assert b.logs[0]["blooming"]["columns"] >= 1
     img = b.full[0].double().numpy()
-    x, y = int(round(st["x_px"][s])), int(round(st["y_px"][s]))
-    box = img[:, x - 6:x + 7] - np.median(img)
-    assert (box[:, 6] >= 2 ** 12 - 1 - 200).sum() >= flux / 13500 / 5         # a saturated run along the column
-    assert (box[:, 0] < 200).all() and (box[:, -1] < 200).all()                # not spread sideways
+    x = int(round(st["x_px"][s]))
+    box = img[:, x - 6 : x + 7] - np.median(img)
+    assert (box[:, 6] >= 2**12 - 1 - 200).sum() >= flux / 13500 / 5  # a saturated run along the column
+    assert (box[:, 0] < 200).all() and (box[:, -1] < 200).all()  # not spread sideways
     # charge spilled along the columns, not lost (the ADC clips a full pixel at 4095 ADU = 13,184 e-, 2 % low)
     got = box.sum() * tr.cfg.sensor.gain_e_per_adu
     assert 0.9 * flux < got < 1.05 * flux
@@ -171,7 +197,7 @@ def test_stored_image_is_the_area_average(small):
     assert u16.images.dtype == torch.uint16 and u16.images.shape == (2, 64, 64)
     assert np.array_equal(u16.images.to(torch.int32).numpy(), np.round(b.images.numpy()).astype(np.int32))
     cv = tr.base.downsample(b.full[0].to(torch.int32).numpy().astype(np.uint16)).astype(np.int32)
-    assert np.abs(cv - np.round(b.images[0].numpy())).max() <= 1    # cv2 INTER_AREA up to rounding
+    assert np.abs(cv - np.round(b.images[0].numpy())).max() <= 1  # cv2 INTER_AREA up to rounding
 
 
 def test_generator_makes_batches_repeatable(small):
@@ -180,7 +206,7 @@ def test_generator_makes_batches_repeatable(small):
     b = render_batch(cfg, [3, 4], "cpu", torch.Generator().manual_seed(7)).images
     c = render_batch(cfg, [3, 4], "cpu", torch.Generator().manual_seed(8)).images
     assert torch.equal(a, b) and not torch.equal(a, c)
-    assert torch.equal(render_batch(cfg, [3, 4]).images, render_batch(cfg, [3, 4]).images)   # derived from (seed, 3)
+    assert torch.equal(render_batch(cfg, [3, 4]).images, render_batch(cfg, [3, 4]).images)  # derived from (seed, 3)
     batch = render_batch(cfg, [3, 4])
     frame = Renderer(cfg).render(4)
     assert np.allclose(batch.unit_vectors[1], frame.unit_vector)
@@ -201,8 +227,13 @@ def detector_stats(frames, limit: float) -> dict:
             if len(j):
                 found += 1
                 err.append(np.hypot(d["x_px"][j[0]] - f.stars["x_px"][s], d["y_px"][j[0]] - f.stars["y_px"][s]))
-    return {"completeness": found / total, "median_err_px": float(np.median(err)), "n_det": n_det,
-            "false": false, "n_bright": total}
+    return {
+        "completeness": found / total,
+        "median_err_px": float(np.median(err)),
+        "n_det": n_det,
+        "false": false,
+        "n_bright": total,
+    }
 
 
 def compare_detections(overrides, n: int, device: str = "cpu") -> tuple[dict, dict]:
@@ -238,6 +269,7 @@ def test_device_errors_are_config_errors(small, tmp_path):
         load_config(overrides=["render.backend=jax"])
     if not torch.cuda.is_available():
         from skygen.datasets.build import render_dataset
+
         cfg = load_config(overrides=small + ["render.device=cuda"])
         with pytest.raises(ConfigError, match="CUDA is not available"):
             TorchRenderer(cfg)
@@ -250,6 +282,7 @@ def test_dataset_with_torch_backend_is_deterministic_and_keeps_numpy_ids(small, 
     from skygen.config import config_dict
     from skygen.datasets.build import render_dataset
     from skygen.datasets.shards import config_id, open_dataset
+
     cfg = load_config(overrides=small + ["n_frames=6", "output.shard_size=4", "render.batch_size=3"])
     m1 = render_dataset(cfg, tmp_path / "a", progress=False)
     render_dataset(cfg, tmp_path / "b", progress=False)

@@ -21,13 +21,14 @@ def quiet_sensor(**kw):
 
 
 def maps_for(s, hot=0.0):
-    return sensor_maps(H, W, s.sensor_seed, s.prnu_frac, s.fpn_adu, s.bias_adu, hot, s.hot_pixel_dark_e_s,
-                       s.dead_pixel_fraction)
+    return sensor_maps(
+        H, W, s.sensor_seed, s.prnu_frac, s.fpn_adu, s.bias_adu, hot, s.hot_pixel_dark_e_s, s.dead_pixel_fraction
+    )
 
 
 def expected_moments(lam, sigma, g):
     """Mean and variance of floor((Poisson(lam) + N(0, sigma)) / g): x/g - 1/2 and var/g^2 + 1/12."""
-    return (lam / g) - 0.5, (lam + sigma ** 2) / g ** 2 + 1 / 12
+    return (lam / g) - 0.5, (lam + sigma**2) / g**2 + 1 / 12
 
 
 @pytest.mark.parametrize("sampler", ["fast", "exact"])
@@ -40,7 +41,7 @@ def test_background_noise_matches_formula(sampler, lam):
     mean, var = expected_moments(lam, s.read_noise_e, s.gain_e_per_adu)
     n = x.size
     assert abs(x.mean() - mean) < 5 * np.sqrt(var / n)
-    assert abs(x.var() / var - 1) < 5 * np.sqrt(2 / n) + 0.01   # +1% for the 1/12 approximation
+    assert abs(x.var() / var - 1) < 5 * np.sqrt(2 / n) + 0.01  # +1% for the 1/12 approximation
 
 
 def test_shot_noise_of_illuminated_pixels():
@@ -98,11 +99,11 @@ def test_blooming_conserves_charge_and_respects_full_well():
     assert bloom(e, 1000.0) == 1
     assert e.max() <= 1000.0 + 1e-9
     assert e.sum() == pytest.approx(total)
-    assert (e[:, 2] > 0).sum() == 12 and e[:, [0, 1, 3, 4]].sum() == 0   # only the column grew
+    assert (e[:, 2] > 0).sum() == 12 and e[:, [0, 1, 3, 4]].sum() == 0  # only the column grew
     edge = np.zeros((6, 1))
     edge[0, 0] = 10_000.0
     bloom(edge, 1000.0)
-    assert edge.sum() < 10_000.0         # charge reaching the edge is drained
+    assert edge.sum() < 10_000.0  # charge reaching the edge is drained
 
 
 def test_saturation_clips_at_adc_range():
@@ -110,7 +111,7 @@ def test_saturation_clips_at_adc_range():
     star = np.zeros((H, W), np.float32)
     star[100, 100] = 1e8
     img, _ = read_out(Exposure(star, None, [(100, 101, 100, 101)], 5.0), s, maps_for(s), np.random.default_rng(6))
-    assert img[100, 100] == 2 ** s.bit_depth - 1
+    assert img[100, 100] == 2**s.bit_depth - 1
 
 
 def test_hot_pixel_maps_nest_and_scale():
@@ -122,7 +123,7 @@ def test_hot_pixel_maps_nest_and_scale():
     exp = Exposure(np.zeros((H, W), np.float32), None, [], 5.0)
     img, _ = read_out(exp, s, large, np.random.default_rng(7))
     hot = img.ravel()[large.hot_index].astype(float)
-    assert np.median(hot) > np.median(img) + 50       # hot pixels stand out
+    assert np.median(hot) > np.median(img) + 50  # hot pixels stand out
 
 
 def test_dead_pixels_read_bias_level():

@@ -5,11 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skygen.sky.attitude import attitude_matrix
+from fusion.solve.base import (
+    Detections,
+    Refusal,
+    Solution,
+    Solver,
+    boresight_error_deg,
+    radec_roll_from_matrix,
+    roll_error_deg,
+    rotation_angle_deg,
+)
 from skygen.config import load_config
 from skygen.render.frame import Renderer
-
-from fusion.solve.base import Detections, Refusal, Solution, Solver, boresight_error_deg, radec_roll_from_matrix, roll_error_deg, rotation_angle_deg
+from skygen.sky.attitude import attitude_matrix
 
 tetra3rs = pytest.importorskip("tetra3rs")
 
@@ -22,6 +30,7 @@ def renderer():
 @pytest.fixture(scope="module")
 def tetra(renderer, tmp_path_factory):
     from fusion.solve.tetra import Tetra3Solver
+
     return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
 
 
@@ -52,7 +61,7 @@ def test_tetra3rs_agrees_with_skygen_conventions(renderer, tetra):
             continue
         n_solved += 1
         truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
-        assert rotation_angle_deg(truth, res.matrix) < 60 / 3600        # < 1 arcmin, full attitude
+        assert rotation_angle_deg(truth, res.matrix) < 60 / 3600  # < 1 arcmin, full attitude
         assert abs((res.ra_deg - f.ra_deg + 180) % 360 - 180) * np.cos(np.radians(f.dec_deg)) < 0.01
         assert res.dec_deg == pytest.approx(f.dec_deg, abs=0.01)
         assert roll_error_deg(res.roll_deg, f.roll_deg) < 0.02
@@ -67,8 +76,12 @@ def test_tetra3rs_agrees_with_skygen_conventions(renderer, tetra):
 def test_tetra3rs_principal_point_and_distortion(tmp_path):
     """An off-centre principal point and barrel distortion are removed before tetra3rs sees the centroids."""
     from fusion.solve.tetra import Tetra3Solver
-    r = Renderer(load_config(overrides=["n_frames=4", "camera.principal_x_px=540", "camera.principal_y_px=490",
-                                        "camera.k1=-0.05"]))
+
+    r = Renderer(
+        load_config(
+            overrides=["n_frames=4", "camera.principal_x_px=540", "camera.principal_y_px=490", "camera.k1=-0.05"]
+        )
+    )
     solver = Tetra3Solver(r.camera, db_folder=tmp_path)
     f = r.render(1)
     res = solver.solve(Detections.from_table(f.detections), r.camera)
@@ -91,25 +104,28 @@ def test_tetra3rs_refuses_few_or_random_detections(renderer, tetra):
 @pytest.fixture(scope="module")
 def regions():
     from fusion.solve.benchmark import default_centroids
+
     return default_centroids(15)
 
 
 def test_region_radii_cover_the_sphere(regions):
     from fusion.solve.fine import region_radii_deg
+
     r = region_radii_deg(regions)
     rng = np.random.default_rng(3)
     v = rng.standard_normal((5000, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     lab = np.argmax(v @ regions.T, axis=1)
     ang = np.degrees(np.arccos(np.clip(np.sum(v * regions[lab], axis=1), -1, 1)))
-    assert np.all(ang <= r[lab])                   # every direction lies within its region's radius
-    assert 20 < r.min() and r.max() < 60           # K = 15: cells tens of degrees wide
+    assert np.all(ang <= r[lab])  # every direction lies within its region's radius
+    assert 20 < r.min() and r.max() < 60  # K = 15: cells tens of degrees wide
 
 
 def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, tetra, regions):
     """4 brightest detections: tetra3rs lost-in-space refuses; the true region as prior gives the attitude."""
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     c2f = CoarseToFineSolver(tetra, prior, top_k=1)
     solved = lis = 0
@@ -120,7 +136,7 @@ def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, te
         res = c2f.solve(det, renderer.camera, probabilities=prior.probabilities_for(f.unit_vector, i))
         if isinstance(res, Solution):
             truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
-            assert boresight_error_deg(truth, res.matrix) < 0.05      # never a wrong attitude
+            assert boresight_error_deg(truth, res.matrix) < 0.05  # never a wrong attitude
             assert res.confidence >= 0.99 and res.n_matched >= 3
             solved += 1
     assert lis == 0 and solved >= 5
@@ -129,13 +145,14 @@ def test_coarse_to_fine_solves_few_stars_where_lost_in_space_cannot(renderer, te
 def test_coarse_to_fine_refuses_without_evidence(renderer, tetra, regions):
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     c2f = CoarseToFineSolver(tetra, prior, top_k=2)
     f = renderer.render(2)
     p = prior.probabilities_for(f.unit_vector, 2)
     three = Detections.from_table(f.detections).brightest(3)
-    res = c2f.solve(three, renderer.camera, probabilities=p)      # one triangle in the right region: the bright
-    if isinstance(res, Solution):                                 # tier may identify it, but never wrongly
+    res = c2f.solve(three, renderer.camera, probabilities=p)  # one triangle in the right region: the bright
+    if isinstance(res, Solution):  # tier may identify it, but never wrongly
         assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), res.matrix) < 0.05
     rng = np.random.default_rng(5)
     noise = Detections(rng.uniform(0, 1023, 6), rng.uniform(0, 1023, 6), rng.uniform(1e3, 1e4, 6))
@@ -153,6 +170,7 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
     finds the true attitude, its region reported as -1 and its H counting every hypothesis of both."""
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     only = CoarseToFineSolver(tetra, prior, top_k=2, name="regions")
     then = CoarseToFineSolver(tetra, prior, top_k=2, name="regions>sky", then_whole_sky=True)
@@ -161,7 +179,7 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
         f = renderer.render(i)
         truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
         p = prior.probabilities_for(f.unit_vector, i)
-        far = np.argsort(regions @ f.unit_vector)[:2]         # the two regions farthest from the boresight
+        far = np.argsort(regions @ f.unit_vector)[:2]  # the two regions farthest from the boresight
         wrong = np.zeros_like(p)
         wrong[far] = [0.6, 0.4]
         det = Detections.from_table(f.detections).brightest(6)
@@ -171,7 +189,7 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
             assert boresight_error_deg(truth, res.matrix) < 0.05
             assert res.extra["region"] == -1 and res.confidence >= 0.99
             solved += 1
-        right = then.solve(det, renderer.camera, probabilities=p)    # a good prior never reaches the sky search
+        right = then.solve(det, renderer.camera, probabilities=p)  # a good prior never reaches the sky search
         assert isinstance(right, Solution) and right.extra["region"] != -1
     assert solved >= 3
 
@@ -181,6 +199,7 @@ def test_only_the_brightest_detections_are_scored_and_all_are_verified(renderer,
     and tetra3rs's verification re-matches every detection, so the answer is the same attitude."""
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     i = max(range(8), key=lambda k: len(renderer.render(k).detections["x_px"]))
     f = renderer.render(i)
@@ -201,18 +220,23 @@ def test_whole_sky_three_stars_are_refused_early(renderer, tetra):
     """Three detections over the whole sky, geometry alone, cannot reach the confidence bar (~10^4 chance
     triangles): the search stops after the first detection pair instead of trying every pair in both passes."""
     from fusion.solve.fine import CoarseToFineSolver
+
     c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02, photometric_mag=None)
     f = renderer.render(1)
     res = c2f.solve(Detections.from_table(f.detections).brightest(3), renderer.camera)
     assert isinstance(res, Refusal) and "cannot reach the confidence bar" in res.reason
     d = Detections.from_table(f.detections).brightest(3)
     u = renderer.camera.unproject(d.x_px, d.y_px)
-    bright = c2f.tiers[-1]                                          # three detections search the bright tier
-    counts = [2 * np.diff(bright.pairs.range(np.arccos(u[a] @ u[b]) - 2 * c2f.tol_rad,
-                                             np.arccos(u[a] @ u[b]) + 2 * c2f.tol_rad))[0]
-              for a, b in ((0, 1), (0, 2), (1, 2))]
-    first_pair = min(counts)                                        # the pair with the fewest candidates goes first
-    assert res.extra["hypotheses"] == first_pair                    # one detection pair's candidates, no more
+    bright = c2f.tiers[-1]  # three detections search the bright tier
+    counts = [
+        2
+        * np.diff(
+            bright.pairs.range(np.arccos(u[a] @ u[b]) - 2 * c2f.tol_rad, np.arccos(u[a] @ u[b]) + 2 * c2f.tol_rad)
+        )[0]
+        for a, b in ((0, 1), (0, 2), (1, 2))
+    ]
+    first_pair = min(counts)  # the pair with the fewest candidates goes first
+    assert res.extra["hypotheses"] == first_pair  # one detection pair's candidates, no more
     assert c2f.confidence(first_pair, 3, 3, tier=bright) < c2f.min_confidence
 
 
@@ -221,6 +245,7 @@ def test_photometry_identifies_three_stars_that_geometry_alone_cannot(renderer, 
     chance triangle rarely matches: some frames solve (all correctly) that geometry alone refuses. With the
     fluxes shuffled the photometric test fails, and the answer falls back to geometry's (a refusal)."""
     from fusion.solve.fine import CoarseToFineSolver
+
     both = CoarseToFineSolver(tetra, None, focal_tol=0.02)
     geometry = CoarseToFineSolver(tetra, None, focal_tol=0.02, photometric_mag=None)
     solved = 0
@@ -241,19 +266,21 @@ def test_photometry_identifies_three_stars_that_geometry_alone_cannot(renderer, 
 
 def test_photometric_chance_rate_is_a_conservative_monte_carlo(tetra):
     from fusion.solve.fine import CoarseToFineSolver, magnitude_scatter
-    np.testing.assert_allclose(magnitude_scatter(np.array([3.0, 4.0, 5.5]), 10 ** (-0.4 * np.array([1.0, 2.0, 3.5]))),
-                               0.0, atol=1e-12)                    # a common zero point is no scatter
+
+    np.testing.assert_allclose(
+        magnitude_scatter(np.array([3.0, 4.0, 5.5]), 10 ** (-0.4 * np.array([1.0, 2.0, 3.5]))), 0.0, atol=1e-12
+    )  # a common zero point is no scatter
     c2f = CoarseToFineSolver(tetra, None)
     tier = c2f.tiers[-1]
     flux = np.array([5000.0, 2000.0, 900.0])
     q = c2f._photometric_q(tier, flux)
-    rng = np.random.default_rng(11)                                 # an independent estimate of the same chance
+    rng = np.random.default_rng(11)  # an independent estimate of the same chance
     mags = tier.mag[rng.integers(0, len(tier.mag), (20000, 3))]
     direct = float(np.mean(magnitude_scatter(mags, flux) <= c2f.photometric_mag))
     assert 0.05 < direct < 0.5 and direct < q < direct + 0.05
     c2f.photometric_mag = 0.2
     assert c2f._photometric_q(tier, flux) < q
-    assert c2f._photometric_q(tier, np.array([5000.0, -1.0, 900.0])) == 1.0    # no usable flux: no evidence
+    assert c2f._photometric_q(tier, np.array([5000.0, -1.0, 900.0])) == 1.0  # no usable flux: no evidence
 
 
 def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(renderer, tetra, regions):
@@ -261,6 +288,7 @@ def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(rende
     catalogue tier identifies most of them, and none wrongly."""
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     c2f = CoarseToFineSolver(tetra, prior, top_k=1, focal_tol=0.02)
     single = CoarseToFineSolver(tetra, prior, top_k=1, focal_tol=0.02, bright_stars_per_fov=None)
@@ -279,6 +307,7 @@ def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(rende
 
 def test_confidence_falls_with_hypotheses(tetra):
     from fusion.solve.fine import CoarseToFineSolver
+
     c2f = CoarseToFineSolver(tetra, None)
     assert c2f.confidence(1000, 3, 3) < c2f.confidence(10, 3, 3)
     assert c2f.confidence(10_000, 6, 6) > 0.999
@@ -291,6 +320,7 @@ def test_coarse_to_fine_fits_an_unknown_focal_length(tmp_path, regions):
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
     from fusion.solve.tetra import Tetra3Solver
+
     nominal = Renderer(load_config(overrides=["n_frames=6"]))
     longer = Renderer(load_config(overrides=["n_frames=6", f"camera.fov_deg={nominal.camera.fov_deg[0] / 1.015}"]))
     factor = longer.camera.f_px / nominal.camera.f_px
@@ -317,13 +347,14 @@ def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, reg
     from fusion.solve.base import FallbackSolver
     from fusion.solve.fine import CoarseToFineSolver
     from fusion.solve.priors import OraclePrior
+
     prior = OraclePrior(regions)
     both = FallbackSolver(tetra, CoarseToFineSolver(tetra, prior, top_k=1, name="c2f"))
     f = renderer.render(3)
     p = prior.probabilities_for(f.unit_vector, 3)
     det = Detections.from_table(f.detections)
-    assert both.solve(det, renderer.camera, probabilities=p).solver == tetra.name       # plenty of stars
-    few = both.solve(det.brightest(4), renderer.camera, probabilities=p)              # lost-in-space refuses
+    assert both.solve(det, renderer.camera, probabilities=p).solver == tetra.name  # plenty of stars
+    few = both.solve(det.brightest(4), renderer.camera, probabilities=p)  # lost-in-space refuses
     if isinstance(few, Solution):
         assert few.solver == "c2f"
         assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), few.matrix) < 0.05
@@ -335,11 +366,11 @@ def test_fallback_solver_answers_with_the_first_that_solves(renderer, tetra, reg
 
 def test_registered_solver_is_built_by_name_and_unknown_names_are_refused():
     """The plug-in interface of docs/ARCHITECTURE.md: register a builder, build it by name."""
-    from skygen.instrument.camera import Camera
-    from skygen.config import load_config
     from fusion.errors import ConfigError
     from fusion.solve import Refusal, SolverContext, build_solver, register_solver
     from fusion.solve.registry import SOLVERS, make_context
+    from skygen.config import load_config
+    from skygen.instrument.camera import Camera
 
     class Never:
         name = "never"
@@ -350,9 +381,10 @@ def test_registered_solver_is_built_by_name_and_unknown_names_are_refused():
     @register_solver("never", doc="test: refuses everything")
     def _build(ctx: SolverContext):
         return Never()
+
     try:
         cam = Camera.from_config(load_config().camera)
-        ctx = make_context(cam, tetra=object())          # no tetra3rs database needed for this solver
+        ctx = make_context(cam, tetra=object())  # no tetra3rs database needed for this solver
         solver = build_solver("never", cam, context=ctx)
         assert isinstance(solver, Never) and build_solver("never", cam, context=ctx) is solver
         with pytest.raises(ConfigError, match="unknown; choose from"):
@@ -368,6 +400,7 @@ def test_coarse_to_fine_solver_keeps_no_state_between_solves(tetra):
     nothing on the object, whichever catalogue tier (three detections: the bright one) it searched."""
     from fusion.solve.base import Detections
     from fusion.solve.fine import CoarseToFineSolver
+
     c2f = CoarseToFineSolver(tetra, None)
     before = {k: v for k, v in vars(c2f).items()}
     rng = np.random.default_rng(5)

@@ -7,12 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from skygen.stream import emulator as emu
 from skygen.cli import main
 from skygen.config import build_config, load_config
 from skygen.errors import ConfigError, DatasetError
 from skygen.render.frame import Renderer
-from skygen.sky.attitude import attitude_matrices, matrices_to_quaternions as quaternions
+from skygen.sky.attitude import attitude_matrices
+from skygen.sky.attitude import matrices_to_quaternions as quaternions
+from skygen.stream import emulator as emu
 from skygen.stream.samples import SampleStream, partition
 
 
@@ -23,14 +24,17 @@ def det_stream():
 
 def _same(a: dict, b: dict) -> bool:
     keys = set(a["detections"]) | set(b["detections"])
-    return (a["ra_deg"] == b["ra_deg"] and a["roll_deg"] == b["roll_deg"]
-            and all(np.array_equal(a["detections"][k], b["detections"][k]) for k in keys))
+    return (
+        a["ra_deg"] == b["ra_deg"]
+        and a["roll_deg"] == b["roll_deg"]
+        and all(np.array_equal(a["detections"][k], b["detections"][k]) for k in keys)
+    )
 
 
 def test_detection_sample_is_pure_function_of_index(det_stream):
     alone = det_stream.sample(777)
     in_batch = det_stream.batch([3, 777, 12, 5000]).sample(1)
-    reversed_batch = det_stream.batch(np.arange(800, 700, -1)).sample(23)   # index 777
+    reversed_batch = det_stream.batch(np.arange(800, 700, -1)).sample(23)  # index 777
     fresh = SampleStream(load_config(), "detections").sample(777)
     assert _same(alone, in_batch) and _same(alone, reversed_batch) and _same(alone, fresh)
     assert not _same(alone, det_stream.sample(778))
@@ -50,12 +54,12 @@ def test_worker_and_rank_splits_cover_the_stream_once(det_stream):
 def test_detection_sets_look_like_the_default_camera(det_stream):
     b = det_stream.batch(np.arange(400))
     n = np.diff(b.offsets)
-    assert 20 <= np.median(n) <= 40                     # real detector: median 30 (README)
-    assert n.max() <= 64                                 # detection.max_detections
+    assert 20 <= np.median(n) <= 40  # real detector: median 30 (README)
+    assert n.max() <= 64  # detection.max_detections
     # brightest first within every sample
     f = b.detections["flux_adu"]
     for j in range(len(b)):
-        seg = f[b.offsets[j]:b.offsets[j + 1]]
+        seg = f[b.offsets[j] : b.offsets[j + 1]]
         assert np.all(np.diff(seg) <= 0)
     # labels are consistent: quaternion <-> unit vector
     R = attitude_matrices(b.labels["ra_deg"], b.labels["dec_deg"], b.labels["roll_deg"])
@@ -84,7 +88,7 @@ def test_level_ranges_are_per_sample_and_applied(det_stream):
     hard = s.batch(np.arange(300))
     assert np.all(hard.levels["dropout"] == 0.5)
     ratio = len(hard.detections["x_px"]) / len(base.detections["x_px"])
-    assert 0.45 < ratio < 0.62        # half dropped, a few false stars added
+    assert 0.45 < ratio < 0.62  # half dropped, a few false stars added
     false_src = (hard.stars["hip_id"] < 0).sum() / len(hard)
     assert 2.5 < false_src < 3.5
     varied = SampleStream(cfg, "detections", level_ranges={"centroid_noise": (0, 2)}).batch(np.arange(200))
@@ -136,6 +140,7 @@ def test_stream_cli(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "samples/s" in text and "detections per sample" in text
     import h5py
+
     with h5py.File(out) as f:
         assert len(f["index"]) == 300
         assert f["detections/offsets"][-1] == len(f["detections/x_px"])

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from skygen.config import load_config
 from skygen.render.binned import (
     BinnedRenderer,
     aliasing_bound,
@@ -23,12 +24,11 @@ from skygen.render.binned import (
     round_block_sums,
     unsupported_reason,
 )
-from skygen.config import load_config
 from skygen.render.frame import Renderer
 from skygen.stream.samples import SampleStream
 
-N_SCENES = 100         # scenes rendered by both paths (two noise draws each)
-F = 4                  # default camera: 1024 -> 256
+N_SCENES = 100  # scenes rendered by both paths (two noise draws each)
+F = 4  # default camera: 1024 -> 256
 
 
 @pytest.fixture(scope="module")
@@ -54,15 +54,17 @@ def _background_mask(r, scenes) -> np.ndarray:
     (scenes, H/4, W/4)."""
     hb, wb = r.cfg.camera.height_px // F, r.cfg.camera.width_px // F
     static = ((r.maps.hot_map > 0) | r.maps.dead_mask).reshape(hb, F, wb, F).any((1, 3))
-    reach = 12                                   # px: beyond every Gaussian stamp of the default PSF
+    reach = 12  # px: beyond every Gaussian stamp of the default PSF
     masks = []
     for sc in scenes:
         busy = static.copy()
         for x, y in zip(sc.stars["x_px"], sc.stars["y_px"]):
-            busy[max(int(y - reach) // F, 0):max(int(y + reach) // F + 1, 0),
-                 max(int(x - reach) // F, 0):max(int(x + reach) // F + 1, 0)] = True
+            busy[
+                max(int(y - reach) // F, 0) : max(int(y + reach) // F + 1, 0),
+                max(int(x - reach) // F, 0) : max(int(x + reach) // F + 1, 0),
+            ] = True
         for y0, y1, x0, x1 in sc.cosmic_boxes:
-            busy[y0 // F:(y1 - 1) // F + 1, x0 // F:(x1 - 1) // F + 1] = True
+            busy[y0 // F : (y1 - 1) // F + 1, x0 // F : (x1 - 1) // F + 1] = True
         masks.append(~busy)
     return np.array(masks)
 
@@ -89,39 +91,49 @@ def _chi2_two_sample(a: np.ndarray, b: np.ndarray, min_count: int = 20) -> float
 def _background_stats(binned: np.ndarray, full: np.ndarray, mask: np.ndarray) -> dict:
     """The per-pixel background statistics both tests below use (first noise draw); ``mask``
     (scenes, H, W) marks each scene's background pixels."""
-    xb, xf = binned[:, 0], full[:, 0]                              # (scenes, H, W)
+    xb, xf = binned[:, 0], full[:, 0]  # (scenes, H, W)
     n = mask.sum(0)
-    use = n >= 20                                                  # pixels background in >= 20 scenes
-    mean = lambda x: np.where(mask, x, 0).sum(0)[use] / n[use]
-    var = lambda x, m: (np.where(mask, x, 0) ** 2).sum(0)[use] / n[use] - m ** 2
+    use = n >= 20  # pixels background in >= 20 scenes
+
+    def mean(x):
+        return np.where(mask, x, 0).sum(0)[use] / n[use]
+
+    def var(x, m):
+        return (np.where(mask, x, 0) ** 2).sum(0)[use] / n[use] - m**2
+
     mb, mf = mean(xb), mean(xf)
     vb, vf = var(xb, mb) * n[use] / (n[use] - 1), var(xf, mf) * n[use] / (n[use] - 1)
     z = (mb - mf) / np.sqrt((vb + vf) / n[use])
     lb = np.array([x[m].mean() for x, m in zip(xb, mask)])
     lf = np.array([x[m].mean() for x, m in zip(xf, mask)])
-    return {"pixels": int(mask.sum()), "per_pixel": int(use.sum()),
-            "p_hist": _chi2_two_sample(xb[mask], xf[mask]),
-            "var_ratio": float(vb.mean() / vf.mean()),
-            "z_mean": float(z.mean()), "z_sd": float(z.std()),
-            "p_level": float(stats.ks_2samp(lb, lf).pvalue), "level": (float(lb.mean()), float(lf.mean()))}
+    return {
+        "pixels": int(mask.sum()),
+        "per_pixel": int(use.sum()),
+        "p_hist": _chi2_two_sample(xb[mask], xf[mask]),
+        "var_ratio": float(vb.mean() / vf.mean()),
+        "z_mean": float(z.mean()),
+        "z_sd": float(z.std()),
+        "p_level": float(stats.ks_2samp(lb, lf).pvalue),
+        "level": (float(lb.mean()), float(lf.mean())),
+    }
 
 
 # Tolerances (stated once; see the module docstring)
-P_MIN = 1e-4           # two-sample tests: p-value floor (false alarm 1 in 10^4 per test)
-VAR_RATIO_TOL = 0.01   # per-pixel background variance, binned / full, mean over ~50 k pixels (SE ~0.1 %)
-Z_MEAN_TOL = 0.03      # per-pixel mean difference in standard errors, averaged over ~50 k pixels (SE ~0.005)
-Z_SD_RANGE = (0.95, 1.07)   # ... its spread (1 when every pixel's mean agrees, FPN included)
+P_MIN = 1e-4  # two-sample tests: p-value floor (false alarm 1 in 10^4 per test)
+VAR_RATIO_TOL = 0.01  # per-pixel background variance, binned / full, mean over ~50 k pixels (SE ~0.1 %)
+Z_MEAN_TOL = 0.03  # per-pixel mean difference in standard errors, averaged over ~50 k pixels (SE ~0.005)
+Z_SD_RANGE = (0.95, 1.07)  # ... its spread (1 when every pixel's mean agrees, FPN included)
 
 
 def test_background_pixels_equal_in_distribution(renderer, pair):
     scenes, binned, full, _ = pair
     s = _background_stats(binned, full, _background_mask(renderer, scenes))
     assert s["pixels"] > 1_000_000 and s["per_pixel"] > 20_000, s
-    assert s["p_hist"] > P_MIN, s                     # histogram of stored values (chi-square)
+    assert s["p_hist"] > P_MIN, s  # histogram of stored values (chi-square)
     assert abs(s["var_ratio"] - 1) < VAR_RATIO_TOL, s  # per-pixel variance
-    assert abs(s["z_mean"]) < Z_MEAN_TOL, s            # per-pixel mean
+    assert abs(s["z_mean"]) < Z_MEAN_TOL, s  # per-pixel mean
     assert Z_SD_RANGE[0] < s["z_sd"] < Z_SD_RANGE[1], s
-    assert s["p_level"] > 1e-3, s                      # per-frame background level (KS)
+    assert s["p_level"] > 1e-3, s  # per-frame background level (KS)
     assert abs(s["level"][0] - s["level"][1]) < 0.01, s
 
 
@@ -129,7 +141,7 @@ def test_a_wrong_read_noise_is_caught(renderer, pair):
     """The same statistics reject a binned renderer whose read noise is 10 % too high."""
     scenes, _, full, _ = pair
     sigma = renderer.cfg.sensor.read_noise_e
-    extra = float(np.sqrt((1.1 * sigma) ** 2 - sigma ** 2))
+    extra = float(np.sqrt((1.1 * sigma) ** 2 - sigma**2))
     with renderer.with_levels({"read_noise": extra}):
         b = BinnedRenderer(renderer)
         wrong = np.array([[b.image(sc, seed=8000 + i)] for i, sc in enumerate(scenes)], np.float64)
@@ -143,8 +155,8 @@ def _star_photometry(img: np.ndarray, x: np.ndarray, y: np.ndarray, bg: float):
     v = np.rint((y + 0.5) / F - 0.5).astype(int)
     peaks, fluxes = [], []
     for a, c in zip(u, v):
-        peaks.append(img[c - 1:c + 2, a - 1:a + 2].max() - bg)
-        fluxes.append(img[c - 2:c + 3, a - 2:a + 3].sum() - 25 * bg)
+        peaks.append(img[c - 1 : c + 2, a - 1 : a + 2].max() - bg)
+        fluxes.append(img[c - 2 : c + 3, a - 2 : a + 3].sum() - 25 * bg)
     return np.array(peaks), np.array(fluxes)
 
 
@@ -168,7 +180,7 @@ def test_stars_peak_and_flux_equal_in_distribution(renderer, pair):
             ph = [_star_photometry(im, x, y, float(np.median(im))) for im in imgs]
             P[key].append(ph[0][0])
             Fl[key].append(ph[0][1])
-            D[key].append(ph[0][1] - ph[1][1])          # two noise draws of the same stars
+            D[key].append(ph[0][1] - ph[1][1])  # two noise draws of the same stars
     P = {k: np.concatenate(v) for k, v in P.items()}
     Fl = {k: np.concatenate(v) for k, v in Fl.items()}
     D = {k: np.concatenate(v) for k, v in D.items()}
@@ -204,9 +216,9 @@ def test_same_index_same_stars_at_same_stored_positions(renderer, pair):
             c = []
             for im in (binned[i, 0], full[i, 0]):
                 a, b = round(u), round(v)
-                cut = im[b - 2:b + 3, a - 2:a + 3] - np.median(im)
+                cut = im[b - 2 : b + 3, a - 2 : a + 3] - np.median(im)
                 cut = np.clip(cut, 0, None)
-                yy, xx = np.mgrid[b - 2:b + 3, a - 2:a + 3]
+                yy, xx = np.mgrid[b - 2 : b + 3, a - 2 : a + 3]
                 c.append(((cut * xx).sum() / cut.sum(), (cut * yy).sum() / cut.sum()))
             err_b.append(np.hypot(c[0][0] - u, c[0][1] - v))
             err_f.append(np.hypot(c[1][0] - u, c[1][1] - v))
@@ -226,12 +238,13 @@ def test_saturated_blocks_match_the_full_renderer(renderer):
     bright["electrons"] = np.where(np.arange(len(sc.stars["electrons"])) < 3, 5e6, sc.stars["electrons"])
     sc = dataclasses.replace(sc, stars=bright)
     xb = np.array([b.image(sc, seed=k) for k in range(8)], np.float64)
-    xf = np.array([r.downsample(r.rasterise(dataclasses.replace(sc, rng_key=(0, 900 + k)))[0]) for k in range(8)],
-                  np.float64)
-    hot = xf.mean(0) > 400                                   # saturated cores and bloom trails
+    xf = np.array(
+        [r.downsample(r.rasterise(dataclasses.replace(sc, rng_key=(0, 900 + k)))[0]) for k in range(8)], np.float64
+    )
+    hot = xf.mean(0) > 400  # saturated cores and bloom trails
     assert hot.sum() > 20
     se = np.sqrt((xb.var(0, ddof=1) + xf.var(0, ddof=1)) / len(xb))[hot]
-    assert (np.abs(xb.mean(0)[hot] - xf.mean(0)[hot]) < 5 * se + 1.0).all()   # per block, 5 standard errors
+    assert (np.abs(xb.mean(0)[hot] - xf.mean(0)[hot]) < 5 * se + 1.0).all()  # per block, 5 standard errors
     assert abs(xb.mean(0)[hot].sum() - xf.mean(0)[hot].sum()) < 0.01 * xf.mean(0)[hot].sum()
 
 
@@ -240,6 +253,7 @@ def test_rounding_and_model_bound():
     included); the model's bound is tiny for the default sensor and large where per-pixel
     quantisation shows."""
     import cv2
+
     rng = np.random.default_rng(1)
     for f in (2, 3, 4, 8):
         rule = area_rounding(f)
@@ -264,7 +278,7 @@ def test_block_sum_model_matches_background_table(renderer):
     S = np.floor(t / s.gain_e_per_adu - rng.random((m, 15)).sum(1)).astype(np.int64)
     expect = pmf * m
     ok = expect > 20
-    counts = np.bincount(S - smin, minlength=len(pmf))[:len(pmf)]
+    counts = np.bincount(S - smin, minlength=len(pmf))[: len(pmf)]
     chi2 = (((counts - expect) ** 2 / expect)[ok]).sum()
     assert stats.chi2.sf(chi2, ok.sum() - 1) > P_MIN
 
@@ -291,13 +305,14 @@ def test_frames_stream_uses_binned_renderer_with_emulated_detections():
     assert s.frames_renderer == "binned"
     frames, images = s.frames_batch([5, 6, 7])
     assert images is None
-    one = s.frame(6)                                   # alone or in a batch: the same sample
+    one = s.frame(6)  # alone or in a batch: the same sample
     assert np.array_equal(one.image, frames[1].image)
     assert all(np.array_equal(one.detections[k], frames[1].detections[k]) for k in one.detections)
     assert one.image.shape == (256, 256) and one.image.dtype == np.uint16
     # the same scene as the full renderer's sample 6
-    full = SampleStream(cfg, "frames", frames_renderer="full",
-                        level_ranges={"dropout": (0, 0.3), "false_stars": (0, 2)}).frame(6)
+    full = SampleStream(
+        cfg, "frames", frames_renderer="full", level_ranges={"dropout": (0, 0.3), "false_stars": (0, 2)}
+    ).frame(6)
     assert (full.ra_deg, full.dec_deg, full.roll_deg) == (one.ra_deg, one.dec_deg, one.roll_deg)
     np.testing.assert_array_equal(full.stars["x_px"], one.stars["x_px"])
     # detections: emulated, matched to catalog stars of the scene
@@ -305,8 +320,15 @@ def test_frames_stream_uses_binned_renderer_with_emulated_detections():
     ok = d["star_index"] >= 0
     assert ok.sum() >= 3
     np.testing.assert_array_equal(d["hip_id"][ok], one.stars["hip_id"][d["star_index"][ok]])
-    assert np.median(np.hypot(d["x_px"][ok] - one.stars["x_px"][d["star_index"][ok]],
-                              d["y_px"][ok] - one.stars["y_px"][d["star_index"][ok]])) < 0.5
+    assert (
+        np.median(
+            np.hypot(
+                d["x_px"][ok] - one.stars["x_px"][d["star_index"][ok]],
+                d["y_px"][ok] - one.stars["y_px"][d["star_index"][ok]],
+            )
+        )
+        < 0.5
+    )
     with pytest.raises(Exception, match="frames renderer"):
         SampleStream(cfg, "frames", frames_renderer="fast")
 
@@ -317,12 +339,18 @@ def test_scene_builder_draws_scenes_like_the_renderer(renderer):
     p > 1e-3); the same stars, projected and sized alike, for a given attitude."""
     from skygen import hashrng
     from skygen.render.scenes import SceneBuilder
+
     cfg = load_config(overrides=["corruptions.false_stars=1.5", "corruptions.cosmic_rays=200"])
     r = Renderer(cfg, rng_tag="@stream-frames")
     built = SceneBuilder(r, hashrng.stream_key(cfg.seed, "@stream-frames")).scenes(np.arange(400), {})
     ref = [r.scene(i) for i in range(400)]
-    for stat in (lambda sc: (sc.stars["hip_id"] >= 0).sum(), lambda sc: sc.stars["electrons"].sum(),
-                 lambda sc: sc.dec_deg, lambda sc: (sc.stars["hip_id"] < 0).sum(), lambda sc: len(sc.cosmic_rays)):
+    for stat in (
+        lambda sc: (sc.stars["hip_id"] >= 0).sum(),
+        lambda sc: sc.stars["electrons"].sum(),
+        lambda sc: sc.dec_deg,
+        lambda sc: (sc.stars["hip_id"] < 0).sum(),
+        lambda sc: len(sc.cosmic_rays),
+    ):
         a, b = [stat(sc) for sc in built], [stat(sc) for sc in ref]
         assert stats.ks_2samp(a, b).pvalue > 1e-3, (np.mean(a), np.mean(b))
     # same attitude -> the renderer's own star selection and projection
@@ -334,10 +362,15 @@ def test_scene_builder_draws_scenes_like_the_renderer(renderer):
     np.testing.assert_allclose(np.sort(stars["electrons"]), np.sort(sc.stars["electrons"][cat]), rtol=1e-6)
 
 
-@pytest.mark.parametrize("overrides", [["corruptions.stray_light=3000", "optics.vignetting=0.3"],
-                                       ["corruptions.motion_blur=1.5", "optics.psf=moffat"],
-                                       ["sensor.sampler=exact", "corruptions.hotpixels=1e-3"]],
-                         ids=["stray-light+vignetting", "motion-blur+moffat", "exact-sampler+hot-pixels"])
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["corruptions.stray_light=3000", "optics.vignetting=0.3"],
+        ["corruptions.motion_blur=1.5", "optics.psf=moffat"],
+        ["sensor.sampler=exact", "corruptions.hotpixels=1e-3"],
+    ],
+    ids=["stray-light+vignetting", "motion-blur+moffat", "exact-sampler+hot-pixels"],
+)
 def test_other_features_equal_in_distribution(overrides):
     """A non-uniform background (every block by the block-sum model), streaked Moffat stars (the
     generic stamp path), and the exact sampler (every pixel drawn exactly: blooming hot pixels spill
@@ -349,11 +382,11 @@ def test_other_features_equal_in_distribution(overrides):
     scenes = [r.scene(i) for i in range(24)]
     xb = np.array([b.image(sc, seed=i) for i, sc in enumerate(scenes)], np.float64)
     xf = np.array([r.downsample(r.rasterise(sc)[0]) for sc in scenes], np.float64)
-    d = (xb - xf).reshape(len(scenes), 16, 16, 16, 16).mean((2, 4))        # per scene, 16 x 16 super-blocks
+    d = (xb - xf).reshape(len(scenes), 16, 16, 16, 16).mean((2, 4))  # per scene, 16 x 16 super-blocks
     z = d.mean(0) / (d.std(0, ddof=1) / np.sqrt(len(scenes)))
     assert np.abs(z).max() < 5, np.abs(z).max()
     assert abs(z.mean()) < 0.5
     vb, vf = xb.var(0, ddof=1), xf.var(0, ddof=1)
-    calm = (vb + vf) / 2 < 50            # leave out bright cores and bloom trails (heavy-tailed estimates)
+    calm = (vb + vf) / 2 < 50  # leave out bright cores and bloom trails (heavy-tailed estimates)
     ratio = vb[calm].mean() / vf[calm].mean()
     assert abs(ratio - 1) < 0.03, ratio

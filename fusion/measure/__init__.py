@@ -10,8 +10,14 @@ from typing import TYPE_CHECKING
 
 from skygen.lazy import lazy_attributes
 
-_LAZY = {"evaluate_checkpoint": ".evaluate", "run_sweep": ".robustness", "robustness": ".robustness",
-         "run_timing": ".timing", "export_onnx": ".export", "run_experiment": ".experiment"}
+_LAZY = {
+    "evaluate_checkpoint": ".evaluate",
+    "run_sweep": ".robustness",
+    "robustness": ".robustness",
+    "run_timing": ".timing",
+    "export_onnx": ".export",
+    "run_experiment": ".experiment",
+}
 
 if TYPE_CHECKING:
     from .evaluate import evaluate_checkpoint

@@ -34,20 +34,28 @@ from pathlib import Path
 import numpy as np
 
 from skygen.datasets.shards import open_dataset, verify_checksums
-
 from skygen.runtime import atomic_write_text, hardware, pick_device, write_json
 
 from ..errors import ConfigError, DatasetError
 from ..model.checkpoint import Checkpoint, differences_text, differences_warning, load_checkpoint, resolve_checkpoint
 from ..model.inference import autocast_dtype, predict_batches
-from ..model.metrics import (angular_error_deg, confusion_matrix, error_stats, neighbour_error_share,
-                             per_class_accuracy, topk_accuracy, voronoi_neighbours)
+from ..model.metrics import (
+    angular_error_deg,
+    confusion_matrix,
+    error_stats,
+    neighbour_error_share,
+    per_class_accuracy,
+    topk_accuracy,
+    voronoi_neighbours,
+)
 from ..model.regions import assign
 from ..model.shards import FrameDataset, boresight_vectors, count_sparse_frames, make_loader, split_positions
 from ..plots import plot_confusion
 
-NEIGHBOUR_DEFINITION = ("clusters whose Voronoi cells on the sphere share a boundary arc (edges of the spherical "
-                        "Delaunay triangulation of the centroids, from their convex hull)")
+NEIGHBOUR_DEFINITION = (
+    "clusters whose Voronoi cells on the sphere share a boundary arc (edges of the spherical "
+    "Delaunay triangulation of the centroids, from their convex hull)"
+)
 
 
 def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarray, centroids: np.ndarray) -> dict:
@@ -57,7 +65,9 @@ def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarra
     cm = confusion_matrix(labels, pred, k)
     adj = voronoi_neighbours(centroids)
     return {
-        "n_frames": int(len(labels)), "num_classes": k, "chance_top1": 1.0 / k,
+        "n_frames": int(len(labels)),
+        "num_classes": k,
+        "chance_top1": 1.0 / k,
         **topk_accuracy(logits, labels),
         "angular_error": error_stats(angular_error_deg(v, centroids, pred)),
         "quantisation_floor": error_stats(angular_error_deg(v, centroids, labels)),
@@ -73,21 +83,27 @@ def report_from_predictions(logits: np.ndarray, labels: np.ndarray, v: np.ndarra
 def check_no_training_frames(ckpt: Checkpoint, ds, pos: np.ndarray, split: str, allow_overlap: bool, warn) -> int:
     """Frames of ``pos`` the checkpoint was trained on (by frame identity); refuses them unless ``allow_overlap``."""
     if ckpt.train_frame_ids is None:
-        warn("warning: this checkpoint predates training-frame records; cannot check that the evaluated frames "
-             "were not among its training frames")
+        warn(
+            "warning: this checkpoint predates training-frame records; cannot check that the evaluated frames "
+            "were not among its training frames"
+        )
         return 0
     ids = ds.frames["frame_id"][pos].view(np.int64)
     seen = np.isin(ids, ckpt.train_frame_ids)
     n = int(seen.sum())
     if n and not allow_overlap:
         first = int(ds.frames["index"][pos[np.argmax(seen)]])
-        raise DatasetError(f"{n} of the {len(pos)} frames of split {split!r} of {ds.root} are frames the checkpoint "
-                           f"was trained on (equal frame identities, e.g. frame {first}); the score would be "
-                           "optimistic. Evaluate on frames rendered with another --seed, or pass --allow-overlap "
-                           "to score them anyway")
+        raise DatasetError(
+            f"{n} of the {len(pos)} frames of split {split!r} of {ds.root} are frames the checkpoint "
+            f"was trained on (equal frame identities, e.g. frame {first}); the score would be "
+            "optimistic. Evaluate on frames rendered with another --seed, or pass --allow-overlap "
+            "to score them anyway"
+        )
     if n:
-        warn(f"WARNING: {n} of the {len(pos)} evaluated frames were TRAINING frames of this checkpoint; "
-             "the result is optimistic (--allow-overlap)")
+        warn(
+            f"WARNING: {n} of the {len(pos)} evaluated frames were TRAINING frames of this checkpoint; "
+            "the result is optimistic (--allow-overlap)"
+        )
     return n
 
 
@@ -114,15 +130,27 @@ def prepare_out(out: Path, default: bool) -> bool:
         probe.touch()
         probe.unlink()
     except OSError as exc:
-        raise ConfigError(f"{what}: cannot write there ({exc.strerror or exc}); give a folder you can write to "
-                          "with --out DIR") from None
+        raise ConfigError(
+            f"{what}: cannot write there ({exc.strerror or exc}); give a folder you can write to with --out DIR"
+        ) from None
     return created
 
 
-def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str | Path, split: str = "test",
-                        out: str | Path | None = None, *, batch_size: int = 64, workers: int = 0, device: str = "auto",
-                        max_frames: int | None = None, allow_overlap: bool = False, keep_brightest: int | None = None,
-                        log=print, warn=None) -> dict:
+def evaluate_checkpoint(
+    checkpoint: str | Path | Sequence[str | Path],
+    data: str | Path,
+    split: str = "test",
+    out: str | Path | None = None,
+    *,
+    batch_size: int = 64,
+    workers: int = 0,
+    device: str = "auto",
+    max_frames: int | None = None,
+    allow_overlap: bool = False,
+    keep_brightest: int | None = None,
+    log=print,
+    warn=None,
+) -> dict:
     """Evaluate ``checkpoint`` (a file or a run folder) on ``split`` of dataset ``data``; write and return the report.
 
     Several checkpoints are scored as one ensemble: the mean of their log-probabilities (a product
@@ -134,9 +162,14 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
     the files are named ``eval-<split>-brightest<N>.*``.
     """
     import sys
+
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
-    for name, value, lo in (("--batch-size", batch_size, 1), ("--workers", workers, 0), ("--max-frames", max_frames, 1),
-                            ("--brightest", keep_brightest, 1)):
+    for name, value, lo in (
+        ("--batch-size", batch_size, 1),
+        ("--workers", workers, 0),
+        ("--max-frames", max_frames, 1),
+        ("--brightest", keep_brightest, 1),
+    ):
         if value is not None and value < lo:
             raise ConfigError(f"{name} {value}: must be at least {lo}")
     t0 = time.perf_counter()
@@ -144,42 +177,73 @@ def evaluate_checkpoint(checkpoint: str | Path | Sequence[str | Path], data: str
     if not paths:
         raise ConfigError("no checkpoint given")
     if len(paths) > 1 and out is None:
-        raise ConfigError(f"{len(paths)} checkpoints are scored as one ensemble, whose report belongs to none of "
-                          "their run folders: pass --out DIR")
+        raise ConfigError(
+            f"{len(paths)} checkpoints are scored as one ensemble, whose report belongs to none of "
+            "their run folders: pass --out DIR"
+        )
     out_dir = Path(out) if out is not None else paths[0].parent
-    created = prepare_out(out_dir, default=out is None)       # before minutes of work, not after
+    created = prepare_out(out_dir, default=out is None)  # before minutes of work, not after
     try:
-        report = _evaluate(paths, data, split, batch_size=batch_size, workers=workers, device=device,
-                           max_frames=max_frames, allow_overlap=allow_overlap, keep_brightest=keep_brightest,
-                           log=log, warn=warn)
+        report = _evaluate(
+            paths,
+            data,
+            split,
+            batch_size=batch_size,
+            workers=workers,
+            device=device,
+            max_frames=max_frames,
+            allow_overlap=allow_overlap,
+            keep_brightest=keep_brightest,
+            log=log,
+            warn=warn,
+        )
     except BaseException:
         if created and not any(out_dir.iterdir()):
-            out_dir.rmdir()             # a failed evaluation leaves no empty folder behind
+            out_dir.rmdir()  # a failed evaluation leaves no empty folder behind
         raise
     report["wall_time_s"] = time.perf_counter() - t0
     stem = split if keep_brightest is None else f"{split}-brightest{keep_brightest}"
     write_json(out_dir / f"eval-{stem}.json", report)
     atomic_write_text(out_dir / f"eval-{stem}.md", markdown_report(report))
-    plot_confusion(np.array(report["confusion_matrix"]), out_dir / f"confusion-{stem}.png",
-                   f"{report['model']} on {stem} (K={report['num_classes']})")
+    plot_confusion(
+        np.array(report["confusion_matrix"]),
+        out_dir / f"confusion-{stem}.png",
+        f"{report['model']} on {stem} (K={report['num_classes']})",
+    )
     log(summary_line(report))
     log(f"wrote {out_dir / f'eval-{stem}.json'}, eval-{stem}.md, confusion-{stem}.png")
-    if _all_differences(report):        # said again beside the result, where it is read
-        warn(f"WARNING: {report['dataset']['path']} differs from the training data in frame settings "
-             f"({differences_text(_all_differences(report))}): read the score above with that in mind")
+    if _all_differences(report):  # said again beside the result, where it is read
+        warn(
+            f"WARNING: {report['dataset']['path']} differs from the training data in frame settings "
+            f"({differences_text(_all_differences(report))}): read the score above with that in mind"
+        )
     return report
 
 
-def _evaluate(paths: list[Path], data, split: str, *, batch_size: int, workers: int, device: str,
-              max_frames: int | None, allow_overlap: bool, keep_brightest: int | None, log, warn) -> dict:
+def _evaluate(
+    paths: list[Path],
+    data,
+    split: str,
+    *,
+    batch_size: int,
+    workers: int,
+    device: str,
+    max_frames: int | None,
+    allow_overlap: bool,
+    keep_brightest: int | None,
+    log,
+    warn,
+) -> dict:
     """The report of :func:`evaluate_checkpoint` (everything but writing it)."""
     ckpts = [load_checkpoint(p) for p in paths]
     centroids = ckpts[0].centroids
     for p, c in zip(paths[1:], ckpts[1:]):
         if c.centroids.shape != centroids.shape or not np.allclose(c.centroids, centroids, atol=1e-9):
-            raise ConfigError(f"{p} labels the sky with other regions than {paths[0]} (K {len(c.centroids)} against "
-                              f"{len(centroids)}, or other centroids): an ensemble needs the same regions; train its "
-                              "models with the same labels settings on the same dataset")
+            raise ConfigError(
+                f"{p} labels the sky with other regions than {paths[0]} (K {len(c.centroids)} against "
+                f"{len(centroids)}, or other centroids): an ensemble needs the same regions; train its "
+                "models with the same labels settings on the same dataset"
+            )
     dev = pick_device(device)
     logits, diffs = [], []
     with open_dataset(data) as ds:
@@ -190,47 +254,81 @@ def _evaluate(paths: list[Path], data, split: str, *, batch_size: int, workers: 
         for p, ckpt in zip(paths, ckpts):
             diffs.append(frame_settings_check(ckpt, ds, warn))
             if ds.image_shape[0] != ckpt.image_size:
-                raise DatasetError(f"{data}: stored images are {ds.image_shape[0]} px but {p} was trained on "
-                                   f"{ckpt.image_size} px images; render with output.image_size_px="
-                                   f"{ckpt.image_size} or train on this dataset")
+                raise DatasetError(
+                    f"{data}: stored images are {ds.image_shape[0]} px but {p} was trained on "
+                    f"{ckpt.image_size} px images; render with output.image_size_px="
+                    f"{ckpt.image_size} or train on this dataset"
+                )
             check_no_training_frames(ckpt, ds, pos, split, allow_overlap, warn)
             logits.append(_predict_split(ckpt, ds, pos, labels, dev, split, batch_size, workers, keep_brightest))
         ids = ds.frames["frame_id"][pos].view(np.int64)
         seen = [c.train_frame_ids for c in ckpts if c.train_frame_ids is not None]
         overlap = int(np.isin(ids, np.concatenate(seen)).sum()) if seen else 0
         sparse = count_sparse_frames(ds, pos)
-        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
-                        "frames_seen_in_training": overlap}
+        dataset_info = {
+            "path": str(ds.root),
+            "dataset_id": ds.manifest.get("dataset_id"),
+            "split": split,
+            "frames_seen_in_training": overlap,
+        }
     if len(logits) == 1:
         combined = logits[0]
-    else:       # mean log-probability: a product of experts, each model's confidence weighing in
+    else:  # mean log-probability: a product of experts, each model's confidence weighing in
         from scipy.special import log_softmax
+
         combined = np.mean([log_softmax(lg, axis=1) for lg in logits], axis=0)
     report = report_from_predictions(combined, labels, v, centroids)
     one = len(ckpts) == 1
-    report.update({"checkpoint": str(paths[0]) if one else " + ".join(map(str, paths)),
-                   "epoch": ckpts[0].epoch if one else [c.epoch for c in ckpts],
-                   "model": ckpts[0].model_name if one else " + ".join(c.model_name for c in ckpts),
-                   "branches": ckpts[0].branches if one else [c.branches for c in ckpts],
-                   # render settings that change frames, training -> this data ({} when they agree)
-                   "config_differences": diffs[0] if one else diffs,
-                   "dataset": dataset_info, "frames_with_lt2_detections": sparse,
-                   "device": str(dev), "hardware": hardware(dev), "keep_brightest": keep_brightest})
+    report.update(
+        {
+            "checkpoint": str(paths[0]) if one else " + ".join(map(str, paths)),
+            "epoch": ckpts[0].epoch if one else [c.epoch for c in ckpts],
+            "model": ckpts[0].model_name if one else " + ".join(c.model_name for c in ckpts),
+            "branches": ckpts[0].branches if one else [c.branches for c in ckpts],
+            # render settings that change frames, training -> this data ({} when they agree)
+            "config_differences": diffs[0] if one else diffs,
+            "dataset": dataset_info,
+            "frames_with_lt2_detections": sparse,
+            "device": str(dev),
+            "hardware": hardware(dev),
+            "keep_brightest": keep_brightest,
+        }
+    )
     if not one:
-        report.update({"checkpoints": [str(p) for p in paths],
-                       "ensemble": "mean of the models' log-softmax (product of experts)",
-                       "members_top1": [float((np.argmax(lg, axis=1) == labels).mean()) for lg in logits]})
+        report.update(
+            {
+                "checkpoints": [str(p) for p in paths],
+                "ensemble": "mean of the models' log-softmax (product of experts)",
+                "members_top1": [float((np.argmax(lg, axis=1) == labels).mean()) for lg in logits],
+            }
+        )
     return report
 
 
-def _predict_split(ckpt: Checkpoint, ds, pos: np.ndarray, labels: np.ndarray, dev, split: str, batch_size: int,
-                   workers: int, keep_brightest: int | None) -> np.ndarray:
+def _predict_split(
+    ckpt: Checkpoint,
+    ds,
+    pos: np.ndarray,
+    labels: np.ndarray,
+    dev,
+    split: str,
+    batch_size: int,
+    workers: int,
+    keep_brightest: int | None,
+) -> np.ndarray:
     """The logits of one checkpoint on the frames ``pos`` of ``ds``, in that order."""
     model, cfg = ckpt.build_model(), ckpt.fusion_config
     model.to(dev)
     d = cfg.data
-    frames = FrameDataset(ds, pos, labels, max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu,
-                          log_flux_offset=d.log_flux_offset, keep_brightest=keep_brightest)
+    frames = FrameDataset(
+        ds,
+        pos,
+        labels,
+        max_stars=d.max_stars,
+        norm_scale_adu=d.norm_scale_adu,
+        log_flux_offset=d.log_flux_offset,
+        keep_brightest=keep_brightest,
+    )
     loader = make_loader(frames, batch_size, shuffle=False, workers=workers, pin_memory=dev.type == "cuda")
     pred = predict_batches(model, loader, dev, amp_dtype=autocast_dtype(cfg.train.amp, dev), progress=True, desc=split)
     if not np.array_equal(pred["index"], pos):
@@ -255,11 +353,13 @@ def summary_line(r: dict) -> str:
     cut = "" if r.get("keep_brightest") is None else f" (brightest {r['keep_brightest']} detections)"
     differ = _all_differences(r)
     cut += f" [WARNING: frame settings differ from the training data: {', '.join(differ)}]" if differ else ""
-    return (f"{r['dataset']['split']}{cut}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
-            f"top-3 {r['top3']:.3f} top-5 {r['top5']:.3f} (chance {r['chance_top1']:.3f}); angular error "
-            f"mean {ae['mean_deg']:.2f} median {ae['median_deg']:.2f} p95 {ae['p95_deg']:.2f} deg (floor "
-            f"median {qf['median_deg']:.2f}); errors between neighbours "
-            f"{'n/a' if share is None else f'{100 * share:.1f}%'}")
+    return (
+        f"{r['dataset']['split']}{cut}: {r['n_frames']} frames, K={r['num_classes']}: top-1 {r['top1']:.3f} "
+        f"top-3 {r['top3']:.3f} top-5 {r['top5']:.3f} (chance {r['chance_top1']:.3f}); angular error "
+        f"mean {ae['mean_deg']:.2f} median {ae['median_deg']:.2f} p95 {ae['p95_deg']:.2f} deg (floor "
+        f"median {qf['median_deg']:.2f}); errors between neighbours "
+        f"{'n/a' if share is None else f'{100 * share:.1f}%'}"
+    )
 
 
 def _fmt(x, pct: bool = False) -> str:
@@ -271,35 +371,54 @@ def _fmt(x, pct: bool = False) -> str:
 def markdown_report(r: dict) -> str:
     ae, qf = r["angular_error"], r["quantisation_floor"]
     lines = [
-        f"# Evaluation of `{r['checkpoint']}` (epoch {r['epoch']})", "",
+        f"# Evaluation of `{r['checkpoint']}` (epoch {r['epoch']})",
+        "",
         f"Model `{r['model']}`, branches {r['branches']}; dataset `{r['dataset']['path']}`, split "
         f"**{r['dataset']['split']}**: {r['n_frames']} frames ({r['frames_with_lt2_detections']} with fewer than "
         f"2 detections), K = {r['num_classes']} (chance top-1 {_fmt(r['chance_top1'], True)})"
-        + ("." if r.get("keep_brightest") is None else
-           f"; each frame cut to its brightest {r['keep_brightest']} detections, the image untouched."), "",
+        + (
+            "."
+            if r.get("keep_brightest") is None
+            else f"; each frame cut to its brightest {r['keep_brightest']} detections, the image untouched."
+        ),
+        "",
     ]
     if _all_differences(r):
-        lines += [f"**Warning:** the data was rendered with other frame settings than the training data "
-                  f"({differences_text(_all_differences(r), limit=20)}; training -> this data); the score is not "
-                  "the model's score on the frames it was trained for.", ""]
+        lines += [
+            f"**Warning:** the data was rendered with other frame settings than the training data "
+            f"({differences_text(_all_differences(r), limit=20)}; training -> this data); the score is not "
+            "the model's score on the frames it was trained for.",
+            "",
+        ]
     lines += [
-        "| top-1 | top-3 | top-5 |", "|---|---|---|",
-        f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |", "",
+        "| top-1 | top-3 | top-5 |",
+        "|---|---|---|",
+        f"| {_fmt(r['top1'], True)} | {_fmt(r['top3'], True)} | {_fmt(r['top5'], True)} |",
+        "",
     ]
     if "ensemble" in r:
-        lines += [f"An ensemble of {len(r['checkpoints'])} models: {r['ensemble']}. Each alone on the same frames, "
-                  "top-1: " + ", ".join(f"`{c}` {_fmt(t, True)}" for c, t in zip(r["checkpoints"], r["members_top1"]))
-                  + ".", ""]
+        lines += [
+            f"An ensemble of {len(r['checkpoints'])} models: {r['ensemble']}. Each alone on the same frames, "
+            "top-1: " + ", ".join(f"`{c}` {_fmt(t, True)}" for c, t in zip(r["checkpoints"], r["members_top1"])) + ".",
+            "",
+        ]
     lines += [
-        "## Angular error (degrees)", "",
-        "| | mean | median | p95 |", "|---|---|---|---|",
+        "## Angular error (degrees)",
+        "",
+        "| | mean | median | p95 |",
+        "|---|---|---|---|",
         f"| prediction, arccos(v · c_pred) | {_fmt(ae['mean_deg'])} | {_fmt(ae['median_deg'])} "
         f"| {_fmt(ae['p95_deg'])} |",
         f"| quantisation floor, arccos(v · c_true) | {_fmt(qf['mean_deg'])} | {_fmt(qf['median_deg'])} "
-        f"| {_fmt(qf['p95_deg'])} |", "",
+        f"| {_fmt(qf['p95_deg'])} |",
+        "",
         f"Errors: {r['n_errors']}; share between neighbouring clusters: {_fmt(r['neighbour_error_share'], True)} "
-        f"(neighbours: {r['neighbour_definition']}; {r['neighbour_pairs']} neighbour pairs).", "",
-        "## Per-class accuracy", "", "| class | frames | top-1 |", "|---|---|---|",
+        f"(neighbours: {r['neighbour_definition']}; {r['neighbour_pairs']} neighbour pairs).",
+        "",
+        "## Per-class accuracy",
+        "",
+        "| class | frames | top-1 |",
+        "|---|---|---|",
     ]
     lines += [f"| {c['class']} | {c['n']} | {_fmt(c['top1'], True)} |" for c in r["per_class"]]
     stem = r["dataset"]["split"] + ("" if r.get("keep_brightest") is None else f"-brightest{r['keep_brightest']}")

@@ -99,8 +99,11 @@ def random_inputs(batch: int, image_size: int, max_stars: int, rng: np.random.Ge
     n = rng.integers(0, max_stars + 1, size=batch)
     mask = np.arange(max_stars)[None, :] < n[:, None]
     coords = rng.uniform(-1, 1, size=(batch, max_stars, 3)).astype(np.float32) * mask[..., None]
-    return {"image": rng.random((batch, 1, image_size, image_size), dtype=np.float32),
-            "coords": coords.astype(np.float32), "mask": mask}
+    return {
+        "image": rng.random((batch, 1, image_size, image_size), dtype=np.float32),
+        "coords": coords.astype(np.float32),
+        "mask": mask,
+    }
 
 
 def star_like_inputs(batch: int, image_size: int, max_stars: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -117,19 +120,27 @@ def star_like_inputs(batch: int, image_size: int, max_stars: int, rng: np.random
         for (x, y), f in zip(xy, log_flux):
             u, v = (x + 1) * image_size / 2 - 0.5, (y + 1) * image_size / 2 - 0.5
             amp = min(1.0, 0.2 + 0.3 * f)
-            image[b, 0] += (amp * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2 ** 2))).astype(np.float32)
+            image[b, 0] += (amp * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2**2))).astype(np.float32)
     return {"image": np.clip(image, 0, 1), "coords": coords, "mask": mask}
 
 
 def dataset_inputs(data: str | Path, cfg, n: int = 4) -> dict[str, np.ndarray]:
     """The first ``n`` test frames of a skygen dataset, preprocessed as in training."""
     from skygen.datasets.shards import open_dataset
+
     from ..model.shards import FrameDataset, split_positions
+
     with open_dataset(data) as ds:
         pos = split_positions(ds, "test")[:n]
         d = cfg.data
-        fd = FrameDataset(ds, pos, np.zeros(len(pos), np.int64), max_stars=d.max_stars,
-                          norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
+        fd = FrameDataset(
+            ds,
+            pos,
+            np.zeros(len(pos), np.int64),
+            max_stars=d.max_stars,
+            norm_scale_adu=d.norm_scale_adu,
+            log_flux_offset=d.log_flux_offset,
+        )
         items = [fd[j] for j in range(len(pos))]
     return {k: torch.stack([it[k] for it in items]).numpy() for k in ("image", "coords", "mask")}
 
@@ -143,6 +154,7 @@ def _torch_logits(wrapper: ExportWrapper, feeds: dict[str, np.ndarray]) -> np.nd
 def onnxruntime_logits(path: str | Path, feeds: dict[str, np.ndarray]) -> np.ndarray:
     """Run the ONNX file on CPU with onnxruntime; ``feeds`` may hold unused inputs."""
     import onnxruntime as ort
+
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
@@ -150,8 +162,12 @@ def onnxruntime_logits(path: str | Path, feeds: dict[str, np.ndarray]) -> np.nda
     return sess.run(None, {k: feeds[k] for k in names})[0]
 
 
-def verify(path: str | Path, wrapper: ExportWrapper, checks: dict[str, dict[str, np.ndarray]],
-           tolerance: float = DEFAULT_TOLERANCE) -> dict:
+def verify(
+    path: str | Path,
+    wrapper: ExportWrapper,
+    checks: dict[str, dict[str, np.ndarray]],
+    tolerance: float = DEFAULT_TOLERANCE,
+) -> dict:
     """Max |onnxruntime - PyTorch| of the logits for each named input set; ExportError above ``tolerance``."""
     diffs = {}
     for name, inputs in checks.items():
@@ -160,20 +176,29 @@ def verify(path: str | Path, wrapper: ExportWrapper, checks: dict[str, dict[str,
         try:
             got = onnxruntime_logits(path, feeds)
         except Exception as exc:  # onnxruntime raises its own types (bad shapes, missing kernels)
-            raise ExportError(f"onnxruntime cannot run the exported graph on the '{name}' inputs "
-                              f"(batch {len(ref)}): {_first_line(exc)}; no file was written") from None
+            raise ExportError(
+                f"onnxruntime cannot run the exported graph on the '{name}' inputs "
+                f"(batch {len(ref)}): {_first_line(exc)}; no file was written"
+            ) from None
         if got.shape != ref.shape:
             raise ExportError(f"{name}: onnxruntime returned logits of shape {got.shape}, PyTorch {ref.shape}")
         diffs[name] = float(np.max(np.abs(got.astype(np.float64) - ref))) if ref.size else 0.0
         if not np.isfinite(diffs[name]):
             diffs[name] = float("inf")
     worst = max(diffs, key=diffs.get)
-    result = {"max_abs_diff": diffs[worst], "by_check": diffs, "tolerance": tolerance, "passed": diffs[worst] <= tolerance}
+    result = {
+        "max_abs_diff": diffs[worst],
+        "by_check": diffs,
+        "tolerance": tolerance,
+        "passed": diffs[worst] <= tolerance,
+    }
     if not result["passed"]:
-        raise ExportError(f"ONNX graph does not match PyTorch: max |difference| of the logits {diffs[worst]:.3g} on "
-                          f"'{worst}' inputs exceeds the tolerance {tolerance:g} (all checks: "
-                          + ", ".join(f"{k} {v:.3g}" for k, v in diffs.items())
-                          + "); try the other --exporter or another --opset; no file was written")
+        raise ExportError(
+            f"ONNX graph does not match PyTorch: max |difference| of the logits {diffs[worst]:.3g} on "
+            f"'{worst}' inputs exceeds the tolerance {tolerance:g} (all checks: "
+            + ", ".join(f"{k} {v:.3g}" for k, v in diffs.items())
+            + "); try the other --exporter or another --opset; no file was written"
+        )
     return result
 
 
@@ -214,6 +239,7 @@ def _check_writable(path: Path, option: str, example: str) -> None:
 def written_opset(path: str | Path) -> int:
     """The default-domain opset version recorded in an ONNX file."""
     import onnx
+
     model = onnx.load(str(path), load_external_data=False)
     return next(int(o.version) for o in model.opset_import if o.domain in ("", "ai.onnx"))
 
@@ -224,14 +250,29 @@ def _export(wrapper: ExportWrapper, example: dict[str, np.ndarray], path: Path, 
     names = wrapper.input_names
     with _quiet():
         if exporter == "legacy":
-            torch.onnx.export(wrapper, args, str(path), dynamo=False, opset_version=opset, input_names=names,
-                              output_names=["logits"], do_constant_folding=True,
-                              dynamic_axes={**{k: {0: "batch"} for k in names}, "logits": {0: "batch"}})
+            torch.onnx.export(
+                wrapper,
+                args,
+                str(path),
+                dynamo=False,
+                opset_version=opset,
+                input_names=names,
+                output_names=["logits"],
+                do_constant_folding=True,
+                dynamic_axes={**{k: {0: "batch"} for k in names}, "logits": {0: "batch"}},
+            )
         else:
             batch = torch.export.Dim("batch", min=1, max=4096)
-            prog = torch.onnx.export(wrapper, args, dynamo=True, opset_version=opset, input_names=names,
-                                     output_names=["logits"], verbose=False,
-                                     dynamic_shapes=(tuple({0: batch} for _ in names),))   # one entry: *inputs
+            prog = torch.onnx.export(
+                wrapper,
+                args,
+                dynamo=True,
+                opset_version=opset,
+                input_names=names,
+                output_names=["logits"],
+                verbose=False,
+                dynamic_shapes=(tuple({0: batch} for _ in names),),
+            )  # one entry: *inputs
             prog.save(str(path), external_data=False)
 
 
@@ -243,9 +284,18 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 17, exporter: str = "legacy",
-                tolerance: float = DEFAULT_TOLERANCE, data: str | Path | None = None, seed: int = 0,
-                mask_dtype: str = "bool", report: str | Path | None = None) -> dict:
+def export_onnx(
+    checkpoint: str | Path,
+    onnx_path: str | Path,
+    *,
+    opset: int = 17,
+    exporter: str = "legacy",
+    tolerance: float = DEFAULT_TOLERANCE,
+    data: str | Path | None = None,
+    seed: int = 0,
+    mask_dtype: str = "bool",
+    report: str | Path | None = None,
+) -> dict:
     """Export ``checkpoint`` to ``onnx_path``, verify it with onnxruntime, then move it into place.
 
     ``report``: also write the returned record there as strict JSON (it names the hardware the
@@ -262,18 +312,25 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
     ckpt = load_checkpoint(checkpoint)
     model, cfg = ckpt.build_model(), ckpt.fusion_config
     if model.fine_classes and exporter == "legacy" and opset < 16:
-        raise ConfigError(f"--opset {opset}: this model sums its {model.fine_classes} fine regions per region "
-                          "(ScatterElements with reduction=add), which ONNX has from opset 16; use --opset 16 or later")
+        raise ConfigError(
+            f"--opset {opset}: this model sums its {model.fine_classes} fine regions per region "
+            "(ScatterElements with reduction=add), which ONNX has from opset 16; use --opset 16 or later"
+        )
     if model.image is not None and model.image.rotates_tokens:
-        raise ExportError(f"{checkpoint}: its image branch is the peak set (model.image_backbone=peak_set), whose "
-                          "per-frame median, clipped noise and top-k peak selection have no ONNX export here; "
-                          "run it in PyTorch (fusion predict, fusion time) or export a model with a CNN image "
-                          "branch or none. No file was written.")
+        raise ExportError(
+            f"{checkpoint}: its image branch is the peak set (model.image_backbone=peak_set), whose "
+            "per-frame median, clipped noise and top-k peak selection have no ONNX export here; "
+            "run it in PyTorch (fusion predict, fusion time) or export a model with a CNN image "
+            "branch or none. No file was written."
+        )
     wrapper = ExportWrapper(model.float(), mask_dtype)
     size, stars = ckpt.image_size, ckpt.max_stars
     rng = np.random.default_rng(seed)
-    checks = {"random_batch1": random_inputs(1, size, stars, rng), "random_batch3": random_inputs(3, size, stars, rng),
-              "star_like_batch2": star_like_inputs(2, size, stars, rng)}
+    checks = {
+        "random_batch1": random_inputs(1, size, stars, rng),
+        "random_batch3": random_inputs(3, size, stars, rng),
+        "star_like_batch2": star_like_inputs(2, size, stars, rng),
+    }
     if data is not None:
         checks["dataset_frames"] = dataset_inputs(data, cfg)
     out = Path(onnx_path)
@@ -286,25 +343,42 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, *, opset: int = 1
             # (the transformer's key-padding mask), and the graph then refuses other batch sizes
             _export(wrapper, checks["random_batch3"], tmp, opset, exporter)
             import onnx
+
             onnx.checker.check_model(str(tmp))
         except Exception as exc:  # exporters raise many types; the user needs the reason, not the trace
-            raise ExportError(f"ONNX export of {checkpoint} failed with the {exporter} exporter at opset {opset}: "
-                              f"{_first_line(exc)}") from None
+            raise ExportError(
+                f"ONNX export of {checkpoint} failed with the {exporter} exporter at opset {opset}: {_first_line(exc)}"
+            ) from None
         got = written_opset(tmp)
         if got != opset:
-            raise ExportError(f"the {exporter} exporter wrote opset {got}, not the requested {opset} (it cannot convert "
-                              f"this graph down); use --exporter legacy for opset {opset}, or --opset {got} if your "
-                              "runtime supports it")
+            raise ExportError(
+                f"the {exporter} exporter wrote opset {got}, not the requested {opset} (it cannot convert "
+                f"this graph down); use --exporter legacy for opset {opset}, or --opset {got} if your "
+                "runtime supports it"
+            )
         result = verify(tmp, wrapper, checks, tolerance)
     import onnxruntime
-    r = {"onnx": str(out), "checkpoint": str(checkpoint), "exporter": exporter, "opset": opset,
-            "inputs": {k: _shape(k, size, stars) for k in wrapper.input_names},
-            "input_types": {k: ("bool" if k == "mask" and mask_dtype == "bool" else "float32")
-                            for k in wrapper.input_names},
-            "outputs": {"logits": ["batch", model.num_classes]}, "model": ckpt.model_name,
-            "branches": model.branches, "verification": result, "bytes": out.stat().st_size,
-            "sha256": _sha256(out), "onnxruntime": onnxruntime.__version__, "torch": str(torch.__version__),
-            "hardware": hardware(torch.device("cpu")), "time_s": time.perf_counter() - t0}
+
+    r = {
+        "onnx": str(out),
+        "checkpoint": str(checkpoint),
+        "exporter": exporter,
+        "opset": opset,
+        "inputs": {k: _shape(k, size, stars) for k in wrapper.input_names},
+        "input_types": {
+            k: ("bool" if k == "mask" and mask_dtype == "bool" else "float32") for k in wrapper.input_names
+        },
+        "outputs": {"logits": ["batch", model.num_classes]},
+        "model": ckpt.model_name,
+        "branches": model.branches,
+        "verification": result,
+        "bytes": out.stat().st_size,
+        "sha256": _sha256(out),
+        "onnxruntime": onnxruntime.__version__,
+        "torch": str(torch.__version__),
+        "hardware": hardware(torch.device("cpu")),
+        "time_s": time.perf_counter() - t0,
+    }
     if report is not None:
         write_json(report, r)
     return r
@@ -317,9 +391,11 @@ def _shape(name: str, size: int, stars: int) -> list:
 def summary_text(r: dict) -> str:
     v = r["verification"]
     ins = ", ".join(f"{k} {tuple(s)}" for k, s in r["inputs"].items())
-    return (f"wrote {r['onnx']} ({r['bytes'] / 1e6:.1f} MB, {r['exporter']} exporter, opset {r['opset']}); inputs {ins}; "
-            f"output logits {tuple(r['outputs']['logits'])}; onnxruntime {r['onnxruntime']} vs PyTorch: max abs "
-            f"difference {v['max_abs_diff']:.2e} (tolerance {v['tolerance']:g})")
+    return (
+        f"wrote {r['onnx']} ({r['bytes'] / 1e6:.1f} MB, {r['exporter']} exporter, opset {r['opset']}); inputs {ins}; "
+        f"output logits {tuple(r['outputs']['logits'])}; onnxruntime {r['onnxruntime']} vs PyTorch: max abs "
+        f"difference {v['max_abs_diff']:.2e} (tolerance {v['tolerance']:g})"
+    )
 
 
 # --------------------------------------------------------------------------- command line

@@ -56,13 +56,12 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from skygen.instrument import corruptions as corr
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import Dataset as SkyDataset
 from skygen.datasets.shards import open_dataset
+from skygen.instrument import corruptions as corr
 from skygen.lock import FolderLock
 from skygen.render.perturb import perturbed_frames
-
 from skygen.runtime import atomic_write_bytes, atomic_write_text, hardware, pick_device, write_json
 
 from ..config import FusionConfig
@@ -77,9 +76,27 @@ from ..model.shards import boresight_vectors, split_positions
 
 FORMAT = "fusion-robustness"
 FORMAT_VERSION = 1
-CSV_COLUMNS = ("checkpoint", "label", "model", "branches", "num_classes", "corruption", "stage", "unit",
-               "severity", "total_severity", "n_frames", "top1", "top3", "top5", "median_error_deg",
-               "mean_error_deg", "p95_error_deg", "mean_detections", "frames_lt2_detections")
+CSV_COLUMNS = (
+    "checkpoint",
+    "label",
+    "model",
+    "branches",
+    "num_classes",
+    "corruption",
+    "stage",
+    "unit",
+    "severity",
+    "total_severity",
+    "n_frames",
+    "top1",
+    "top3",
+    "top5",
+    "median_error_deg",
+    "mean_error_deg",
+    "p95_error_deg",
+    "mean_detections",
+    "frames_lt2_detections",
+)
 
 
 # --------------------------------------------------------------------------- arguments
@@ -93,7 +110,7 @@ def resolve_corruptions(spec: str | Sequence[str]) -> list[str]:
         return list(corr.REGISTRY)
     out = []
     for n in names:
-        corr.get(n)                 # ConfigError listing the valid names
+        corr.get(n)  # ConfigError listing the valid names
         if n not in out:
             out.append(n)
     return out
@@ -109,8 +126,9 @@ def parse_levels(text: str | Sequence[float] | None) -> tuple[float, ...] | None
         try:
             v = float(item)
         except (TypeError, ValueError):
-            raise ConfigError(f"--levels: {item!r} is not a number; give comma-separated severities, "
-                              "e.g. --levels 0,1e-4,1e-3") from None
+            raise ConfigError(
+                f"--levels: {item!r} is not a number; give comma-separated severities, e.g. --levels 0,1e-4,1e-3"
+            ) from None
         if not np.isfinite(v):
             raise ConfigError(f"--levels: {item!r} is not a finite number")
         out.append(v)
@@ -122,8 +140,10 @@ def parse_levels(text: str | Sequence[float] | None) -> tuple[float, ...] | None
 def sweep_levels(names: list[str], levels: tuple[float, ...] | None, render_config: dict) -> dict[str, tuple]:
     """The severities of each corruption, validated against the dataset's config before any work."""
     if levels is not None and len(names) > 1:
-        raise ConfigError("--levels applies to a single --corruption (each corruption has its own unit); "
-                          "leave it out to use each corruption's default sweep")
+        raise ConfigError(
+            "--levels applies to a single --corruption (each corruption has its own unit); "
+            "leave it out to use each corruption's default sweep"
+        )
     base = build_render_config(render_config)
     out = {}
     for name in names:
@@ -131,8 +151,10 @@ def sweep_levels(names: list[str], levels: tuple[float, ...] | None, render_conf
         chosen = levels if levels is not None else c.sweep
         for lvl in chosen:
             if lvl < 0:
-                raise ConfigError(f"--levels: severity {lvl:g} of {name} is negative; severities are "
-                                  f"extra {c.unit} stacked on the dataset's own, 0 = none")
+                raise ConfigError(
+                    f"--levels: severity {lvl:g} of {name} is negative; severities are "
+                    f"extra {c.unit} stacked on the dataset's own, 0 = none"
+                )
             try:
                 corr.with_extra(base, name, lvl)
             except ConfigError as exc:
@@ -145,6 +167,7 @@ def sweep_levels(names: list[str], levels: tuple[float, ...] | None, render_conf
 @dataclass
 class SweepModel:
     """A checkpoint ready for the sweep: model, its config and centroids, a plot label."""
+
     path: Path
     model: StarFusion
     cfg: FusionConfig
@@ -153,7 +176,7 @@ class SweepModel:
     branches: dict
     image_size: int
     label: str = ""
-    config_differences: dict | None = None     # frame settings of the sweep's data unlike the training data's
+    config_differences: dict | None = None  # frame settings of the sweep's data unlike the training data's
 
     @property
     def num_classes(self) -> int:
@@ -172,20 +195,23 @@ def load_sweep_model(path: str | Path, ds: SkyDataset, warn=None) -> SweepModel:
     model, cfg = ckpt.build_model(), ckpt.fusion_config
     centroids, k = ckpt.centroids, ckpt.num_classes
     if centroids.shape != (k, 3):
-        raise CheckpointError(f"{path}: holds {centroids.shape[0]} centroids of shape {centroids.shape[1:]} but "
-                              f"K={k} classes; the checkpoint is damaged or was edited")
+        raise CheckpointError(
+            f"{path}: holds {centroids.shape[0]} centroids of shape {centroids.shape[1:]} but "
+            f"K={k} classes; the checkpoint is damaged or was edited"
+        )
     if model.num_classes != k:
         raise CheckpointError(f"{path}: the model has {model.num_classes} outputs but the checkpoint's K is {k}")
     size = ckpt.image_size
     if ds.image_shape[0] != size:
-        raise CheckpointError(f"{path} was trained on {size} x {size} images but dataset {ds.root} stores "
-                              f"{ds.image_shape[0]} x {ds.image_shape[1]}; render the sweep dataset with "
-                              f"output.image_size_px={size} or use a checkpoint trained at this size")
+        raise CheckpointError(
+            f"{path} was trained on {size} x {size} images but dataset {ds.root} stores "
+            f"{ds.image_shape[0]} x {ds.image_shape[1]}; render the sweep dataset with "
+            f"output.image_size_px={size} or use a checkpoint trained at this size"
+        )
     diffs = ckpt.config_differences(ds.config)
     if diffs and warn is not None:
         warn(differences_warning(str(ds.root), diffs, str(path)))
-    return SweepModel(path, model, cfg, centroids, ckpt.model_name, dict(ckpt.branches), size,
-                      config_differences=diffs)
+    return SweepModel(path, model, cfg, centroids, ckpt.model_name, dict(ckpt.branches), size, config_differences=diffs)
 
 
 def _label(models: list[SweepModel]) -> None:
@@ -212,16 +238,20 @@ def select_frames(ds: SkyDataset, split: str, n: int | None, seed: int, log=None
 def frame_sample(frame: dict, ds: SkyDataset, position: int, geo: FrameGeometry) -> Sample:
     """A perturbed frame (from :func:`perturbed_frames`) as the :class:`Sample` that
     :func:`fusion.model.shards.read_sample` makes of a stored one (brightest first)."""
-    return sample_from_table(frame["detections"], np.asarray(frame["image"]),
-                             float(ds.frames["background_adu"][position]),
-                             float(ds.frames["noise_adu"][position]) / geo.factor)
+    return sample_from_table(
+        frame["detections"],
+        np.asarray(frame["image"]),
+        float(ds.frames["background_adu"][position]),
+        float(ds.frames["noise_adu"][position]) / geo.factor,
+    )
 
 
 class _Items(torch.utils.data.Dataset):
     """Model-input items of already perturbed frames, as :class:`fusion.model.shards.FrameDataset` makes them."""
 
-    def __init__(self, samples: list[Sample], positions: np.ndarray, labels: np.ndarray, geo: FrameGeometry,
-                 cfg: FusionConfig):
+    def __init__(
+        self, samples: list[Sample], positions: np.ndarray, labels: np.ndarray, geo: FrameGeometry, cfg: FusionConfig
+    ):
         self.samples, self.positions, self.labels = samples, positions, labels
         self.pre = Preprocessor(geo, cfg.data.max_stars, cfg.data.log_flux_offset, cfg.data.norm_scale_adu)
 
@@ -229,12 +259,22 @@ class _Items(torch.utils.data.Dataset):
         return len(self.samples)
 
     def __getitem__(self, j: int) -> dict:
-        return {**self.pre.item(self.samples[j]), "label": torch.tensor(self.labels[j]),
-                "index": torch.tensor(self.positions[j])}
+        return {
+            **self.pre.item(self.samples[j]),
+            "label": torch.tensor(self.labels[j]),
+            "index": torch.tensor(self.positions[j]),
+        }
 
 
-def score(m: SweepModel, samples: list[Sample], positions: np.ndarray, v: np.ndarray, geo: FrameGeometry,
-          device: torch.device, batch_size: int) -> dict:
+def score(
+    m: SweepModel,
+    samples: list[Sample],
+    positions: np.ndarray,
+    v: np.ndarray,
+    geo: FrameGeometry,
+    device: torch.device,
+    batch_size: int,
+) -> dict:
     """Metrics of one checkpoint on one set of (perturbed) frames; ``pred`` holds the predictions."""
     labels = assign(v, m.centroids)
     items = _Items(samples, positions, labels, geo, m.cfg)
@@ -242,21 +282,40 @@ def score(m: SweepModel, samples: list[Sample], positions: np.ndarray, v: np.nda
     out = predict_batches(m.model, loader, device, amp_dtype=autocast_dtype(m.cfg.train.amp, device))
     pred = np.argmax(out["logits"], axis=1)
     err = error_stats(angular_error_deg(v, m.centroids, pred))
-    return {**topk_accuracy(out["logits"], labels), "median_error_deg": err["median_deg"],
-            "mean_error_deg": err["mean_deg"], "p95_error_deg": err["p95_deg"], "pred": pred}
+    return {
+        **topk_accuracy(out["logits"], labels),
+        "median_error_deg": err["median_deg"],
+        "mean_error_deg": err["mean_deg"],
+        "p95_error_deg": err["p95_deg"],
+        "pred": pred,
+    }
 
 
 # --------------------------------------------------------------------------- the sweep
 def _bar(total: int, enabled: bool):
     from tqdm import tqdm
-    return tqdm(total=total, unit="frame", dynamic_ncols=True, leave=False,
-                disable=not (enabled and sys.stderr.isatty()))
+
+    return tqdm(
+        total=total, unit="frame", dynamic_ncols=True, leave=False, disable=not (enabled and sys.stderr.isatty())
+    )
 
 
-def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str] = "all", *,
-              split: str = "test", levels: str | Sequence[float] | None = None, n: int | None = None,
-              workers: int = 1, seed: int = 0, batch_size: int = 64, device: str = "auto",
-              progress: bool = True, log=None, warn=None) -> dict:
+def run_sweep(
+    checkpoints: Sequence[str | Path],
+    data: str | Path,
+    corruption: str | Sequence[str] = "all",
+    *,
+    split: str = "test",
+    levels: str | Sequence[float] | None = None,
+    n: int | None = None,
+    workers: int = 1,
+    seed: int = 0,
+    batch_size: int = 64,
+    device: str = "auto",
+    progress: bool = True,
+    log=None,
+    warn=None,
+) -> dict:
     """Evaluate ``checkpoints`` on ``split`` of ``data`` under each corruption and severity.
 
     Everything the user gave is checked before any frame is rendered. ``log`` (default:
@@ -300,40 +359,94 @@ def run_sweep(checkpoints: Sequence[str | Path], data: str | Path, corruption: s
                     t_step, step = time.perf_counter(), step + 1
                     bar.set_description(f"{name} {lvl:g}")
                     done = bar.n
-                    frames = perturbed_frames(ds, name, lvl, pos, workers=max(workers, 1),
-                                              progress=lambda k, d=done: bar.update(d + k - bar.n))
+                    frames = perturbed_frames(
+                        ds,
+                        name,
+                        lvl,
+                        pos,
+                        workers=max(workers, 1),
+                        progress=lambda k, d=done: bar.update(d + k - bar.n),
+                    )
                     samples = [frame_sample(f, ds, int(p), geo) for f, p in zip(frames, pos)]
                     ndet = np.array([s.n for s in samples])
-                    common = {"corruption": name, "stage": c.stage, "unit": c.unit, "severity": lvl,
-                              "total_severity": c.stack(own[name], lvl), "n_frames": int(len(pos)),
-                              "mean_detections": float(ndet.mean()), "frames_lt2_detections": int((ndet < 2).sum())}
+                    common = {
+                        "corruption": name,
+                        "stage": c.stage,
+                        "unit": c.unit,
+                        "severity": lvl,
+                        "total_severity": c.stack(own[name], lvl),
+                        "n_frames": int(len(pos)),
+                        "mean_detections": float(ndet.mean()),
+                        "frames_lt2_detections": int((ndet < 2).sum()),
+                    }
                     for j, m in enumerate(models):
                         with torch.inference_mode():
                             metrics = score(m, samples, pos, v, geo, dev, batch_size)
-                        per_model[j].append({"checkpoint": str(m.path), "label": m.label, "model": m.model_name,
-                                             "branches": m.branch_text, "num_classes": m.num_classes,
-                                             **common, **metrics})
+                        per_model[j].append(
+                            {
+                                "checkpoint": str(m.path),
+                                "label": m.label,
+                                "model": m.model_name,
+                                "branches": m.branch_text,
+                                "num_classes": m.num_classes,
+                                **common,
+                                **metrics,
+                            }
+                        )
                     if say is not None:
-                        top1 = ", ".join(f"{m.label} {100 * per_model[j][-1]['top1']:.1f}%"
-                                         for j, m in enumerate(models))
-                        say(f"[{step}/{steps}] {name} {lvl:g} ({c.unit}): {len(pos)} frames in "
-                            f"{time.perf_counter() - t_step:.1f} s; top-1 {top1}")
+                        top1 = ", ".join(
+                            f"{m.label} {100 * per_model[j][-1]['top1']:.1f}%" for j, m in enumerate(models)
+                        )
+                        say(
+                            f"[{step}/{steps}] {name} {lvl:g} ({c.unit}): {len(pos)} frames in "
+                            f"{time.perf_counter() - t_step:.1f} s; top-1 {top1}"
+                        )
         finally:
             bar.close()
         for j in range(len(models)):
             rows += per_model[j]
-        dataset_info = {"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
-                        "sensor_px": list(ds.sensor_shape), "image_px": list(ds.image_shape)}
-    return {"format": FORMAT, "format_version": FORMAT_VERSION, "corruptions": names,
-            "levels": {k: list(lv) for k, lv in plan.items()},
-            "corruption_info": {k: {"stage": corr.REGISTRY[k].stage, "unit": corr.REGISTRY[k].unit,
-                                    "description": corr.REGISTRY[k].description,
-                                    "dataset_level": own[k]} for k in names},
-            "checkpoints": [{"path": str(m.path), "label": m.label, "model": m.model_name, "branches": m.branches,
-                             "num_classes": m.num_classes, "image_size": m.image_size,
-                             "config_differences": m.config_differences} for m in models],
-            "dataset": dataset_info, "frame_positions": pos.tolist(), "seed": int(seed), "n_frames": int(len(pos)),
-            "device": str(dev), "hardware": hardware(dev), "wall_time_s": time.perf_counter() - t0, "rows": rows}
+        dataset_info = {
+            "path": str(ds.root),
+            "dataset_id": ds.manifest.get("dataset_id"),
+            "split": split,
+            "sensor_px": list(ds.sensor_shape),
+            "image_px": list(ds.image_shape),
+        }
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "corruptions": names,
+        "levels": {k: list(lv) for k, lv in plan.items()},
+        "corruption_info": {
+            k: {
+                "stage": corr.REGISTRY[k].stage,
+                "unit": corr.REGISTRY[k].unit,
+                "description": corr.REGISTRY[k].description,
+                "dataset_level": own[k],
+            }
+            for k in names
+        },
+        "checkpoints": [
+            {
+                "path": str(m.path),
+                "label": m.label,
+                "model": m.model_name,
+                "branches": m.branches,
+                "num_classes": m.num_classes,
+                "image_size": m.image_size,
+                "config_differences": m.config_differences,
+            }
+            for m in models
+        ],
+        "dataset": dataset_info,
+        "frame_positions": pos.tolist(),
+        "seed": int(seed),
+        "n_frames": int(len(pos)),
+        "device": str(dev),
+        "hardware": hardware(dev),
+        "wall_time_s": time.perf_counter() - t0,
+        "rows": rows,
+    }
 
 
 # --------------------------------------------------------------------------- outputs
@@ -360,27 +473,49 @@ def csv_text(rows: list[dict]) -> str:
 
 def markdown_text(report: dict) -> str:
     d = report["dataset"]
-    lines = [f"# Corruption robustness on `{d['path']}` ({d['split']} split)", "",
-             f"{report['n_frames']} frames (seed {report['seed']}), sensor {d['sensor_px'][1]} x {d['sensor_px'][0]} px "
-             f"stored at {d['image_px'][1]} x {d['image_px'][0]}. Severity is the *extra* severity stacked on the "
-             "dataset's own level (\"total\" is the result). Angular error: arccos(v · c_pred), degrees. Detections: "
-             "mean per frame, before truncation to the model's max_stars.", "",
-             "Checkpoints:", ""]
-    lines += [f"- **{c['label']}** — `{c['path']}`, K = {c['num_classes']}"
-              + (f"; **trained on other frame settings than this data** ({differences_text(c['config_differences'])};"
-                 " training -> this data)" if c.get("config_differences") else "") for c in report["checkpoints"]]
+    lines = [
+        f"# Corruption robustness on `{d['path']}` ({d['split']} split)",
+        "",
+        f"{report['n_frames']} frames (seed {report['seed']}), sensor {d['sensor_px'][1]} x {d['sensor_px'][0]} px "
+        f"stored at {d['image_px'][1]} x {d['image_px'][0]}. Severity is the *extra* severity stacked on the "
+        'dataset\'s own level ("total" is the result). Angular error: arccos(v · c_pred), degrees. Detections: '
+        "mean per frame, before truncation to the model's max_stars.",
+        "",
+        "Checkpoints:",
+        "",
+    ]
+    lines += [
+        f"- **{c['label']}** — `{c['path']}`, K = {c['num_classes']}"
+        + (
+            f"; **trained on other frame settings than this data** ({differences_text(c['config_differences'])};"
+            " training -> this data)"
+            if c.get("config_differences")
+            else ""
+        )
+        for c in report["checkpoints"]
+    ]
     for name in report["corruptions"]:
         info = report["corruption_info"][name]
-        lines += ["", f"## {name} ({info['unit']}; {info['stage']} stage)", "",
-                  f"{info['description']}. Dataset's own level: {info['dataset_level']:g} {info['unit']}. "
-                  f"Plot: `robustness-{name}.png`.", "",
-                  "| severity | total | checkpoint | top-1 | top-3 | median err (deg) | mean detections | frames < 2 det |",
-                  "|---|---|---|---|---|---|---|---|"]
-        rows = sorted((r for r in report["rows"] if r["corruption"] == name),
-                      key=lambda r: (r["severity"], [c["label"] for c in report["checkpoints"]].index(r["label"])))
-        lines += [f"| {r['severity']:g} | {r['total_severity']:g} | {r['label']} | {_fmt(r['top1'], True)} | "
-                  f"{_fmt(r['top3'], True)} | {_fmt(r['median_error_deg'])} | {r['mean_detections']:.2f} | "
-                  f"{r['frames_lt2_detections']} |" for r in rows]
+        lines += [
+            "",
+            f"## {name} ({info['unit']}; {info['stage']} stage)",
+            "",
+            f"{info['description']}. Dataset's own level: {info['dataset_level']:g} {info['unit']}. "
+            f"Plot: `robustness-{name}.png`.",
+            "",
+            "| severity | total | checkpoint | top-1 | top-3 | median err (deg) | mean detections | frames < 2 det |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        rows = sorted(
+            (r for r in report["rows"] if r["corruption"] == name),
+            key=lambda r: (r["severity"], [c["label"] for c in report["checkpoints"]].index(r["label"])),
+        )
+        lines += [
+            f"| {r['severity']:g} | {r['total_severity']:g} | {r['label']} | {_fmt(r['top1'], True)} | "
+            f"{_fmt(r['top3'], True)} | {_fmt(r['median_error_deg'])} | {r['mean_detections']:.2f} | "
+            f"{r['frames_lt2_detections']} |"
+            for r in rows
+        ]
     lines += ["", f"Device {report['device']}; {report['wall_time_s']:.1f} s.", ""]
     return "\n".join(lines)
 
@@ -388,13 +523,16 @@ def markdown_text(report: dict) -> str:
 def plot_corruption(report: dict, name: str) -> bytes:
     """PNG bytes: top-1 and median angular error against severity, one line per checkpoint."""
     from ..plots import _figure
+
     plt = _figure()
     info = report["corruption_info"][name]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     levels = sorted(report["levels"][name])
     for c in report["checkpoints"]:
-        rows = sorted((r for r in report["rows"] if r["corruption"] == name and r["label"] == c["label"]),
-                      key=lambda r: r["severity"])
+        rows = sorted(
+            (r for r in report["rows"] if r["corruption"] == name and r["label"] == c["label"]),
+            key=lambda r: r["severity"],
+        )
         x = [r["severity"] for r in rows]
         ax1.plot(x, [r["top1"] for r in rows], "o-", label=c["label"])
         ax2.plot(x, [r["median_error_deg"] for r in rows], "o-", label=c["label"])
@@ -403,7 +541,7 @@ def plot_corruption(report: dict, name: str) -> bytes:
         ax1.text(levels[-1], 1.0 / k, f" chance (K={k})", va="bottom", ha="right", fontsize=7, color="grey")
     positive = [v for v in levels if v > 0]
     if positive and max(positive) / min(positive) > 20:
-        for ax in (ax1, ax2):       # severities spanning decades, 0 included
+        for ax in (ax1, ax2):  # severities spanning decades, 0 included
             ax.set_xscale("symlog", linthresh=min(positive))
             ax.set_xlim(left=-0.1 * min(positive), right=max(positive) * 1.5)
     ax1.set_ylim(0, 1.02)
@@ -454,8 +592,14 @@ def write_outputs(report: dict, out: str | Path) -> list[Path]:
     return [out / f for f in written]
 
 
-def robustness(checkpoints: Sequence[str | Path], data: str | Path, corruption: str | Sequence[str], out: str | Path,
-               log=print, **kw) -> dict:
+def robustness(
+    checkpoints: Sequence[str | Path],
+    data: str | Path,
+    corruption: str | Sequence[str],
+    out: str | Path,
+    log=print,
+    **kw,
+) -> dict:
     """:func:`run_sweep` (a progress line per corruption and severity to ``log``) then :func:`write_outputs`,
     holding ``out``'s lock throughout (a second sweep into the same folder is refused, naming the first);
     returns the report (with predictions)."""
@@ -473,7 +617,7 @@ def robustness(checkpoints: Sequence[str | Path], data: str | Path, corruption: 
             written = write_outputs(report, out)
     except BaseException:
         if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()                 # a failed sweep leaves no empty folder behind
+            out.rmdir()  # a failed sweep leaves no empty folder behind
         raise
     log(summary_text(report))
     log(f"wrote {', '.join(str(p) for p in written)}")
@@ -484,8 +628,10 @@ def summary_text(report: dict) -> str:
     lines = []
     for name in report["corruptions"]:
         for c in report["checkpoints"]:
-            rows = sorted((r for r in report["rows"] if r["corruption"] == name and r["label"] == c["label"]),
-                          key=lambda r: r["severity"])
+            rows = sorted(
+                (r for r in report["rows"] if r["corruption"] == name and r["label"] == c["label"]),
+                key=lambda r: r["severity"],
+            )
             curve = ", ".join(f"{r['severity']:g}: {100 * r['top1']:.1f}%" for r in rows)
             lines.append(f"{name} [{report['corruption_info'][name]['unit']}] {c['label']}: top-1 {curve}")
     return "\n".join(lines)

@@ -19,10 +19,18 @@ from typing import TYPE_CHECKING
 
 from skygen.lazy import lazy_attributes
 
-_LAZY = {"FrameGeometry": ".inputs", "Sample": ".inputs", "Preprocessor": ".inputs",
-         "Regions": ".regions", "Checkpoint": ".checkpoint", "load_checkpoint": ".checkpoint",
-         "create_model": ".networks", "StarFusion": ".networks", "MODELS": ".networks",
-         "predict_batches": ".inference"}
+_LAZY = {
+    "FrameGeometry": ".inputs",
+    "Sample": ".inputs",
+    "Preprocessor": ".inputs",
+    "Regions": ".regions",
+    "Checkpoint": ".checkpoint",
+    "load_checkpoint": ".checkpoint",
+    "create_model": ".networks",
+    "StarFusion": ".networks",
+    "MODELS": ".networks",
+    "predict_batches": ".inference",
+}
 
 if TYPE_CHECKING:
     from .checkpoint import Checkpoint, load_checkpoint

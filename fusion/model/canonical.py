@@ -37,7 +37,9 @@ import torch.nn.functional as F
 MODES = ("none", "brightest", "multi")
 
 
-def reference_rows(coords: torch.Tensor, mask: torch.Tensor, n_refs: int, min_radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+def reference_rows(
+    coords: torch.Tensor, mask: torch.Tensor, n_refs: int, min_radius: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Row indices (B, n_refs) of the candidate references (brightest first) and their validity (B, n_refs).
 
     Rows must be sorted brightest first (as :mod:`fusion.data` and the streams give them).
@@ -50,11 +52,11 @@ def reference_rows(coords: torch.Tensor, mask: torch.Tensor, n_refs: int, min_ra
     # rank of each eligible row among the eligible ones (brightness order = row order)
     rank = torch.cumsum(ok.long(), dim=1) - 1
     big = torch.full_like(rank, m + n_refs + 1)
-    key = torch.where(ok, rank, big)                                  # (B, M)
+    key = torch.where(ok, rank, big)  # (B, M)
     targets = torch.arange(n_refs, device=coords.device)
-    hit = key[:, :, None] == targets[None, None, :]                   # (B, M, R)
-    valid = hit.any(dim=1)                                            # (B, R)
-    rows = torch.argmax(hit.to(torch.int8), dim=1)                    # first matching row, 0 if none
+    hit = key[:, :, None] == targets[None, None, :]  # (B, M, R)
+    valid = hit.any(dim=1)  # (B, R)
+    rows = torch.argmax(hit.to(torch.int8), dim=1)  # first matching row, 0 if none
     first = rows[:, :1].expand_as(rows)
     rows = torch.where(valid, rows, first)
     return rows, valid
@@ -70,7 +72,7 @@ def angles_of(coords: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     through the whole sample's logits.
     """
     idx = rows[..., None].expand(-1, -1, coords.shape[-1])
-    ref = torch.gather(coords, 1, idx)                                # (B, R, F)
+    ref = torch.gather(coords, 1, idx)  # (B, R, F)
     x, y = ref[..., 0], ref[..., 1]
     x = torch.where((x == 0) & (y == 0), torch.reciprocal(x), x)
     return torch.atan2(y, x)
@@ -97,8 +99,9 @@ def rotate_image(image: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
-def canonical_views(coords: torch.Tensor, mask: torch.Tensor, mode: str, n_refs: int, min_radius: float,
-                    training: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+def canonical_views(
+    coords: torch.Tensor, mask: torch.Tensor, mode: str, n_refs: int, min_radius: float, training: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
     """The canonical inputs: ``(coords_v, mask_v, theta_v, views)``.
 
     ``views`` = 1 for ``brightest`` and for ``multi`` while training (one reference drawn
@@ -113,7 +116,7 @@ def canonical_views(coords: torch.Tensor, mask: torch.Tensor, mode: str, n_refs:
         n_valid = valid.sum(dim=1).clamp(min=1)
         pick = (torch.rand(coords.shape[0], device=coords.device) * n_valid).long().clamp(max=n_refs - 1)
         rows = torch.gather(rows, 1, pick[:, None])
-    theta = angles_of(coords, rows)                                   # (B, V)
+    theta = angles_of(coords, rows)  # (B, V)
     views = theta.shape[1]
     b = coords.shape[0]
     cv = coords.repeat_interleave(views, dim=0)

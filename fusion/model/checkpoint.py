@@ -61,16 +61,26 @@ FORMAT_VERSION = 1
 
 def versions() -> dict:
     import timm
+
     from skygen import __version__ as skygen_version
+
     from .. import __version__
-    return {"fusion": __version__, "skygen": skygen_version, "torch": str(torch.__version__),
-            "timm": str(timm.__version__), "numpy": str(np.__version__), "python": platform.python_version()}
+
+    return {
+        "fusion": __version__,
+        "skygen": skygen_version,
+        "torch": str(torch.__version__),
+        "timm": str(timm.__version__),
+        "numpy": str(np.__version__),
+        "python": platform.python_version(),
+    }
 
 
 @dataclass
 class Checkpoint:
     """A fusion checkpoint (see the module docstring for each field). ``source`` (not saved) names
     where it was read from, for messages."""
+
     model: dict
     config: dict
     centroids: np.ndarray
@@ -104,25 +114,30 @@ class Checkpoint:
             d["fine_centroids"] = torch.from_numpy(np.asarray(self.fine_centroids, np.float64))
         if self.train_frame_ids is not None:
             d["train_frame_ids"] = torch.from_numpy(np.asarray(self.train_frame_ids).view(np.int64))
-        d["weights_sha256"] = weights_sha256(d)      # of what is written, whatever the field held
+        d["weights_sha256"] = weights_sha256(d)  # of what is written, whatever the field held
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **d}
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "checkpoint") -> "Checkpoint":
         d = migrate(dict(d), source)
-        arr = lambda t: None if t is None else (t.numpy() if isinstance(t, torch.Tensor) else np.asarray(t))
+
+        def arr(t):
+            return None if t is None else (t.numpy() if isinstance(t, torch.Tensor) else np.asarray(t))
+
         try:
             kw = {f.name: d[f.name] for f in fields(cls) if f.name in d and f.name != "source"}
             kw["centroids"] = np.asarray(arr(d["centroids"]), np.float64)
-            kw["fine_centroids"] = None if d.get("fine_centroids") is None else np.asarray(arr(d["fine_centroids"]),
-                                                                                           np.float64)
+            kw["fine_centroids"] = (
+                None if d.get("fine_centroids") is None else np.asarray(arr(d["fine_centroids"]), np.float64)
+            )
             kw["train_frame_ids"] = arr(d.get("train_frame_ids"))
             for key in ("num_classes", "image_size", "max_stars", "epoch"):
                 kw[key] = int(d.get(key, 0))
             return cls(source=str(source), **kw)
         except (KeyError, TypeError, ValueError) as exc:
-            raise CheckpointError(f"{source}: a fusion checkpoint without a usable {exc} entry; it is damaged or "
-                                  "was written by hand") from None
+            raise CheckpointError(
+                f"{source}: a fusion checkpoint without a usable {exc} entry; it is damaged or was written by hand"
+            ) from None
 
     def save(self, path: str | Path) -> None:
         """``torch.save`` atomically (a hidden temporary file renamed into place)."""
@@ -141,6 +156,7 @@ class Checkpoint:
     def fusion_config(self):
         """The resolved training config as a :class:`fusion.config.FusionConfig`."""
         from ..config import build_config
+
         try:
             return build_config(self.config)
         except ConfigError as exc:
@@ -163,25 +179,43 @@ class Checkpoint:
         """The skygen render config the model was trained for; a one-line CheckpointError when it lacks one."""
         rc = self.render_config
         if not isinstance(rc, dict) or "camera" not in rc:
-            raise CheckpointError(f"{self.source}: this checkpoint predates camera data in checkpoints (no "
-                                  "'render_config'); re-train it with this fusion, or pass --dataset DIR (its "
-                                  "training dataset) to take the camera and detector from there")
+            raise CheckpointError(
+                f"{self.source}: this checkpoint predates camera data in checkpoints (no "
+                "'render_config'); re-train it with this fusion, or pass --dataset DIR (its "
+                "training dataset) to take the camera and detector from there"
+            )
         return rc
 
     def build_model(self):
         """The model, rebuilt from this checkpoint's own config, with its weights, on the CPU, in eval mode."""
         from .networks import create_model
+
         cfg = self.fusion_config
-        model = create_model(cfg.model.name, self.num_classes, cfg.model, image_size=self.image_size,
-                             fine_classes=cfg.labels.fine_k, max_stars=self.max_stars, load_pretrained=False)
+        model = create_model(
+            cfg.model.name,
+            self.num_classes,
+            cfg.model,
+            image_size=self.image_size,
+            fine_classes=cfg.labels.fine_k,
+            max_stars=self.max_stars,
+            load_pretrained=False,
+        )
         load_model_state(model, self)
         return model.eval()
 
 
 def migrate(d: dict, source: str = "checkpoint") -> dict:
     """A loaded checkpoint dict brought to the current schema of format version 1 (missing keys -> None)."""
-    for key in ("fine_centroids", "render_config", "dataset", "train_frame_ids", "optimizer", "scheduler", "scaler",
-                "rng"):
+    for key in (
+        "fine_centroids",
+        "render_config",
+        "dataset",
+        "train_frame_ids",
+        "optimizer",
+        "scheduler",
+        "scaler",
+        "rng",
+    ):
         d.setdefault(key, None)
     d.setdefault("versions", {})
     d.setdefault("weights_sha256", None)
@@ -217,12 +251,15 @@ def verify_weights(d: dict, path: str | Path, note=None) -> None:
             _NOTED_UNHASHED.add(str(path))
             (note or (lambda m: print(m, file=sys.stderr)))(
                 f"note: {path} predates checkpoint checksums (no weights_sha256); its weights cannot be checked "
-                "for damage. Training further (--resume) or re-training writes checkpoints that carry one")
+                "for damage. Training further (--resume) or re-training writes checkpoints that carry one"
+            )
         return
     if weights_sha256(d) != stored:
-        raise CheckpointError(f"{path}: its weights do not match the sha256 stored when it was written (the file "
-                              "was damaged or edited since); use an intact copy (best.pt or last.pt of the run, a "
-                              "backup) or train again")
+        raise CheckpointError(
+            f"{path}: its weights do not match the sha256 stored when it was written (the file "
+            "was damaged or edited since); use an intact copy (best.pt or last.pt of the run, a "
+            "backup) or train again"
+        )
 
 
 # ------------------------------------------------------------------------- render settings
@@ -230,8 +267,10 @@ def verify_weights(d: dict, path: str | Path, note=None) -> None:
 # attitude.*, output.*, render.*: which frames, how they are stored and on which backend) does not
 FRAME_SECTIONS = ("catalog", "camera", "optics", "photometry", "sensor", "corruptions", "detection")
 FRAME_KEYS = ("epoch_yr",)
-NOT_FRAME_KEYS = ("detection.match_radius_px",   # matching detections to true stars (labels), not detection
-                  "sensor.sampler")              # two samplers of the same noise distribution
+NOT_FRAME_KEYS = (
+    "detection.match_radius_px",  # matching detections to true stars (labels), not detection
+    "sensor.sampler",
+)  # two samplers of the same noise distribution
 
 
 def changes_frames(key: str) -> bool:
@@ -245,6 +284,7 @@ def frame_config_differences(trained: dict, other: dict) -> dict:
     first resolved by skygen (a key a config predates takes skygen's default), so a config that merely
     omits a default is not a difference."""
     from skygen.configlib import flatten
+
     fa, fb = flatten(_resolved(trained)), flatten(_resolved(other))
     missing = "<missing>"
     out = {}
@@ -258,9 +298,10 @@ def frame_config_differences(trained: dict, other: dict) -> dict:
 def _resolved(config: dict) -> dict:
     from skygen.config import build_config, config_dict
     from skygen.errors import SkygenError
+
     try:
         return config_dict(build_config(config))
-    except (SkygenError, TypeError, ValueError):      # a config of another skygen version: compared as written
+    except (SkygenError, TypeError, ValueError):  # a config of another skygen version: compared as written
         return dict(config or {})
 
 
@@ -271,6 +312,7 @@ def _plain(v):
 def _value_text(v) -> str:
     """A config value as it is typed after ``--set key=``: numbers and names plain, lists and null as YAML/JSON."""
     import json
+
     if isinstance(v, bool) or v is None or isinstance(v, (list, dict)):
         return json.dumps(v)
     return f"{v:g}" if isinstance(v, float) else str(v)
@@ -287,10 +329,12 @@ def differences_warning(what: str, diffs: dict, checkpoint: str) -> str:
     the keys (training -> data) and the ``--set`` overrides that render data as the model was trained."""
     fix = " ".join(f"--set {k}={_value_text(v['training'])}" for k, v in list(diffs.items())[:6])
     more = " ..." if len(diffs) > 6 else ""
-    return (f"WARNING: {what} was rendered with other frame settings than the training data of {checkpoint} "
-            f"({differences_text(diffs)}; training -> this data): the model may score near chance on it. Render "
-            f"it with the training settings (skygen render {fix}{more}) unless the difference is intended, "
-            "as in a robustness study")
+    return (
+        f"WARNING: {what} was rendered with other frame settings than the training data of {checkpoint} "
+        f"({differences_text(diffs)}; training -> this data): the model may score near chance on it. Render "
+        f"it with the training settings (skygen render {fix}{more}) unless the difference is intended, "
+        "as in a robustness study"
+    )
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -299,8 +343,10 @@ def resolve_checkpoint(path: str | Path) -> Path:
     if path.is_dir():
         if (path / "best.pt").is_file():
             return path / "best.pt"
-        raise CheckpointError(f"{path} is a folder without best.pt; give a run folder written by `fusion train` "
-                              "or a checkpoint file (best.pt, last.pt)")
+        raise CheckpointError(
+            f"{path} is a folder without best.pt; give a run folder written by `fusion train` "
+            "or a checkpoint file (best.pt, last.pt)"
+        )
     return path
 
 
@@ -316,15 +362,20 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu", 
     except Exception as exc:  # torch raises many types for damaged or foreign files
         # torch's own text ("re-running with weights_only=False will likely succeed") is advice to run
         # untrusted code: not repeated
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}); it may be truncated, "
-                              "not a PyTorch file, or from another program") from None
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint ({type(exc).__name__}); it may be truncated, "
+            "not a PyTorch file, or from another program"
+        ) from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         found = d.get("format") if isinstance(d, dict) else type(d).__name__
-        raise CheckpointError(f"{path}: not a fusion checkpoint (format={found!r}); give a best.pt or last.pt "
-                              "written by `fusion train`")
+        raise CheckpointError(
+            f"{path}: not a fusion checkpoint (format={found!r}); give a best.pt or last.pt written by `fusion train`"
+        )
     if d.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint format version {d.get('format_version')} is not supported "
-                              f"(this fusion reads version {FORMAT_VERSION}); use the fusion version that wrote it")
+        raise CheckpointError(
+            f"{path}: checkpoint format version {d.get('format_version')} is not supported "
+            f"(this fusion reads version {FORMAT_VERSION}); use the fusion version that wrote it"
+        )
     verify_weights(d, path, note)
     return Checkpoint.from_dict(d, str(path))
 
@@ -335,9 +386,11 @@ def load_model_state(model: torch.nn.Module, ckpt: Checkpoint) -> None:
         model.load_state_dict(ckpt.model)
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
-        raise CheckpointError(f"{ckpt.source} does not fit this model: it holds model {ckpt.model_name!r} "
-                              f"with K={ckpt.num_classes} and branches {ckpt.branches} "
-                              f"({first[1].strip() if len(first) > 1 else first[0]})") from None
+        raise CheckpointError(
+            f"{ckpt.source} does not fit this model: it holds model {ckpt.model_name!r} "
+            f"with K={ckpt.num_classes} and branches {ckpt.branches} "
+            f"({first[1].strip() if len(first) > 1 else first[0]})"
+        ) from None
 
 
 def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
@@ -356,8 +409,10 @@ def load_matching_state(model: torch.nn.Module, path: str | Path) -> dict:
     own = model.state_dict()
     take = {k: v for k, v in ckpt.model.items() if k in own and own[k].shape == v.shape}
     if not take:
-        raise CheckpointError(f"model.init_from={path}: no parameter of that checkpoint fits this model "
-                              f"(it holds {ckpt.model_name!r} with branches {ckpt.branches})")
+        raise CheckpointError(
+            f"model.init_from={path}: no parameter of that checkpoint fits this model "
+            f"(it holds {ckpt.model_name!r} with branches {ckpt.branches})"
+        )
     blocks, shared = _head_blocks(model, ckpt, own, take)
     take.update(blocks)
     model.load_state_dict(take, strict=False)
@@ -387,7 +442,7 @@ def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> tuple[dict, 
     slices = dict(order)
     if not src_on or set(src_on) == set(slices) or not set(src_on) <= set(slices):
         return {}, []
-    for name in src_on:   # every tensor of a shared branch must have been copied
+    for name in src_on:  # every tensor of a shared branch must have been copied
         if any(k.startswith(name + ".") and k not in take for k in own):
             return {}, []
     src_dim = ckpt.model["norm.weight"].shape[0]
@@ -399,12 +454,12 @@ def _head_blocks(model, ckpt: Checkpoint, own: dict, take: dict) -> tuple[dict, 
     nw, nb = torch.ones_like(own["norm.weight"]), torch.zeros_like(own["norm.bias"])
     w = torch.zeros_like(own["head.weight"])
     at = 0
-    for name, sl in order:   # the source's columns are its branches in the same order
+    for name, sl in order:  # the source's columns are its branches in the same order
         if name not in src_on:
             continue
         n = sl.stop - sl.start
-        nw[sl] = ckpt.model["norm.weight"][at:at + n]
-        nb[sl] = ckpt.model["norm.bias"][at:at + n]
-        w[:, sl] = hw[:, at:at + n]
+        nw[sl] = ckpt.model["norm.weight"][at : at + n]
+        nb[sl] = ckpt.model["norm.bias"][at : at + n]
+        w[:, sl] = hw[:, at : at + n]
         at += n
     return {"norm.weight": nw, "norm.bias": nb, "head.weight": w}, sorted(src_on)

@@ -23,10 +23,10 @@ def rasterise(coords: torch.Tensor, mask: torch.Tensor, canvas_px: int, sigma_px
     c = canvas_px
     grid = (torch.arange(c, device=coords.device, dtype=coords.dtype) + 0.5) * (2.0 / c) - 1.0
     s = sigma_px * 2.0 / c
-    x, y = coords[..., 0], coords[..., 1]                              # (B, M)
-    gx = torch.exp(-((grid[None, None, :] - x[..., None]) ** 2) / (2 * s * s))   # (B, M, C)
+    x, y = coords[..., 0], coords[..., 1]  # (B, M)
+    gx = torch.exp(-((grid[None, None, :] - x[..., None]) ** 2) / (2 * s * s))  # (B, M, C)
     gy = torch.exp(-((grid[None, None, :] - y[..., None]) ** 2) / (2 * s * s))
-    g = gy[..., :, None] * gx[..., None, :]                           # (B, M, C_y, C_x)
+    g = gy[..., :, None] * gx[..., None, :]  # (B, M, C_y, C_x)
     g = g * mask[..., None, None].to(g.dtype)
     if g.shape[1] == 0:
         return g.new_zeros((g.shape[0], 1, c, c))

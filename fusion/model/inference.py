@@ -38,6 +38,7 @@ def batch_inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor | None
         image = image.to(device, non_blocking=nb)
     elif "image_adu" in batch:
         from .inputs import stretch_torch
+
         image = stretch_torch(batch["image_adu"].to(device, non_blocking=nb), *batch["image_stretch"].tolist())
     return image, batch["coords"].to(device, non_blocking=nb), batch["mask"].to(device, non_blocking=nb)
 
@@ -47,12 +48,20 @@ def progress_bar(iterable, enabled: bool, desc: str, total: int | None = None):
     if not (enabled and sys.stderr.isatty()):
         return iterable
     from tqdm import tqdm
+
     return tqdm(iterable, desc=desc, total=total, leave=False, dynamic_ncols=True)
 
 
 @torch.no_grad()
-def predict_batches(model: torch.nn.Module, loader, device: torch.device, *, amp_dtype: torch.dtype | None = None,
-                    progress: bool = False, desc: str = "eval") -> dict:
+def predict_batches(
+    model: torch.nn.Module,
+    loader,
+    device: torch.device,
+    *,
+    amp_dtype: torch.dtype | None = None,
+    progress: bool = False,
+    desc: str = "eval",
+) -> dict:
     """Logits, labels, soft targets (if any) and frame indices of ``loader`` (numpy arrays; None when absent)."""
     model.eval()
     out = {"logits": [], "label": [], "index": [], "soft": []}
@@ -65,5 +74,8 @@ def predict_batches(model: torch.nn.Module, loader, device: torch.device, *, amp
         out["index"].append(batch["index"])
         if "soft" in batch:
             out["soft"].append(batch["soft"])
-    cat = lambda xs: torch.cat(xs).numpy() if xs else None
+
+    def cat(xs):
+        return torch.cat(xs).numpy() if xs else None
+
     return {k: cat(v) for k, v in out.items()}

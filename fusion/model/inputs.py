@@ -47,14 +47,15 @@ class FrameGeometry:
     Sensors may be non-square: W x H full-resolution pixels stored as S x (H / f), f = W / S.
     ``sensor_h``/``image_h`` of 0 mean square (= ``sensor_px``/``image_px``).
     """
-    sensor_px: int          # W, sensor columns
-    image_px: int           # S, stored columns
-    factor: int             # f = W / S
+
+    sensor_px: int  # W, sensor columns
+    image_px: int  # S, stored columns
+    factor: int  # f = W / S
     bias_adu: float
-    max_adu: float          # 2**bit_depth - 1
-    psf_sigma_px: float     # full-resolution pixels
-    sensor_h: int = 0       # H, sensor rows (0: = W)
-    image_h: int = 0        # stored rows = H / f (0: = S)
+    max_adu: float  # 2**bit_depth - 1
+    psf_sigma_px: float  # full-resolution pixels
+    sensor_h: int = 0  # H, sensor rows (0: = W)
+    image_h: int = 0  # stored rows = H / f (0: = S)
 
     def __post_init__(self) -> None:
         if not self.sensor_h:
@@ -66,17 +67,26 @@ class FrameGeometry:
     def from_render_config(cls, config: dict) -> "FrameGeometry":
         w, h = int(config["camera"]["width_px"]), int(config["camera"]["height_px"])
         s = int(config["output"]["image_size_px"])
-        return cls(w, s, w // s, float(config["sensor"]["bias_adu"]),
-                   float(2 ** int(config["sensor"]["bit_depth"]) - 1), float(config["optics"]["psf_sigma_px"]),
-                   h, h // (w // s))
+        return cls(
+            w,
+            s,
+            w // s,
+            float(config["sensor"]["bias_adu"]),
+            float(2 ** int(config["sensor"]["bit_depth"]) - 1),
+            float(config["optics"]["psf_sigma_px"]),
+            h,
+            h // (w // s),
+        )
 
     def normalised(self, x_px: np.ndarray, y_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Full-resolution pixels -> the models' coordinates: the sensor centre at 0, one scale for
         both axes (half the sensor width = 1), so x spans [-1, 1] and y [-H/W, H/W]; angles and
         distances are preserved (the canonical rotation needs that)."""
         half = self.sensor_px / 2.0
-        return ((np.asarray(x_px, np.float64) + 0.5 - half) / half,
-                (np.asarray(y_px, np.float64) + 0.5 - self.sensor_h / 2.0) / half)
+        return (
+            (np.asarray(x_px, np.float64) + 0.5 - half) / half,
+            (np.asarray(y_px, np.float64) + 0.5 - self.sensor_h / 2.0) / half,
+        )
 
     def to_stored(self, xy_full: np.ndarray) -> np.ndarray:
         return (np.asarray(xy_full, np.float64) + 0.5) / self.factor - 0.5
@@ -88,21 +98,23 @@ class FrameGeometry:
 @dataclass(frozen=True)
 class Sample:
     """One frame in ADU: the stored image (float32, S x S) and its detections (brightest first)."""
+
     image: np.ndarray
     x_px: np.ndarray
     y_px: np.ndarray
     flux_adu: np.ndarray
     area_px: np.ndarray
-    background_adu: float   # stored-image background level
-    noise_adu: float        # stored-image background noise (full-res sigma / f)
+    background_adu: float  # stored-image background level
+    noise_adu: float  # stored-image background noise (full-res sigma / f)
 
     @property
     def n(self) -> int:
         return len(self.x_px)
 
     def take(self, keep: np.ndarray) -> "Sample":
-        return replace(self, x_px=self.x_px[keep], y_px=self.y_px[keep], flux_adu=self.flux_adu[keep],
-                       area_px=self.area_px[keep])
+        return replace(
+            self, x_px=self.x_px[keep], y_px=self.y_px[keep], flux_adu=self.flux_adu[keep], area_px=self.area_px[keep]
+        )
 
     def sorted(self) -> "Sample":
         """Brightest first (flux descending; ties keep their order)."""
@@ -120,12 +132,14 @@ def stretch_torch(adu, bias: float, scale: float, top: float):
     """:func:`normalise_image` in torch on ``adu``'s device: a (B, H, W) tensor of stored ADU (any
     dtype, uint16 included) -> (B, 1, H, W) float32."""
     import torch
+
     x = adu.to(torch.float32)
     return (torch.log1p(torch.clamp(x - bias, min=0) / scale) / top)[:, None]
 
 
-def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
-                      log_flux_offset: float) -> tuple[np.ndarray, np.ndarray]:
+def encode_detections(
+    sample: Sample, geo: FrameGeometry, max_stars: int, log_flux_offset: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(max_stars, 3) coordinate rows and (max_stars,) mask; ``sample`` must be sorted brightest first."""
     n = min(sample.n, max_stars)
     coords = np.zeros((max_stars, len(COORD_FEATURES)), np.float32)
@@ -136,8 +150,14 @@ def encode_detections(sample: Sample, geo: FrameGeometry, max_stars: int,
     return coords, mask
 
 
-def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: int,
-                 log_flux_offset: float, limits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def encode_batch(
+    offsets: np.ndarray,
+    det: dict,
+    geo: FrameGeometry,
+    max_stars: int,
+    log_flux_offset: float,
+    limits: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flat detection tables (brightest first per sample) -> coords (B, M, 3), mask (B, M), counts (B,).
 
     The same rows as :func:`encode_detections`, vectorised over samples. ``limits`` (B,) keeps
@@ -154,29 +174,38 @@ def encode_batch(offsets: np.ndarray, det: dict, geo: FrameGeometry, max_stars: 
     fr, rank = fr[keep], rank[keep]
     coords = np.zeros((b, max_stars, len(COORD_FEATURES)), np.float32)
     mask = np.zeros((b, max_stars), bool)
-    coords[fr, rank, 0], coords[fr, rank, 1] = geo.normalised(np.asarray(det["x_px"])[keep],
-                                                                np.asarray(det["y_px"])[keep])
-    coords[fr, rank, 2] = np.log10(1.0 + np.maximum(np.asarray(det["flux_adu"], np.float64)[keep], 0.0)) - log_flux_offset
+    coords[fr, rank, 0], coords[fr, rank, 1] = geo.normalised(
+        np.asarray(det["x_px"])[keep], np.asarray(det["y_px"])[keep]
+    )
+    coords[fr, rank, 2] = (
+        np.log10(1.0 + np.maximum(np.asarray(det["flux_adu"], np.float64)[keep], 0.0)) - log_flux_offset
+    )
     mask[fr, rank] = True
     return coords, mask, counts
 
 
-def sample_from_table(det: dict, image: np.ndarray | None = None, background_adu: float = 0.0,
-                      noise_adu: float = 0.0) -> Sample:
+def sample_from_table(
+    det: dict, image: np.ndarray | None = None, background_adu: float = 0.0, noise_adu: float = 0.0
+) -> Sample:
     """A :class:`Sample` (brightest first) from a detection table (dict of arrays, skygen's columns)."""
     n = len(det["x_px"])
     area = det.get("area_px")
-    return Sample(image=None if image is None else np.asarray(image, np.float32),
-                  x_px=np.asarray(det["x_px"], np.float64), y_px=np.asarray(det["y_px"], np.float64),
-                  flux_adu=np.asarray(det["flux_adu"], np.float32),
-                  area_px=np.zeros(n, np.int32) if area is None else np.asarray(area, np.int32),
-                  background_adu=float(background_adu), noise_adu=float(noise_adu)).sorted()
+    return Sample(
+        image=None if image is None else np.asarray(image, np.float32),
+        x_px=np.asarray(det["x_px"], np.float64),
+        y_px=np.asarray(det["y_px"], np.float64),
+        flux_adu=np.asarray(det["flux_adu"], np.float32),
+        area_px=np.zeros(n, np.int32) if area is None else np.asarray(area, np.int32),
+        background_adu=float(background_adu),
+        noise_adu=float(noise_adu),
+    ).sorted()
 
 
 def downsample(full: np.ndarray, factor: int) -> np.ndarray:
     """A full-resolution frame area-averaged by the integer ``factor`` (OpenCV's INTER_AREA), in the input's
     dtype: a uint16 sensor frame is rounded to uint16 exactly as skygen stores it, a float frame stays float."""
     import cv2
+
     full = np.asarray(full)
     if factor == 1:
         return full
@@ -193,17 +222,19 @@ class Preprocessor:
     and ``detect`` the steps before, on a full-resolution frame.
     """
 
-    def __init__(self, geo: FrameGeometry, max_stars: int, log_flux_offset: float = 3.0,
-                 norm_scale_adu: float = 8.0):
+    def __init__(self, geo: FrameGeometry, max_stars: int, log_flux_offset: float = 3.0, norm_scale_adu: float = 8.0):
         self.geo, self.max_stars = geo, int(max_stars)
         self.log_flux_offset, self.norm_scale_adu = float(log_flux_offset), float(norm_scale_adu)
 
     @classmethod
     def from_configs(cls, render_config: dict, data_cfg, max_stars: int | None = None) -> "Preprocessor":
         """From a skygen render config (dict) and a fusion ``DataConfig`` (``max_stars`` may override it)."""
-        return cls(FrameGeometry.from_render_config(render_config),
-                   data_cfg.max_stars if max_stars is None else max_stars,
-                   data_cfg.log_flux_offset, data_cfg.norm_scale_adu)
+        return cls(
+            FrameGeometry.from_render_config(render_config),
+            data_cfg.max_stars if max_stars is None else max_stars,
+            data_cfg.log_flux_offset,
+            data_cfg.norm_scale_adu,
+        )
 
     # ---------------------------------------------------------------- one frame
     def image(self, adu: np.ndarray) -> np.ndarray:
@@ -217,23 +248,38 @@ class Preprocessor:
     def item(self, sample: Sample) -> dict:
         """The tensors of one sample, as a DataLoader collates them."""
         import torch
+
         coords, mask = self.coords(sample)
-        return {"image": torch.from_numpy(self.image(sample.image)[None]), "coords": torch.from_numpy(coords),
-                "mask": torch.from_numpy(mask), "n_detections": torch.tensor(sample.n)}
+        return {
+            "image": torch.from_numpy(self.image(sample.image)[None]),
+            "coords": torch.from_numpy(coords),
+            "mask": torch.from_numpy(mask),
+            "n_detections": torch.tensor(sample.n),
+        }
 
     def tensors(self, x_px: np.ndarray, y_px: np.ndarray, flux_adu: np.ndarray, stored: np.ndarray | None = None):
         """(image (1, 1, H/f, S), coords (1, M, 3), mask (1, M)) of one frame's detections (brightest
         first) and stored image (``None``: a blank frame at the bias level, for geometry-only models)."""
         import torch
+
         g = self.geo
         if stored is None:
             stored = np.full((g.image_h, g.image_px), g.bias_adu, np.float32)
-        s = Sample(image=np.asarray(stored, np.float32), x_px=np.asarray(x_px, np.float64),
-                   y_px=np.asarray(y_px, np.float64), flux_adu=np.asarray(flux_adu, np.float32),
-                   area_px=np.zeros(len(x_px), np.int32), background_adu=0.0, noise_adu=0.0)
+        s = Sample(
+            image=np.asarray(stored, np.float32),
+            x_px=np.asarray(x_px, np.float64),
+            y_px=np.asarray(y_px, np.float64),
+            flux_adu=np.asarray(flux_adu, np.float32),
+            area_px=np.zeros(len(x_px), np.int32),
+            background_adu=0.0,
+            noise_adu=0.0,
+        )
         coords, mask = self.coords(s)
-        return (torch.from_numpy(self.image(s.image))[None, None], torch.from_numpy(coords)[None],
-                torch.from_numpy(mask)[None])
+        return (
+            torch.from_numpy(self.image(s.image))[None, None],
+            torch.from_numpy(coords)[None],
+            torch.from_numpy(mask)[None],
+        )
 
     # ---------------------------------------------------------------- many samples (streams)
     def batch(self, offsets: np.ndarray, det: dict, limits: np.ndarray | None = None):

@@ -27,7 +27,7 @@ def topk_accuracy(logits: np.ndarray, labels: np.ndarray, ks: tuple[int, ...] = 
     order = np.argsort(-logits, axis=1, kind="stable")
     out = {}
     for k in ks:
-        hit = (order[:, :min(k, logits.shape[1])] == labels[:, None]).any(axis=1)
+        hit = (order[:, : min(k, logits.shape[1])] == labels[:, None]).any(axis=1)
         out[f"top{k}"] = float(hit.mean())
     return out
 
@@ -41,8 +41,11 @@ def angular_error_deg(v: np.ndarray, centroids: np.ndarray, cls: np.ndarray) -> 
 def error_stats(err_deg: np.ndarray) -> dict[str, float]:
     if len(err_deg) == 0:
         return {"mean_deg": float("nan"), "median_deg": float("nan"), "p95_deg": float("nan")}
-    return {"mean_deg": float(np.mean(err_deg)), "median_deg": float(np.median(err_deg)),
-            "p95_deg": float(np.percentile(err_deg, 95))}
+    return {
+        "mean_deg": float(np.mean(err_deg)),
+        "median_deg": float(np.median(err_deg)),
+        "p95_deg": float(np.percentile(err_deg, 95)),
+    }
 
 
 def confusion_matrix(labels: np.ndarray, pred: np.ndarray, k: int) -> np.ndarray:
@@ -55,8 +58,9 @@ def confusion_matrix(labels: np.ndarray, pred: np.ndarray, k: int) -> np.ndarray
 def per_class_accuracy(cm: np.ndarray) -> list[dict]:
     """Per true class: number of samples and top-1 accuracy (None when the class has no sample)."""
     n = cm.sum(axis=1)
-    return [{"class": int(c), "n": int(n[c]), "top1": (float(cm[c, c] / n[c]) if n[c] else None)}
-            for c in range(len(cm))]
+    return [
+        {"class": int(c), "n": int(n[c]), "top1": (float(cm[c, c] / n[c]) if n[c] else None)} for c in range(len(cm))
+    ]
 
 
 def voronoi_neighbours(centroids: np.ndarray) -> np.ndarray:
@@ -68,13 +72,14 @@ def voronoi_neighbours(centroids: np.ndarray) -> np.ndarray:
     if k < 4:
         return adj
     from scipy.spatial import ConvexHull, QhullError
+
     try:
         hull = ConvexHull(c)
     except QhullError:
         return adj
     adj[:] = False
     for simplex, eq in zip(hull.simplices, hull.equations):
-        if eq[3] > 0:          # plane offset: centre of the sphere lies outside this face
+        if eq[3] > 0:  # plane offset: centre of the sphere lies outside this face
             continue
         for a in range(3):
             for b in range(a + 1, 3):

@@ -68,8 +68,12 @@ def register_model(name: str, image_backbone: str, image_only: bool, doc: str) -
     MODELS[name] = ModelSpec(name, image_backbone, image_only, doc)
 
 
-register_model("star_fusion", "swinv2_tiny_window8_256", False,
-               "SwinV2-Tiny image branch + heatmap CNN + coordinate encoder, fused by LayerNorm + Linear")
+register_model(
+    "star_fusion",
+    "swinv2_tiny_window8_256",
+    False,
+    "SwinV2-Tiny image branch + heatmap CNN + coordinate encoder, fused by LayerNorm + Linear",
+)
 register_model("swinv2_tiny", "swinv2_tiny_window8_256", True, "SwinV2-Tiny, image only (baseline)")
 register_model("resnet50", "resnet50", True, "ResNet-50, image only (baseline)")
 
@@ -90,8 +94,10 @@ def resolve_model_config(cfg: ModelConfig) -> ModelConfig:
         branches = replace(branches, image=True, heatmap=False, coords=False)
     in_chans = cfg.in_chans or (3 if cfg.pretrained else 1)
     if cfg.pretrained and (backbone in BACKBONES or backbone == "peak_set"):
-        raise ConfigError(f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
-                          "use a timm backbone (model.image_backbone) or drop --pretrained")
+        raise ConfigError(
+            f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
+            "use a timm backbone (model.image_backbone) or drop --pretrained"
+        )
     return replace(cfg, image_backbone=backbone, branches=branches, in_chans=in_chans)
 
 
@@ -150,8 +156,14 @@ class GridCNN(nn.Module):
     in the channels. 17.6 M multiply-adds and 0.77 M parameters at 64 x 64 input.
     """
 
-    def __init__(self, in_chans: int = 1, widths: tuple[int, ...] = (32, 64, 128, 128), stem: int = 16,
-                 grid: int = 4, out_dim: int = 256):
+    def __init__(
+        self,
+        in_chans: int = 1,
+        widths: tuple[int, ...] = (32, 64, 128, 128),
+        stem: int = 16,
+        grid: int = 4,
+        out_dim: int = 256,
+    ):
         super().__init__()
         stages, c = _stride2_stages(stem, widths)
         layers = [nn.Conv2d(in_chans, stem, 3, padding=1, bias=False), _norm(stem), nn.ReLU(inplace=True), *stages]
@@ -174,9 +186,11 @@ def _pretrained_overlay(pretrained: str) -> dict:
         return {"hf_hub_id": pretrained.split(":", 1)[1]}
     if pretrained in ("timm", "imagenet"):
         return {}
-    raise ConfigError(f"model.pretrained: {pretrained!r} is neither an existing file nor a hub name; "
-                      "give a weights file (.pth/.safetensors), 'hf-hub:ORG/REPO', or 'timm' for timm's "
-                      "default ImageNet weights of the backbone")
+    raise ConfigError(
+        f"model.pretrained: {pretrained!r} is neither an existing file nor a hub name; "
+        "give a weights file (.pth/.safetensors), 'hf-hub:ORG/REPO', or 'timm' for timm's "
+        "default ImageNet weights of the backbone"
+    )
 
 
 def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretrained: str | None = None) -> nn.Module:
@@ -184,9 +198,9 @@ def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretraine
     if name in BACKBONES:
         return BACKBONES[name](in_chans=in_chans)
     import timm
+
     if not timm.is_model(name):
-        raise ConfigError(f"model.image_backbone: {name!r} is neither a timm model nor one of "
-                          f"{', '.join(BACKBONES)}")
+        raise ConfigError(f"model.image_backbone: {name!r} is neither a timm model nor one of {', '.join(BACKBONES)}")
     kw = {"num_classes": 0, "in_chans": in_chans}
     if pretrained:
         kw.update(pretrained=True, pretrained_cfg_overlay=_pretrained_overlay(pretrained))
@@ -195,7 +209,7 @@ def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretraine
         if default_size[-1] != img_size:
             try:
                 return timm.create_model(name, img_size=img_size, **kw)
-            except TypeError:   # models without an img_size argument (CNNs) take any size
+            except TypeError:  # models without an img_size argument (CNNs) take any size
                 pass
         return timm.create_model(name, **kw)
     except (OSError, RuntimeError, ValueError) as exc:
@@ -240,8 +254,14 @@ class ImageBranch(nn.Module):
 class HeatmapBranch(nn.Module):
     """Rasterise the detections, shallow CNN, pool to a grid, flatten, project to ``out_dim``."""
 
-    def __init__(self, canvas_px: int = 64, sigma_px: float = 1.0, channels: tuple[int, ...] = (32, 64, 128, 256),
-                 pool_grid: int = 4, out_dim: int = 384):
+    def __init__(
+        self,
+        canvas_px: int = 64,
+        sigma_px: float = 1.0,
+        channels: tuple[int, ...] = (32, 64, 128, 256),
+        pool_grid: int = 4,
+        out_dim: int = 384,
+    ):
         super().__init__()
         self.rasterise = HeatmapRasteriser(canvas_px, sigma_px)
         layers, c = _stride2_stages(1, channels)
@@ -258,8 +278,13 @@ class CoordMLP(nn.Module):
 
     def __init__(self, max_stars: int, n_features: int = N_COORD_FEATURES, hidden: int = 256):
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(max_stars * (n_features + 1), hidden), nn.GELU(),
-                                 nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+        self.net = nn.Sequential(
+            nn.Linear(max_stars * (n_features + 1), hidden),
+            nn.GELU(),
+            nn.Linear(hidden, hidden),
+            nn.GELU(),
+            nn.Linear(hidden, hidden),
+        )
         self.out_dim = hidden
 
     def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -278,7 +303,7 @@ class SetEncoder(nn.Module):
         self.out_dim = hidden
 
     def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        h = self.phi(coords)                                    # (B, M, H)
+        h = self.phi(coords)  # (B, M, H)
         m = mask[..., None]
         count = m.sum(dim=1).clamp(min=1).to(h.dtype)
         mean = (h * m.to(h.dtype)).sum(dim=1) / count
@@ -294,13 +319,21 @@ class TransformerSetEncoder(nn.Module):
     projected to ``out_dim``. Permutation-invariant; an empty set gives the summary token alone.
     """
 
-    def __init__(self, n_features: int = N_COORD_FEATURES, dim: int = 96, layers: int = 3, heads: int = 4,
-                 ff_mult: int = 2, out_dim: int = 256):
+    def __init__(
+        self,
+        n_features: int = N_COORD_FEATURES,
+        dim: int = 96,
+        layers: int = 3,
+        heads: int = 4,
+        ff_mult: int = 2,
+        out_dim: int = 256,
+    ):
         super().__init__()
         self.embed = nn.Sequential(nn.Linear(n_features + 1, dim), nn.GELU(), nn.Linear(dim, dim))
         self.summary = nn.Parameter(torch.zeros(1, 1, dim))
-        layer = nn.TransformerEncoderLayer(dim, heads, ff_mult * dim, dropout=0.0, activation="gelu",
-                                           batch_first=True, norm_first=True)
+        layer = nn.TransformerEncoderLayer(
+            dim, heads, ff_mult * dim, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
+        )
         self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(dim)
         self.proj = nn.Linear(2 * dim, out_dim)
@@ -308,7 +341,7 @@ class TransformerSetEncoder(nn.Module):
 
     def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         r = torch.linalg.vector_norm(coords[..., :2], dim=-1, keepdim=True)
-        tok = self.embed(torch.cat([coords, r], dim=-1))                 # (B, M, D)
+        tok = self.embed(torch.cat([coords, r], dim=-1))  # (B, M, D)
         tok = torch.cat([self.summary.expand(tok.shape[0], -1, -1), tok], dim=1)
         pad = torch.cat([torch.zeros_like(mask[:, :1]), ~mask], dim=1)  # True = ignore
         h = self.norm(self.encoder(tok, src_key_padding_mask=pad))
@@ -323,7 +356,8 @@ class PeakSet(nn.Module):
 
     Not learned up to the set: the frame's background is its median, its noise the rms of the
     90 % of pixels nearest it, scaled to a Gaussian's sigma (a per-frame estimate, so the
-    stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the maximum of its 3 x 3 neighbourhood and its
+    stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the
+    maximum of its 3 x 3 neighbourhood and its
     z = (x - median) / noise exceeds ``threshold``. Each of the ``max_peaks`` strongest peaks (by
     the 3 x 3 sum of positive z) becomes a token ``[x, y, log10(sum z) - 1, peak z / sum z]``:
     position at the 3 x 3 centroid, in the coordinate branch's convention (the pixel edges of
@@ -338,22 +372,36 @@ class PeakSet(nn.Module):
 
     N_FEATURES = 4
 
-    def __init__(self, max_peaks: int = 48, threshold: float = 5.0, max_sharpness: float = 0.9, dim: int = 64,
-                 layers: int = 2, heads: int = 4, out_dim: int = 256):
+    def __init__(
+        self,
+        max_peaks: int = 48,
+        threshold: float = 5.0,
+        max_sharpness: float = 0.9,
+        dim: int = 64,
+        layers: int = 2,
+        heads: int = 4,
+        out_dim: int = 256,
+    ):
         super().__init__()
         self.max_peaks, self.threshold, self.max_sharpness = int(max_peaks), float(threshold), float(max_sharpness)
-        self.encoder = TransformerSetEncoder(self.N_FEATURES, dim=dim, layers=layers, heads=heads, ff_mult=2,
-                                             out_dim=out_dim)
-        self.register_buffer("offsets", torch.tensor([[dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
-                                                      [dy for dy in (-1, 0, 1) for dx in (-1, 0, 1)]],
-                                                     dtype=torch.float32), persistent=False)
+        self.encoder = TransformerSetEncoder(
+            self.N_FEATURES, dim=dim, layers=layers, heads=heads, ff_mult=2, out_dim=out_dim
+        )
+        self.register_buffer(
+            "offsets",
+            torch.tensor(
+                [[dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)], [dy for dy in (-1, 0, 1) for dx in (-1, 0, 1)]],
+                dtype=torch.float32,
+            ),
+            persistent=False,
+        )
         self.num_features = out_dim
 
     def peaks(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Tokens (B, max_peaks, 4) and mask (B, max_peaks) of images (B, C, H, W) (first channel)."""
         x = x[:, :1].float()
         b, _, h, w = x.shape
-        step = max(1, min(h, w) // 64)              # the statistics from a 64 x 64-ish lattice of pixels
+        step = max(1, min(h, w) // 64)  # the statistics from a 64 x 64-ish lattice of pixels
         flat = x[:, 0, ::step, ::step].reshape(b, -1)
         med = flat.median(dim=1).values
         dev = (flat - med[:, None]).abs()
@@ -363,7 +411,7 @@ class PeakSet(nn.Module):
         cut = dev.kthvalue(max(1, int(0.9 * dev.shape[1])), dim=1).values
         inner = (dev <= cut[:, None]).to(dev.dtype)
         noise = ((dev.square() * inner).sum(1) / inner.sum(1)).sqrt().div(0.789).clamp(min=1e-6)
-        z = ((x[:, 0] - med[:, None, None]) / noise[:, None, None])                # (B, H, W)
+        z = (x[:, 0] - med[:, None, None]) / noise[:, None, None]  # (B, H, W)
         # local maxima of 3 x 3 neighbourhoods (separable: rows, then columns; cheaper than max_pool2d)
         zp = F.pad(z, (1, 1, 1, 1), value=float("-inf"))
         rowmax = torch.maximum(torch.maximum(zp[:, :, :-2], zp[:, :, 1:-1]), zp[:, :, 2:])
@@ -374,20 +422,32 @@ class PeakSet(nn.Module):
         # the 3 x 3 neighbourhood of each candidate: sum of positive z, centroid, sharpness
         zc = F.pad(z.clamp(min=0), (1, 1, 1, 1)).reshape(b, -1)
         iy, ix = idx // w, idx % w
-        patch = torch.stack([torch.gather(zc, 1, (iy + 1 + dy) * (w + 2) + ix + 1 + dx)
-                             for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dim=-1)          # (B, C, 9)
+        patch = torch.stack(
+            [torch.gather(zc, 1, (iy + 1 + dy) * (w + 2) + ix + 1 + dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
+            dim=-1,
+        )  # (B, C, 9)
         total = patch.sum(-1).clamp(min=1e-6)
         offs = self.offsets.to(patch.dtype)
         u = ix.to(z.dtype) + (patch * offs[0]).sum(-1) / total
         v = iy.to(z.dtype) + (patch * offs[1]).sum(-1) / total
         sharp = cand.clamp(min=0) / total
-        keep = torch.isfinite(cand) & (sharp <= self.max_sharpness)         # not a one-pixel spike
+        keep = torch.isfinite(cand) & (sharp <= self.max_sharpness)  # not a one-pixel spike
         k = min(self.max_peaks, cand.shape[1])
         val, j = torch.where(keep, total, torch.full_like(total, float("-inf"))).topk(k, dim=1)
         mask = torch.isfinite(val)
-        pick = lambda t: torch.gather(t, 1, j)
-        rows = torch.stack([(pick(u) + 0.5) / (w / 2) - 1, (pick(v) + 0.5 - h / 2) / (w / 2),
-                            torch.log10(val.clamp(min=1)) - 1, pick(sharp)], dim=-1)
+
+        def pick(t):
+            return torch.gather(t, 1, j)
+
+        rows = torch.stack(
+            [
+                (pick(u) + 0.5) / (w / 2) - 1,
+                (pick(v) + 0.5 - h / 2) / (w / 2),
+                torch.log10(val.clamp(min=1)) - 1,
+                pick(sharp),
+            ],
+            dim=-1,
+        )
         rows = torch.where(mask[..., None], rows, torch.zeros_like(rows))
         if k < self.max_peaks:
             rows = F.pad(rows, (0, 0, 0, self.max_peaks - k))
@@ -406,9 +466,18 @@ class PeakSet(nn.Module):
 class StarFusion(nn.Module):
     """Any non-empty subset of {image, heatmap, coords} branches -> concat -> LayerNorm -> Linear(K)."""
 
-    def __init__(self, num_classes: int, image: nn.Module | None = None, heatmap: nn.Module | None = None,
-                 coords: nn.Module | None = None, dropout: float = 0.0, canonical=None, fine_classes: int | None = None,
-                 relative_flux: bool = False, detections_dropout: float = 0.0):
+    def __init__(
+        self,
+        num_classes: int,
+        image: nn.Module | None = None,
+        heatmap: nn.Module | None = None,
+        coords: nn.Module | None = None,
+        dropout: float = 0.0,
+        canonical=None,
+        fine_classes: int | None = None,
+        relative_flux: bool = False,
+        detections_dropout: float = 0.0,
+    ):
         super().__init__()
         self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
         self.relative_flux = relative_flux
@@ -416,9 +485,11 @@ class StarFusion(nn.Module):
             raise ConfigError("model.branches: at least one branch must be on")
         self.image, self.heatmap, self.coords = image, heatmap, coords
         if detections_dropout and (image is None or (heatmap is None and coords is None)):
-            raise ConfigError(f"model.detections_dropout={detections_dropout}: it zeroes the detection branches of "
-                              "some training samples so that the image branch must carry them; it needs an image "
-                              "branch and a heatmap or coords branch (set it to 0)")
+            raise ConfigError(
+                f"model.detections_dropout={detections_dropout}: it zeroes the detection branches of "
+                "some training samples so that the image branch must carry them; it needs an image "
+                "branch and a heatmap or coords branch (set it to 0)"
+            )
         self.detections_dropout = float(detections_dropout)
         dim = sum(b.out_dim for b in (image, heatmap, coords) if b is not None)
         self.num_classes, self.num_features = num_classes, dim
@@ -435,8 +506,13 @@ class StarFusion(nn.Module):
     def branches(self) -> dict[str, bool]:
         return {"image": self.image is not None, "heatmap": self.heatmap is not None, "coords": self.coords is not None}
 
-    def forward_features(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
-                         mask: torch.Tensor | None = None, theta: torch.Tensor | None = None) -> torch.Tensor:
+    def forward_features(
+        self,
+        image: torch.Tensor | None = None,
+        coords: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+        theta: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         parts = []
         if self.image is not None:
             parts.append(self.image(image, theta))
@@ -446,7 +522,7 @@ class StarFusion(nn.Module):
             parts.append(self.coords(coords, mask))
         if self.training and self.detections_dropout > 0:
             # modality dropout: these samples' detection features are zeroed, only the pixels are left
-            keep = (torch.rand(parts[0].shape[0], 1, device=parts[0].device) >= self.detections_dropout)
+            keep = torch.rand(parts[0].shape[0], 1, device=parts[0].device) >= self.detections_dropout
             parts = parts[:1] + [p * keep.to(p.dtype) for p in parts[1:]]
         return torch.cat(parts, dim=-1)
 
@@ -468,8 +544,13 @@ class StarFusion(nn.Module):
         s = x.new_zeros(x.shape[0], self.num_classes).scatter_add(1, groups, torch.exp(x - m))
         return (torch.log(s.clamp_min(1e-38)) + m).to(fine_logits.dtype)
 
-    def forward(self, image: torch.Tensor | None = None, coords: torch.Tensor | None = None,
-                mask: torch.Tensor | None = None, fine: bool = False) -> torch.Tensor:
+    def forward(
+        self,
+        image: torch.Tensor | None = None,
+        coords: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+        fine: bool = False,
+    ) -> torch.Tensor:
         """Logits (B, K). With a canonical orientation (:mod:`fusion.canonical`) the inputs are
         rotated first; with several reference views the output is the log of the mean of the
         views' class probabilities (a valid logit vector: softmax gives that mean back)."""
@@ -489,7 +570,7 @@ class StarFusion(nn.Module):
         logits = self.forward_head(self.forward_features(image, cv, mv, image_theta), fine)
         if views == 1:
             return logits
-        w = view_weights(coords, mask, c.n_refs, c.min_radius)            # (B, V)
+        w = view_weights(coords, mask, c.n_refs, c.min_radius)  # (B, V)
         logp = torch.log_softmax(logits.float(), dim=-1).view(coords.shape[0], views, -1)
         logw = torch.log(w / w.sum(dim=1, keepdim=True))
         return torch.logsumexp(logp + logw[..., None], dim=1).to(logits.dtype)
@@ -511,14 +592,24 @@ def image_binning(image_px: int | None, stored_px: int) -> int:
     if image_px is None or image_px == stored_px:
         return 1
     if image_px > stored_px or stored_px % image_px:
-        raise ConfigError(f"model.image_px={image_px} is not an integer binning of the stored {stored_px}-px "
-                          f"images; choose a divisor of {stored_px} (e.g. {stored_px // 2} or {stored_px // 4}), "
-                          "or leave it unset for the stored size")
+        raise ConfigError(
+            f"model.image_px={image_px} is not an integer binning of the stored {stored_px}-px "
+            f"images; choose a divisor of {stored_px} (e.g. {stored_px // 2} or {stored_px // 4}), "
+            "or leave it unset for the stored size"
+        )
     return stored_px // image_px
 
 
-def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *, image_size: int = 256,
-                 max_stars: int = 6, load_pretrained: bool = True, fine_classes: int | None = None) -> StarFusion:
+def create_model(
+    name: str,
+    num_classes: int,
+    cfg: ModelConfig | None = None,
+    *,
+    image_size: int = 256,
+    max_stars: int = 6,
+    load_pretrained: bool = True,
+    fine_classes: int | None = None,
+) -> StarFusion:
     """Build registered model ``name`` with K = ``num_classes`` outputs from a :class:`ModelConfig`.
 
     ``load_pretrained=False`` builds the architecture of a pretrained model (3 channels,
@@ -533,8 +624,9 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
             p = cfg.peaks
             backbone = PeakSet(p.max_peaks, p.threshold_sigma, p.max_sharpness, p.dim, p.layers, p.heads, p.out_dim)
         else:
-            backbone = create_backbone(cfg.image_backbone, cfg.in_chans, image_size // binning,
-                                       cfg.pretrained if load_pretrained else None)
+            backbone = create_backbone(
+                cfg.image_backbone, cfg.in_chans, image_size // binning, cfg.pretrained if load_pretrained else None
+            )
         image = ImageBranch(backbone, cfg.in_chans, imagenet_norm=bool(cfg.pretrained), bin=binning)
     if b.heatmap:
         heat = HeatmapBranch(h.canvas_px, h.sigma_px, h.channels, h.pool_grid, h.out_dim)
@@ -545,16 +637,33 @@ def create_model(name: str, num_classes: int, cfg: ModelConfig | None = None, *,
             coords = SetEncoder(hidden=cfg.coord_hidden)
         else:
             t = cfg.transformer
-            coords = TransformerSetEncoder(dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult,
-                                           out_dim=cfg.coord_hidden)
-    return StarFusion(num_classes, image, heat, coords, cfg.dropout, cfg.canonical, fine_classes,
-                      relative_flux=cfg.relative_flux, detections_dropout=cfg.detections_dropout)
+            coords = TransformerSetEncoder(
+                dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult, out_dim=cfg.coord_hidden
+            )
+    return StarFusion(
+        num_classes,
+        image,
+        heat,
+        coords,
+        cfg.dropout,
+        cfg.canonical,
+        fine_classes,
+        relative_flux=cfg.relative_flux,
+        detections_dropout=cfg.detections_dropout,
+    )
 
 
 def parameter_counts(model: StarFusion) -> dict[str, int]:
     """Parameters per branch, the fusion head, and the total."""
-    count = lambda m: 0 if m is None else sum(p.numel() for p in m.parameters())
-    out = {"image": count(model.image), "heatmap": count(model.heatmap), "coords": count(model.coords),
-           "head": count(model.norm) + count(model.head)}
+
+    def count(m):
+        return 0 if m is None else sum(p.numel() for p in m.parameters())
+
+    out = {
+        "image": count(model.image),
+        "heatmap": count(model.heatmap),
+        "coords": count(model.coords),
+        "head": count(model.norm) + count(model.head),
+    }
     out["total"] = sum(out.values())
     return out

@@ -67,6 +67,7 @@ def assign(v: np.ndarray, centroids: np.ndarray) -> np.ndarray:
     if len(c) <= 64 or len(v) == 0:
         return np.argmax(v @ c.T, axis=1).astype(np.int64)
     from scipy.spatial import cKDTree
+
     return cKDTree(c).query(v.reshape(-1, 3))[1].astype(np.int64).reshape(v.shape[:-1])
 
 
@@ -86,11 +87,11 @@ def angular_distance_deg(v: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KMeansResult:
-    centroids: np.ndarray     # (K, 3) unit vectors
-    labels: np.ndarray        # (N,) class of each training direction
+    centroids: np.ndarray  # (K, 3) unit vectors
+    labels: np.ndarray  # (N,) class of each training direction
     n_iter: int
     converged: bool
-    total_cosine: float       # sum over directions of the cosine to their centroid (higher is tighter)
+    total_cosine: float  # sum over directions of the cosine to their centroid (higher is tighter)
 
 
 def kmeanspp_init(v: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -110,7 +111,7 @@ def kmeanspp_init(v: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray
 def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, tol_deg: float) -> KMeansResult:
     c = kmeanspp_init(v, k, rng)
     labels = np.full(len(v), -1, np.int64)
-    tol_chord = 2.0 * np.sin(np.radians(tol_deg) / 2.0)    # chord length of the tolerance angle
+    tol_chord = 2.0 * np.sin(np.radians(tol_deg) / 2.0)  # chord length of the tolerance angle
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         new = assign(v, c)
@@ -120,11 +121,11 @@ def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, to
         new_c = c.copy()
         ok = norms > 1e-12
         new_c[ok] = sums[ok] / norms[ok, None]
-        for j in np.flatnonzero(~ok):   # empty or degenerate cluster: re-seed deterministically
+        for j in np.flatnonzero(~ok):  # empty or degenerate cluster: re-seed deterministically
             worst = int(np.argmin(np.sum(v * new_c[new], axis=1)))
             new_c[j] = v[worst]
             new[worst] = j
-        moved = np.max(np.linalg.norm(new_c - c, axis=1))     # chord, accurate for tiny angles
+        moved = np.max(np.linalg.norm(new_c - c, axis=1))  # chord, accurate for tiny angles
         stable = np.array_equal(new, labels) and ok.all()
         c, labels = new_c, new
         if stable and moved <= tol_chord:
@@ -135,14 +136,17 @@ def _fit_once(v: np.ndarray, k: int, rng: np.random.Generator, max_iter: int, to
     return KMeansResult(c, labels, it, converged, total)
 
 
-def spherical_kmeans(v: np.ndarray, k: int, seed: int = 0, n_init: int = 4, max_iter: int = 300,
-                     tol_deg: float = 1e-6) -> KMeansResult:
+def spherical_kmeans(
+    v: np.ndarray, k: int, seed: int = 0, n_init: int = 4, max_iter: int = 300, tol_deg: float = 1e-6
+) -> KMeansResult:
     """Fit K unit centroids to unit vectors ``v`` (N, 3). See the module docstring."""
     v = _unit(v)
     n_distinct = len(np.unique(np.round(v, 12), axis=0))
     if n_distinct < k:
-        raise DatasetError(f"cannot fit labels.k={k} clusters to {n_distinct} distinct training boresights; "
-                           "render more frames or lower labels.k")
+        raise DatasetError(
+            f"cannot fit labels.k={k} clusters to {n_distinct} distinct training boresights; "
+            "render more frames or lower labels.k"
+        )
     best = None
     for r in range(n_init):
         res = _fit_once(v, k, np.random.default_rng([seed, r]), max_iter, tol_deg)
@@ -169,13 +173,14 @@ def class_weights(labels: np.ndarray, k: int, mode: str = "balanced") -> np.ndar
 
 
 LEVELS = ("coarse", "fine")
-SKY_SAMPLES_PER_REGION = 20       # sky directions per fitted region (K-means on 20 F directions: ~2 s at F = 1000)
+SKY_SAMPLES_PER_REGION = 20  # sky directions per fitted region (K-means on 20 F directions: ~2 s at F = 1000)
 SKY_SAMPLES_MIN = 20_000
 
 
 def sky_directions(attitude_config, n_regions: int, seed: int) -> np.ndarray:
     """Directions to fit ``n_regions`` regions on: drawn from the attitude distribution, not from a dataset."""
     from skygen.sky.attitude import boresight_sample
+
     return boresight_sample(attitude_config, max(SKY_SAMPLES_MIN, SKY_SAMPLES_PER_REGION * n_regions), seed)
 
 
@@ -183,6 +188,7 @@ def sky_directions(attitude_config, n_regions: int, seed: int) -> np.ndarray:
 class Regions:
     """The K regions (``coarse`` (K, 3) ICRS unit vectors) and, optionally, the fine regions
     (``fine`` (F, 3)) with ``groups`` (F,): the region each fine region belongs to."""
+
     coarse: np.ndarray
     fine: np.ndarray | None = None
 
@@ -205,14 +211,16 @@ class Regions:
         return None if self.fine is None else assign(self.fine, self.coarse)
 
     @classmethod
-    def fit(cls, v: np.ndarray, k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300,
-            tol_deg: float = 1e-6) -> tuple["Regions", KMeansResult]:
+    def fit(
+        cls, v: np.ndarray, k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300, tol_deg: float = 1e-6
+    ) -> tuple["Regions", KMeansResult]:
         """The K regions fitted on directions ``v`` (N, 3); also returns the K-means result."""
         km = spherical_kmeans(v, k, seed, n_init, max_iter, tol_deg)
         return cls(km.centroids), km
 
-    def with_fine(self, v: np.ndarray, fine_k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300,
-                  tol_deg: float = 1e-6) -> "Regions":
+    def with_fine(
+        self, v: np.ndarray, fine_k: int, *, seed: int = 0, n_init: int = 4, max_iter: int = 300, tol_deg: float = 1e-6
+    ) -> "Regions":
         """These regions with ``fine_k`` fine regions fitted on directions ``v`` (the K regions kept)."""
         fine = spherical_kmeans(v, fine_k, seed, n_init, max_iter, tol_deg).centroids
         return Regions(self.coarse, fine).checked()
@@ -222,8 +230,9 @@ class Regions:
         if self.fine is not None:
             empty = sorted(set(range(self.k)) - set(self.groups.tolist()))
             if empty:
-                raise ConfigError(f"labels.fine_k={self.fine_k}: regions {empty} contain no fine-region centroid; "
-                                  "raise labels.fine_k")
+                raise ConfigError(
+                    f"labels.fine_k={self.fine_k}: regions {empty} contain no fine-region centroid; raise labels.fine_k"
+                )
         return self
 
     def has(self, level: str) -> bool:

@@ -49,9 +49,11 @@ def split_positions(ds: SkyDataset, split: str, max_frames: int | None = None) -
         pos = pos[:max_frames]
     if len(pos) == 0:
         counts = {s: len(ds.indices(s)) for s in ("train", "val", "test")}
-        raise DatasetError(f"split {split!r} of dataset {ds.root} holds no frames (frames per split: {counts}); "
-                           "re-render with output.split_fractions giving it frames, or choose another "
-                           "data.train_split / data.val_split")
+        raise DatasetError(
+            f"split {split!r} of dataset {ds.root} holds no frames (frames per split: {counts}); "
+            "re-render with output.split_fractions giving it frames, or choose another "
+            "data.train_split / data.val_split"
+        )
     return pos
 
 
@@ -69,16 +71,26 @@ def read_detections(ds: SkyDataset, i: int) -> tuple[np.ndarray, ...]:
     """(x_px, y_px, flux_adu, area_px) of frame ``i``, brightest first."""
     det = ds.detections(i)
     order = np.argsort(-np.asarray(det["flux_adu"]), kind="stable")
-    return (np.asarray(det["x_px"], np.float64)[order], np.asarray(det["y_px"], np.float64)[order],
-            np.asarray(det["flux_adu"], np.float32)[order], np.asarray(det["area_px"], np.int32)[order])
+    return (
+        np.asarray(det["x_px"], np.float64)[order],
+        np.asarray(det["y_px"], np.float64)[order],
+        np.asarray(det["flux_adu"], np.float32)[order],
+        np.asarray(det["area_px"], np.int32)[order],
+    )
 
 
 def read_sample(ds: SkyDataset, i: int, geo: FrameGeometry, detections: tuple | None = None) -> Sample:
     """Frame ``i`` as a :class:`Sample` in ADU, detections brightest first."""
     x, y, flux, area = detections if detections is not None else read_detections(ds, i)
-    return Sample(image=ds.image(i).astype(np.float32), x_px=x, y_px=y, flux_adu=flux, area_px=area,
-                  background_adu=float(ds.frames["background_adu"][i]),
-                  noise_adu=float(ds.frames["noise_adu"][i]) / geo.factor)
+    return Sample(
+        image=ds.image(i).astype(np.float32),
+        x_px=x,
+        y_px=y,
+        flux_adu=flux,
+        area_px=area,
+        background_adu=float(ds.frames["background_adu"][i]),
+        noise_adu=float(ds.frames["noise_adu"][i]) / geo.factor,
+    )
 
 
 class FrameDataset(torch.utils.data.Dataset):
@@ -93,22 +105,33 @@ class FrameDataset(torch.utils.data.Dataset):
     the image is left as it is.
     """
 
-    def __init__(self, ds: SkyDataset, positions: np.ndarray, labels: np.ndarray, *, max_stars: int = 6,
-                 norm_scale_adu: float = 8.0, log_flux_offset: float = 3.0, soft: np.ndarray | None = None,
-                 augment: Augment | None = None, seed: int = 0, fine: np.ndarray | None = None,
-                 keep_brightest: int | None = None):
+    def __init__(
+        self,
+        ds: SkyDataset,
+        positions: np.ndarray,
+        labels: np.ndarray,
+        *,
+        max_stars: int = 6,
+        norm_scale_adu: float = 8.0,
+        log_flux_offset: float = 3.0,
+        soft: np.ndarray | None = None,
+        augment: Augment | None = None,
+        seed: int = 0,
+        fine: np.ndarray | None = None,
+        keep_brightest: int | None = None,
+    ):
         if len(positions) != len(labels) or (soft is not None and len(soft) != len(labels)):
             raise ValueError("positions, labels and soft targets must have the same length")
         self.ds = ds
         self.positions = np.asarray(positions, np.int64)
         self.labels = np.asarray(labels, np.int64)
         self.soft = None if soft is None else np.asarray(soft, np.float32)
-        self.fine = None if fine is None else np.asarray(fine, np.int64)   # fine-region labels (labels.fine_k)
+        self.fine = None if fine is None else np.asarray(fine, np.int64)  # fine-region labels (labels.fine_k)
         self.geo = FrameGeometry.from_render_config(ds.config)
         self.pre = Preprocessor(self.geo, max_stars, log_flux_offset, norm_scale_adu)
         self.augment, self.seed = augment, seed
         self.keep_brightest = None if keep_brightest is None else int(keep_brightest)
-        self._detections: dict[int, tuple] = {}   # per-process cache: the tables are small, reads are not
+        self._detections: dict[int, tuple] = {}  # per-process cache: the tables are small, reads are not
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -133,9 +156,9 @@ class FrameDataset(torch.utils.data.Dataset):
         j = key[0] if isinstance(key, tuple) else key
         s = self.sample(key)
         item = {**self.pre.item(s), "label": torch.tensor(self.labels[j]), "index": torch.tensor(self.positions[j])}
-        if self.keep_brightest is not None:     # a few-star frame: only the brightest N detections, image untouched
-            item["mask"][self.keep_brightest:] = False
-            item["coords"][self.keep_brightest:] = 0.0
+        if self.keep_brightest is not None:  # a few-star frame: only the brightest N detections, image untouched
+            item["mask"][self.keep_brightest :] = False
+            item["coords"][self.keep_brightest :] = 0.0
         if self.soft is not None:
             item["soft"] = torch.from_numpy(self.soft[j])
         if self.fine is not None:
@@ -166,7 +189,7 @@ class EpochSampler(Sampler):
         if self.pad and self.world > 1:
             total = math.ceil(self.n / self.world) * self.world
             order = np.concatenate([order, order[: total - self.n]])
-        return order[self.rank::self.world]
+        return order[self.rank :: self.world]
 
     def __iter__(self):
         return iter([(int(j), self.epoch) for j in self._order()])
@@ -183,7 +206,9 @@ def worker_init(worker_id: int) -> None:
     open handles when pickled) gives the worker its own, opened lazily on first read.
     """
     import pickle
+
     import cv2
+
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
     info = torch.utils.data.get_worker_info()
@@ -191,9 +216,19 @@ def worker_init(worker_id: int) -> None:
         info.dataset.ds = pickle.loads(pickle.dumps(info.dataset.ds))
 
 
-def make_loader(dataset: FrameDataset, batch_size: int, *, shuffle: bool, seed: int = 0, workers: int = 0,
-                rank: int = 0, world: int = 1, pad: bool = True, start_method: str | None = None,
-                pin_memory: bool = False) -> DataLoader:
+def make_loader(
+    dataset: FrameDataset,
+    batch_size: int,
+    *,
+    shuffle: bool,
+    seed: int = 0,
+    workers: int = 0,
+    rank: int = 0,
+    world: int = 1,
+    pad: bool = True,
+    start_method: str | None = None,
+    pin_memory: bool = False,
+) -> DataLoader:
     """A DataLoader over ``dataset`` with an :class:`EpochSampler` (call ``loader.sampler.set_epoch``)."""
     sampler = EpochSampler(len(dataset), shuffle=shuffle, seed=seed, rank=rank, world=world, pad=pad)
     kw = {}
@@ -201,6 +236,14 @@ def make_loader(dataset: FrameDataset, batch_size: int, *, shuffle: bool, seed: 
         kw = {"worker_init_fn": worker_init, "persistent_workers": True, "prefetch_factor": 4}
         if start_method:
             import multiprocessing as mp
+
             kw["multiprocessing_context"] = mp.get_context(start_method)
-    return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
-                      pin_memory=pin_memory, drop_last=False, **kw)
+    return DataLoader(
+        dataset,
+        batch_size=batch_size,
+        sampler=sampler,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        drop_last=False,
+        **kw,
+    )

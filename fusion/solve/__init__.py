@@ -18,12 +18,23 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from skygen.lazy import lazy_attributes
+
 from .base import Detections, FallbackSolver, Refusal, Solution, Solver
 from .registry import SOLVERS, SolverContext, build_solver, register_solver
 
-_LAZY = {"CoarseToFineSolver": ".fine", "Tetra3Solver": ".tetra", "RegionPrior": ".priors",
-         "CheckpointPrior": ".priors", "OraclePrior": ".priors", "load_prior": ".priors", "Predictor": ".predict",
-         "predict": ".predict", "read_frame": ".frames", "FrameError": ".frames", "run_benchmark": ".benchmark"}
+_LAZY = {
+    "CoarseToFineSolver": ".fine",
+    "Tetra3Solver": ".tetra",
+    "RegionPrior": ".priors",
+    "CheckpointPrior": ".priors",
+    "OraclePrior": ".priors",
+    "load_prior": ".priors",
+    "Predictor": ".predict",
+    "predict": ".predict",
+    "read_frame": ".frames",
+    "FrameError": ".frames",
+    "run_benchmark": ".benchmark",
+}
 
 if TYPE_CHECKING:
     from .benchmark import run_benchmark
@@ -37,5 +48,15 @@ if TYPE_CHECKING:
 __getattr__ = lazy_attributes(__name__, _LAZY)
 
 
-__all__ = ["Detections", "FallbackSolver", "Refusal", "Solution", "Solver", "SOLVERS", "SolverContext",
-           "build_solver", "register_solver", *_LAZY]
+__all__ = [
+    "Detections",
+    "FallbackSolver",
+    "Refusal",
+    "Solution",
+    "Solver",
+    "SOLVERS",
+    "SolverContext",
+    "build_solver",
+    "register_solver",
+    *_LAZY,
+]

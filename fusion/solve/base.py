@@ -43,6 +43,7 @@ class Detections:
     ``x_px``/``y_px`` in full-resolution sensor pixels (skygen convention, see module
     docstring); ``flux_adu`` summed background-subtracted signal, ADU.
     """
+
     x_px: np.ndarray
     y_px: np.ndarray
     flux_adu: np.ndarray
@@ -52,8 +53,7 @@ class Detections:
         """From a skygen detection table (dict of arrays), sorted brightest first (stable)."""
         flux = np.asarray(det["flux_adu"], np.float64)
         order = np.argsort(-flux, kind="stable")
-        return cls(np.asarray(det["x_px"], np.float64)[order], np.asarray(det["y_px"], np.float64)[order],
-                   flux[order])
+        return cls(np.asarray(det["x_px"], np.float64)[order], np.asarray(det["y_px"], np.float64)[order], flux[order])
 
     def __len__(self) -> int:
         return len(self.x_px)
@@ -64,11 +64,11 @@ class Detections:
 
 @dataclass(frozen=True)
 class Solution:
-    quaternion: np.ndarray          # [w, x, y, z], camera -> ICRS, w >= 0
+    quaternion: np.ndarray  # [w, x, y, z], camera -> ICRS, w >= 0
     ra_deg: float
     dec_deg: float
     roll_deg: float
-    matched: np.ndarray             # (M, 2) int64: detection row, catalog id
+    matched: np.ndarray  # (M, 2) int64: detection row, catalog id
     residual_arcsec: float
     confidence: float
     solver: str
@@ -84,11 +84,20 @@ class Solution:
         return quaternion_to_matrix(self.quaternion)
 
     def to_dict(self) -> dict:
-        return {"status": "solved", "solver": self.solver, "quaternion_wxyz": [float(v) for v in self.quaternion],
-                "ra_deg": self.ra_deg, "dec_deg": self.dec_deg, "roll_deg": self.roll_deg,
-                "n_matched": self.n_matched, "matched": self.matched.tolist(),
-                "residual_arcsec": self.residual_arcsec, "confidence": self.confidence, "time_ms": self.time_ms,
-                **self.extra}
+        return {
+            "status": "solved",
+            "solver": self.solver,
+            "quaternion_wxyz": [float(v) for v in self.quaternion],
+            "ra_deg": self.ra_deg,
+            "dec_deg": self.dec_deg,
+            "roll_deg": self.roll_deg,
+            "n_matched": self.n_matched,
+            "matched": self.matched.tolist(),
+            "residual_arcsec": self.residual_arcsec,
+            "confidence": self.confidence,
+            "time_ms": self.time_ms,
+            **self.extra,
+        }
 
 
 @dataclass(frozen=True)
@@ -99,8 +108,13 @@ class Refusal:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"status": "refused", "solver": self.solver, "reason": self.reason, "time_ms": self.time_ms,
-                **self.extra}
+        return {
+            "status": "refused",
+            "solver": self.solver,
+            "reason": self.reason,
+            "time_ms": self.time_ms,
+            **self.extra,
+        }
 
 
 @runtime_checkable
@@ -130,8 +144,9 @@ class FallbackSolver:
         b = self.second.solve(detections, camera, image, **kw)
         if isinstance(b, Solution):
             return b
-        return Refusal(f"{a.solver}: {a.reason}; {b.solver}: {b.reason}", self.name, a.time_ms + b.time_ms,
-                       {**a.extra, **b.extra})
+        return Refusal(
+            f"{a.solver}: {a.reason}; {b.solver}: {b.reason}", self.name, a.time_ms + b.time_ms, {**a.extra, **b.extra}
+        )
 
 
 # --------------------------------------------------------------------------- attitude helpers

@@ -70,12 +70,11 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.instrument import corruptions as corr
-from skygen.instrument.camera import Camera
 from skygen.config import build_config as build_render_config
 from skygen.datasets.shards import open_dataset
+from skygen.instrument import corruptions as corr
+from skygen.instrument.camera import Camera
 from skygen.lock import FolderLock
-
 from skygen.runtime import atomic_write_text, hardware_line, write_json
 
 from ..errors import ConfigError
@@ -90,8 +89,9 @@ SOLVERS = tuple(REGISTERED) + ("learned",)
 DEFAULT_SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine")
 
 
-def corrupt(det: dict, name: str | None, severity: float, seed: int, frame_index: int,
-            width_px: int, height_px: int) -> Detections:
+def corrupt(
+    det: dict, name: str | None, severity: float, seed: int, frame_index: int, width_px: int, height_px: int
+) -> Detections:
     """The detection table of one frame with one detection-level corruption (see the module doc)."""
     if name is None or severity == 0:
         return Detections.from_table(det)
@@ -100,9 +100,11 @@ def corrupt(det: dict, name: str | None, severity: float, seed: int, frame_index
         n = int(rng.poisson(severity))
         flux = np.asarray(det["flux_adu"], np.float64)
         fake = rng.choice(flux, n) if len(flux) else np.full(n, 1000.0)
-        table = {"x_px": np.concatenate([det["x_px"], rng.uniform(-0.5, width_px - 0.5, n)]),
-                 "y_px": np.concatenate([det["y_px"], rng.uniform(-0.5, height_px - 0.5, n)]),
-                 "flux_adu": np.concatenate([flux, fake])}
+        table = {
+            "x_px": np.concatenate([det["x_px"], rng.uniform(-0.5, width_px - 0.5, n)]),
+            "y_px": np.concatenate([det["y_px"], rng.uniform(-0.5, height_px - 0.5, n)]),
+            "flux_adu": np.concatenate([flux, fake]),
+        }
         return Detections.from_table(table)
     corr.get(name)
     out, _ = corr.apply_detection_corruptions(det, {name: float(severity)}, seed, frame_index, stream="/benchmark")
@@ -118,8 +120,10 @@ def resolve_corruptions(names) -> tuple[str, ...]:
         return ()
     for c in names:
         if c not in DETECTION_CORRUPTIONS:
-            raise ConfigError(f"--corruptions: {c!r} is not a detection-level corruption; choose from "
-                              f"{', '.join(DETECTION_CORRUPTIONS)}, or none (clean only)")
+            raise ConfigError(
+                f"--corruptions: {c!r} is not a detection-level corruption; choose from "
+                f"{', '.join(DETECTION_CORRUPTIONS)}, or none (clean only)"
+            )
     return names
 
 
@@ -156,6 +160,7 @@ def grid(n_values, corruption_n, corruptions, severities: dict | None = None) ->
 def default_centroids(k: int = 15) -> np.ndarray:
     """K regions of the sphere for the oracle priors when no checkpoint is given (spherical K-means)."""
     from ..model.regions import spherical_kmeans
+
     rng = np.random.default_rng(0)
     v = rng.standard_normal((20000, 3))
     return spherical_kmeans(v / np.linalg.norm(v, axis=1, keepdims=True), k, seed=0, n_init=2).centroids
@@ -173,11 +178,22 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
         bore.append(b * 3600)
         roll.append(o * 3600)
     n = len(results)
-    stat = lambda a: ({"median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(np.max(a))}
-                      if a else None)
-    return {"frames": n, "correct": ok / n, "wrong": wrong / n, "refused": refused / n,
-            "boresight_error_arcsec": stat(bore), "roll_error_arcsec": stat(roll),
-            "ms_per_frame": 1e3 * float(np.mean(secs)), "ms_per_frame_median": 1e3 * float(np.median(secs))}
+
+    def stat(a):
+        return (
+            {"median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(np.max(a))} if a else None
+        )
+
+    return {
+        "frames": n,
+        "correct": ok / n,
+        "wrong": wrong / n,
+        "refused": refused / n,
+        "boresight_error_arcsec": stat(bore),
+        "roll_error_arcsec": stat(roll),
+        "ms_per_frame": 1e3 * float(np.mean(secs)),
+        "ms_per_frame_median": 1e3 * float(np.median(secs)),
+    }
 
 
 def needs_learned_prior(name: str) -> bool:
@@ -198,17 +214,34 @@ def check_solvers(solvers, checkpoint) -> tuple[str, ...]:
     need = [s for s in solvers if needs_learned_prior(s)]
     if need and not checkpoint and solvers != DEFAULT_SOLVERS:
         free = [s for s in SOLVERS if not needs_learned_prior(s)]
-        raise ConfigError(f"--solvers {' '.join(need)}: {'it needs' if len(need) == 1 else 'they need'} a learned "
-                          f"prior; pass --checkpoint CK (a trained model), or choose solvers without one: "
-                          f"{', '.join(free)}")
+        raise ConfigError(
+            f"--solvers {' '.join(need)}: {'it needs' if len(need) == 1 else 'they need'} a learned "
+            f"prior; pass --checkpoint CK (a trained model), or choose solvers without one: "
+            f"{', '.join(free)}"
+        )
     return solvers
 
 
-def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path | None = None, split: str = "test",
-                  frames: int = 200, n_values=FULL_N, corruption_n=(6, 10), corruptions=DETECTION_CORRUPTIONS,
-                  severities=None, solvers=None,
-                  correct_deg: float = 0.1, correct_roll_deg: float = 1.0, top_k: int | None = None,
-                  search: str = "fine", focal_tol: float = 0.02, log=print, warn=None) -> dict:
+def run_benchmark(
+    data: str | Path,
+    out: str | Path,
+    *,
+    checkpoint: str | Path | None = None,
+    split: str = "test",
+    frames: int = 200,
+    n_values=FULL_N,
+    corruption_n=(6, 10),
+    corruptions=DETECTION_CORRUPTIONS,
+    severities=None,
+    solvers=None,
+    correct_deg: float = 0.1,
+    correct_roll_deg: float = 1.0,
+    top_k: int | None = None,
+    search: str = "fine",
+    focal_tol: float = 0.02,
+    log=print,
+    warn=None,
+) -> dict:
     """Score ``solvers`` on every cell of the grid (module docstring) and write the outputs into ``out``.
 
     Arguments are checked first (ConfigError naming the option; :func:`check_solvers`); ``out`` is
@@ -216,7 +249,9 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
     (default: stderr) receives a one-line warning when the checkpoint was trained on data of other
     frame settings than ``data`` (also in the report: ``config_differences``)."""
     import sys
+
     from .registry import check_search_options
+
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     check_search_options(focal_tol, top_k, "--top-k")
     check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
@@ -229,9 +264,19 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
-    settings = {"split": split, "frames": frames, "n_values": n_values, "corruption_n": corruption_n,
-                "corruptions": corruptions, "severities": severities, "correct_deg": correct_deg,
-                "correct_roll_deg": correct_roll_deg, "top_k": top_k, "search": search, "focal_tol": focal_tol}
+    settings = {
+        "split": split,
+        "frames": frames,
+        "n_values": n_values,
+        "corruption_n": corruption_n,
+        "corruptions": corruptions,
+        "severities": severities,
+        "correct_deg": correct_deg,
+        "correct_roll_deg": correct_roll_deg,
+        "top_k": top_k,
+        "search": search,
+        "focal_tol": focal_tol,
+    }
     with FolderLock(out, what="fusion benchmark"):
         return _run_benchmark(data, out, checkpoint, list(solvers), settings, log, warn)
 
@@ -239,20 +284,22 @@ def run_benchmark(data: str | Path, out: str | Path, *, checkpoint: str | Path |
 @dataclass
 class BenchmarkFrames:
     """The fixed frames of a benchmark: the camera, their stored detections (and images, for a model) and truth."""
-    config: dict                # the dataset's render config
+
+    config: dict  # the dataset's render config
     camera: Camera
-    index: np.ndarray           # frame index of each frame
-    tables: list                # stored detection tables
-    images: list                # stored images, or None each (no model to read them)
-    v_true: np.ndarray          # (n, 3) true boresight unit vectors
-    truth: list                 # (true rotation matrix, true roll_deg) per frame
-    seed: int                   # the dataset's seed: every corruption draw derives from it
-    info: dict                  # path, dataset_id, split, frames (for the report)
+    index: np.ndarray  # frame index of each frame
+    tables: list  # stored detection tables
+    images: list  # stored images, or None each (no model to read them)
+    v_true: np.ndarray  # (n, 3) true boresight unit vectors
+    truth: list  # (true rotation matrix, true roll_deg) per frame
+    seed: int  # the dataset's seed: every corruption draw derives from it
+    info: dict  # path, dataset_id, split, frames (for the report)
 
 
 def load_frames(data, split: str, frames: int, with_images: bool) -> BenchmarkFrames:
     """The first ``frames`` frames of ``split`` of dataset ``data``."""
     from skygen.sky.attitude import quaternion_to_matrix
+
     with open_dataset(data) as ds:
         rcfg = build_render_config(ds.config)
         pos = ds.indices(split)[:frames]
@@ -263,11 +310,21 @@ def load_frames(data, split: str, frames: int, with_images: bool) -> BenchmarkFr
         q_true = np.asarray(ds.boresight["quaternion"][pos], np.float64)
         roll_true = np.asarray(ds.boresight["roll_deg"][pos], np.float64)
         return BenchmarkFrames(
-            config=dict(ds.config), camera=Camera.from_config(rcfg.camera), index=ds.frames["index"][pos],
-            tables=tables, images=images, v_true=np.asarray(ds.boresight["unit_vector"][pos], np.float64),
-            truth=[(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)], seed=int(ds.config["seed"]),
-            info={"path": str(ds.root), "dataset_id": ds.manifest.get("dataset_id"), "split": split,
-                  "frames": int(len(pos))})
+            config=dict(ds.config),
+            camera=Camera.from_config(rcfg.camera),
+            index=ds.frames["index"][pos],
+            tables=tables,
+            images=images,
+            v_true=np.asarray(ds.boresight["unit_vector"][pos], np.float64),
+            truth=[(quaternion_to_matrix(q), r) for q, r in zip(q_true, roll_true)],
+            seed=int(ds.config["seed"]),
+            info={
+                "path": str(ds.root),
+                "dataset_id": ds.manifest.get("dataset_id"),
+                "split": split,
+                "frames": int(len(pos)),
+            },
+        )
 
 
 def load_benchmark_prior(checkpoint, data, fr: BenchmarkFrames, warn):
@@ -275,11 +332,14 @@ def load_benchmark_prior(checkpoint, data, fr: BenchmarkFrames, warn):
     checkpoint of another camera; other differences are warned about and reported."""
     from ..model.checkpoint import differences_warning, load_checkpoint
     from .priors import load_prior
+
     ckpt = load_checkpoint(checkpoint)
-    own = ckpt.render_config                     # older checkpoints: the benchmark dataset's
+    own = ckpt.render_config  # older checkpoints: the benchmark dataset's
     if own and own["camera"] != fr.config["camera"]:
-        raise ConfigError(f"{checkpoint} was trained for another camera than dataset {data} "
-                          f"({own['camera']} vs {fr.config['camera']}); benchmark it on frames of its camera")
+        raise ConfigError(
+            f"{checkpoint} was trained for another camera than dataset {data} "
+            f"({own['camera']} vs {fr.config['camera']}); benchmark it on frames of its camera"
+        )
     diffs = ckpt.config_differences(fr.config)
     if diffs:
         warn(differences_warning(str(data), diffs, str(checkpoint)))
@@ -290,6 +350,7 @@ def build_solvers(ctx, solvers: list[str]) -> tuple[dict, dict]:
     """({name: solver} to run, {name: (first, second)} composed from two of them): a chain ``a>b`` whose
     parts are both scored is composed from their per-frame answers instead of solving twice."""
     from .registry import get
+
     built, composite = {}, {}
     for name in solvers:
         if name == "learned":
@@ -306,6 +367,7 @@ def solve_all(solver, dets: list, fr: BenchmarkFrames) -> tuple[list, list]:
     """(answers, seconds) of ``solver`` on each frame's detections; the benchmark's truth-ranked priors
     receive each frame's probabilities."""
     from .priors import OraclePrior
+
     oracle = getattr(solver, "prior", None)
     oracle = oracle if isinstance(oracle, OraclePrior) else None
     results, secs = [], []
@@ -322,8 +384,12 @@ def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, le
     None, or (prior, its K centroids, true region labels, true fine-region labels or None, regions searched)
     for the ``learned`` column; ``correct``: (correct_deg, correct_roll_deg)."""
     cam = fr.camera
-    dets = [corrupt(t, cell["corruption"], cell["severity"], fr.seed, int(i), cam.width_px, cam.height_px)
-            .brightest(cell["n"]) for t, i in zip(fr.tables, fr.index)]
+    dets = [
+        corrupt(t, cell["corruption"], cell["severity"], fr.seed, int(i), cam.width_px, cam.height_px).brightest(
+            cell["n"]
+        )
+        for t, i in zip(fr.tables, fr.index)
+    ]
     row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
     answers = {}
     for name, solver in built.items():
@@ -332,12 +398,17 @@ def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, le
     for name, (a, b) in composite.items():
         (ra, sa), (rb, sb) = answers[a], answers[b]
         first = [isinstance(x, Solution) for x in ra]
-        row["solvers"][name] = _summary([x if ok else y for x, y, ok in zip(ra, rb, first)], fr.truth,
-                                        [x if ok else x + y for x, y, ok in zip(sa, sb, first)], *correct)
+        row["solvers"][name] = _summary(
+            [x if ok else y for x, y, ok in zip(ra, rb, first)],
+            fr.truth,
+            [x if ok else x + y for x, y, ok in zip(sa, sb, first)],
+            *correct,
+        )
     if learned is not None:
         prior, centroids, labels, search_labels, top_k = learned
-        row["solvers"]["learned"] = _learned_cell(prior, dets, fr.images, labels, fr.v_true, centroids,
-                                                  search_labels, top_k)
+        row["solvers"]["learned"] = _learned_cell(
+            prior, dets, fr.images, labels, fr.v_true, centroids, search_labels, top_k
+        )
     return row
 
 
@@ -346,6 +417,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
     prior, build the solvers, score every cell, write the outputs."""
     from .registry import make_context
     from .tetra import Tetra3Solver
+
     t_start = time.perf_counter()
     fr = load_frames(data, st["split"], st["frames"], with_images=bool(checkpoint))
     tetra = Tetra3Solver(fr.camera, log=log)
@@ -359,31 +431,57 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
         if dropped:
             notes.append(f"{', '.join(dropped)}: skipped, no --checkpoint given (pending a trained model)")
         solvers = [s for s in solvers if not needs_learned_prior(s)]
-    ctx = make_context(fr.camera, prior=prior, search=st["search"], search_k=st["top_k"], focal_tol=st["focal_tol"],
-                       tetra=tetra, search_centroids=None if prior is not None else centroids, k_flag="--top-k")
+    ctx = make_context(
+        fr.camera,
+        prior=prior,
+        search=st["search"],
+        search_k=st["top_k"],
+        focal_tol=st["focal_tol"],
+        tetra=tetra,
+        search_centroids=None if prior is not None else centroids,
+        k_flag="--top-k",
+    )
     level = getattr(ctx.prior, "level", "coarse")
     built, composite = build_solvers(ctx, solvers)
     labels = np.argmax(fr.v_true @ centroids.T, axis=1)
     search_labels = np.argmax(fr.v_true @ ctx.search_centroids.T, axis=1)
-    learned = ((prior, centroids, labels, search_labels if level == "fine" else None, ctx.top_k)
-               if "learned" in solvers else None)
+    learned = (
+        (prior, centroids, labels, search_labels if level == "fine" else None, ctx.top_k)
+        if "learned" in solvers
+        else None
+    )
     cells = grid(st["n_values"], st["corruption_n"], st["corruptions"], st["severities"])
     log(f"benchmark: {len(fr.tables)} frames x {len(cells)} cells; solvers: {', '.join(solvers)}")
     rows = []
     for ci, cell in enumerate(cells):
         rows.append(score_cell(cell, fr, built, composite, learned, (st["correct_deg"], st["correct_roll_deg"])))
         log(_cell_line(rows[-1], ci, len(cells)))
-    report = {"dataset": fr.info, "camera": {"width_px": fr.camera.width_px, "height_px": fr.camera.height_px,
-                                             "fov_deg": list(fr.camera.fov_deg)},
-              "checkpoint": str(checkpoint) if checkpoint else None, "solvers": list(built) + list(composite) + (
-                  ["learned"] if "learned" in solvers else []),
-              "correct_definition": f"boresight error <= {st['correct_deg']} deg and roll error <= "
-                                    f"{st['correct_roll_deg']} deg",
-              "region_count": int(len(centroids)), "search": {"level": level, "regions": int(len(ctx.search_centroids)),
-                                                              "top_k": ctx.top_k, "focal_tol": st["focal_tol"]},
-              "top_k": ctx.top_k, "notes": notes, "config_differences": diffs, "cells": rows,
-              "hardware": hardware_line() + ", one process",
-              "tetra3rs_version": tetra.t3.__version__, "wall_time_s": time.perf_counter() - t_start}
+    report = {
+        "dataset": fr.info,
+        "camera": {
+            "width_px": fr.camera.width_px,
+            "height_px": fr.camera.height_px,
+            "fov_deg": list(fr.camera.fov_deg),
+        },
+        "checkpoint": str(checkpoint) if checkpoint else None,
+        "solvers": list(built) + list(composite) + (["learned"] if "learned" in solvers else []),
+        "correct_definition": f"boresight error <= {st['correct_deg']} deg and roll error <= "
+        f"{st['correct_roll_deg']} deg",
+        "region_count": int(len(centroids)),
+        "search": {
+            "level": level,
+            "regions": int(len(ctx.search_centroids)),
+            "top_k": ctx.top_k,
+            "focal_tol": st["focal_tol"],
+        },
+        "top_k": ctx.top_k,
+        "notes": notes,
+        "config_differences": diffs,
+        "cells": rows,
+        "hardware": hardware_line() + ", one process",
+        "tetra3rs_version": tetra.t3.__version__,
+        "wall_time_s": time.perf_counter() - t_start,
+    }
     write_outputs(report, out, log)
     return report
 
@@ -411,9 +509,13 @@ def _learned_cell(prior, dets, images, labels, v_true, centroids, search_labels,
     top1 = order[:, 0] == labels
     top3 = (order[:, :3] == labels[:, None]).any(axis=1)
     err = np.degrees(np.arccos(np.clip(np.sum(v_true * centroids[order[:, 0]], axis=1), -1, 1)))
-    out = {"frames": len(dets), "top1": float(top1.mean()), "top3": float(top3.mean()),
-           "angular_error_deg": {"median": float(np.median(err)), "p95": float(np.percentile(err, 95))},
-           "ms_per_frame": 1e3 * float(np.mean(t))}
+    out = {
+        "frames": len(dets),
+        "top1": float(top1.mean()),
+        "top3": float(top3.mean()),
+        "angular_error_deg": {"median": float(np.median(err)), "p95": float(np.percentile(err, 95))},
+        "ms_per_frame": 1e3 * float(np.mean(t)),
+    }
     if search_labels is not None and fine[0] is not None:
         fo = np.argsort(-np.array(fine), axis=1)[:, :search_k]
         out[f"fine_top{search_k}"] = float((fo == search_labels[:, None]).any(axis=1).mean())
@@ -427,42 +529,60 @@ def _cell_name(c: dict) -> str:
 def _cell_line(row: dict, i: int, n: int) -> str:
     parts = []
     for name, s in row["solvers"].items():
-        parts.append(f"{name} {100 * s['correct']:.0f}%/{100 * s['wrong']:.0f}%" if "correct" in s
-                     else f"{name} top1 {100 * s['top1']:.0f}%")
+        parts.append(
+            f"{name} {100 * s['correct']:.0f}%/{100 * s['wrong']:.0f}%"
+            if "correct" in s
+            else f"{name} top1 {100 * s['top1']:.0f}%"
+        )
     return f"[{i + 1}/{n}] {_cell_name(row)} N={row['n']}: " + ", ".join(parts)
 
 
 def markdown(r: dict) -> str:
     full = [s for s in r["solvers"] if s != "learned"]
-    lines = [f"# Solver benchmark on `{r['dataset']['path']}` ({r['dataset']['split']}, {r['dataset']['frames']} "
-             "frames)", "",
-             f"Camera {r['camera']['width_px']} x {r['camera']['height_px']} px, field "
-             f"{r['camera']['fov_deg'][0]:.2f} x {r['camera']['fov_deg'][1]:.2f} deg; {r['region_count']} regions; "
-             f"{_search_text(r)}; tetra3rs {r['tetra3rs_version']}; {r['hardware']}; "
-             f"{r['wall_time_s']:.0f} s in all.", "",
-             f"**correct** = {r['correct_definition']}; **wrong** = any other returned attitude; **refused** = no "
-             "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame (mean; median).", ""]
+    lines = [
+        f"# Solver benchmark on `{r['dataset']['path']}` ({r['dataset']['split']}, {r['dataset']['frames']} frames)",
+        "",
+        f"Camera {r['camera']['width_px']} x {r['camera']['height_px']} px, field "
+        f"{r['camera']['fov_deg'][0]:.2f} x {r['camera']['fov_deg'][1]:.2f} deg; {r['region_count']} regions; "
+        f"{_search_text(r)}; tetra3rs {r['tetra3rs_version']}; {r['hardware']}; "
+        f"{r['wall_time_s']:.0f} s in all.",
+        "",
+        f"**correct** = {r['correct_definition']}; **wrong** = any other returned attitude; **refused** = no "
+        "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame (mean; median).",
+        "",
+    ]
     lines += [f"- {n}" for n in r["notes"]] + ([""] if r["notes"] else [])
-    head = "| cell | N | mean det. | " + " | ".join(full) + (" | learned top-1 / top-3 |" if "learned" in r["solvers"]
-                                                            else "")
+    head = (
+        "| cell | N | mean det. | "
+        + " | ".join(full)
+        + (" | learned top-1 / top-3 |" if "learned" in r["solvers"] else "")
+    )
     lines += [head.rstrip(" |") + " |", "|" + "---|" * (3 + len(full) + ("learned" in r["solvers"]))]
     for row in r["cells"]:
         cols = []
         for name in full:
             s = row["solvers"][name]
             med = s.get("ms_per_frame_median")
-            cols.append(f"{100 * s['correct']:.0f} / {100 * s['wrong']:.0f} / {100 * s['refused']:.0f} "
-                        f"({s['ms_per_frame']:.1f} ms" + ("" if med is None else f"; median {med:.1f}") + ")")
+            cols.append(
+                f"{100 * s['correct']:.0f} / {100 * s['wrong']:.0f} / {100 * s['refused']:.0f} "
+                f"({s['ms_per_frame']:.1f} ms" + ("" if med is None else f"; median {med:.1f}") + ")"
+            )
         if "learned" in r["solvers"]:
             s = row["solvers"]["learned"]
             k = [key for key in s if key.startswith("top") and key != "top1"][0]
             fk = [key for key in s if key.startswith("fine_top")]
             fine = f"; fine top-{fk[0][8:]} {100 * s[fk[0]]:.0f}" if fk else ""
-            cols.append(f"{100 * s['top1']:.0f} / {100 * s[k]:.0f}{fine} (median err "
-                        f"{s['angular_error_deg']['median']:.1f}°)")
+            cols.append(
+                f"{100 * s['top1']:.0f} / {100 * s[k]:.0f}{fine} (median err {s['angular_error_deg']['median']:.1f}°)"
+            )
         lines.append(f"| {_cell_name(row)} | {row['n']} | {row['mean_detections']:.1f} | " + " | ".join(cols) + " |")
-    lines += ["", "Attitude errors of returned solutions (median boresight / median roll, arcsec), clean cells:", "",
-              "| N | " + " | ".join(full) + " |", "|---|" + "---|" * len(full)]
+    lines += [
+        "",
+        "Attitude errors of returned solutions (median boresight / median roll, arcsec), clean cells:",
+        "",
+        "| N | " + " | ".join(full) + " |",
+        "|---|" + "---|" * len(full),
+    ]
     for row in r["cells"]:
         if row["corruption"] is None:
             cols = []
@@ -477,12 +597,15 @@ def markdown(r: dict) -> str:
 def _search_text(r: dict) -> str:
     se = r.get("search") or {"level": "coarse", "regions": r["region_count"], "top_k": r["top_k"], "focal_tol": 0.0}
     what = "fine regions" if se["level"] == "fine" else "regions"
-    return (f"coarse-to-fine solvers search the top {se['top_k']} of {se['regions']} {what}, focal length "
-            f"within ±{100 * se['focal_tol']:g} %")
+    return (
+        f"coarse-to-fine solvers search the top {se['top_k']} of {se['regions']} {what}, focal length "
+        f"within ±{100 * se['focal_tol']:g} %"
+    )
 
 
 def plot(r: dict, out: Path) -> None:
     from ..plots import _figure, _save
+
     plt = _figure()
     full = [s for s in r["solvers"] if s != "learned"]
     clean = [row for row in r["cells"] if row["corruption"] is None]
@@ -512,8 +635,9 @@ def plot(r: dict, out: Path) -> None:
             base = [row for row in clean if row["n"] == n]
             sev = ([0.0] if base else []) + [row["severity"] for row in sub]
             for s in full:
-                y = ([100 * base[0]["solvers"][s]["correct"]] if base else []) + \
-                    [100 * row["solvers"][s]["correct"] for row in sub]
+                y = ([100 * base[0]["solvers"][s]["correct"]] if base else []) + [
+                    100 * row["solvers"][s]["correct"] for row in sub
+                ]
                 ax.plot(sev, y, "o-", label=f"{s}, N={n}")
         ax.set_xlabel(f"{name} ({corr.get(name).unit})")
         ax.set_ylabel("% correct")

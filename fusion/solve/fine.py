@@ -18,7 +18,8 @@ For one region (a cap around a region centroid, :class:`Region`):
    identify three stars at all; over the whole sky they still cannot reach the bar;
 2. hypotheses: every catalog pair whose separation matches that of two bright detections
    (i, j) within ``tol_px`` (both orders; a range of the catalogue pair index,
-   :mod:`fusion.solve.pairs`, built once per camera and catalogue cut and cached on disk) — and, with ``focal_tol`` = s > 0, within a focal
+   :mod:`fusion.solve.pairs`, built once per camera and catalogue cut and cached on disk) — and, with ``focal_tol`` = s
+   > 0, within a focal
    length known only to ±s (a real lens's focal length is off its datasheet value by about
    a percent, which at the edge of a field is several times a 2 px tolerance). Each pair fixes
    a focal-length factor k (catalog separation / detection separation, clipped to 1 ± s) and a
@@ -99,8 +100,8 @@ from .pairs import load_or_build
 
 @dataclass(frozen=True)
 class Region:
-    center: np.ndarray      # (3,) ICRS unit vector
-    radius_deg: float       # every boresight of the region lies within this angle of the centre
+    center: np.ndarray  # (3,) ICRS unit vector
+    radius_deg: float  # every boresight of the region lies within this angle of the centre
     probability: float
     index: int
 
@@ -112,7 +113,7 @@ def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndar
         return np.array([180.0])
     k = np.arange(n_samples) + 0.5
     z = 1 - 2 * k / n_samples
-    phi = np.pi * (1 + 5 ** 0.5) * k
+    phi = np.pi * (1 + 5**0.5) * k
     r = np.sqrt(1 - z * z)
     v = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
     dots = v @ c.T
@@ -120,7 +121,7 @@ def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndar
     best = dots[np.arange(n_samples), lab]
     radii = np.zeros(len(c))
     np.maximum.at(radii, lab, np.degrees(np.arccos(np.clip(best, -1, 1))))
-    spacing = np.degrees(np.sqrt(4 * np.pi / n_samples))      # lattice spacing: the radius is at most this short
+    spacing = np.degrees(np.sqrt(4 * np.pi / n_samples))  # lattice spacing: the radius is at most this short
     return radii + spacing
 
 
@@ -149,6 +150,7 @@ def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
 @dataclass
 class _Tier:
     """One catalogue cut: the brightest ``stars_per_fov`` stars per field, their index and chance rate."""
+
     stars_per_fov: float
     vec: np.ndarray
     ids: np.ndarray
@@ -172,19 +174,36 @@ def _chance_sum(p: float, n_det: int, score: int) -> float:
     extra = score - 2
     if extra <= 0:
         return 1.0
-    return sum(math.comb(n_det - 2, k) * p ** k * (1 - p) ** (n_det - 2 - k) for k in range(extra, n_det - 1))
+    return sum(math.comb(n_det - 2, k) * p**k * (1 - p) ** (n_det - 2 - k) for k in range(extra, n_det - 1))
 
 
 class CoarseToFineSolver:
     """Region prior -> region-restricted identification -> tetra3rs verification. See the module docstring."""
 
-    def __init__(self, tetra, prior=None, *, name: str = "coarse-to-fine", top_k: int = 3, tol_px: float = 2.0,
-                 stars_per_fov: float = 60.0, max_pair_detections: int = 5, min_matches: int = 3,
-                 min_confidence: float = 0.99, unverified_confidence: float = 1 - 1e-6,
-                 verify_with_tetra3rs: bool = True, focal_tol: float = 0.0, anchor_order: str = "fewest",
-                 bright_stars_per_fov: float | None = 12.0, bright_max_detections: int = 3,
-                 photometric_mag: float | None = 0.5, max_residual_px: float = 1.5,
-                 few_top_k_factor: int = 4, then_whole_sky: bool = False, max_detections: int | None = 24):
+    def __init__(
+        self,
+        tetra,
+        prior=None,
+        *,
+        name: str = "coarse-to-fine",
+        top_k: int = 3,
+        tol_px: float = 2.0,
+        stars_per_fov: float = 60.0,
+        max_pair_detections: int = 5,
+        min_matches: int = 3,
+        min_confidence: float = 0.99,
+        unverified_confidence: float = 1 - 1e-6,
+        verify_with_tetra3rs: bool = True,
+        focal_tol: float = 0.0,
+        anchor_order: str = "fewest",
+        bright_stars_per_fov: float | None = 12.0,
+        bright_max_detections: int = 3,
+        photometric_mag: float | None = 0.5,
+        max_residual_px: float = 1.5,
+        few_top_k_factor: int = 4,
+        then_whole_sky: bool = False,
+        max_detections: int | None = 24,
+    ):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
@@ -214,8 +233,9 @@ class CoarseToFineSolver:
         dec = np.radians([s.dec_deg for s in stars])
         mag = np.array([s.magnitude for s in stars])
         ids = np.array([s.id for s in stars], np.int64)
-        fov_sr = 4 * math.atan(cam.width_px * cam.height_px / (2 * cam.f_px * math.hypot(
-            cam.width_px, cam.height_px, 2 * cam.f_px)))            # solid angle of the rectangular pinhole field
+        fov_sr = 4 * math.atan(
+            cam.width_px * cam.height_px / (2 * cam.f_px * math.hypot(cam.width_px, cam.height_px, 2 * cam.f_px))
+        )  # solid angle of the rectangular pinhole field
         self.tol_rad = tol_px / cam.f_px
         self.half_diag_rad = math.atan(math.hypot(cam.width_px, cam.height_px) / 2 / cam.f_px)
         # every catalog pair closer than the field's diagonal (at the longest focal length searched), by separation
@@ -226,19 +246,27 @@ class CoarseToFineSolver:
         for spf in (stars_per_fov,) + ((bright_stars_per_fov,) if bright_stars_per_fov else ()):
             keep = order[: int(min(len(stars), spf * 4 * math.pi / fov_sr))]
             vec = unit[keep]
-            self.tiers.append(_Tier(spf, vec, ids[keep], mag[keep], cKDTree(vec),
-                                    load_or_build(vec, max_sep, getattr(tetra, "db_folder", None),
-                                                  getattr(tetra, "log", None)),
-                                    # chance that a random direction has a catalog star within tol
-                                    min(1.0, len(vec) / (4 * math.pi) * math.pi * self.tol_rad ** 2)))
+            self.tiers.append(
+                _Tier(
+                    spf,
+                    vec,
+                    ids[keep],
+                    mag[keep],
+                    cKDTree(vec),
+                    load_or_build(vec, max_sep, getattr(tetra, "db_folder", None), getattr(tetra, "log", None)),
+                    # chance that a random direction has a catalog star within tol
+                    min(1.0, len(vec) / (4 * math.pi) * math.pi * self.tol_rad**2),
+                )
+            )
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
 
     # ---------------------------------------------------------------- regions
     def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None, top_k: int | None = None) -> list[Region]:
         if probs is None:
             return [Region(np.array([0.0, 0.0, 1.0]), 180.0, 1.0, 0)]
-        radii = self.radii if self.radii is not None and len(self.radii) == len(centroids) \
-            else region_radii_deg(centroids)
+        radii = (
+            self.radii if self.radii is not None and len(self.radii) == len(centroids) else region_radii_deg(centroids)
+        )
         order = np.argsort(-np.asarray(probs), kind="stable")[: top_k or self.top_k]
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
@@ -252,7 +280,7 @@ class CoarseToFineSolver:
         cos_r = math.cos(math.radians(region.radius_deg))
         n = len(u)
         m = min(n, self.max_pair_detections)
-        t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])      # tangent-plane coordinates at the nominal focal length
+        t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])  # tangent-plane coordinates at the nominal focal length
         anchors = []
         for i in range(m):
             for j in range(i + 1, m):
@@ -264,14 +292,31 @@ class CoarseToFineSolver:
         for _, i, j, d, lo, hi in anchors:
             if hi <= lo:
                 continue
-            if s > 0:   # what the pair leaves uncertain of the scale, times the distance from detection i
+            if s > 0:  # what the pair leaves uncertain of the scale, times the distance from detection i
                 tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
             else:
                 tol_n = np.full(n, tol)
             offs, partner, psep = self._partners(tier, i, j, t, s, tables)
             tried, _, _, ks, scores, rots = anchor_hypotheses(
-                i, j, t, lo, hi, idx.first, idx.second, idx.sep, tier.vec, star_ok, s, tol_n, offs, partner,
-                psep, region.center, cos_r, 3)
+                i,
+                j,
+                t,
+                lo,
+                hi,
+                idx.first,
+                idx.second,
+                idx.sep,
+                tier.vec,
+                star_ok,
+                s,
+                tol_n,
+                offs,
+                partner,
+                psep,
+                region.center,
+                cos_r,
+                3,
+            )
             yield rots, ks, scores, tried
 
     def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict):
@@ -304,8 +349,7 @@ class CoarseToFineSolver:
         ok = np.isfinite(dist)
         return np.flatnonzero(ok), idx[ok]
 
-    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0,
-                   tier: _Tier | None = None) -> float:
+    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0, tier: _Tier | None = None) -> float:
         """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc),
         with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
         match also passes the photometric test (1: not tested)."""
@@ -333,8 +377,16 @@ class CoarseToFineSolver:
             return False
         return bool(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]) <= self.photometric_mag)
 
-    def _decide(self, tier: _Tier, rots: np.ndarray, ks: np.ndarray, scores: np.ndarray, tried: int, u: np.ndarray,
-                flux: np.ndarray) -> int | Refusal:
+    def _decide(
+        self,
+        tier: _Tier,
+        rots: np.ndarray,
+        ks: np.ndarray,
+        scores: np.ndarray,
+        tried: int,
+        u: np.ndarray,
+        flux: np.ndarray,
+    ) -> int | Refusal:
         """Index of the accepted hypothesis, or a refusal saying why none is accepted yet. Geometry alone
         decides where it can; where it cannot, catalogue magnitudes that follow the detected fluxes
         (:meth:`_photometric_pass`) are further evidence: a coincidental match passes that test only
@@ -354,11 +406,15 @@ class CoarseToFineSolver:
             return Refusal(f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}", self.name)
         return best
 
-    def solve(self, detections: Detections, camera=None, image=None,
-              probabilities: np.ndarray | None = None) -> Solution | Refusal:
+    def solve(
+        self, detections: Detections, camera=None, image=None, probabilities: np.ndarray | None = None
+    ) -> Solution | Refusal:
         t0 = time.perf_counter()
         camera = camera or self.tetra.camera
-        ms = lambda: (time.perf_counter() - t0) * 1e3
+
+        def ms():
+            return (time.perf_counter() - t0) * 1e3
+
         if len(detections) < 3:
             return Refusal(f"too few detections ({len(detections)})", self.name, ms())
         # the brightest max_detections identify; tetra3rs verifies with all of them. Each detection scored costs a
@@ -403,25 +459,31 @@ class CoarseToFineSolver:
                     tried += t
                     best_possible = self.confidence(tried, n, n, tier=tier)
                     if best_possible < self.min_confidence and self.photometric_mag is not None:
-                        if q_all is None:         # photometry's best case: every detection matched and passing
+                        if q_all is None:  # photometry's best case: every detection matched and passing
                             q_all = self._photometric_q(tier, flux)
                         best_possible = self.confidence(tried, n, n, q_all, tier=tier)
                     if best_possible < self.min_confidence:
                         # H only grows: not even all n detections matched could pass any more, so stop here
-                        return Refusal(f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
-                                       f"{n} of {n} detections matched would give confidence {best_possible:.3g} "
-                                       f"< {self.min_confidence}", self.name, ms(), {"hypotheses": tried})
+                        return Refusal(
+                            f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
+                            f"{n} of {n} detections matched would give confidence {best_possible:.3g} "
+                            f"< {self.min_confidence}",
+                            self.name,
+                            ms(),
+                            {"hypotheses": tried},
+                        )
                     if not len(sc):
                         continue
                     rots, ks, scores = np.concatenate([rots, r]), np.concatenate([ks, k]), np.concatenate([scores, sc])
                     verdict = self._decide(tier, rots, ks, scores, tried, u, flux)
                     if isinstance(verdict, int):
-                        sol = self._finish(tier, rots[verdict], float(ks[verdict]), u, detections, camera, region, tried,
-                                           t0, every)
+                        sol = self._finish(
+                            tier, rots[verdict], float(ks[verdict]), u, detections, camera, region, tried, t0, every
+                        )
                         if isinstance(sol, Solution):
                             return sol
                         last = sol
-                        break                                        # this pass's best is doubtful: go on
+                        break  # this pass's best is doubtful: go on
                     last = verdict
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried})
 
@@ -442,7 +504,7 @@ class CoarseToFineSolver:
                 # scale of the 2-D similarity (Umeyama) from the matched stars' tangent-plane coordinates
                 # (g) to the detections' (t = k g up to a small shift and turn): free of the rotation's own
                 # error, which a plain t = k g fit absorbs, so it converges in a few iterations
-                c = tier.vec[cat_rows] @ rot                     # matched stars in the camera frame
+                c = tier.vec[cat_rows] @ rot  # matched stars in the camera frame
                 g = c[:, :2] / c[:, 2:3]
                 gc, tc = g - g.mean(axis=0), t[det_rows] - t[det_rows].mean(axis=0)
                 sv = np.linalg.svd(gc.T @ tc, compute_uv=False)
@@ -458,7 +520,9 @@ class CoarseToFineSolver:
         det_rows, cat_rows = self._matches(tier, rot, uk)
         return rot, k, det_rows, cat_rows, uk
 
-    def _pulled_off(self, tier: _Tier, matrix: np.ndarray, uk: np.ndarray, det_rows: np.ndarray, cat_rows: np.ndarray) -> bool:
+    def _pulled_off(
+        self, tier: _Tier, matrix: np.ndarray, uk: np.ndarray, det_rows: np.ndarray, cat_rows: np.ndarray
+    ) -> bool:
         """Does attitude ``matrix`` move any of our matched stars beyond ``tol_px`` of its catalogue star?"""
         cos = np.sum((uk[det_rows] @ np.asarray(matrix).T) * tier.vec[cat_rows], axis=1)
         return bool(np.any(np.arccos(np.clip(cos, -1, 1)) > self.tol_rad))
@@ -471,46 +535,80 @@ class CoarseToFineSolver:
         conf = self.confidence(tried, len(u), score, tier=tier)
         flux = np.asarray(detections.flux_adu, np.float64)
         evidence = "geometry"
-        if score >= self.min_matches and conf < self.unverified_confidence \
-                and self._photometric_pass(tier, cat_rows, det_rows, flux):
+        if (
+            score >= self.min_matches
+            and conf < self.unverified_confidence
+            and self._photometric_pass(tier, cat_rows, det_rows, flux)
+        ):
             conf_p = self.confidence(tried, len(u), score, self._photometric_q(tier, flux[det_rows]), tier=tier)
             if conf_p > conf:
                 conf, evidence = conf_p, "geometry and photometry"
         if score < self.min_matches or conf < self.min_confidence:
-            return Refusal(f"weak evidence after refinement: {score} of {len(u)} detections matched, "
-                           f"confidence {conf:.3g}", self.name)
+            return Refusal(
+                f"weak evidence after refinement: {score} of {len(u)} detections matched, confidence {conf:.3g}",
+                self.name,
+            )
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
-        extra = {"region": region.index, "region_probability": region.probability, "hypotheses": tried,
-                 "refined_by": "own least squares", "focal_factor": k, "fov_deg": list(cam_k.fov_deg),
-                 "evidence": evidence}
+        extra = {
+            "region": region.index,
+            "region_probability": region.probability,
+            "hypotheses": tried,
+            "refined_by": "own least squares",
+            "focal_factor": k,
+            "fov_deg": list(cam_k.fov_deg),
+            "evidence": evidence,
+        }
         if len(det_rows) >= 2:
             extra["magnitude_scatter"] = float(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]))
         if self.verify:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines
-            res = self.tetra.solve_with_hint(every if every is not None else detections, cam_k, rot, 1.0,
-                                             name=self.name)
+            res = self.tetra.solve_with_hint(
+                every if every is not None else detections, cam_k, rot, 1.0, name=self.name
+            )
             confirmed = isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0
             resid_px = res.residual_arcsec / cam_k.pixel_scale_arcsec if confirmed else 0.0
-            if confirmed and resid_px > self.max_residual_px and self._pulled_off(tier, res.matrix, uk, det_rows, cat_rows):
+            if (
+                confirmed
+                and resid_px > self.max_residual_px
+                and self._pulled_off(tier, res.matrix, uk, det_rows, cat_rows)
+            ):
                 # confirmed, but tetra3rs's refinement took in a star beyond any centroid error (a bright
                 # star missing from the tier, matched to a neighbour) and is pulled off by it, so far that
                 # our own matches no longer fit; their own least squares is no better (few stars, and the
                 # same doubt): neither attitude can be trusted to the precision a solution promises
-                return Refusal(f"tetra3rs confirmed the stars, but its attitude leaves {resid_px:.2f} px rms and moves "
-                               f"our matched stars beyond {self.tol_px} px: a mismatched star; no trustworthy attitude",
-                               self.name)
+                return Refusal(
+                    f"tetra3rs confirmed the stars, but its attitude leaves {resid_px:.2f} px rms and moves "
+                    f"our matched stars beyond {self.tol_px} px: a mismatched star; no trustworthy attitude",
+                    self.name,
+                )
             if confirmed:
                 extra["refined_by"] = "tetra3rs tracking"
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 extra["fov_deg"] = [res.extra.get("fov_deg", cam_k.fov_deg[0]), cam_k.fov_deg[1]]
-                return Solution(res.quaternion, res.ra_deg, res.dec_deg, res.roll_deg, res.matched,
-                                res.residual_arcsec, conf, self.name, (time.perf_counter() - t0) * 1e3, extra)
+                return Solution(
+                    res.quaternion,
+                    res.ra_deg,
+                    res.dec_deg,
+                    res.roll_deg,
+                    res.matched,
+                    res.residual_arcsec,
+                    conf,
+                    self.name,
+                    (time.perf_counter() - t0) * 1e3,
+                    extra,
+                )
             elif conf < self.unverified_confidence:
-                return Refusal("best candidate not confirmed by tetra3rs tracking and evidence below the unverified "
-                               "bar", self.name)
+                return Refusal(
+                    "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar", self.name
+                )
         resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
-        return solution_from_matrix(rot, matched=np.column_stack([det_rows, tier.ids[cat_rows]]),
-                                    residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
-                                    confidence=conf, solver=self.name, time_ms=(time.perf_counter() - t0) * 1e3,
-                                    extra=extra)
+        return solution_from_matrix(
+            rot,
+            matched=np.column_stack([det_rows, tier.ids[cat_rows]]),
+            residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600),
+            confidence=conf,
+            solver=self.name,
+            time_ms=(time.perf_counter() - t0) * 1e3,
+            extra=extra,
+        )

@@ -26,6 +26,7 @@ def iter_inputs(paths: list[str], max_frames: int | None, channel: str = "lumina
         path = Path(p)
         if path.is_dir() and (path / "manifest.json").exists():
             from skygen.datasets.shards import open_dataset
+
             with open_dataset(path) as ds:
                 for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
                     yield f"{path}#{int(ds.frames['index'][pos])}", None, ds.detections(pos), ds.image(pos), None
@@ -33,8 +34,13 @@ def iter_inputs(paths: list[str], max_frames: int | None, channel: str = "lumina
         if path.is_dir():
             files = frame_files(path)
             if not files:
-                yield str(path), None, None, None, (f"{path}: folder holds no frame files "
-                                                    f"({', '.join(FRAME_SUFFIXES)}) and is not a skygen dataset")
+                yield (
+                    str(path),
+                    None,
+                    None,
+                    None,
+                    (f"{path}: folder holds no frame files ({', '.join(FRAME_SUFFIXES)}) and is not a skygen dataset"),
+                )
             for f in files[:max_frames]:
                 yield from _one_file(f, channel)
             continue

@@ -79,13 +79,31 @@ def triad(ui, uj, sa, sb):
 @njit(cache=True)
 def _grow(x, cap: int):
     out = np.empty((cap,) + x.shape[1:], x.dtype)
-    out[:len(x)] = x
+    out[: len(x)] = x
     return out
 
 
 @njit(cache=True)
-def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, vec, star_ok, s: float,
-                      tol_n, offs, partner, psep, center, cos_r: float, min_score: int):
+def anchor_hypotheses(
+    i: int,
+    j: int,
+    t,
+    lo: int,
+    hi: int,
+    first,
+    second,
+    sep,
+    vec,
+    star_ok,
+    s: float,
+    tol_n,
+    offs,
+    partner,
+    psep,
+    center,
+    cos_r: float,
+    min_score: int,
+):
     """Hypotheses of anchor pair (i, j) over pair-index rows ``[lo, hi)``.
 
     ``t`` (n, 2): detections' tangent-plane coordinates at the nominal focal length; ``tol_n`` (n,):
@@ -112,7 +130,7 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
     uj = np.empty(3)
     uk = np.empty(3)
     r = np.empty((3, 3))
-    u1 = np.empty((n, 3))              # the nominal focal length's unit vectors, and i's separations from them
+    u1 = np.empty((n, 3))  # the nominal focal length's unit vectors, and i's separations from them
     d1 = np.empty(n)
     for k in range(n):
         u1[k, 0], u1[k, 1], u1[k, 2] = _unit(t[k, 0], t[k, 1], 1.0)
@@ -129,17 +147,17 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                 kf = min(1.0 + s, max(1.0 - s, d_nom / max(sep[q], 1e-12)))
             ui[0], ui[1], ui[2] = _unit(t[i, 0], t[i, 1], kf)
             uj[0], uj[1], uj[2] = _unit(t[j, 0], t[j, 1], kf)
-            have_r = cos_r > -1.0                          # a region, not the whole sky: place the boresight first
+            have_r = cos_r > -1.0  # a region, not the whole sky: place the boresight first
             if have_r:
                 r = triad(ui, uj, vec[a], vec[b])
                 if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
-                    continue                               # its boresight lies in another region
+                    continue  # its boresight lies in another region
             tried += 1
             delta = abs(_angle(ui[0], ui[1], ui[2], uj[0], uj[1], uj[2]) - sep[q])
             score = 1 + (1 if delta <= tol_n[j] else 0)
             for k in range(n):
                 if k == i or k == j or offs[k, a] == offs[k, a + 1]:
-                    continue                               # no star at the right distance from A: k cannot match
+                    continue  # no star at the right distance from A: k cannot match
                 if s > 0:
                     uk[0], uk[1], uk[2] = _unit(t[k, 0], t[k, 1], kf)
                     dik = _angle(ui[0], ui[1], ui[2], uk[0], uk[1], uk[2])
@@ -147,7 +165,7 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                     uk[0], uk[1], uk[2] = u1[k, 0], u1[k, 1], u1[k, 2]
                     dik = d1[k]
                 tk = tol_n[k]
-                lo_b = hi_b = -2.0                         # cosine bounds of sep(B, C), computed on first use
+                lo_b = hi_b = -2.0  # cosine bounds of sep(B, C), computed on first use
                 for p in range(offs[k, a], offs[k, a + 1]):
                     if abs(psep[p] - dik) > tk:
                         continue
@@ -159,7 +177,7 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                     cbc = vec[b, 0] * vec[c, 0] + vec[b, 1] * vec[c, 1] + vec[b, 2] * vec[c, 2]
                     if cbc < lo_b or cbc > hi_b:
                         continue
-                    if not have_r:                         # whole sky: the rotation only when a partner fits
+                    if not have_r:  # whole sky: the rotation only when a partner fits
                         r = triad(ui, uj, vec[a], vec[b])
                         have_r = True
                     x0 = r[0, 0] * uk[0] + r[0, 1] * uk[1] + r[0, 2] * uk[2]
@@ -172,7 +190,7 @@ def anchor_hypotheses(i: int, j: int, t, lo: int, hi: int, first, second, sep, v
                 continue
             if not have_r:
                 r = triad(ui, uj, vec[a], vec[b])
-            if m == cap:                                   # grow the outputs (rarely: few hypotheses score)
+            if m == cap:  # grow the outputs (rarely: few hypotheses score)
                 cap *= 2
                 out_a, out_b, out_k = _grow(out_a, cap), _grow(out_b, cap), _grow(out_k, cap)
                 out_s, out_r = _grow(out_s, cap), _grow(out_r, cap)

@@ -74,10 +74,9 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.instrument.camera import Camera
 from skygen.config import build_config as build_render_config
+from skygen.instrument.camera import Camera
 from skygen.instrument.detect import detect
-
 from skygen.runtime import atomic_path, atomic_write_bytes, dumps_json
 
 from ..errors import ConfigError
@@ -86,43 +85,68 @@ from ..model.inputs import downsample
 from .base import Detections, Refusal
 from .frames import FrameError, iter_inputs, mask_bad_pixels
 
+
 class Predictor:
     """Detector + (optional) region prior + (optional) solver for one camera."""
 
-    def __init__(self, checkpoint: str | Path | None = None, *, camera: str | Path | None = None,
-                 dataset: str | Path | None = None, solve: bool = False, top_k: int = 3, detector: str = "skygen",
-                 search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
-                 background_box: int | None = None, lis_first: bool = False, solver: str | None = None, log=None,
-                 fov_range: tuple[float, float] | None = None):
+    def __init__(
+        self,
+        checkpoint: str | Path | None = None,
+        *,
+        camera: str | Path | None = None,
+        dataset: str | Path | None = None,
+        solve: bool = False,
+        top_k: int = 3,
+        detector: str = "skygen",
+        search: str = "fine",
+        search_k: int | None = None,
+        focal_tol: float = 0.02,
+        background_box: int | None = None,
+        lis_first: bool = False,
+        solver: str | None = None,
+        log=None,
+        fov_range: tuple[float, float] | None = None,
+    ):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
+
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ConfigError(f"--top-k {top_k}: the number of regions reported must be at least 1")
         if (checkpoint is None) == (camera is None):
-            raise ConfigError("give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
-                              "(prior-free solvers only), exactly one of them")
+            raise ConfigError(
+                "give --checkpoint CK (a trained model: its own camera) or --camera FILE.yaml "
+                "(prior-free solvers only), exactly one of them"
+            )
         if fov_range is not None:
             if checkpoint is not None:
-                raise ConfigError("--fov-range: a checkpoint's camera has a known field; give --fov-range with "
-                                  "--camera or alone")
+                raise ConfigError(
+                    "--fov-range: a checkpoint's camera has a known field; give --fov-range with --camera or alone"
+                )
             lo, hi = fov_range
             if not 0 < lo < hi < 120:
                 raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
             if solver not in (None, "tetra3rs"):
-                raise ConfigError(f"--fov-range searches the field with tetra3rs lost-in-space; --solver {solver} "
-                                  "needs a known focal length (give --camera without --fov-range)")
+                raise ConfigError(
+                    f"--fov-range searches the field with tetra3rs lost-in-space; --solver {solver} "
+                    "needs a known focal length (give --camera without --fov-range)"
+                )
         render_config = None
         if dataset is not None:
             from skygen.datasets.shards import open_dataset
+
             with open_dataset(dataset) as ds:
                 render_config = dict(ds.config)
         if camera is not None:
             render_config = camera_render_config(camera)
         self.checkpoint = load_checkpoint(checkpoint) if checkpoint is not None else None
         self.prior = load_prior(self.checkpoint, render_config) if self.checkpoint is not None else None
-        self.config_differences = {}        # --dataset's frame settings unlike the checkpoint's training data
-        if dataset is not None and render_config is not None and self.checkpoint is not None \
-                and self.checkpoint.render_config is not None:
+        self.config_differences = {}  # --dataset's frame settings unlike the checkpoint's training data
+        if (
+            dataset is not None
+            and render_config is not None
+            and self.checkpoint is not None
+            and self.checkpoint.render_config is not None
+        ):
             self.config_differences = self.check_frame_settings(render_config, f"--dataset {dataset}", log)
         if self.prior is not None:
             render_config = self.prior.render_config
@@ -134,13 +158,15 @@ class Predictor:
         self.factor = self.cfg.camera.width_px // self.cfg.output.image_size_px
         self.top_k, self.detector = top_k, detector
         if detector == "tetra3rs" and self.prior is not None:
-            raise ConfigError("--detector tetra3rs: the model was trained on skygen's detector; use it only "
-                              "without --checkpoint")
-        if background_box is None:            # the camera's own setting (a fitted camera may use a local background)
+            raise ConfigError(
+                "--detector tetra3rs: the model was trained on skygen's detector; use it only without --checkpoint"
+            )
+        if background_box is None:  # the camera's own setting (a fitted camera may use a local background)
             background_box = self.cfg.detection.background_box_px
         if background_box and background_box < 8:
-            raise ConfigError(f"--background-box {background_box}: 0 (one background per frame) or a box of at "
-                              "least 8 px, e.g. 64")
+            raise ConfigError(
+                f"--background-box {background_box}: 0 (one background per frame) or a box of at least 8 px, e.g. 64"
+            )
         self.background_box = int(background_box)
         check_search_options(focal_tol, search_k)
         self.solver, self.search_level = None, None
@@ -149,19 +175,37 @@ class Predictor:
             # chain (tetra3rs lost-in-space, and the whole-sky fine stage where it refuses)
             # (with a model, the rest of the sky is searched where its regions refuse: noisy magnitudes mislead a
             # prior whose reference is the brightest star, and the whole-sky search is what then still solves)
-            name = solver or ("tetra3rs>whole-sky" if self.prior is None else
-                              "tetra3rs>learned+fine>whole-sky" if lis_first else "learned+fine>whole-sky")
+            name = solver or (
+                "tetra3rs>whole-sky"
+                if self.prior is None
+                else "tetra3rs>learned+fine>whole-sky"
+                if lis_first
+                else "learned+fine>whole-sky"
+            )
             if self.prior is not None:
                 self.search_level = self.prior.at_level(search).level
             context = None
             if fov_range is not None:
                 from .registry import make_context
                 from .tetra import Tetra3Solver
+
                 name = "tetra3rs"
-                context = make_context(self.camera, tetra=Tetra3Solver(self.camera, log=log, fov_range=fov_range),
-                                       focal_tol=focal_tol, search_k=search_k)
-            self.solver = build_solver(name, self.camera, prior=self.prior, search=search, search_k=search_k,
-                                       focal_tol=focal_tol, log=log, context=context)
+                context = make_context(
+                    self.camera,
+                    tetra=Tetra3Solver(self.camera, log=log, fov_range=fov_range),
+                    focal_tol=focal_tol,
+                    search_k=search_k,
+                )
+            self.solver = build_solver(
+                name,
+                self.camera,
+                prior=self.prior,
+                search=search,
+                search_k=search_k,
+                focal_tol=focal_tol,
+                log=log,
+                context=context,
+            )
 
     def check_frame_settings(self, config: dict, what: str, warn=None) -> dict:
         """The frame settings of data rendered with ``config`` that differ from the checkpoint's training data
@@ -177,8 +221,10 @@ class Predictor:
     def check_shape(self, img: np.ndarray, source: str) -> None:
         want = (self.cfg.camera.height_px, self.cfg.camera.width_px)
         if img.shape != want:
-            raise FrameError(f"{source}: frame is {img.shape[1]} x {img.shape[0]} px but the camera is "
-                             f"{want[1]} x {want[0]} px (width x height); give full-resolution frames of that camera")
+            raise FrameError(
+                f"{source}: frame is {img.shape[1]} x {img.shape[0]} px but the camera is "
+                f"{want[1]} x {want[0]} px (width x height); give full-resolution frames of that camera"
+            )
 
     def detect(self, img: np.ndarray) -> tuple[Detections, float, float]:
         d = self.cfg.detection
@@ -186,13 +232,20 @@ class Predictor:
             # tetra3rs's extractor (local background, matched filter): centroids relative to the image centre;
             # skygen pixel = centroid + (size - 1) / 2 (checked against rendered true positions to 0.004 px)
             import tetra3rs
-            res = tetra3rs.extract_centroids(np.ascontiguousarray(img, np.float32),
-                                             sigma_threshold=d.threshold_sigma, min_pixels=d.min_area_px,
-                                             max_centroids=d.max_detections)
+
+            res = tetra3rs.extract_centroids(
+                np.ascontiguousarray(img, np.float32),
+                sigma_threshold=d.threshold_sigma,
+                min_pixels=d.min_area_px,
+                max_centroids=d.max_detections,
+            )
             c = res.centroids
             h, w = img.shape
-            table = {"x_px": np.array([p.x for p in c]) + (w - 1) / 2, "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
-                     "flux_adu": np.array([p.brightness or 0.0 for p in c])}
+            table = {
+                "x_px": np.array([p.x for p in c]) + (w - 1) / 2,
+                "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
+                "flux_adu": np.array([p.brightness or 0.0 for p in c]),
+            }
             return Detections.from_table(table), float(res.background_mean), float(res.background_sigma)
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, d.max_detections, self.background_box)
         return Detections.from_table(det), bg, sigma
@@ -201,22 +254,33 @@ class Predictor:
         """Why a frame without detections gets no prediction, with what to check."""
         d = self.cfg.detection
         if "noise_adu" in extra:
-            seen = (f"no star above {d.threshold_sigma:g} sigma in at least {d.min_area_px} px (background "
-                    f"{extra['background_adu']:.1f} ADU, noise {extra['noise_adu']:.2f} ADU)")
+            seen = (
+                f"no star above {d.threshold_sigma:g} sigma in at least {d.min_area_px} px (background "
+                f"{extra['background_adu']:.1f} ADU, noise {extra['noise_adu']:.2f} ADU)"
+            )
         else:
             seen = "its stored detection table is empty"
-        return (f"no detections: {seen}, so nothing to predict from; a blank, capped or saturated frame, or an "
-                "exposure too short for the camera's detection settings (--background-box 64 for sky glow)")
+        return (
+            f"no detections: {seen}, so nothing to predict from; a blank, capped or saturated frame, or an "
+            "exposure too short for the camera's detection settings (--background-box 64 for sky glow)"
+        )
 
     def stored_image(self, img: np.ndarray) -> np.ndarray:
         """The frame at the model's stored size (what the image branch sees)."""
         return downsample(img, self.factor)
 
     def run(self, source: str, det: Detections, stored: np.ndarray | None, extra: dict) -> dict:
-        rec = {"frame": source, "status": "ok", **extra, "n_detections": len(det),
-               "detections": [[round(float(x), 3), round(float(y), 3), round(float(f), 1)]
-                              for x, y, f in zip(det.x_px, det.y_px, det.flux_adu)]}
-        if not len(det):        # nothing to read: no region probabilities (they would be the model's bias)
+        rec = {
+            "frame": source,
+            "status": "ok",
+            **extra,
+            "n_detections": len(det),
+            "detections": [
+                [round(float(x), 3), round(float(y), 3), round(float(f), 1)]
+                for x, y, f in zip(det.x_px, det.y_px, det.flux_adu)
+            ],
+        }
+        if not len(det):  # nothing to read: no region probabilities (they would be the model's bias)
             rec.update({"status": "no_detections", "reason": self.no_detections_reason(extra)})
             if self.solver is not None:
                 rec["solution"] = Refusal("no detections in the frame", self.solver.name).to_dict()
@@ -229,10 +293,16 @@ class Predictor:
             rec["model_ms"] = (time.perf_counter() - t0) * 1e3
             order = np.argsort(-probs, kind="stable")[: self.top_k]
             c = self.prior.centroids
-            rec["regions"] = [{"rank": r + 1, "region": int(k), "probability": float(probs[k]),
-                               "ra_deg": float(np.degrees(np.arctan2(c[k, 1], c[k, 0])) % 360),
-                               "dec_deg": float(np.degrees(np.arcsin(np.clip(c[k, 2], -1, 1))))}
-                              for r, k in enumerate(order)]
+            rec["regions"] = [
+                {
+                    "rank": r + 1,
+                    "region": int(k),
+                    "probability": float(probs[k]),
+                    "ra_deg": float(np.degrees(np.arctan2(c[k, 1], c[k, 0])) % 360),
+                    "dec_deg": float(np.degrees(np.arcsin(np.clip(c[k, 2], -1, 1)))),
+                }
+                for r, k in enumerate(order)
+            ]
         if self.solver is not None:
             kw = {"probabilities": search_probs} if search_probs is not None else {}
             res = self.solver.solve(det, self.camera, stored, **kw)
@@ -245,13 +315,16 @@ def camera_render_config(camera) -> dict:
     does not matter, so ``output.image_size_px`` is the sensor width (any sensor size is taken)."""
     from skygen import configlib
     from skygen.config import check_camera_section, config_dict
+
     data = dict(camera) if isinstance(camera, dict) else configlib.read_yaml(camera)
     data = data if isinstance(data, dict) else {}
     width = (data.get("camera") or {}).get("width_px") if isinstance(data.get("camera"), dict) else None
     if not isinstance(camera, dict):
-        if "camera" not in data:     # a camera file that describes no camera would mean the default 20 deg one
-            raise ConfigError(f"camera file {camera}: no camera section; give camera: with width_px, height_px, "
-                              "pixel_pitch_um and focal_length_mm (or fov_deg), e.g. configs/cameras/default-20deg.yaml")
+        if "camera" not in data:  # a camera file that describes no camera would mean the default 20 deg one
+            raise ConfigError(
+                f"camera file {camera}: no camera section; give camera: with width_px, height_px, "
+                "pixel_pitch_um and focal_length_mm (or fov_deg), e.g. configs/cameras/default-20deg.yaml"
+            )
         check_camera_section(data, f"camera file {camera}")
     if isinstance(width, int) and width > 0:
         data = {**data, "output": {**(data.get("output") or {}), "image_size_px": width}}
@@ -261,6 +334,7 @@ def camera_render_config(camera) -> dict:
 def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
     """The frame (log-stretched to 8 bit) with numbered detections; matched ones green."""
     import cv2
+
     lo, hi = np.percentile(img, 1), max(float(np.percentile(img, 99.9)), float(np.percentile(img, 1)) + 1)
     x = np.log1p(np.clip(img - lo, 0, None)) / np.log1p(hi - lo)
     rgb = cv2.cvtColor((np.clip(x, 0, 1) * 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
@@ -273,8 +347,10 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
         cv2.circle(rgb, c, 9, colour, 1, cv2.LINE_AA)
         cv2.putText(rgb, str(i + 1), (c[0] + 10, c[1] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
     if sol.get("status") == "solved":
-        text = (f"RA {sol['ra_deg']:.3f} Dec {sol['dec_deg']:.3f} roll {sol['roll_deg']:.2f}  "
-                f"{sol['n_matched']} matched, {sol['residual_arcsec']:.1f}\" rms")
+        text = (
+            f"RA {sol['ra_deg']:.3f} Dec {sol['dec_deg']:.3f} roll {sol['roll_deg']:.2f}  "
+            f'{sol["n_matched"]} matched, {sol["residual_arcsec"]:.1f}" rms'
+        )
     elif sol:
         text = f"refused: {sol['reason']}"
     else:
@@ -287,22 +363,56 @@ def overlay(path: Path, img: np.ndarray, det: Detections, rec: dict) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
-def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, solve=False, top_k=3,
-            detector="skygen", overlay_dir=None, out=None, max_frames=None, log=print,
-            err=None, search="fine", search_k=None, focal_tol=0.02, background_box=None,
-            lis_first=False, solver=None, fov_range=None, channel="luminance") -> tuple[list[dict], int]:
+def predict(
+    frames: list[str],
+    checkpoint=None,
+    *,
+    camera=None,
+    dataset=None,
+    solve=False,
+    top_k=3,
+    detector="skygen",
+    overlay_dir=None,
+    out=None,
+    max_frames=None,
+    log=print,
+    err=None,
+    search="fine",
+    search_k=None,
+    focal_tol=0.02,
+    background_box=None,
+    lis_first=False,
+    solver=None,
+    fov_range=None,
+    channel="luminance",
+) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
     become one plane (``channel``: luminance, r, g, b or sum)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
     if fov_range is not None and not 0 < fov_range[0] < fov_range[1] < 120:
-        raise ConfigError(f"--fov-range {fov_range[0]:g} {fov_range[1]:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
+        raise ConfigError(
+            f"--fov-range {fov_range[0]:g} {fov_range[1]:g}: give 0 < LO < HI < 120 degrees (horizontal field)"
+        )
     if fov_range is not None and camera is None and checkpoint is None:
         camera = _camera_of_first_frame(frames, fov_range, channel)
-    pred = Predictor(checkpoint, camera=camera, dataset=dataset, solve=solve, top_k=top_k, detector=detector,
-                     search=search, search_k=search_k, focal_tol=focal_tol, background_box=background_box,
-                     lis_first=lis_first, solver=solver, log=lambda m: err(m), fov_range=fov_range)
+    pred = Predictor(
+        checkpoint,
+        camera=camera,
+        dataset=dataset,
+        solve=solve,
+        top_k=top_k,
+        detector=detector,
+        search=search,
+        search_k=search_k,
+        focal_tol=focal_tol,
+        background_box=background_box,
+        lis_first=lis_first,
+        solver=solver,
+        log=lambda m: err(m),
+        fov_range=fov_range,
+    )
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
     differences = _dataset_differences(frames, pred, err)
@@ -321,14 +431,20 @@ def predict(frames: list[str], checkpoint=None, *, camera=None, dataset=None, so
                     img, bad = mask_bad_pixels(img, source)
                     det, bg, sigma = pred.detect(img)
                     stored = pred.stored_image(img)
-                    extra = {"shape": [int(img.shape[0]), int(img.shape[1])], "background_adu": bg, "noise_adu": sigma,
-                             "bad_pixels": bad}
+                    extra = {
+                        "shape": [int(img.shape[0]), int(img.shape[1])],
+                        "background_adu": bg,
+                        "noise_adu": sigma,
+                        "bad_pixels": bad,
+                    }
                 else:
                     det, extra = Detections.from_table(table), {"detections_from": "dataset"}
                 rec = pred.run(source, det, stored, extra)
                 rec["total_ms"] = (time.perf_counter() - t0) * 1e3
-                diffs = {**pred.config_differences,
-                         **(differences.get(source.rsplit("#", 1)[0], {}) if img is None else {})}
+                diffs = {
+                    **pred.config_differences,
+                    **(differences.get(source.rsplit("#", 1)[0], {}) if img is None else {}),
+                }
                 if diffs:
                     rec["config_differences"] = diffs
                 if rec["status"] == "no_detections":
@@ -353,6 +469,7 @@ def _dataset_differences(frames: list[str], pred: Predictor, warn) -> dict[str, 
     if pred.checkpoint is None:
         return out
     from skygen.datasets.shards import open_dataset
+
     for p in frames:
         path = Path(p)
         if path.is_dir() and (path / "manifest.json").exists() and str(path) not in out:
@@ -369,7 +486,14 @@ def _camera_of_first_frame(frames: list[str], fov_range, channel: str = "luminan
     for _, img, _, _, error in iter_inputs(frames, 1, channel):
         if img is not None:
             h, w = img.shape
-            return {"camera": {"width_px": int(w), "height_px": int(h), "pixel_pitch_um": 5.5,
-                               "fov_deg": 0.5 * (fov_range[0] + fov_range[1])}}
-    raise FrameError("--fov-range without --camera takes the sensor size from the first frame, but no frame could "
-                     "be read")
+            return {
+                "camera": {
+                    "width_px": int(w),
+                    "height_px": int(h),
+                    "pixel_pitch_um": 5.5,
+                    "fov_deg": 0.5 * (fov_range[0] + fov_range[1]),
+                }
+            }
+    raise FrameError(
+        "--fov-range without --camera takes the sensor size from the first frame, but no frame could be read"
+    )

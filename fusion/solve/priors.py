@@ -36,6 +36,7 @@ from .base import Detections
 
 class RegionPrior:
     """The prior contract (see the module docstring); subclasses set ``centroids`` and ``probabilities``."""
+
     level: str = "coarse"
     centroids: np.ndarray
 
@@ -60,9 +61,9 @@ class OraclePrior(RegionPrior):
 
     def probabilities_for(self, v_true: np.ndarray, frame_index: int) -> np.ndarray:
         d = self.centroids @ np.asarray(v_true, np.float64)
-        order = np.argsort(-d, kind="stable")                       # true region, then its neighbours
+        order = np.argsort(-d, kind="stable")  # true region, then its neighbours
         rng = np.random.default_rng([self.seed, frame_index])
-        if rng.random() >= self.top1 and len(order) > 1:            # a miss: the true region drops to rank 2
+        if rng.random() >= self.top1 and len(order) > 1:  # a miss: the true region drops to rank 2
             order[[0, 1]] = order[[1, 0]]
         p = np.zeros(len(order))
         p[order] = 0.5 ** np.arange(1, len(order) + 1)
@@ -82,6 +83,7 @@ class CheckpointPrior(RegionPrior):
 
     def __init__(self, checkpoint: Checkpoint | str | Path, render_config: dict | None = None, level: str = "coarse"):
         import torch
+
         ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)
         self.render_config = render_config if render_config is not None else ckpt.require_render_config()
         self.model, self.cfg = ckpt.build_model(), ckpt.fusion_config
@@ -130,7 +132,8 @@ class CheckpointPrior(RegionPrior):
         return fine if self.level == "fine" else coarse
 
 
-def load_prior(checkpoint: Checkpoint | str | Path, render_config: dict | None = None,
-               level: str = "coarse") -> CheckpointPrior:
+def load_prior(
+    checkpoint: Checkpoint | str | Path, render_config: dict | None = None, level: str = "coarse"
+) -> CheckpointPrior:
     """The learned prior of a checkpoint (a file, a run folder or an already loaded :class:`Checkpoint`)."""
     return CheckpointPrior(checkpoint, render_config, level)

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-if TYPE_CHECKING:                  # names for the annotations only: importing them here would load torch
+if TYPE_CHECKING:  # names for the annotations only: importing them here would load torch
     from skygen.instrument.camera import Camera
 
     from .priors import RegionPrior
@@ -43,19 +43,20 @@ if TYPE_CHECKING:                  # names for the annotations only: importing t
 @dataclass
 class SolverContext:
     """What a builder may use: the camera, a shared tetra3rs solver, the prior and the search settings."""
+
     camera: Camera
-    tetra: Tetra3Solver                     # its database loaded once, shared by every solver built
-    prior: RegionPrior | None = None        # at its search level (learned solvers)
-    search_centroids: np.ndarray | None = None   # regions the oracle priors rank (benchmark)
-    top_k: int = 20                         # regions the fine stage searches, most probable first
-    focal_tol: float = 0.02                 # relative focal-length uncertainty the fine stage fits within
-    built: dict = field(default_factory=dict)    # solvers already built for this context, by name
+    tetra: Tetra3Solver  # its database loaded once, shared by every solver built
+    prior: RegionPrior | None = None  # at its search level (learned solvers)
+    search_centroids: np.ndarray | None = None  # regions the oracle priors rank (benchmark)
+    top_k: int = 20  # regions the fine stage searches, most probable first
+    focal_tol: float = 0.02  # relative focal-length uncertainty the fine stage fits within
+    built: dict = field(default_factory=dict)  # solvers already built for this context, by name
 
 
 @dataclass(frozen=True)
 class SolverSpec:
     name: str
-    prior: str | None       # None, "learned" or "oracle"
+    prior: str | None  # None, "learned" or "oracle"
     doc: str
     build: Callable[[SolverContext], object]
 
@@ -71,6 +72,7 @@ def register_solver(name: str, *, prior: str | None = None, doc: str = ""):
     def deco(builder):
         SOLVERS[name] = SolverSpec(name, prior, doc, builder)
         return builder
+
     return deco
 
 
@@ -89,40 +91,59 @@ def _tetra3rs(ctx: SolverContext):
 @register_solver("whole-sky", doc="the fine stage over the whole sky, no prior")
 def _whole_sky(ctx: SolverContext):
     from .fine import CoarseToFineSolver
+
     return CoarseToFineSolver(ctx.tetra, None, name="whole-sky", focal_tol=ctx.focal_tol)
 
 
 @register_solver("tetra3rs>whole-sky", doc="tetra3rs, and the whole-sky fine stage where it refuses")
 def _tetra3rs_whole_sky(ctx: SolverContext):
     from .base import FallbackSolver
+
     return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "whole-sky"))
 
 
 @register_solver("learned+fine", prior="learned", doc="the fine stage searching the learned prior's regions")
 def _learned_fine(ctx: SolverContext):
     from .fine import CoarseToFineSolver
+
     return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine", top_k=ctx.top_k, focal_tol=ctx.focal_tol)
 
 
-@register_solver("learned+fine>whole-sky", prior="learned",
-                 doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget)")
+@register_solver(
+    "learned+fine>whole-sky",
+    prior="learned",
+    doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget)",
+)
 def _learned_fine_whole_sky(ctx: SolverContext):
     from .fine import CoarseToFineSolver
-    return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine>whole-sky", top_k=ctx.top_k,
-                              focal_tol=ctx.focal_tol, then_whole_sky=True)
+
+    return CoarseToFineSolver(
+        ctx.tetra,
+        ctx.prior,
+        name="learned+fine>whole-sky",
+        top_k=ctx.top_k,
+        focal_tol=ctx.focal_tol,
+        then_whole_sky=True,
+    )
 
 
-@register_solver("tetra3rs>learned+fine", prior="learned",
-                 doc="tetra3rs lost-in-space, and learned + fine where it refuses")
+@register_solver(
+    "tetra3rs>learned+fine", prior="learned", doc="tetra3rs lost-in-space, and learned + fine where it refuses"
+)
 def _tetra3rs_learned_fine(ctx: SolverContext):
     from .base import FallbackSolver
+
     return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine"))
 
 
-@register_solver("tetra3rs>learned+fine>whole-sky", prior="learned",
-                 doc="tetra3rs lost-in-space, then learned + fine > whole-sky where it refuses")
+@register_solver(
+    "tetra3rs>learned+fine>whole-sky",
+    prior="learned",
+    doc="tetra3rs lost-in-space, then learned + fine > whole-sky where it refuses",
+)
 def _tetra3rs_learned_fine_whole_sky(ctx: SolverContext):
     from .base import FallbackSolver
+
     return FallbackSolver(get(ctx, "tetra3rs"), get(ctx, "learned+fine>whole-sky"))
 
 
@@ -136,16 +157,28 @@ def _oracle_centroids(ctx: SolverContext) -> np.ndarray:
 def _oracle(ctx: SolverContext):
     from .fine import CoarseToFineSolver
     from .priors import OraclePrior
-    return CoarseToFineSolver(ctx.tetra, OraclePrior(_oracle_centroids(ctx), 1.0), name="oracle-prior",
-                              top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+    return CoarseToFineSolver(
+        ctx.tetra,
+        OraclePrior(_oracle_centroids(ctx), 1.0),
+        name="oracle-prior",
+        top_k=ctx.top_k,
+        focal_tol=ctx.focal_tol,
+    )
 
 
 @register_solver("sim85-prior", prior="oracle", doc="benchmark only: the true region first in 85 % of frames")
 def _sim85(ctx: SolverContext):
     from .fine import CoarseToFineSolver
     from .priors import OraclePrior
-    return CoarseToFineSolver(ctx.tetra, OraclePrior(_oracle_centroids(ctx), 0.85, seed=1), name="sim85-prior",
-                              top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+
+    return CoarseToFineSolver(
+        ctx.tetra,
+        OraclePrior(_oracle_centroids(ctx), 0.85, seed=1),
+        name="sim85-prior",
+        top_k=ctx.top_k,
+        focal_tol=ctx.focal_tol,
+    )
 
 
 def default_search_k(level: str) -> int:
@@ -155,15 +188,25 @@ def default_search_k(level: str) -> int:
 
 def check_search_options(focal_tol: float, search_k: int | None, k_flag: str = "--search-k") -> None:
     from ..errors import ConfigError
+
     if not 0.0 <= focal_tol < 0.2:
         raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
     if search_k is not None and search_k < 1:
         raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
 
 
-def make_context(camera, *, prior=None, search: str = "fine", search_k: int | None = None, focal_tol: float = 0.02,
-                 search_centroids: np.ndarray | None = None, tetra=None, log=None,
-                 k_flag: str = "--search-k") -> SolverContext:
+def make_context(
+    camera,
+    *,
+    prior=None,
+    search: str = "fine",
+    search_k: int | None = None,
+    focal_tol: float = 0.02,
+    search_centroids: np.ndarray | None = None,
+    tetra=None,
+    log=None,
+    k_flag: str = "--search-k",
+) -> SolverContext:
     """A :class:`SolverContext` for ``camera``: the prior at its ``search`` level (its fine regions when it has
     them), the regions searched (``search_k``, default :func:`default_search_k`) and a tetra3rs solver."""
     check_search_options(focal_tol, search_k, k_flag)
@@ -172,14 +215,24 @@ def make_context(camera, *, prior=None, search: str = "fine", search_k: int | No
     level = getattr(prior, "level", "coarse")
     if tetra is None:
         from .tetra import Tetra3Solver
+
         tetra = Tetra3Solver(camera, log=log)
     if search_centroids is None and prior is not None:
         search_centroids = prior.centroids
     return SolverContext(camera, tetra, prior, search_centroids, search_k or default_search_k(level), focal_tol)
 
 
-def build_solver(name: str, camera, *, prior=None, search: str = "fine", search_k: int | None = None,
-                 focal_tol: float = 0.02, log=None, context: SolverContext | None = None):
+def build_solver(
+    name: str,
+    camera,
+    *,
+    prior=None,
+    search: str = "fine",
+    search_k: int | None = None,
+    focal_tol: float = 0.02,
+    log=None,
+    context: SolverContext | None = None,
+):
     """The registered solver ``name`` for ``camera`` (a :class:`skygen.instrument.camera.Camera`).
 
     ``prior``: a :class:`fusion.solve.priors.RegionPrior` (e.g. ``load_prior(checkpoint)``), needed by
@@ -188,6 +241,7 @@ def build_solver(name: str, camera, *, prior=None, search: str = "fine", search_
     between several solvers.
     """
     from ..errors import ConfigError
+
     if name not in SOLVERS:
         raise ConfigError(f"--solver {name!r}: unknown; choose from {', '.join(SOLVERS)}")
     spec = SOLVERS[name]
@@ -195,6 +249,8 @@ def build_solver(name: str, camera, *, prior=None, search: str = "fine", search_
     if spec.prior == "learned" and ctx.prior is None:
         raise ConfigError(f"solver {name} needs a learned prior: pass --checkpoint CK (a trained model)")
     if spec.prior == "oracle" and ctx.search_centroids is None:
-        raise ConfigError(f"solver {name} is a benchmark reference: it needs the true boresight and the regions "
-                          "to rank (fusion benchmark)")
+        raise ConfigError(
+            f"solver {name} is a benchmark reference: it needs the true boresight and the regions "
+            "to rank (fusion benchmark)"
+        )
     return get(ctx, name)

@@ -23,7 +23,8 @@ Conventions (checked on rendered frames by ``tests/test_solvers.py``)
 
 Database and centroid conversion: :mod:`skygen.real.platesolve` (shared with ``skygen fit-camera``):
 ``SolverDatabase.generate_from_gaia`` for the camera's horizontal field of view (or a range of
-fields, ``fov_range``), cached on disk (``$SKYGEN_CACHE`` (or the legacy ``$FUSION_CACHE``), else ``~/.cache/skygen``); a database for
+fields, ``fov_range``), cached on disk (``$SKYGEN_CACHE`` (or the legacy ``$FUSION_CACHE``), else ``~/.cache/skygen``);
+a database for
 a 20° field builds in about a second.
 """
 
@@ -52,9 +53,17 @@ class Tetra3Solver:
 
     name = "tetra3rs-lis"
 
-    def __init__(self, camera, *, match_threshold: float = 1e-5, db_folder: str | Path | None = None,
-                 max_patterns_checked: int = 1_000_000, timeout_ms: int = 5000, log=None,
-                 fov_range: tuple[float, float] | None = None):
+    def __init__(
+        self,
+        camera,
+        *,
+        match_threshold: float = 1e-5,
+        db_folder: str | Path | None = None,
+        max_patterns_checked: int = 1_000_000,
+        timeout_ms: int = 5000,
+        log=None,
+        fov_range: tuple[float, float] | None = None,
+    ):
         """``fov_range`` (lo, hi) degrees: the horizontal field is not known, only bounded; lost-in-space then
         searches it (a multi-scale database) and each solution reports the field it found (``fov_deg``);
         the camera's own focal length is not used (its distortion must be none)."""
@@ -75,7 +84,7 @@ class Tetra3Solver:
         # ideal centroids are square pixels of width 1: a sensor of tall pixels is height * aspect of them high
         key = (camera.f_px, camera.width_px, int(round(camera.height_px * camera.aspect)))
         if key not in self._models:
-            if len(self._models) >= 32:           # the coarse-to-fine stage passes fitted focal lengths
+            if len(self._models) >= 32:  # the coarse-to-fine stage passes fitted focal lengths
                 self._models.clear()
             self._models[key] = self.t3.CameraModel(float(key[0]), key[1], key[2])
         return self._models[key]
@@ -83,11 +92,20 @@ class Tetra3Solver:
     def solve(self, detections: Detections, camera=None, image=None) -> Solution | Refusal:
         return self._run(detections, camera or self.camera, self.name, {})
 
-    def solve_with_hint(self, detections: Detections, camera, hint_matrix: np.ndarray, uncertainty_deg: float,
-                        name: str = "tetra3rs-hint") -> Solution | Refusal:
+    def solve_with_hint(
+        self,
+        detections: Detections,
+        camera,
+        hint_matrix: np.ndarray,
+        uncertainty_deg: float,
+        name: str = "tetra3rs-hint",
+    ) -> Solution | Refusal:
         """Tracking from a camera -> ICRS hint matrix; never falls back to lost-in-space (strict)."""
-        kw = {"attitude_hint": np.ascontiguousarray(np.asarray(hint_matrix, np.float64).T),
-              "hint_uncertainty_deg": float(uncertainty_deg), "strict_hint": True}
+        kw = {
+            "attitude_hint": np.ascontiguousarray(np.asarray(hint_matrix, np.float64).T),
+            "hint_uncertainty_deg": float(uncertainty_deg),
+            "strict_hint": True,
+        }
         return self._run(detections, camera, name, kw)
 
     def _run(self, det: Detections, camera, name: str, kw: dict) -> Solution | Refusal:
@@ -98,23 +116,41 @@ class Tetra3Solver:
         if self.fov_range is not None and "attitude_hint" not in kw:
             # unknown field: without distortion the ideal centroids do not depend on the focal length
             lo, hi = self.fov_range
-            geometry = {"fov_estimate_deg": 0.5 * (lo + hi), "fov_max_error_deg": 0.5 * (hi - lo),
-                        "image_width": int(camera.width_px), "image_height": int(round(camera.height_px * camera.aspect))}
+            geometry = {
+                "fov_estimate_deg": 0.5 * (lo + hi),
+                "fov_max_error_deg": 0.5 * (hi - lo),
+                "image_width": int(camera.width_px),
+                "image_height": int(round(camera.height_px * camera.aspect)),
+            }
         else:
             geometry = {"camera_model": self._model(camera)}
-        res = self.db.solve_from_centroids(cents, **geometry,
-                                           match_threshold=self.match_threshold, solve_timeout_ms=self.timeout_ms,
-                                           max_patterns_checked=self.max_patterns_checked, **kw)
+        res = self.db.solve_from_centroids(
+            cents,
+            **geometry,
+            match_threshold=self.match_threshold,
+            solve_timeout_ms=self.timeout_ms,
+            max_patterns_checked=self.max_patterns_checked,
+            **kw,
+        )
         ms = (time.perf_counter() - t0) * 1e3
         if not res:
             return Refusal(str(res.status), name, ms)
         if res.parity_flip:
             return Refusal("parity-flipped match (mirror image): not a physical attitude", name, ms)
-        matched = np.column_stack([np.asarray(res.matched_centroids, np.int64),
-                                   np.asarray(res.matched_catalog_ids, np.int64)])
+        matched = np.column_stack(
+            [np.asarray(res.matched_centroids, np.int64), np.asarray(res.matched_catalog_ids, np.int64)]
+        )
         p = float(res.probability)
-        return solution_from_matrix(np.asarray(res.rotation_matrix_icrs_to_camera).T, matched=matched,
-                                    residual_arcsec=float(res.rmse_arcsec), confidence=float(max(0.0, 1.0 - p)),
-                                    solver=name, time_ms=ms,
-                                    extra={"false_positive_probability": p, "fov_deg": float(res.fov_deg),
-                                           "tetra3rs_roll_deg": float(res.roll_deg)})
+        return solution_from_matrix(
+            np.asarray(res.rotation_matrix_icrs_to_camera).T,
+            matched=matched,
+            residual_arcsec=float(res.rmse_arcsec),
+            confidence=float(max(0.0, 1.0 - p)),
+            solver=name,
+            time_ms=ms,
+            extra={
+                "false_positive_probability": p,
+                "fov_deg": float(res.fov_deg),
+                "tetra3rs_roll_deg": float(res.roll_deg),
+            },
+        )

@@ -36,10 +36,10 @@ from ..config import AugConfig
 from ..model.inputs import FrameGeometry, Sample
 
 
-
 def _gaussian_stamp(image: np.ndarray, u: float, v: float, total: float, sigma: float) -> None:
     """Add a pixel-integrated 2-D Gaussian of integral ``total`` centred at stored (u, v), in place."""
     from scipy.special import erf
+
     r = int(np.ceil(4 * sigma + 1))
     s = image.shape[0]
     x0, x1 = max(int(np.floor(u)) - r, 0), min(int(np.floor(u)) + r + 2, s)
@@ -60,11 +60,17 @@ def rotate(sample: Sample, theta_deg: float, geo: FrameGeometry) -> Sample:
         return sample
     t = np.radians(theta_deg)
     c, s = np.cos(t), np.sin(t)
-    cu, cv = (geo.image_px - 1) / 2.0, (geo.image_h - 1) / 2.0       # stored centre
+    cu, cv = (geo.image_px - 1) / 2.0, (geo.image_h - 1) / 2.0  # stored centre
     m = np.array([[c, -s, cu - c * cu + s * cv], [s, c, cv - s * cu - c * cv]])
-    img = cv2.warpAffine(sample.image, m, (geo.image_px, geo.image_h), flags=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=float(sample.background_adu))
-    cx, cy = (geo.sensor_px - 1) / 2.0, (geo.sensor_h - 1) / 2.0     # full-resolution centre: the same point
+    img = cv2.warpAffine(
+        sample.image,
+        m,
+        (geo.image_px, geo.image_h),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float(sample.background_adu),
+    )
+    cx, cy = (geo.sensor_px - 1) / 2.0, (geo.sensor_h - 1) / 2.0  # full-resolution centre: the same point
     dx, dy = sample.x_px - cx, sample.y_px - cy
     x, y = cx + c * dx - s * dy, cy + s * dx + c * dy
     keep = (x >= -0.5) & (x < geo.sensor_px - 0.5) & (y >= -0.5) & (y < geo.sensor_h - 0.5)
@@ -75,9 +81,13 @@ def rotate(sample: Sample, theta_deg: float, geo: FrameGeometry) -> Sample:
 def jitter(sample: Sample, gain: float, offset_adu: float, geo: FrameGeometry) -> Sample:
     """Contrast ``gain`` about the bias level plus a brightness ``offset_adu``; fluxes scale by gain."""
     img = (geo.bias_adu + gain * (sample.image - geo.bias_adu) + offset_adu).astype(np.float32)
-    return replace(sample, image=img, flux_adu=(sample.flux_adu * gain).astype(np.float32),
-                   background_adu=geo.bias_adu + gain * (sample.background_adu - geo.bias_adu) + offset_adu,
-                   noise_adu=sample.noise_adu * gain)
+    return replace(
+        sample,
+        image=img,
+        flux_adu=(sample.flux_adu * gain).astype(np.float32),
+        background_adu=geo.bias_adu + gain * (sample.background_adu - geo.bias_adu) + offset_adu,
+        noise_adu=sample.noise_adu * gain,
+    )
 
 
 def add_noise(sample: Sample, sigma_adu: float, rng: np.random.Generator) -> Sample:
@@ -88,8 +98,9 @@ def add_noise(sample: Sample, sigma_adu: float, rng: np.random.Generator) -> Sam
     return replace(sample, image=img, noise_adu=float(np.hypot(sample.noise_adu, sigma_adu)))
 
 
-def drop_stars(sample: Sample, p: float, rng: np.random.Generator, geo: FrameGeometry,
-               erase_image: bool = False) -> Sample:
+def drop_stars(
+    sample: Sample, p: float, rng: np.random.Generator, geo: FrameGeometry, erase_image: bool = False
+) -> Sample:
     """Lose each detection with probability ``p``; optionally paint lost stars out of the image."""
     if sample.n == 0 or p <= 0:
         return sample
@@ -97,7 +108,7 @@ def drop_stars(sample: Sample, p: float, rng: np.random.Generator, geo: FrameGeo
     out = sample.take(keep)
     if erase_image and not keep.all():
         img = sample.image.copy()
-        yy, xx = np.mgrid[0:geo.image_h, 0:geo.image_px]
+        yy, xx = np.mgrid[0 : geo.image_h, 0 : geo.image_px]
         for j in np.flatnonzero(~keep):
             r_full = np.sqrt(max(float(sample.area_px[j]), 1.0) / np.pi) + 3.0 * geo.psf_sigma_px
             u, v = geo.to_stored(np.array([sample.x_px[j], sample.y_px[j]]))
@@ -108,8 +119,9 @@ def drop_stars(sample: Sample, p: float, rng: np.random.Generator, geo: FrameGeo
     return out
 
 
-def inject_false_stars(sample: Sample, n: int, snr_range: tuple[float, float], rng: np.random.Generator,
-                       geo: FrameGeometry) -> Sample:
+def inject_false_stars(
+    sample: Sample, n: int, snr_range: tuple[float, float], rng: np.random.Generator, geo: FrameGeometry
+) -> Sample:
     """Paint ``n`` point sources at uniform positions; append them to the detections, re-sorted.
 
     Peak amplitude (full-resolution ADU) = snr * full-resolution noise, snr log-uniform in
@@ -133,10 +145,14 @@ def inject_false_stars(sample: Sample, n: int, snr_range: tuple[float, float], r
         u, v = geo.to_stored(np.array([xi, yi]))
         _gaussian_stamp(img, float(u), float(v), float(fi) / (f * f), float(sig_st))
     area = np.full(n, max(int(np.pi * (2 * sig) ** 2), 1), np.int32)
-    out = replace(sample, image=img, x_px=np.concatenate([sample.x_px, x]),
-                  y_px=np.concatenate([sample.y_px, y]),
-                  flux_adu=np.concatenate([sample.flux_adu, flux.astype(np.float32)]),
-                  area_px=np.concatenate([sample.area_px, area]))
+    out = replace(
+        sample,
+        image=img,
+        x_px=np.concatenate([sample.x_px, x]),
+        y_px=np.concatenate([sample.y_px, y]),
+        flux_adu=np.concatenate([sample.flux_adu, flux.astype(np.float32)]),
+        area_px=np.concatenate([sample.area_px, area]),
+    )
     return out.sorted()
 
 
@@ -165,6 +181,7 @@ def augment(sample: Sample, cfg: AugConfig, rng: np.random.Generator, geo: Frame
 class Augmenter:
     """:func:`augment` with its config bound: the ``augment`` callable :class:`fusion.model.shards.FrameDataset`
     takes (picklable, so DataLoader workers of any start method can use it)."""
+
     cfg: AugConfig
 
     def __call__(self, sample: Sample, rng: np.random.Generator, geo: FrameGeometry) -> Sample:

@@ -29,9 +29,9 @@ class PreparedData:
     regions: Regions
     train: FrameDataset
     val: FrameDataset
-    alpha: np.ndarray                     # (K,) class weights of the loss
-    kmeans: KMeansResult | None           # None when the regions came from a checkpoint
-    sparse_frames: dict                   # split -> frames with < 2 detections
+    alpha: np.ndarray  # (K,) class weights of the loss
+    kmeans: KMeansResult | None  # None when the regions came from a checkpoint
+    sparse_frames: dict  # split -> frames with < 2 detections
 
 
 def prepare_data(cfg: FusionConfig, regions: Regions | None = None) -> PreparedData:
@@ -51,24 +51,44 @@ def prepare_data(cfg: FusionConfig, regions: Regions | None = None) -> PreparedD
     km = None
     fit = dict(seed=lab.seed, n_init=lab.n_init, max_iter=lab.max_iter, tol_deg=lab.tol_deg)
     if regions is None:
-        on = (vec["train"] if cfg.stream.kind == "none"
-              else sky_directions(build_render_config(ds.config).attitude, lab.k, lab.seed))
+        on = (
+            vec["train"]
+            if cfg.stream.kind == "none"
+            else sky_directions(build_render_config(ds.config).attitude, lab.k, lab.seed)
+        )
         regions, km = Regions.fit(on, lab.k, **fit)
     elif regions.k != lab.k:
         raise CheckpointError(f"the checkpoint's centroids define K={regions.k} classes but labels.k={lab.k}")
     if lab.fine_k and regions.fine is None:
         att = build_render_config(ds.config).attitude
         if att.mode == "list" and len(set(zip(att.ra_deg, att.dec_deg))) < lab.fine_k:
-            raise ConfigError(f"labels.fine_k={lab.fine_k}: the dataset points at {len(set(zip(att.ra_deg, att.dec_deg)))} "
-                              "distinct pointings (attitude.mode=list); fine regions need a sky to tile: "
-                              "drop labels.fine_k or use a dataset with attitude.mode=uniform or region")
+            raise ConfigError(
+                f"labels.fine_k={lab.fine_k}: the dataset points at {len(set(zip(att.ra_deg, att.dec_deg)))} "
+                "distinct pointings (attitude.mode=list); fine regions need a sky to tile: "
+                "drop labels.fine_k or use a dataset with attitude.mode=uniform or region"
+            )
         regions = regions.with_fine(sky_directions(att, lab.fine_k, lab.seed), lab.fine_k, **fit)
     labels = {name: regions.assign(v) for name, v in vec.items()}
     fine = {name: regions.assign(v, "fine") for name, v in vec.items()} if lab.fine_k else None
     soft = {name: (soft_targets(v, regions.coarse, lab.kappa) if lab.soft_labels else None) for name, v in vec.items()}
     common = dict(max_stars=d.max_stars, norm_scale_adu=d.norm_scale_adu, log_flux_offset=d.log_flux_offset)
-    train = FrameDataset(ds, pos["train"], labels["train"], soft=soft["train"], augment=Augmenter(cfg.aug),
-                         seed=cfg.train.seed, fine=None if fine is None else fine["train"], **common)
+    train = FrameDataset(
+        ds,
+        pos["train"],
+        labels["train"],
+        soft=soft["train"],
+        augment=Augmenter(cfg.aug),
+        seed=cfg.train.seed,
+        fine=None if fine is None else fine["train"],
+        **common,
+    )
     val = FrameDataset(ds, pos["val"], labels["val"], soft=soft["val"], seed=cfg.train.seed, **common)
-    return PreparedData(ds, regions, train, val, class_weights(labels["train"], lab.k, cfg.loss.alpha), km,
-                        {name: count_sparse_frames(ds, p) for name, p in pos.items()})
+    return PreparedData(
+        ds,
+        regions,
+        train,
+        val,
+        class_weights(labels["train"], lab.k, cfg.loss.alpha),
+        km,
+        {name: count_sparse_frames(ds, p) for name, p in pos.items()},
+    )

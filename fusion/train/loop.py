@@ -38,18 +38,31 @@ def build_optimizer(model: torch.nn.Module, lr: float, betas: tuple[float, float
     """AdamW; no weight decay on biases and normalisation weights (1-D parameters)."""
     decay = [p for p in model.parameters() if p.requires_grad and p.ndim > 1]
     no_decay = [p for p in model.parameters() if p.requires_grad and p.ndim <= 1]
-    return torch.optim.AdamW([{"params": decay, "weight_decay": weight_decay},
-                              {"params": no_decay, "weight_decay": 0.0}], lr=lr, betas=betas)
+    return torch.optim.AdamW(
+        [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}], lr=lr, betas=betas
+    )
 
 
 def planned_lr(schedule: WarmupCosine, lr: float) -> np.ndarray:
     return np.array([lr * schedule(s) for s in range(schedule.total)])
 
 
-def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, optimizer, scheduler, scaler,
-                    device: torch.device, *, amp_dtype: torch.dtype | None = None,
-                    grad_clip_norm: float | None = None, soft: bool = False, progress: bool = False,
-                    desc: str = "train", pace=None) -> dict:
+def train_one_epoch(
+    model: torch.nn.Module,
+    loader,
+    loss_fn: torch.nn.Module,
+    optimizer,
+    scheduler,
+    scaler,
+    device: torch.device,
+    *,
+    amp_dtype: torch.dtype | None = None,
+    grad_clip_norm: float | None = None,
+    soft: bool = False,
+    progress: bool = False,
+    desc: str = "train",
+    pace=None,
+) -> dict:
     """One pass over ``loader``; returns mean loss, top-1 on the (augmented) batches, last lr, time.
 
     ``pace``: called once as ``pace(seconds_per_step)``, measured over steps 1-10 (or fewer if they
@@ -64,7 +77,7 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         image, coords, mask = batch_inputs(batch, device)
         target = (batch["soft"] if soft else batch["label"]).to(device, non_blocking=nb)
         with autocast(device, amp_dtype):
-            if "label_fine" in batch:     # fine regions: cross-entropy on them, regions by log-sum-exp
+            if "label_fine" in batch:  # fine regions: cross-entropy on them, regions by log-sum-exp
                 fine = model(image, coords, mask, fine=True)
                 logits = getattr(model, "module", model).coarse_logits(fine)
             else:
@@ -84,20 +97,26 @@ def train_one_epoch(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, op
         scaler.update()
         scheduler.step()
         b = len(target)
-        total_loss += float(loss.detach()) * b   # .item()-like sync once per step: cheap next to the step
+        total_loss += float(loss.detach()) * b  # .item()-like sync once per step: cheap next to the step
         hits += int((logits.detach().argmax(1).cpu() == batch["label"]).sum())
         n += b
-        if pace is not None:              # steps 1..10 (or 30 s of them): the loader's prefetched batches used up
+        if pace is not None:  # steps 1..10 (or 30 s of them): the loader's prefetched batches used up
             if step == 0:
                 t_first = time.perf_counter()
             elif step >= 10 or time.perf_counter() - t_first >= 30:
                 pace((time.perf_counter() - t_first) / step)
                 pace = None
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{total_loss / n:.3f}", top1=f"{hits / n:.3f}",
-                            samples_s=f"{n / (time.perf_counter() - t0):.0f}")
-    return {"loss": total_loss / max(n, 1), "top1": hits / max(n, 1), "n": n,
-            "lr": scheduler.get_last_lr()[0], "time_s": time.perf_counter() - t0}
+            bar.set_postfix(
+                loss=f"{total_loss / n:.3f}", top1=f"{hits / n:.3f}", samples_s=f"{n / (time.perf_counter() - t0):.0f}"
+            )
+    return {
+        "loss": total_loss / max(n, 1),
+        "top1": hits / max(n, 1),
+        "n": n,
+        "lr": scheduler.get_last_lr()[0],
+        "time_s": time.perf_counter() - t0,
+    }
 
 
 def _merge(parts: list[dict]) -> dict:
@@ -107,16 +126,30 @@ def _merge(parts: list[dict]) -> dict:
     return {k: (v[order] if v is not None else None) for k, v in merged.items()}
 
 
-def validate(model: torch.nn.Module, loader, loss_fn: torch.nn.Module, device: torch.device,
-             info: D.DistInfo = D.DistInfo(), *, amp_dtype: torch.dtype | None = None, soft: bool = False,
-             progress: bool = False) -> dict:
+def validate(
+    model: torch.nn.Module,
+    loader,
+    loss_fn: torch.nn.Module,
+    device: torch.device,
+    info: D.DistInfo = D.DistInfo(),
+    *,
+    amp_dtype: torch.dtype | None = None,
+    soft: bool = False,
+    progress: bool = False,
+) -> dict:
     """Loss and top-1/3/5 over the whole validation split (predictions of all processes gathered)."""
     t0 = time.perf_counter()
-    pred = _merge(D.gather_objects(predict_batches(model, loader, device, amp_dtype=amp_dtype, progress=progress),
-                                   info))
+    pred = _merge(
+        D.gather_objects(predict_batches(model, loader, device, amp_dtype=amp_dtype, progress=progress), info)
+    )
     logits = torch.from_numpy(pred["logits"])
     target = torch.from_numpy(pred["soft"]) if soft else torch.from_numpy(pred["label"])
     alpha = None if loss_fn.alpha is None else loss_fn.alpha.cpu()
     loss = float(focal_loss(logits, target, alpha, loss_fn.gamma)) if len(logits) else float("nan")
-    return {"loss": loss, **topk_accuracy(pred["logits"], pred["label"]), "n": int(len(logits)),
-            "time_s": time.perf_counter() - t0, "predictions": pred}
+    return {
+        "loss": loss,
+        **topk_accuracy(pred["logits"], pred["label"]),
+        "n": int(len(logits)),
+        "time_s": time.perf_counter() - t0,
+        "predictions": pred,
+    }

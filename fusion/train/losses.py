@@ -23,8 +23,9 @@ import torch.nn.functional as F
 from torch import nn
 
 
-def focal_loss(logits: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor | None = None,
-               gamma: float = 2.0) -> torch.Tensor:
+def focal_loss(
+    logits: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor | None = None, gamma: float = 2.0
+) -> torch.Tensor:
     """Weighted-mean focal loss. ``target``: (B,) class indices or (B, K) distributions."""
     logp = F.log_softmax(logits.float(), dim=-1)
     k = logits.shape[-1]

@@ -28,18 +28,40 @@ from ..config import FusionConfig, build_config, config_dict
 from ..errors import CheckpointError, RunFolderError
 from ..model.checkpoint import Checkpoint, load_checkpoint
 
-RUN_FILES = ("best.pt", "last.pt", "metrics.csv", "config.yaml", "centroids.npy", "summary.json",
-             "loss_curves.png", "lr_schedule.png")
-METRIC_COLUMNS = ("epoch", "train_loss", "train_top1", "val_loss", "val_top1", "val_top3", "val_top5", "lr",
-                  "epoch_time_s", "best")
+RUN_FILES = (
+    "best.pt",
+    "last.pt",
+    "metrics.csv",
+    "config.yaml",
+    "centroids.npy",
+    "summary.json",
+    "loss_curves.png",
+    "lr_schedule.png",
+)
+METRIC_COLUMNS = (
+    "epoch",
+    "train_loss",
+    "train_top1",
+    "val_loss",
+    "val_top1",
+    "val_top3",
+    "val_top5",
+    "lr",
+    "epoch_time_s",
+    "best",
+)
 # keys a resumed run may change (where the data lives, how it is loaded, how long it runs)
 RESUMABLE_KEYS = ("data.path", "train.workers", "train.progress", "train.device", "train.threads", "train.epochs")
 
 
 def rng_state() -> dict:
     np_state = np.random.get_state()
-    state = {"torch": torch.get_rng_state(), "numpy_keys": torch.from_numpy(np_state[1].astype(np.int64)),
-             "numpy_pos": int(np_state[2]), "python": _py_state_to_list(random.getstate())}
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy_keys": torch.from_numpy(np_state[1].astype(np.int64)),
+        "numpy_pos": int(np_state[2]),
+        "python": _py_state_to_list(random.getstate()),
+    }
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
@@ -97,7 +119,7 @@ class RunFolderLock:
     def _remove_if_new(self) -> None:
         if self.created:
             try:
-                self.out.rmdir()        # only when empty
+                self.out.rmdir()  # only when empty
             except OSError:
                 pass
 
@@ -126,18 +148,24 @@ def prepare_run_folder(out: str | Path, *, resume: bool, force: bool, epochs: in
     elif status == "finished" and resume and (out / "last.pt").exists():
         last = load_checkpoint(out / "last.pt")
         if epochs is None or epochs <= int(last.epoch):
-            raise RunFolderError(f"{out} holds a finished run ({last.epoch} epochs); to train it further pass "
-                                 f"--resume --set train.epochs=N with N > {last.epoch} (or --force to start over)")
+            raise RunFolderError(
+                f"{out} holds a finished run ({last.epoch} epochs); to train it further pass "
+                f"--resume --set train.epochs=N with N > {last.epoch} (or --force to start over)"
+            )
         (out / "summary.json").unlink()
         status = "unfinished"
     elif status == "finished":
         verb = "resume" if resume else "overwrite"
-        raise RunFolderError(f"{out} holds a finished run (summary.json); refusing to {verb} it. "
-                             "Choose another --out, --resume --set train.epochs=N to extend it, or --force to "
-                             "delete it and train again")
+        raise RunFolderError(
+            f"{out} holds a finished run (summary.json); refusing to {verb} it. "
+            "Choose another --out, --resume --set train.epochs=N to extend it, or --force to "
+            "delete it and train again"
+        )
     elif status == "unfinished" and not resume:
-        raise RunFolderError(f"{out} holds an unfinished run (last.pt at epoch {last.epoch}); pass --resume to "
-                             "continue it, or --force to start over")
+        raise RunFolderError(
+            f"{out} holds an unfinished run (last.pt at epoch {last.epoch}); pass --resume to "
+            "continue it, or --force to start over"
+        )
     elif status == "empty" and resume:
         raise RunFolderError(f"--resume: {out} holds no last.pt to resume from; drop --resume to start a new run")
     try:
@@ -157,10 +185,14 @@ def write_metrics_csv(path: Path, history: list[dict]) -> None:
 
 
 def write_config_yaml(path: Path, cfg: FusionConfig) -> None:
-    init = (f"image backbone initialised from {cfg.model.pretrained}" if cfg.model.pretrained
-            else "image backbone trained from scratch (model.pretrained: null)")
-    text = (f"# resolved fusion training config ({init})\n"
-            + yaml.safe_dump(config_dict(cfg), sort_keys=False, default_flow_style=None))
+    init = (
+        f"image backbone initialised from {cfg.model.pretrained}"
+        if cfg.model.pretrained
+        else "image backbone trained from scratch (model.pretrained: null)"
+    )
+    text = f"# resolved fusion training config ({init})\n" + yaml.safe_dump(
+        config_dict(cfg), sort_keys=False, default_flow_style=None
+    )
     atomic_write_text(path, text)
 
 
@@ -170,9 +202,11 @@ def check_resume_config(cfg: FusionConfig, ckpt: Checkpoint) -> FusionConfig:
     diff = sorted(k for k in set(saved) | set(asked) if saved.get(k) != asked.get(k) and k not in RESUMABLE_KEYS)
     if diff:
         details = ", ".join(f"{k}: {saved.get(k)!r} -> {asked.get(k)!r}" for k in diff[:8])
-        raise CheckpointError(f"--resume: the config differs from the one the run was started with ({details}); "
-                              "resume takes the run's config.yaml (only data.path and train.workers/progress/device "
-                              "may change): drop those overrides, or start a new run (--force or another --out)")
+        raise CheckpointError(
+            f"--resume: the config differs from the one the run was started with ({details}); "
+            "resume takes the run's config.yaml (only data.path and train.workers/progress/device "
+            "may change): drop those overrides, or start a new run (--force or another --out)"
+        )
     data = ckpt.config
     for key in RESUMABLE_KEYS:
         section, name = key.split(".")

@@ -59,8 +59,7 @@ from ..model.inputs import Preprocessor
 from ..model.regions import Regions, assign, soft_targets
 
 
-def stream_render_config(dataset_config: dict, seed: int, render_backend: str | None = None,
-                         device: str | None = None):
+def stream_render_config(dataset_config: dict, seed: int, render_backend: str | None = None, device: str | None = None):
     """The dataset's render config with the stream's seed (a different seed space than the
     dataset's) and, optionally, the torch renderer on ``device`` for the frames."""
     data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in dataset_config.items()}
@@ -99,6 +98,7 @@ def brightness_offsets(seed: int, index: np.ndarray, lo: float, hi: float) -> np
 @dataclass(frozen=True)
 class _DataSettings:
     """The ``data.*`` values the preprocessor reads (a stream is built from them, not from a whole config)."""
+
     max_stars: int
     log_flux_offset: float
     norm_scale_adu: float
@@ -107,16 +107,37 @@ class _DataSettings:
 class StreamBatches(torch.utils.data.IterableDataset):
     """One epoch of ready batches from a skygen stream (see the module docstring)."""
 
-    def __init__(self, dataset_config: dict, kind: str, centroids: np.ndarray, *, seed: int, batch: int,
-                 steps: int, rank: int = 0, world: int = 1, max_stars: int = 6, log_flux_offset: float = 3.0,
-                 norm_scale_adu: float = 8.0, soft_kappa: float | None = None, ranges: dict | None = None,
-                 calibration: str | None = None, device: str | None = None, render_backend: str | None = None,
-                 fine_centroids: np.ndarray | None = None, few_prob: float = 0.0,
-                 few_stars: tuple[int, int] = (3, 8), brightness_mag: tuple[float, float] = (0.0, 0.0),
-                 frames_renderer: str = "binned", adu_images: bool = False):
+    def __init__(
+        self,
+        dataset_config: dict,
+        kind: str,
+        centroids: np.ndarray,
+        *,
+        seed: int,
+        batch: int,
+        steps: int,
+        rank: int = 0,
+        world: int = 1,
+        max_stars: int = 6,
+        log_flux_offset: float = 3.0,
+        norm_scale_adu: float = 8.0,
+        soft_kappa: float | None = None,
+        ranges: dict | None = None,
+        calibration: str | None = None,
+        device: str | None = None,
+        render_backend: str | None = None,
+        fine_centroids: np.ndarray | None = None,
+        few_prob: float = 0.0,
+        few_stars: tuple[int, int] = (3, 8),
+        brightness_mag: tuple[float, float] = (0.0, 0.0),
+        frames_renderer: str = "binned",
+        adu_images: bool = False,
+    ):
         if steps < 1:
-            raise ConfigError(f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
-                              "to at least one global batch")
+            raise ConfigError(
+                f"stream.samples_per_epoch gives {steps} steps of {batch * world} samples; raise it "
+                "to at least one global batch"
+            )
         self.config, self.kind = dataset_config, kind
         self.centroids = np.asarray(centroids, np.float64)
         self.fine_centroids = None if fine_centroids is None else np.asarray(fine_centroids, np.float64)
@@ -135,33 +156,52 @@ class StreamBatches(torch.utils.data.IterableDataset):
         self.stream()
 
     @classmethod
-    def from_config(cls, cfg, dataset_config: dict, regions: Regions, *, rank: int = 0, world: int = 1,
-                    device=None) -> "StreamBatches":
+    def from_config(
+        cls, cfg, dataset_config: dict, regions: Regions, *, rank: int = 0, world: int = 1, device=None
+    ) -> "StreamBatches":
         """The training stream of a resolved :class:`fusion.config.FusionConfig` (``stream.*``, ``data.*``,
         ``labels.*``) for a dataset's render config; ``device`` is used by ``stream.render_backend=torch``."""
         sc, tc = cfg.stream, cfg.train
         on_gpu = device is not None and torch.device(device).type == "cuda"
-        return cls(dataset_config, sc.kind, regions.coarse, seed=tc.seed if sc.seed is None else sc.seed,
-                   batch=tc.batch_size // world, steps=sc.samples_per_epoch // tc.batch_size, rank=rank,
-                   world=world, max_stars=cfg.data.max_stars, log_flux_offset=cfg.data.log_flux_offset,
-                   norm_scale_adu=cfg.data.norm_scale_adu,
-                   soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None, ranges=level_ranges(sc),
-                   calibration=sc.calibration, fine_centroids=regions.fine if cfg.labels.fine_k else None,
-                   few_prob=sc.few_prob, few_stars=sc.few_stars, brightness_mag=sc.brightness_mag,
-                   device=str(device) if sc.render_backend == "torch" and device is not None else None,
-                   render_backend=sc.render_backend, frames_renderer=sc.frames_renderer,
-                   adu_images=sc.image_transfer == "adu" or (sc.image_transfer == "auto" and on_gpu))
+        return cls(
+            dataset_config,
+            sc.kind,
+            regions.coarse,
+            seed=tc.seed if sc.seed is None else sc.seed,
+            batch=tc.batch_size // world,
+            steps=sc.samples_per_epoch // tc.batch_size,
+            rank=rank,
+            world=world,
+            max_stars=cfg.data.max_stars,
+            log_flux_offset=cfg.data.log_flux_offset,
+            norm_scale_adu=cfg.data.norm_scale_adu,
+            soft_kappa=cfg.labels.kappa if cfg.labels.soft_labels else None,
+            ranges=level_ranges(sc),
+            calibration=sc.calibration,
+            fine_centroids=regions.fine if cfg.labels.fine_k else None,
+            few_prob=sc.few_prob,
+            few_stars=sc.few_stars,
+            brightness_mag=sc.brightness_mag,
+            device=str(device) if sc.render_backend == "torch" and device is not None else None,
+            render_backend=sc.render_backend,
+            frames_renderer=sc.frames_renderer,
+            adu_images=sc.image_transfer == "adu" or (sc.image_transfer == "auto" and on_gpu),
+        )
 
     def stream(self) -> SampleStream:
         if self._stream is None:
-            self._stream = SampleStream(stream_render_config(self.config, self.seed, self.render_backend, self.device),
-                                        self.kind, calibration=self.calibration, level_ranges=self.ranges,
-                                        frames_renderer=self.frames_renderer)
+            self._stream = SampleStream(
+                stream_render_config(self.config, self.seed, self.render_backend, self.device),
+                self.kind,
+                calibration=self.calibration,
+                level_ranges=self.ranges,
+                frames_renderer=self.frames_renderer,
+            )
         return self._stream
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["_stream"] = None          # rebuilt lazily in each worker (catalog index, sensor maps)
+        state["_stream"] = None  # rebuilt lazily in each worker (catalog index, sensor maps)
         return state
 
     def set_epoch(self, epoch: int) -> None:
@@ -183,14 +223,19 @@ class StreamBatches(torch.utils.data.IterableDataset):
             images = {}
         else:
             from skygen.stream.samples import frames_as_batch
+
             frames, dev_images = s.frames_batch(idx, self.device)
             b = frames_as_batch(frames)
             offsets, det, unit = b.offsets, b.detections, b.labels["unit_vector"]
-            if dev_images is not None:   # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
+            if (
+                dev_images is not None
+            ):  # rendered on the device (render.backend=torch): the same stretch, in torch, stays there
                 images = {"image": self.pre.images_torch(dev_images)}
-            elif self.adu_images:        # stretched on the training device (batch_inputs)
-                images = {"image_adu": torch.from_numpy(np.stack([np.asarray(f.image, np.uint16) for f in frames])),
-                          "image_stretch": torch.tensor(self.pre.stretch(), dtype=torch.float64)}
+            elif self.adu_images:  # stretched on the training device (batch_inputs)
+                images = {
+                    "image_adu": torch.from_numpy(np.stack([np.asarray(f.image, np.uint16) for f in frames])),
+                    "image_stretch": torch.tensor(self.pre.stretch(), dtype=torch.float64),
+                }
             else:
                 images = {"image": torch.from_numpy(np.stack([self.pre.image(f.image)[None] for f in frames]))}
         limits = few_star_limits(self.seed, idx, self.few_prob, *self.few_stars)
@@ -198,9 +243,13 @@ class StreamBatches(torch.utils.data.IterableDataset):
         shift = brightness_offsets(self.seed, idx, *self.brightness_mag)
         if shift is not None:
             coords[..., 2] += shift[:, None] * mask
-        out = {"coords": torch.from_numpy(coords), "mask": torch.from_numpy(mask),
-               "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
-               "index": torch.from_numpy(idx.astype(np.int64)), "n_detections": torch.from_numpy(counts)}
+        out = {
+            "coords": torch.from_numpy(coords),
+            "mask": torch.from_numpy(mask),
+            "label": torch.from_numpy(assign(unit, self.centroids).astype(np.int64)),
+            "index": torch.from_numpy(idx.astype(np.int64)),
+            "n_detections": torch.from_numpy(counts),
+        }
         out.update(images)
         if self.fine_centroids is not None:
             out["label_fine"] = torch.from_numpy(assign(unit, self.fine_centroids).astype(np.int64))
@@ -222,5 +271,6 @@ def make_stream_loader(ds: StreamBatches, workers: int, pin_memory: bool = False
     kw = {}
     if workers > 0:
         from ..model.shards import worker_init
+
         kw = {"worker_init_fn": worker_init, "prefetch_factor": 4, "persistent_workers": False}
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, pin_memory=pin_memory, **kw)

@@ -27,15 +27,24 @@ import re
 import time
 from pathlib import Path
 
-
-from skygen.instrument import corruptions as corr
 from skygen.config import RenderConfig, config_dict
-from skygen.datasets.card import CARD_NAME, CROISSANT_NAME, write_card
 from skygen.configlib import flatten
+from skygen.datasets.card import CARD_NAME, CROISSANT_NAME, write_card
+from skygen.datasets.shards import (
+    MANIFEST_FORMAT,
+    MANIFEST_NAME,
+    SCHEMA_VERSION,
+    SPLIT_NAMES,
+    config_id,
+    library_versions,
+    sha256_file,
+    shard_name,
+    write_json_atomic,
+    write_shard,
+)
 from skygen.errors import ConfigError, DatasetError
 from skygen.identity import content_id
-from skygen.datasets.shards import (MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions,
-                 sha256_file, shard_name, write_json_atomic, write_shard)
+from skygen.instrument import corruptions as corr
 from skygen.lock import FolderLock
 from skygen.runtime import check_stop
 
@@ -56,8 +65,9 @@ def _manifests(out: Path) -> list[tuple[Path, dict]]:
         try:
             found.append((p, json.loads(p.read_text())))
         except (OSError, ValueError):
-            raise DatasetError(f"{p} is unreadable; delete it (its shards will be checked and re-used) "
-                               "and run the same command again") from None
+            raise DatasetError(
+                f"{p} is unreadable; delete it (its shards will be checked and re-used) and run the same command again"
+            ) from None
     return found
 
 
@@ -71,9 +81,11 @@ def _check_compatible(out: Path, cfg_dict: dict, force: bool) -> list[dict]:
             if force:
                 continue
             diff = config_differences(man.get("config", {}), cfg_dict)
-            raise DatasetError(f"{out} already holds a different dataset (config keys differ: "
-                               f"{', '.join(diff[:12]) or 'schema'}). Use another --out folder, or --force "
-                               "to replace it.")
+            raise DatasetError(
+                f"{out} already holds a different dataset (config keys differ: "
+                f"{', '.join(diff[:12]) or 'schema'}). Use another --out folder, or --force "
+                "to replace it."
+            )
         entries += man.get("shards", [])
     return entries
 
@@ -97,19 +109,31 @@ def write_failed(exc: OSError, what: Path) -> DatasetError:
     already renamed into place are whole and recorded, so the same command resumes."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         why = "the disk is full" if exc.errno == errno.ENOSPC else "the disk quota is exceeded"
-        return DatasetError(f"cannot write {what}: {why} ({exc.strerror}); free space on the disk holding "
-                            f"{what.parent} and run the same command again to resume (finished shards are kept)")
+        return DatasetError(
+            f"cannot write {what}: {why} ({exc.strerror}); free space on the disk holding "
+            f"{what.parent} and run the same command again to resume (finished shards are kept)"
+        )
     return DatasetError(f"cannot write {what}: {exc.strerror or exc}")
 
 
 def _manifest(cfg_dict: dict, entries: list[dict], n_shards: int, complete: bool, extra: dict) -> dict:
     entries = sorted(entries, key=lambda e: e["index"])
     splits = {s: sum(e["splits"][s] for e in entries) for s in SPLIT_NAMES}
-    return {"format": MANIFEST_FORMAT, "schema_version": SCHEMA_VERSION, "dataset_id": config_id(cfg_dict),
-            "content_id": content_id(cfg_dict),
-            "complete": complete, "n_frames": sum(e["n_frames"] for e in entries), "n_shards": n_shards,
-            "splits": splits, "shards": entries, "config": cfg_dict, "versions": library_versions(),
-            "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
+    return {
+        "format": MANIFEST_FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "dataset_id": config_id(cfg_dict),
+        "content_id": content_id(cfg_dict),
+        "complete": complete,
+        "n_frames": sum(e["n_frames"] for e in entries),
+        "n_shards": n_shards,
+        "splits": splits,
+        "shards": entries,
+        "config": cfg_dict,
+        "versions": library_versions(),
+        "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **extra,
+    }
 
 
 # ----------------------------------------------------------------------- workers
@@ -129,25 +153,31 @@ def _exit_when_orphaned(parent_pid: int, interval_s: float = 0.2) -> None:
         while os.getppid() == parent_pid:
             time.sleep(interval_s)
         os._exit(1)
+
     threading.Thread(target=watch, name="skygen-parent-watch", daemon=True).start()
 
 
 def _init_worker(cfg: RenderConfig, counter, parent_pid: int | None = None, threads: int | None = 1) -> None:
-    import cv2
     import signal
+
+    import cv2
+
     cv2.setNumThreads(1)
-    if parent_pid is not None:      # a pool worker: the parent handles Ctrl-C and SIGTERM, and may die
+    if parent_pid is not None:  # a pool worker: the parent handles Ctrl-C and SIGTERM, and may die
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         _exit_when_orphaned(parent_pid)
     from skygen.render.frame import Renderer
+
     _WORKER["renderer"] = Renderer(cfg)
     _WORKER["counter"] = counter
     _WORKER.pop("torch", None)
     if cfg.render.backend == "torch":
         import torch
+
         from skygen.render.torch_frames import TorchRenderer
-        if threads:                      # pool workers: one thread each, as cv2
+
+        if threads:  # pool workers: one thread each, as cv2
             torch.set_num_threads(threads)
         _WORKER["torch"] = TorchRenderer(cfg, renderer=_WORKER["renderer"])
 
@@ -160,7 +190,7 @@ def _frames(start: int, stop: int):
     tr = _WORKER.get("torch")
     if tr is None:
         for i in range(start, stop):
-            check_stop()                   # a SIGTERM whose exception Python swallowed still stops the job
+            check_stop()  # a SIGTERM whose exception Python swallowed still stops the job
             yield r.render(i)
         return
     bs = r.cfg.render.batch_size
@@ -180,15 +210,30 @@ def _render_shard(args: tuple[int, int, int, str]) -> dict:
                 counter.value += 1
     o = r.cfg.output
     try:
-        return write_shard(Path(out) / shard_name(k), frames, config=config_dict(r.cfg), shard_index=k,
-                           frame_start=start, compression=o.compression, compression_level=o.compression_level,
-                           corruption_names=tuple(corr.REGISTRY))
+        return write_shard(
+            Path(out) / shard_name(k),
+            frames,
+            config=config_dict(r.cfg),
+            shard_index=k,
+            frame_start=start,
+            compression=o.compression,
+            compression_level=o.compression_level,
+            corruption_names=tuple(corr.REGISTRY),
+        )
     except OSError as exc:
         raise write_failed(exc, Path(out) / shard_name(k)) from None
 
 
-def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_index: int = 0,
-                   num_slices: int = 1, force: bool = False, progress: bool = True, warn=None) -> dict:
+def render_dataset(
+    cfg: RenderConfig,
+    out: str | Path,
+    workers: int = 1,
+    slice_index: int = 0,
+    num_slices: int = 1,
+    force: bool = False,
+    progress: bool = True,
+    warn=None,
+) -> dict:
     """Render (or resume) the dataset of ``cfg`` into folder ``out``; returns the manifest.
 
     Raises DatasetError when ``out`` holds a different dataset (unless ``force``) or a
@@ -200,29 +245,37 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
     croissant.json, :mod:`skygen.datasets.card`) once the dataset is complete.
     """
     import sys
+
     from skygen.render.frame import Renderer
+
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     if workers < 1:
         raise ConfigError(f"--workers {workers}: need at least 1 worker process")
     if not 0 <= slice_index < num_slices:
         raise DatasetError(f"slice {slice_index} is not in 0..{num_slices - 1}")
     n_shards = len(shard_ranges(cfg.n_frames, cfg.output.shard_size))
-    if num_slices > n_shards:       # some slices would render nothing and exit 0: refuse them all, up front
+    if num_slices > n_shards:  # some slices would render nothing and exit 0: refuse them all, up front
         size = -(-cfg.n_frames // num_slices)
-        raise ConfigError(f"--slice {slice_index}/{num_slices}: slices are whole shards of output.shard_size="
-                          f"{cfg.output.shard_size} frames, and {cfg.n_frames} frames make {n_shards} shard(s), so "
-                          f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
-                          f"output.shard_size={size} for {num_slices} slices")
-    if cfg.render.backend == "torch":           # fail before any work if the device is not usable
+        raise ConfigError(
+            f"--slice {slice_index}/{num_slices}: slices are whole shards of output.shard_size="
+            f"{cfg.output.shard_size} frames, and {cfg.n_frames} frames make {n_shards} shard(s), so "
+            f"this --n allows at most {n_shards} slice(s); use K <= {n_shards}, or --set "
+            f"output.shard_size={size} for {num_slices} slices"
+        )
+    if cfg.render.backend == "torch":  # fail before any work if the device is not usable
         from skygen.render.torch_frames import resolve_device
+
         resolve_device(cfg.render.device)
-    probe_renderer = Renderer(cfg)      # refuses configs it cannot render (ConfigError) before any file is made
+    probe_renderer = Renderer(cfg)  # refuses configs it cannot render (ConfigError) before any file is made
     message = probe_renderer.saturation_warning()
     if message:
         warn(f"warning: {message}")
-    extra = {"detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
-             "mag_limit": round(probe_renderer.mag_limit, 4), "stars_in_catalog_index": len(probe_renderer.sky),
-             "shard_size": cfg.output.shard_size}
+    extra = {
+        "detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
+        "mag_limit": round(probe_renderer.mag_limit, 4),
+        "stars_in_catalog_index": len(probe_renderer.sky),
+        "shard_size": cfg.output.shard_size,
+    }
     del probe_renderer
     out = Path(out)
     try:
@@ -237,12 +290,21 @@ def render_dataset(cfg: RenderConfig, out: str | Path, workers: int = 1, slice_i
             return _render_into(cfg, out, workers, slice_index, num_slices, force, progress, extra, warn)
     except DatasetError:
         raise
-    except OSError as exc:       # a manifest, card or shard could not be written: disk full, quota, I/O error
+    except OSError as exc:  # a manifest, card or shard could not be written: disk full, quota, I/O error
         raise write_failed(exc, Path(exc.filename) if exc.filename else out) from None
 
 
-def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, num_slices: int, force: bool,
-                 progress: bool, extra: dict, warn) -> dict:
+def _render_into(
+    cfg: RenderConfig,
+    out: Path,
+    workers: int,
+    slice_index: int,
+    num_slices: int,
+    force: bool,
+    progress: bool,
+    extra: dict,
+    warn,
+) -> dict:
     """render_dataset once its arguments are checked, ``out`` exists and this render holds its lock."""
     cfg_dict = config_dict(cfg)
     ranges = shard_ranges(cfg.n_frames, cfg.output.shard_size)
@@ -251,13 +313,18 @@ def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, n
     recorded = _check_compatible(out, cfg_dict, force)
     if force:
         _remove_other_dataset(out, cfg_dict, recorded, set(mine), len(ranges), num_slices)
-    own = None if num_slices == 1 else mine       # concurrent slices: touch only this slice's temporaries
+    own = None if num_slices == 1 else mine  # concurrent slices: touch only this slice's temporaries
     _clean_temporaries(out, own, name)
     done = {}
     for e in recorded:
         p = out / e["file"]
-        if e["index"] in mine and e["index"] not in done and p.exists() and p.stat().st_size == e["bytes"] \
-                and sha256_file(p) == e["sha256"]:
+        if (
+            e["index"] in mine
+            and e["index"] not in done
+            and p.exists()
+            and p.stat().st_size == e["bytes"]
+            and sha256_file(p) == e["sha256"]
+        ):
             done[e["index"]] = e
     todo = [k for k in mine if k not in done]
 
@@ -271,6 +338,7 @@ def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, n
     bar = None
     if progress and n_todo:
         from tqdm import tqdm
+
         bar = tqdm(total=n_todo, unit="frame", desc=f"render {out}", smoothing=0.1)
     tasks = [(k, ranges[k][0], ranges[k][1], str(out)) for k in todo]
     try:
@@ -294,9 +362,15 @@ def _render_into(cfg: RenderConfig, out: Path, workers: int, slice_index: int, n
         write_card(out, man)
         return man
     # the one step that reads and writes files of every slice: one slice at a time (waits, does not fail)
-    with FolderLock(out, what=f"skygen render --slice {slice_index}/{num_slices} (combining the slice manifests)",
-                    name="render-finish", shares=_slice_group(num_slices), wait_s=120, log=warn):
-        for p in out.glob("." + MANIFEST_NAME + ".tmp*"):      # left by a combine that was cut short
+    with FolderLock(
+        out,
+        what=f"skygen render --slice {slice_index}/{num_slices} (combining the slice manifests)",
+        name="render-finish",
+        shares=_slice_group(num_slices),
+        wait_s=120,
+        log=warn,
+    ):
+        for p in out.glob("." + MANIFEST_NAME + ".tmp*"):  # left by a combine that was cut short
             p.unlink(missing_ok=True)
         man = _maybe_combine_slices(out, cfg_dict, len(ranges), extra) or man
         if man.get("complete") and (out / MANIFEST_NAME).exists():
@@ -313,12 +387,18 @@ def _render_lock(out: Path, slice_index: int, num_slices: int, warn) -> FolderLo
     """Without --slice the whole folder; with --slice I/K only slice I (other slices of K run beside it)."""
     if num_slices == 1:
         return FolderLock(out, what="skygen render", log=warn)
-    return FolderLock(out, what=f"skygen render --slice {slice_index}/{num_slices}",
-                      name=f"render-slice-{slice_index}-of-{num_slices}", shares=_slice_group(num_slices), log=warn)
+    return FolderLock(
+        out,
+        what=f"skygen render --slice {slice_index}/{num_slices}",
+        name=f"render-slice-{slice_index}-of-{num_slices}",
+        shares=_slice_group(num_slices),
+        log=warn,
+    )
 
 
-def _remove_other_dataset(out: Path, cfg_dict: dict, recorded: list[dict], mine: set[int], n_shards: int,
-                          num_slices: int) -> None:
+def _remove_other_dataset(
+    out: Path, cfg_dict: dict, recorded: list[dict], mine: set[int], n_shards: int, num_slices: int
+) -> None:
     """--force: delete the manifests, unrecorded shards and card of the dataset being replaced.
 
     A slice deletes only unrecorded shard files of its own indices (or beyond this
@@ -326,14 +406,14 @@ def _remove_other_dataset(out: Path, cfg_dict: dict, recorded: list[dict], mine:
     shard into place and not yet recorded it."""
     for path, man in _manifests(out):
         if man.get("dataset_id") != config_id(cfg_dict):
-            path.unlink(missing_ok=True)         # another slice with --force may have been first
+            path.unlink(missing_ok=True)  # another slice with --force may have been first
     keep = {e["file"] for e in recorded}
     for p in out.glob("shard-*.h5"):
         m = re.fullmatch(r"shard-(\d+)\.h5", p.name)
         k = int(m.group(1)) if m else -1
         if p.name not in keep and (num_slices == 1 or k in mine or k >= n_shards or k < 0):
             p.unlink(missing_ok=True)
-    if not recorded:    # the card described the replaced dataset; a new one comes with completion
+    if not recorded:  # the card described the replaced dataset; a new one comes with completion
         for name in (CARD_NAME, CROISSANT_NAME):
             (out / name).unlink(missing_ok=True)
 
@@ -350,7 +430,7 @@ def _run_pool(cfg, tasks, workers, done, save, bar) -> None:
                 check_stop()
                 for res in [p for p in pending if p.ready()]:
                     pending.remove(res)
-                    entry = res.get()          # re-raises a worker's exception
+                    entry = res.get()  # re-raises a worker's exception
                     done[entry["index"]] = entry
                     save(False)
                 if bar:

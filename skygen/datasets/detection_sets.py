@@ -19,7 +19,8 @@ from skygen.runtime import atomic_path
 
 
 def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
-    """Write detection-stream samples (an iterable of :class:`skygen.stream.samples.DetectionBatch`) to one HDF5 file in the
+    """Write detection-stream samples (an iterable of :class:`skygen.stream.samples.DetectionBatch`) to one HDF5 file
+    in the
     shard table layout (``detections``/``stars`` flat tables with ``offsets``, ``boresight`` per sample);
     written to a temporary name and renamed, as shards are."""
     parts = list(batches)
@@ -27,8 +28,10 @@ def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
         with h5py.File(tmp, "w", libver=LIBVER) as f:
             f.attrs["format"] = "skygen-detection-stream"
             f.attrs["config"] = json.dumps(config, sort_keys=True)
-            f.attrs["description"] = ("detection sets of skygen's detections stream (emulated detector); "
-                                      "tables as in skygen shards: rows of sample j are offsets[j]:offsets[j+1]")
+            f.attrs["description"] = (
+                "detection sets of skygen's detections stream (emulated detector); "
+                "tables as in skygen shards: rows of sample j are offsets[j]:offsets[j+1]"
+            )
             idx = np.concatenate([b.index for b in parts])
             f.create_dataset("index", data=idx)
             g = f.create_group("boresight")
@@ -36,8 +39,10 @@ def write_detection_sets(batches, path: str | Path, config: dict) -> Path:
             for name, (dtype, _, units, desc) in BORESIGHT_FIELDS.items():
                 d = g.create_dataset(name, data=np.concatenate([b.labels[name] for b in parts]).astype(dtype))
                 d.attrs["units"], d.attrs["description"] = units, desc
-            for group, fields, offs, attr in (("detections", DETECTION_FIELDS, "offsets", "detections"),
-                                              ("stars", STAR_FIELDS, "star_offsets", "stars")):
+            for group, fields, offs, attr in (
+                ("detections", DETECTION_FIELDS, "offsets", "detections"),
+                ("stars", STAR_FIELDS, "star_offsets", "stars"),
+            ):
                 g = f.create_group(group)
                 counts = np.concatenate([np.diff(getattr(b, offs)) for b in parts])
                 g.create_dataset("offsets", data=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))

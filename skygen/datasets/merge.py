@@ -24,15 +24,29 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.datasets.card import write_card
 from skygen.datasets.build import _manifests, config_differences, write_failed
+from skygen.datasets.card import write_card
+from skygen.datasets.shards import (
+    MANIFEST_FORMAT,
+    MANIFEST_NAME,
+    SCHEMA_VERSION,
+    SPLIT_NAMES,
+    config_id,
+    library_versions,
+    write_json_atomic,
+)
 from skygen.errors import DatasetError
 from skygen.identity import dataset_frame_ids
-from skygen.datasets.shards import MANIFEST_FORMAT, MANIFEST_NAME, SCHEMA_VERSION, SPLIT_NAMES, config_id, library_versions, write_json_atomic
 from skygen.lock import FolderLock
 
-MERGEABLE_KEYS = {"seed", "n_frames", "output.shard_size", "output.compression", "output.compression_level",
-                  "output.full_res"}
+MERGEABLE_KEYS = {
+    "seed",
+    "n_frames",
+    "output.shard_size",
+    "output.compression",
+    "output.compression_level",
+    "output.full_res",
+}
 
 
 def _load_inputs(inputs: list[Path]) -> list[tuple[Path, dict, list[dict]]]:
@@ -68,10 +82,12 @@ def _refuse_shared_frames(datasets: list[tuple[Path, dict]]) -> None:
         for other, other_ids in seen:
             shared = np.intersect1d(ids, other_ids)
             if len(shared):
-                raise DatasetError(f"cannot merge {other} and {folder}: {len(shared)} of their frames are the same "
-                                   "frames (same seed and render settings, so equal frame identities; a merged "
-                                   "dataset would repeat them, possibly across splits). Re-render one of them "
-                                   "with another --seed")
+                raise DatasetError(
+                    f"cannot merge {other} and {folder}: {len(shared)} of their frames are the same "
+                    "frames (same seed and render settings, so equal frame identities; a merged "
+                    "dataset would repeat them, possibly across splits). Re-render one of them "
+                    "with another --seed"
+                )
         seen.append((folder, ids))
 
 
@@ -95,8 +111,10 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
     for folder, man, _ in loaded[1:]:
         bad = [k for k in config_differences(first_cfg, man["config"]) if k not in MERGEABLE_KEYS]
         if bad:
-            raise DatasetError(f"cannot merge {inputs[0]} and {folder}: their configs differ in {', '.join(bad)} "
-                               "(frames would not mean the same thing)")
+            raise DatasetError(
+                f"cannot merge {inputs[0]} and {folder}: their configs differ in {', '.join(bad)} "
+                "(frames would not mean the same thing)"
+            )
     _refuse_shared_frames([(g[0][0], g[0][1]["config"]) for g in by_id.values()])
     sources, shards = [], []
     for dsid, group in by_id.items():
@@ -106,8 +124,10 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
         for folder, _, entries in group:
             for e in entries:
                 if e["index"] in union and union[e["index"]]["sha256"] != e["sha256"]:
-                    raise DatasetError(f"shard {e['index']} of dataset {dsid} exists twice with different "
-                                       f"contents ({union[e['index']]['file']} and {e['file']})")
+                    raise DatasetError(
+                        f"shard {e['index']} of dataset {dsid} exists twice with different "
+                        f"contents ({union[e['index']]['file']} and {e['file']})"
+                    )
                 union[e["index"]] = e
         if n_shards is not None and len(union) != n_shards:
             missing = sorted(set(range(n_shards)) - set(union))
@@ -116,11 +136,11 @@ def merge_datasets(inputs: list[str | Path], out: str | Path) -> dict:
         shards += [{**e, "dataset_id": dsid} for _, e in sorted(union.items())]
     try:
         out.mkdir(parents=True, exist_ok=True)
-        with FolderLock(out, what="skygen merge"):    # two merges (or a render) into one folder: one refused
+        with FolderLock(out, what="skygen merge"):  # two merges (or a render) into one folder: one refused
             return _write_merged(out, shards, sources, first_cfg)
     except DatasetError:
         raise
-    except OSError as exc:       # disk full, quota, read-only folder: one line, not a traceback
+    except OSError as exc:  # disk full, quota, read-only folder: one line, not a traceback
         raise write_failed(exc, Path(exc.filename) if exc.filename else out / MANIFEST_NAME) from None
 
 
@@ -137,12 +157,21 @@ def _write_merged(out: Path, shards: list[dict], sources: list[dict], first_cfg:
     if not single:
         cfg = json.loads(json.dumps(cfg))
         cfg["n_frames"] = start
-    man = {"format": MANIFEST_FORMAT, "schema_version": SCHEMA_VERSION,
-           "dataset_id": sources[0]["dataset_id"] if single else
-           "merged-" + config_id({"sources": sorted(s["dataset_id"] for s in sources)}),
-           "complete": True, "n_frames": start, "n_shards": len(shards), "config": cfg,
-           "splits": {s: sum(e["splits"][s] for e in shards) for s in SPLIT_NAMES},
-           "shards": shards, "sources": sources if not single else [], "versions": library_versions()}
+    man = {
+        "format": MANIFEST_FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "dataset_id": sources[0]["dataset_id"]
+        if single
+        else "merged-" + config_id({"sources": sorted(s["dataset_id"] for s in sources)}),
+        "complete": True,
+        "n_frames": start,
+        "n_shards": len(shards),
+        "config": cfg,
+        "splits": {s: sum(e["splits"][s] for e in shards) for s in SPLIT_NAMES},
+        "shards": shards,
+        "sources": sources if not single else [],
+        "versions": library_versions(),
+    }
     write_json_atomic(out / MANIFEST_NAME, man)
     write_card(out, man)
     return man

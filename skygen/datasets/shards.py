@@ -30,9 +30,9 @@ import h5py
 import numpy as np
 
 from skygen.conventions import CONVENTIONS
-from skygen.runtime import atomic_path, write_json
 from skygen.errors import DatasetError
 from skygen.identity import content_id, legacy_frame_ids, split_bounds
+from skygen.runtime import atomic_path, write_json
 
 FORMAT_NAME = "skygen-shard"
 MANIFEST_FORMAT = "skygen-dataset"
@@ -82,10 +82,19 @@ def library_versions() -> dict:
     import astropy
     import cv2
     import scipy
+
     from skygen import __version__
-    return {"skygen": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "astropy": astropy.__version__, "h5py": h5py.__version__,
-            "hdf5": h5py.version.hdf5_version, "opencv": cv2.__version__}
+
+    return {
+        "skygen": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "astropy": astropy.__version__,
+        "h5py": h5py.__version__,
+        "hdf5": h5py.version.hdf5_version,
+        "opencv": cv2.__version__,
+    }
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -123,8 +132,10 @@ def _compression(name: str, level: int) -> dict:
         try:
             import hdf5plugin
         except ImportError:
-            raise DatasetError(f"compression '{name}' needs the optional package hdf5plugin: "
-                               "pip install hdf5plugin (or use output.compression=gzip)") from None
+            raise DatasetError(
+                f"compression '{name}' needs the optional package hdf5plugin: "
+                "pip install hdf5plugin (or use output.compression=gzip)"
+            ) from None
         cname = name.split("-")[1]
         return dict(hdf5plugin.Blosc(cname=cname, clevel=level, shuffle=hdf5plugin.Blosc.BITSHUFFLE))
     raise DatasetError(f"unknown compression {name!r}")
@@ -134,16 +145,24 @@ def _write_table(group: h5py.Group, rows: list[dict], fields: dict) -> None:
     """One variable-length array per frame and column: ``group/col[i]`` holds frame i's rows."""
     for name, (dtype, units, desc) in fields.items():
         data = np.empty(len(rows), dtype=object)
-        for i, r in enumerate(rows):     # one by one, and passed at creation: rows of equal length
-            data[i] = np.asarray(r[name], dtype=dtype)   # must not become a 2-D array
+        for i, r in enumerate(rows):  # one by one, and passed at creation: rows of equal length
+            data[i] = np.asarray(r[name], dtype=dtype)  # must not become a 2-D array
         d = group.create_dataset(name, data=data, shape=(len(rows),), dtype=h5py.vlen_dtype(np.dtype(dtype)))
         d.attrs["units"] = units
         d.attrs["description"] = desc + " (one variable-length array per frame)"
 
 
-def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: int,
-                frame_start: int, compression: str = "gzip", compression_level: int = 4,
-                corruption_names: tuple[str, ...] = ()) -> dict:
+def write_shard(
+    path: str | Path,
+    frames: list,
+    *,
+    config: dict,
+    shard_index: int,
+    frame_start: int,
+    compression: str = "gzip",
+    compression_level: int = 4,
+    corruption_names: tuple[str, ...] = (),
+) -> dict:
     """Write rendered frames (a list of :class:`skygen.render.frame.Frame`) as one shard.
 
     The HDF5 file is built in memory (about the size of the shard file; the frames
@@ -158,16 +177,29 @@ def write_shard(path: str | Path, frames: list, *, config: dict, shard_index: in
     n = len(frames)
     buf = io.BytesIO()
     with h5py.File(buf, "w", libver=LIBVER) as f:
-        _fill_shard(f, frames, config=config, shard_index=shard_index, frame_start=frame_start,
-                    compression=compression, compression_level=compression_level,
-                    corruption_names=corruption_names)
+        _fill_shard(
+            f,
+            frames,
+            config=config,
+            shard_index=shard_index,
+            frame_start=frame_start,
+            compression=compression,
+            compression_level=compression_level,
+            corruption_names=corruption_names,
+        )
     with atomic_path(path) as tmp:
         _write_bytes(tmp, buf.getbuffer())
     del buf
     splits = np.bincount([fr.split for fr in frames], minlength=3)
-    return {"file": path.name, "index": shard_index, "frame_start": frame_start, "n_frames": n,
-            "bytes": path.stat().st_size, "sha256": sha256_file(path),
-            "splits": {s: int(c) for s, c in zip(SPLIT_NAMES, splits)}}
+    return {
+        "file": path.name,
+        "index": shard_index,
+        "frame_start": frame_start,
+        "n_frames": n,
+        "bytes": path.stat().st_size,
+        "sha256": sha256_file(path),
+        "splits": {s: int(c) for s, c in zip(SPLIT_NAMES, splits)},
+    }
 
 
 def _write_bytes(path: Path, data) -> None:
@@ -176,8 +208,17 @@ def _write_bytes(path: Path, data) -> None:
         fh.write(data)
 
 
-def _fill_shard(f: h5py.File, frames: list, *, config: dict, shard_index: int, frame_start: int,
-                compression: str, compression_level: int, corruption_names: tuple[str, ...]) -> None:
+def _fill_shard(
+    f: h5py.File,
+    frames: list,
+    *,
+    config: dict,
+    shard_index: int,
+    frame_start: int,
+    compression: str,
+    compression_level: int,
+    corruption_names: tuple[str, ...],
+) -> None:
     """The datasets and attributes of one shard (layout in docs/FORMAT.md), into open file ``f``."""
     n = len(frames)
     a = f.attrs
@@ -195,8 +236,7 @@ def _fill_shard(f: h5py.File, frames: list, *, config: dict, shard_index: int, f
     a["content_id"] = content_id(config)
     comp = _compression(compression, compression_level)
     images = np.stack([fr.image for fr in frames]) if n else np.zeros((0, 1, 1), np.uint16)
-    d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None,
-                         **(comp if n else {}))
+    d = f.create_dataset("images", data=images, chunks=(1,) + images.shape[1:] if n else None, **(comp if n else {}))
     d.attrs["units"] = "ADU"
     d.attrs["description"] = "sensor frames area-averaged to the stored size, [frame, y, x]"
     d.attrs["downsample_factor"] = int(frames[0].downsample_factor) if n else 1
@@ -239,12 +279,16 @@ def read_manifest(folder: str | Path, name: str = MANIFEST_NAME) -> dict:
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
-        raise DatasetError(f"{path} not found: not a skygen dataset folder, or its render has not "
-                           "finished (re-run the same `skygen render` command to resume)") from None
+        raise DatasetError(
+            f"{path} not found: not a skygen dataset folder, or its render has not "
+            "finished (re-run the same `skygen render` command to resume)"
+        ) from None
     except (OSError, ValueError) as exc:
         raise DatasetError(f"{path} is unreadable or not JSON ({exc}); restore it or re-render") from None
     if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
-        raise DatasetError(f"{path} is not a skygen manifest (format={data.get('format') if isinstance(data, dict) else None!r})")
+        raise DatasetError(
+            f"{path} is not a skygen manifest (format={data.get('format') if isinstance(data, dict) else None!r})"
+        )
     _check_version(data.get("schema_version"), path)
     return data
 
@@ -255,9 +299,11 @@ def _check_version(version, path) -> None:
     except ValueError:
         raise DatasetError(f"{path}: schema_version {version!r} is not a version number") from None
     if major not in SUPPORTED_MAJOR:
-        raise DatasetError(f"{path}: schema version {version} is not supported by this skygen "
-                           f"(reads major version {', '.join(map(str, SUPPORTED_MAJOR))}); "
-                           "upgrade skygen or re-render the dataset")
+        raise DatasetError(
+            f"{path}: schema version {version} is not supported by this skygen "
+            f"(reads major version {', '.join(map(str, SUPPORTED_MAJOR))}); "
+            "upgrade skygen or re-render the dataset"
+        )
 
 
 def open_shard_file(path: str | Path) -> h5py.File:
@@ -286,7 +332,7 @@ class _Shard:
     path: Path
     frame_start: int
     n_frames: int
-    major: int = 2                    # schema major version: 1 = flat tables with offsets
+    major: int = 2  # schema major version: 1 = flat tables with offsets
     handle: h5py.File | None = None
 
 
@@ -371,8 +417,8 @@ class Dataset:
         g = h[group]
         fields = STAR_FIELDS if group == "stars" else DETECTION_FIELDS
         try:
-            if sh.major == 1:         # flat columns, rows of frame j at offsets[j]:offsets[j+1]
-                lo, hi = g["offsets"][j:j + 2]
+            if sh.major == 1:  # flat columns, rows of frame j at offsets[j]:offsets[j+1]
+                lo, hi = g["offsets"][j : j + 2]
                 return {k: g[k][lo:hi] for k in fields}
             return {k: np.asarray(g[k][j], dtype=spec[0]) for k, spec in fields.items()}
         except (OSError, KeyError) as exc:
@@ -409,7 +455,7 @@ class Dataset:
         return state
 
 
-V2_FRAME_FIELDS = ("index_in_split", "frame_id")     # absent from schema 1.x shards
+V2_FRAME_FIELDS = ("index_in_split", "frame_id")  # absent from schema 1.x shards
 
 
 def _major(f: h5py.File) -> int:
@@ -420,26 +466,30 @@ def _read_small(f: h5py.File, path: Path) -> tuple[dict, dict]:
     """Per-frame arrays (boresight labels, splits, counts), checked: dtype, shape, finite."""
     n = int(f.attrs["n_frames"])
     out = []
-    frame_fields = FRAME_FIELDS if _major(f) >= 2 else {k: v for k, v in FRAME_FIELDS.items()
-                                                       if k not in V2_FRAME_FIELDS}
+    frame_fields = (
+        FRAME_FIELDS if _major(f) >= 2 else {k: v for k, v in FRAME_FIELDS.items() if k not in V2_FRAME_FIELDS}
+    )
     for group, fields in (("boresight", BORESIGHT_FIELDS), ("frames", frame_fields)):
         arrays = {}
         for k, spec in fields.items():
             name = f"{group}/{k}"
-            shape = (n, *spec[1]) if group == "boresight" else (n,)   # boresight specs carry a row shape
+            shape = (n, *spec[1]) if group == "boresight" else (n,)  # boresight specs carry a row shape
             try:
                 d = f[name]
                 if d.dtype != np.dtype(spec[0]) or d.shape != shape:
-                    raise DatasetError(f"{path}: '{name}' is {d.dtype}{d.shape}, expected "
-                                       f"{np.dtype(spec[0])}{shape}; the shard is damaged or foreign")
+                    raise DatasetError(
+                        f"{path}: '{name}' is {d.dtype}{d.shape}, expected "
+                        f"{np.dtype(spec[0])}{shape}; the shard is damaged or foreign"
+                    )
                 arrays[k] = d[...]
             except KeyError:
                 raise DatasetError(f"{path}: '{name}' is missing; the shard is damaged or foreign") from None
             except OSError as exc:
                 raise DatasetError(f"{path}: '{name}' is unreadable ({exc}); re-render the shard") from None
             if arrays[k].dtype.kind == "f" and not np.all(np.isfinite(arrays[k])):
-                raise DatasetError(f"{path}: '{name}' holds NaN or infinite values; labels must be finite "
-                                   "(re-render the shard)")
+                raise DatasetError(
+                    f"{path}: '{name}' holds NaN or infinite values; labels must be finite (re-render the shard)"
+                )
         out.append(arrays)
     return out[0], out[1]
 
@@ -464,15 +514,21 @@ def open_dataset(path: str | Path) -> Dataset:
             config = json.loads(f.attrs["config"])
             n, start = int(f.attrs["n_frames"]), int(f.attrs["frame_start"])
             version = str(f.attrs["schema_version"])
-        manifest = {"format": MANIFEST_FORMAT, "schema_version": version, "config": config,
-                    "shards": [{"file": path.name, "frame_start": start, "n_frames": n}]}
+        manifest = {
+            "format": MANIFEST_FORMAT,
+            "schema_version": version,
+            "config": config,
+            "shards": [{"file": path.name, "frame_start": start, "n_frames": n}],
+        }
         root = path.parent
     elif path.is_dir():
         manifest = read_manifest(path)
         if not manifest.get("complete", False):
-            raise DatasetError(f"{path}: the render has not finished ({len(manifest.get('shards', []))} of "
-                               f"{manifest.get('n_shards', '?')} shards); re-run the same `skygen render` "
-                               "command to resume it")
+            raise DatasetError(
+                f"{path}: the render has not finished ({len(manifest.get('shards', []))} of "
+                f"{manifest.get('n_shards', '?')} shards); re-run the same `skygen render` "
+                "command to resume it"
+            )
         root = path
     else:
         raise DatasetError(f"{path}: no such dataset folder or shard file")
@@ -483,11 +539,15 @@ def open_dataset(path: str | Path) -> Dataset:
             try:
                 size = p.stat().st_size
             except FileNotFoundError:
-                raise DatasetError(f"{p}: shard listed in the manifest is missing; "
-                                   "re-run `skygen render` with the same arguments to restore it") from None
+                raise DatasetError(
+                    f"{p}: shard listed in the manifest is missing; "
+                    "re-run `skygen render` with the same arguments to restore it"
+                ) from None
             if size != entry["bytes"]:
-                raise DatasetError(f"{p}: size {size} B differs from the manifest's {entry['bytes']} B "
-                                   "(truncated or replaced); delete it and re-run `skygen render` to resume")
+                raise DatasetError(
+                    f"{p}: size {size} B differs from the manifest's {entry['bytes']} B "
+                    "(truncated or replaced); delete it and re-run `skygen render` to resume"
+                )
         with open_shard_file(p) as f:
             if int(f.attrs["n_frames"]) != entry["n_frames"]:
                 raise DatasetError(f"{p}: holds {int(f.attrs['n_frames'])} frames, manifest says {entry['n_frames']}")
@@ -502,7 +562,10 @@ def open_dataset(path: str | Path) -> Dataset:
     for sh in shards:
         sh.frame_start = start
         start += sh.n_frames
-    cat = lambda parts, k: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0)
+
+    def cat(parts, k):
+        return np.concatenate([p[k] for p in parts]) if parts else np.zeros(0)
+
     bore = {k: cat(bores, k) for k in BORESIGHT_FIELDS}
     frm = {k: cat(frames, k) for k in FRAME_FIELDS}
     return Dataset(root, manifest, shards, bore, frm)
@@ -535,7 +598,7 @@ def verify_checksums(ds: Dataset, log=None) -> int:
     hashed = 0
     for sh, entry in zip(ds.shards, ds.manifest["shards"]):
         want = entry.get("sha256")
-        if want is None:           # a single shard opened without a manifest: nothing to compare with
+        if want is None:  # a single shard opened without a manifest: nothing to compare with
             continue
         st = sh.path.stat()
         key = f"{sh.path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{st.st_ctime_ns}"
@@ -545,13 +608,15 @@ def verify_checksums(ds: Dataset, log=None) -> int:
             log(f"verifying sha256 of the shards of {ds.root} (once; remembered in {cache_file})")
         hashed += 1
         if sha256_file(sh.path) != want:
-            raise DatasetError(f"{sh.path}: sha256 differs from {ds.root / MANIFEST_NAME} (the file changed or is "
-                               "corrupted); delete it and re-run the same `skygen render` to restore it")
+            raise DatasetError(
+                f"{sh.path}: sha256 differs from {ds.root / MANIFEST_NAME} (the file changed or is "
+                "corrupted); delete it and re-run the same `skygen render` to restore it"
+            )
         cache[key] = want
     if hashed:
         try:
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             write_json_atomic(cache_file, cache)
         except OSError:
-            pass    # an unwritable cache only costs hashing again next time
+            pass  # an unwritable cache only costs hashing again next time
     return hashed

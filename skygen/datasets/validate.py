@@ -20,10 +20,21 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from skygen.datasets.shards import (
+    BORESIGHT_FIELDS,
+    DETECTION_FIELDS,
+    FORMAT_NAME,
+    FRAME_FIELDS,
+    MANIFEST_NAME,
+    STAR_FIELDS,
+    V2_FRAME_FIELDS,
+    config_id,
+    open_shard_file,
+    read_manifest,
+    sha256_file,
+)
 from skygen.errors import DatasetError
 from skygen.identity import frame_ids, split_bounds
-from skygen.datasets.shards import (BORESIGHT_FIELDS, DETECTION_FIELDS, FORMAT_NAME, FRAME_FIELDS, MANIFEST_NAME, STAR_FIELDS,
-                 V2_FRAME_FIELDS, config_id, open_shard_file, read_manifest, sha256_file)
 
 
 @dataclass
@@ -41,8 +52,9 @@ class Report:
         return "\n".join([head] + [f"  problem: {p}" for p in self.problems])
 
 
-def _check_table(f: h5py.File, name: str, fields: dict, n: int, rep: Report, where: str,
-                 major: int) -> tuple[np.ndarray, dict] | None:
+def _check_table(
+    f: h5py.File, name: str, fields: dict, n: int, rep: Report, where: str, major: int
+) -> tuple[np.ndarray, dict] | None:
     """(row count per frame, all rows of each column concatenated) of table ``name``, or None."""
     if name not in f:
         rep.problems.append(f"{where}: group '{name}' is missing")
@@ -65,15 +77,15 @@ def _check_table(f: h5py.File, name: str, fields: dict, n: int, rep: Report, whe
         d = g[col]
         if major == 1:
             if d.dtype != np.dtype(dtype) or d.shape != shape:
-                rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected "
-                                    f"{np.dtype(dtype)}{shape}")
+                rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected {np.dtype(dtype)}{shape}")
                 return None
             cols[col] = d[...]
             continue
         base = h5py.check_vlen_dtype(d.dtype)
         if base is None or base != np.dtype(dtype) or d.shape != (n,):
-            rep.problems.append(f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected variable-length "
-                                f"{np.dtype(dtype)} ({n},)")
+            rep.problems.append(
+                f"{where}: '{name}/{col}' is {d.dtype}{d.shape}, expected variable-length {np.dtype(dtype)} ({n},)"
+            )
             return None
         rows = d[...]
         lengths = np.array([len(r) for r in rows], np.int64)
@@ -104,8 +116,10 @@ def _check_shard(path: Path, rep: Report, manifest: dict | None, frame_start: in
             want_id = manifest.get("expect_id", manifest.get("dataset_id"))
             want_cfg = manifest.get("expect_config", manifest.get("config"))
             if f.attrs.get("dataset_id") != want_id or cfg != want_cfg:
-                rep.problems.append(f"{where}: belongs to another dataset (dataset_id {f.attrs.get('dataset_id')} "
-                                    f"!= manifest {want_id})")
+                rep.problems.append(
+                    f"{where}: belongs to another dataset (dataset_id {f.attrs.get('dataset_id')} "
+                    f"!= manifest {want_id})"
+                )
         elif f.attrs.get("dataset_id") != config_id(cfg):
             rep.problems.append(f"{where}: dataset_id does not match its own config")
         try:
@@ -117,16 +131,17 @@ def _check_shard(path: Path, rep: Report, manifest: dict | None, frame_start: in
     return n
 
 
-def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, frame_start: int | None,
-                    major: int) -> None:
+def _check_contents(
+    f: h5py.File, n: int, cfg: dict, rep: Report, where: str, frame_start: int | None, major: int
+) -> None:
     w, h = cfg["camera"]["width_px"], cfg["camera"]["height_px"]
     s = cfg["output"]["image_size_px"]
-    sh = h // (w // s)          # stored rows: the sensor rows over the same downsampling factor
+    sh = h // (w // s)  # stored rows: the sensor rows over the same downsampling factor
     if "images" not in f or f["images"].shape != (n, sh, s) or f["images"].dtype != np.uint16:
         got = (f["images"].dtype, f["images"].shape) if "images" in f else "missing"
         rep.problems.append(f"{where}: 'images' should be uint16 ({n}, {sh}, {s}); got {got}")
     else:
-        for j in range(n):        # reading every chunk also verifies the compressed stream
+        for j in range(n):  # reading every chunk also verifies the compressed stream
             f["images"][j]
     frame_fields = FRAME_FIELDS if major >= 2 else {k: v for k, v in FRAME_FIELDS.items() if k not in V2_FRAME_FIELDS}
     for grp, fields in (("frames", frame_fields), ("boresight", BORESIGHT_FIELDS)):
@@ -136,7 +151,9 @@ def _check_contents(f: h5py.File, n: int, cfg: dict, rep: Report, where: str, fr
             if key not in f:
                 rep.problems.append(f"{where}: '{key}' is missing")
             elif f[key].shape != shape or f[key].dtype != np.dtype(spec[0]):
-                rep.problems.append(f"{where}: '{key}' is {f[key].dtype}{f[key].shape}, expected {np.dtype(spec[0])}{shape}")
+                rep.problems.append(
+                    f"{where}: '{key}' is {f[key].dtype}{f[key].shape}, expected {np.dtype(spec[0])}{shape}"
+                )
     if rep.problems and any(p.startswith(where) for p in rep.problems):
         return
     b = {k: f["boresight"][k][...] for k in BORESIGHT_FIELDS}
@@ -219,14 +236,17 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
         p = path / e["file"]
         listed.add(e["file"])
         if e.get("frame_start") != expected_start:
-            rep.problems.append(f"{e['file']}: frame_start {e.get('frame_start')} leaves a gap or overlap "
-                                f"(expected {expected_start})")
+            rep.problems.append(
+                f"{e['file']}: frame_start {e.get('frame_start')} leaves a gap or overlap (expected {expected_start})"
+            )
         expected_start = e.get("frame_start", 0) + e.get("n_frames", 0)
         if not p.exists():
             rep.problems.append(f"{e['file']}: listed in the manifest but missing")
             continue
         if p.stat().st_size != e.get("bytes"):
-            rep.problems.append(f"{e['file']}: size {p.stat().st_size} B, manifest says {e.get('bytes')} B (truncated?)")
+            rep.problems.append(
+                f"{e['file']}: size {p.stat().st_size} B, manifest says {e.get('bytes')} B (truncated?)"
+            )
             continue
         if checksums and sha256_file(p) != e.get("sha256"):
             rep.problems.append(f"{e['file']}: sha256 differs from the manifest (file changed or corrupted)")

@@ -37,7 +37,7 @@ class Camera:
     k3: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
-    aspect: float = 1.0          # pixel height / width
+    aspect: float = 1.0  # pixel height / width
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -47,8 +47,19 @@ class Camera:
             f_px = cfg.focal_length_mm * 1000.0 / cfg.pixel_pitch_um
         cx = (cfg.width_px - 1) / 2.0 if cfg.principal_x_px is None else cfg.principal_x_px
         cy = (cfg.height_px - 1) / 2.0 if cfg.principal_y_px is None else cfg.principal_y_px
-        return cls(cfg.width_px, cfg.height_px, float(f_px), float(cx), float(cy),
-                   cfg.k1, cfg.k2, cfg.k3, cfg.p1, cfg.p2, float(getattr(cfg, "pixel_aspect", 1.0)))
+        return cls(
+            cfg.width_px,
+            cfg.height_px,
+            float(f_px),
+            float(cx),
+            float(cy),
+            cfg.k1,
+            cfg.k2,
+            cfg.k3,
+            cfg.p1,
+            cfg.p2,
+            float(getattr(cfg, "pixel_aspect", 1.0)),
+        )
 
     @property
     def has_distortion(self) -> bool:
@@ -67,8 +78,10 @@ class Camera:
     @property
     def fov_deg(self) -> tuple[float, float]:
         """Full field of view (horizontal, vertical) of the pinhole, degrees."""
-        return (float(np.degrees(2 * np.arctan(self.width_px / 2 / self.f_px))),
-                float(np.degrees(2 * np.arctan(self.height_px / 2 / self.fy_px))))
+        return (
+            float(np.degrees(2 * np.arctan(self.width_px / 2 / self.f_px))),
+            float(np.degrees(2 * np.arctan(self.height_px / 2 / self.fy_px))),
+        )
 
     def corner_radius_rad(self) -> float:
         """Largest angle between the boresight and a sensor corner (distortion included)."""
@@ -118,5 +131,9 @@ class Camera:
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
     def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
-        return ((x >= -0.5 - margin_px) & (x < self.width_px - 0.5 + margin_px) &
-                (y >= -0.5 - margin_px) & (y < self.height_px - 0.5 + margin_px))
+        return (
+            (x >= -0.5 - margin_px)
+            & (x < self.width_px - 0.5 + margin_px)
+            & (y >= -0.5 - margin_px)
+            & (y < self.height_px - 0.5 + margin_px)
+        )

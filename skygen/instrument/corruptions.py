@@ -41,41 +41,93 @@ class Corruption:
     unit: str
     sweep: tuple[float, ...]
     description: str
-    combine: str = "add"   # how an extra severity stacks on a dataset's own: add, quadrature, probability
+    combine: str = "add"  # how an extra severity stacks on a dataset's own: add, quadrature, probability
 
     def stack(self, base: float, extra: float) -> float:
         """Severity of ``extra`` applied on top of ``base`` (``extra`` = 0 gives ``base`` exactly)."""
         if extra == 0:
             return base
         if self.combine == "quadrature":
-            return float((base ** 2 + extra ** 2) ** 0.5)
+            return float((base**2 + extra**2) ** 0.5)
         if self.combine == "probability":
             return float(1 - (1 - base) * (1 - extra))
         return float(base + extra)
 
 
-REGISTRY: dict[str, Corruption] = {c.name: c for c in (
-    Corruption("hotpixels", "sensor", "fraction of pixels", (0.0, 1e-4, 5e-4, 2e-3, 5e-3),
-               "static hot pixels from the seeded sensor map (log-normal dark current); larger "
-               "fractions are supersets of smaller ones"),
-    Corruption("cosmic_rays", "sensor", "hits/cm^2/s", (0.0, 50.0, 200.0, 1000.0, 5000.0),
-               "particle tracks: isotropic incidence through a 10 um sensitive layer, 80 e-/um"),
-    Corruption("motion_blur", "scene", "deg/s", (0.0, 0.2, 0.5, 1.0, 2.0),
-               "camera rotation at this rate about a random axis during the exposure (flux conserved)"),
-    Corruption("stray_light", "scene", "e-/px/s", (0.0, 1e3, 5e3, 2e4, 1e5),
-               "linear stray-light ramp across the frame, this bright at the brightest edge"),
-    Corruption("read_noise", "sensor", "e- rms", (0.0, 5.0, 10.0, 20.0, 40.0),
-               "extra Gaussian read noise added in quadrature to the sensor's", "quadrature"),
-    Corruption("false_stars", "scene", "sources/frame", (0.0, 1.0, 2.0, 4.0, 8.0),
-               "Poisson number of uncatalogued point sources (debris, planets, glints) at random "
-               "positions, brightness uniform in magnitude up to the detection limit"),
-    Corruption("dropout", "detections", "probability", (0.0, 0.1, 0.2, 0.3, 0.5),
-               "each detection is lost independently with this probability", "probability"),
-    Corruption("centroid_noise", "detections", "px rms", (0.0, 0.5, 1.0, 2.0, 4.0),
-               "Gaussian error added to each detected centroid, per axis", "quadrature"),
-    Corruption("magnitude_noise", "detections", "mag rms", (0.0, 0.1, 0.25, 0.5, 1.0),
-               "Gaussian magnitude error applied to each detected flux", "quadrature"),
-)}
+REGISTRY: dict[str, Corruption] = {
+    c.name: c
+    for c in (
+        Corruption(
+            "hotpixels",
+            "sensor",
+            "fraction of pixels",
+            (0.0, 1e-4, 5e-4, 2e-3, 5e-3),
+            "static hot pixels from the seeded sensor map (log-normal dark current); larger "
+            "fractions are supersets of smaller ones",
+        ),
+        Corruption(
+            "cosmic_rays",
+            "sensor",
+            "hits/cm^2/s",
+            (0.0, 50.0, 200.0, 1000.0, 5000.0),
+            "particle tracks: isotropic incidence through a 10 um sensitive layer, 80 e-/um",
+        ),
+        Corruption(
+            "motion_blur",
+            "scene",
+            "deg/s",
+            (0.0, 0.2, 0.5, 1.0, 2.0),
+            "camera rotation at this rate about a random axis during the exposure (flux conserved)",
+        ),
+        Corruption(
+            "stray_light",
+            "scene",
+            "e-/px/s",
+            (0.0, 1e3, 5e3, 2e4, 1e5),
+            "linear stray-light ramp across the frame, this bright at the brightest edge",
+        ),
+        Corruption(
+            "read_noise",
+            "sensor",
+            "e- rms",
+            (0.0, 5.0, 10.0, 20.0, 40.0),
+            "extra Gaussian read noise added in quadrature to the sensor's",
+            "quadrature",
+        ),
+        Corruption(
+            "false_stars",
+            "scene",
+            "sources/frame",
+            (0.0, 1.0, 2.0, 4.0, 8.0),
+            "Poisson number of uncatalogued point sources (debris, planets, glints) at random "
+            "positions, brightness uniform in magnitude up to the detection limit",
+        ),
+        Corruption(
+            "dropout",
+            "detections",
+            "probability",
+            (0.0, 0.1, 0.2, 0.3, 0.5),
+            "each detection is lost independently with this probability",
+            "probability",
+        ),
+        Corruption(
+            "centroid_noise",
+            "detections",
+            "px rms",
+            (0.0, 0.5, 1.0, 2.0, 4.0),
+            "Gaussian error added to each detected centroid, per axis",
+            "quadrature",
+        ),
+        Corruption(
+            "magnitude_noise",
+            "detections",
+            "mag rms",
+            (0.0, 0.1, 0.25, 0.5, 1.0),
+            "Gaussian magnitude error applied to each detected flux",
+            "quadrature",
+        ),
+    )
+}
 
 
 def get(name: str) -> Corruption:
@@ -88,6 +140,7 @@ def get(name: str) -> Corruption:
 def with_level(cfg, name: str, level: float):
     """A RenderConfig with corruption ``name`` at ``level`` (validated like a config value)."""
     from skygen.config import build_config, config_dict
+
     get(name)
     data = config_dict(cfg)
     data["corruptions"][name] = level
@@ -116,8 +169,9 @@ def levels_of(cfg) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------- detection level
-def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, frame_index: int | tuple,
-                                stream: str = "") -> tuple[dict, dict]:
+def apply_detection_corruptions(
+    det: dict, levels: dict[str, float], seed: int, frame_index: int | tuple, stream: str = ""
+) -> tuple[dict, dict]:
     """Apply dropout, centroid noise and magnitude noise to a detection table.
 
     Returns the new table (rows kept in brightness order of the perturbed flux) and a log.
@@ -138,7 +192,7 @@ def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, 
         d = stage_rng(seed, frame_index, "centroid_noise" + stream).normal(0.0, s, size=(2, n))
         det["x_px"] = det["x_px"] + d[0]
         det["y_px"] = det["y_px"] + d[1]
-        log["centroid_noise"] = {"rms_px": float(np.sqrt((d ** 2).mean()))}
+        log["centroid_noise"] = {"rms_px": float(np.sqrt((d**2).mean()))}
     m = levels.get("magnitude_noise", 0.0)
     if m > 0 and n:
         dm = stage_rng(seed, frame_index, "magnitude_noise" + stream).normal(0.0, m, size=n)
@@ -147,7 +201,7 @@ def apply_detection_corruptions(det: dict, levels: dict[str, float], seed: int, 
         det["peak_adu"] = det["peak_adu"] * factor
         order = np.argsort(-det["flux_adu"], kind="stable")
         det = {k: v[order] for k, v in det.items()}
-        log["magnitude_noise"] = {"rms_mag": float(np.sqrt((dm ** 2).mean()))}
+        log["magnitude_noise"] = {"rms_mag": float(np.sqrt((dm**2).mean()))}
     return det, log
 
 
@@ -158,8 +212,14 @@ def cosmic_ray_rate(shape: tuple[int, int], pitch_um: float, exposure_s: float, 
     return flux_cm2_s * (h * pitch_um * 1e-4) * (w * pitch_um * 1e-4) * exposure_s
 
 
-def cosmic_ray_charge(shape: tuple[int, int], pitch_um: float, exposure_s: float, flux_cm2_s: float,
-                      rng: np.random.Generator, n: int | None = None) -> tuple[list, list[tuple[int, int, int, int]], int]:
+def cosmic_ray_charge(
+    shape: tuple[int, int],
+    pitch_um: float,
+    exposure_s: float,
+    flux_cm2_s: float,
+    rng: np.random.Generator,
+    n: int | None = None,
+) -> tuple[list, list[tuple[int, int, int, int]], int]:
     """Cosmic-ray tracks as charge patches: ([(y0, x0, patch)], boxes, number of hits).
     ``n``: the number of hits when already drawn (Poisson with :func:`cosmic_ray_rate`)."""
     h, w = shape
@@ -168,10 +228,10 @@ def cosmic_ray_charge(shape: tuple[int, int], pitch_um: float, exposure_s: float
     patches, boxes = [], []
     for _ in range(n):
         x, y = rng.uniform(-0.5, w - 0.5), rng.uniform(-0.5, h - 0.5)
-        cos_t = np.sqrt(rng.random())           # isotropic flux through a plane
+        cos_t = np.sqrt(rng.random())  # isotropic flux through a plane
         cos_t = max(cos_t, 1e-3)
         phi = rng.uniform(0, 2 * np.pi)
-        length_px = min(COSMIC_DEPTH_UM * np.sqrt(1 - cos_t ** 2) / cos_t / pitch_um, COSMIC_MAX_TRACK_PX)
+        length_px = min(COSMIC_DEPTH_UM * np.sqrt(1 - cos_t**2) / cos_t / pitch_um, COSMIC_MAX_TRACK_PX)
         charge = COSMIC_E_PER_UM * COSMIC_DEPTH_UM / cos_t * 10 ** (0.3 * rng.standard_normal())
         m = max(2, int(np.ceil(length_px / 0.1)))
         tt = (np.arange(m) + 0.5) / m - 0.5

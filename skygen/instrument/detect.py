@@ -24,8 +24,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-EMPTY = {"x_px": np.zeros(0), "y_px": np.zeros(0), "flux_adu": np.zeros(0, np.float32),
-         "peak_adu": np.zeros(0, np.float32), "area_px": np.zeros(0, np.int32)}
+EMPTY = {
+    "x_px": np.zeros(0),
+    "y_px": np.zeros(0),
+    "flux_adu": np.zeros(0, np.float32),
+    "peak_adu": np.zeros(0, np.float32),
+    "area_px": np.zeros(0, np.int32),
+}
 
 
 _CLIP = 3.0
@@ -52,13 +57,14 @@ def estimate_background(image: np.ndarray, stride: int = 8) -> tuple[float, floa
 def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """(level, sigma) maps, float32 and the image's shape, from per-box clipped statistics (see module doc)."""
     from scipy import ndimage
+
     h, w = image.shape
     if box_px < 8:
         raise ValueError(f"background box of {box_px} px: use at least 8 px (several star widths)")
     ny, nx = -(-h // box_px), -(-w // box_px)
     level, sigma = np.empty((ny, nx)), np.empty((ny, nx))
     stride = 2 if box_px >= 32 else 1
-    fy, fx = h // box_px, w // box_px           # whole boxes: all at once (estimate_background's steps, vectorised)
+    fy, fx = h // box_px, w // box_px  # whole boxes: all at once (estimate_background's steps, vectorised)
     if fy and fx and box_px % stride == 0:
         level[:fy, :fx], sigma[:fy, :fx] = _whole_box_backgrounds(image, box_px, stride, fy, fx)
     else:
@@ -68,10 +74,12 @@ def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.
             if i < fy and j < fx:
                 continue
             level[i, j], sigma[i, j] = estimate_background(
-                image[i * box_px:(i + 1) * box_px, j * box_px:(j + 1) * box_px], stride)
+                image[i * box_px : (i + 1) * box_px, j * box_px : (j + 1) * box_px], stride
+            )
     if ny >= 3 and nx >= 3:
         level = ndimage.median_filter(level, size=3, mode="nearest")
         sigma = ndimage.median_filter(sigma, size=3, mode="nearest")
+
     # bilinear between box centres, linear beyond the outer centres (half a box): the mesh gets a ring
     # extrapolated from its two outer rows/columns; box centres at (i + 0.5) * box - 0.5 (a partial last
     # box: the centre of its pixels), ring centres one box further out
@@ -104,7 +112,7 @@ def _whole_box_backgrounds(image: np.ndarray, box_px: int, stride: int, fy: int,
     768 boxes of 64 px, whose one-at-a-time estimates cost ~45 ms of Python overhead. Equal to the
     per-box estimates up to float32 summation order (~1e-6 relative)."""
     b = box_px // stride
-    sub = image[:fy * box_px:stride, :fx * box_px:stride].astype(np.float32)
+    sub = image[: fy * box_px : stride, : fx * box_px : stride].astype(np.float32)
     a = sub.reshape(fy, b, fx, b).transpose(0, 2, 1, 3).reshape(fy * fx, b * b)
     level = np.median(a, axis=1)
     sigma = np.maximum(1.4826 * np.median(np.abs(a - level[:, None]), axis=1), 0.5)
@@ -135,8 +143,13 @@ def _linear_weights(position: np.ndarray, n: int) -> np.ndarray:
 _NEIGHBOURS = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
 
 
-def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3,
-           max_detections: int = 64, background_box_px: int = 0) -> tuple[dict, float, float]:
+def detect(
+    image: np.ndarray,
+    threshold_sigma: float = 5.0,
+    min_area_px: int = 3,
+    max_detections: int = 64,
+    background_box_px: int = 0,
+) -> tuple[dict, float, float]:
     """Detect stars in a full-resolution ADU frame. Returns (detections, background, sigma);
     with ``background_box_px`` > 0 (local background) the last two are the medians of the maps.
 
@@ -147,11 +160,11 @@ def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3
         bg_map, sigma_map = background_map(image, background_box_px)
         bg, sigma = float(np.median(bg_map)), float(np.median(sigma_map))
         mask = image > bg_map + threshold_sigma * sigma_map
-        bg_at = lambda idx: bg_map.ravel()[idx].astype(np.float64)       # noqa: E731
+        bg_at = lambda idx: bg_map.ravel()[idx].astype(np.float64)  # noqa: E731
     else:
         bg, sigma = estimate_background(image)
         mask = image > bg + threshold_sigma * sigma
-        bg_at = lambda idx: bg                                           # noqa: E731
+        bg_at = lambda idx: bg  # noqa: E731
     _, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     fg = np.flatnonzero(mask)
     lab = labels.ravel()[fg]
@@ -183,13 +196,24 @@ def detect(image: np.ndarray, threshold_sigma: float = 5.0, min_area_px: int = 3
     np.maximum.at(peak, fcomp, image.ravel()[fg].astype(np.float64) - bg_at(fg))
     flux, peak, ar = flux[good], peak[good], area[ids][good]
     order = np.argsort(-flux, kind="stable")[:max_detections]
-    det = {"x_px": cx[order], "y_px": cy[order], "flux_adu": flux[order].astype(np.float32),
-           "peak_adu": peak[order].astype(np.float32), "area_px": ar[order].astype(np.int32)}
+    det = {
+        "x_px": cx[order],
+        "y_px": cy[order],
+        "flux_adu": flux[order].astype(np.float32),
+        "peak_adu": peak[order].astype(np.float32),
+        "area_px": ar[order].astype(np.int32),
+    }
     return det, bg, sigma
 
 
-def match(det_x: np.ndarray, det_y: np.ndarray, star_x: np.ndarray, star_y: np.ndarray,
-          star_flux: np.ndarray, radius_px: float) -> np.ndarray:
+def match(
+    det_x: np.ndarray,
+    det_y: np.ndarray,
+    star_x: np.ndarray,
+    star_y: np.ndarray,
+    star_flux: np.ndarray,
+    radius_px: float,
+) -> np.ndarray:
     """For each detection, the index of its true star, or -1.
 
     True stars are taken brightest first; each claims the nearest unclaimed detection
@@ -200,9 +224,9 @@ def match(det_x: np.ndarray, det_y: np.ndarray, star_x: np.ndarray, star_y: np.n
         return out
     d2 = (det_x[None, :] - star_x[:, None]) ** 2 + (det_y[None, :] - star_y[:, None]) ** 2
     free = np.ones(len(det_x), bool)
-    near = np.flatnonzero((d2 <= radius_px ** 2).any(axis=1))    # only these can claim one
+    near = np.flatnonzero((d2 <= radius_px**2).any(axis=1))  # only these can claim one
     for s in near[np.argsort(-star_flux[near], kind="stable")]:
-        cand = np.where(free & (d2[s] <= radius_px ** 2), d2[s], np.inf)
+        cand = np.where(free & (d2[s] <= radius_px**2), d2[s], np.inf)
         j = int(np.argmin(cand))
         if np.isfinite(cand[j]):
             out[j] = s

@@ -36,8 +36,34 @@ _QE_NM = np.array([350, 400, 450, 500, 550, 600, 650, 700, 750, 800, 850, 900, 9
 _QE_REL = np.array([0.15, 0.45, 0.75, 0.92, 1.0, 0.97, 0.88, 0.75, 0.62, 0.48, 0.35, 0.22, 0.12, 0.05, 0.0])
 # Johnson V passband, Bessell (1990), photon-counting response.
 _V_NM = np.arange(470, 710, 10.0)
-_V_REL = np.array([0.0, 0.03, 0.163, 0.458, 0.78, 0.967, 1.0, 0.973, 0.898, 0.792, 0.684, 0.574,
-                   0.461, 0.359, 0.27, 0.197, 0.135, 0.081, 0.045, 0.025, 0.017, 0.013, 0.009, 0.0])
+_V_REL = np.array(
+    [
+        0.0,
+        0.03,
+        0.163,
+        0.458,
+        0.78,
+        0.967,
+        1.0,
+        0.973,
+        0.898,
+        0.792,
+        0.684,
+        0.574,
+        0.461,
+        0.359,
+        0.27,
+        0.197,
+        0.135,
+        0.081,
+        0.045,
+        0.025,
+        0.017,
+        0.013,
+        0.009,
+        0.0,
+    ]
+)
 _GRID_NM = np.arange(300.0, 1100.0, 2.0)
 _H, _C, _K = 6.62607015e-34, 2.99792458e8, 1.380649e-23
 
@@ -52,7 +78,7 @@ def _photon_spectrum(temp_k: np.ndarray) -> np.ndarray:
     """Blackbody photon flux density shape s_T(lambda) on _GRID_NM, arbitrary scale. (T, L)."""
     lam = _GRID_NM[None, :] * 1e-9
     x = _H * _C / (lam * _K * np.asarray(temp_k, dtype=np.float64)[:, None])
-    return lam ** -4 / np.expm1(np.minimum(x, 700.0))
+    return lam**-4 / np.expm1(np.minimum(x, 700.0))
 
 
 def effective_bandwidth_a(temp_k: np.ndarray | None) -> np.ndarray:
@@ -71,7 +97,7 @@ def effective_bandwidth_a(temp_k: np.ndarray | None) -> np.ndarray:
 class Photometry:
     """Magnitude-to-electron conversion for one optical/sensor configuration."""
 
-    e_per_s_at_v0_flat: float   # e-/s for a V=0 flat-spectrum star
+    e_per_s_at_v0_flat: float  # e-/s for a V=0 flat-spectrum star
     qe_peak: float
     hp_minus_v: float
     colour: bool
@@ -83,9 +109,23 @@ class Photometry:
     @classmethod
     def from_config(cls, optics, phot, sensor) -> "Photometry":
         area = np.pi * (optics.aperture_mm / 20.0) ** 2  # cm^2
-        e0 = area * optics.transmission * phot.zero_point_ph_s_cm2_a * sensor.qe_peak * float(effective_bandwidth_a(None))
-        return cls(e0, sensor.qe_peak, phot.hp_minus_v, phot.colour, phot.default_bv, area,
-                   optics.transmission, phot.zero_point_ph_s_cm2_a)
+        e0 = (
+            area
+            * optics.transmission
+            * phot.zero_point_ph_s_cm2_a
+            * sensor.qe_peak
+            * float(effective_bandwidth_a(None))
+        )
+        return cls(
+            e0,
+            sensor.qe_peak,
+            phot.hp_minus_v,
+            phot.colour,
+            phot.default_bv,
+            area,
+            optics.transmission,
+            phot.zero_point_ph_s_cm2_a,
+        )
 
     def electrons_per_s(self, mag_hp: np.ndarray, bv: np.ndarray | None = None) -> np.ndarray:
         """Photo-electrons per second for catalog magnitudes (Hp) and B-V colours."""
@@ -103,7 +143,7 @@ class Photometry:
 
     def sky_electrons_per_px_s(self, sky_mag_arcsec2: float, pixel_scale_arcsec: float) -> float:
         """Diffuse sky (zodiacal) background in e-/pixel/s, solar-like spectrum (B-V = 0.65)."""
-        mag_px = sky_mag_arcsec2 - 2.5 * np.log10(pixel_scale_arcsec ** 2)
+        mag_px = sky_mag_arcsec2 - 2.5 * np.log10(pixel_scale_arcsec**2)
         return float(self.electrons_per_s(np.array([mag_px + self.hp_minus_v]), np.array([0.65]))[0])
 
 

@@ -22,7 +22,8 @@ sigma / aspect); ``sigma`` is always measured in pixel widths (along x).
 
 Every stamp is normalised to sum to ``flux``: a Gaussian stamp reaches far enough
 that the flux beyond its edge would be below 0.01 e- (4 to 6.5 sigma, see
-:func:`gaussian_radius_px`), so the renormalisation moves nothing measurable; for Moffat and Airy the wings beyond the stamp radius
+:func:`gaussian_radius_px`), so the renormalisation moves nothing measurable; for Moffat and Airy the wings beyond the
+stamp radius
 (8 FWHM) are folded into the stamp, conserving flux. A motion-blurred star is the sum
 of stamps at sub-exposure positions, each carrying an equal share of the flux.
 """
@@ -36,7 +37,7 @@ from scipy.special import erf, j1
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _SQRT2 = np.sqrt(2.0)
-PHASES = 16     # table resolution of Moffat/Airy pixel integrals, per pixel
+PHASES = 16  # table resolution of Moffat/Airy pixel integrals, per pixel
 
 
 def stamp_radius_px(psf: str, sigma: float) -> int:
@@ -46,12 +47,13 @@ def stamp_radius_px(psf: str, sigma: float) -> int:
     return int(np.ceil(8.0 * FWHM_PER_SIGMA * sigma)) + 1
 
 
-TAIL_E = 0.01   # Gaussian stamps are cut where less than this much flux lies outside
+TAIL_E = 0.01  # Gaussian stamps are cut where less than this much flux lies outside
 
 
 def gaussian_radius_px(flux: np.ndarray, sigma: float) -> np.ndarray:
     """Half-size of a Gaussian stamp so that < TAIL_E of ``flux`` falls outside it."""
     from scipy.special import ndtri
+
     frac = np.clip(TAIL_E / np.maximum(np.asarray(flux, dtype=np.float64), 1e-300) / 4.0, 1e-15, 0.25)
     z = -ndtri(frac)
     return (np.ceil(np.maximum(z, 3.0) * sigma) + 1).astype(int)
@@ -104,14 +106,15 @@ def _pixel_integral_table(psf: str, sigma: float, beta: float, aspect: float = 1
     m = (2 * r + 2) * PHASES + 1
     # fine samples at offsets (k + 0.5)/P - R - 1 ... covering the stamp plus one pixel margin
     off = (np.arange(m + PHASES) + 0.5) / PHASES - (r + 1.0)
-    prof = _radial_profile(psf, np.hypot(off[:, None] * aspect, off[None, :]), sigma, beta)   # rows: y
+    prof = _radial_profile(psf, np.hypot(off[:, None] * aspect, off[None, :]), sigma, beta)  # rows: y
     c = np.cumsum(np.cumsum(np.pad(prof, ((1, 0), (1, 0))), 0), 1)
     box = c[PHASES:, PHASES:] - c[:-PHASES, PHASES:] - c[PHASES:, :-PHASES] + c[:-PHASES, :-PHASES]
-    return box / PHASES ** 2
+    return box / PHASES**2
 
 
-def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float = 1.0,
-          beta: float = 3.0, aspect: float = 1.0) -> tuple[int, int, np.ndarray]:
+def stamp(
+    x: float, y: float, flux: float, psf: str = "gaussian", sigma: float = 1.0, beta: float = 3.0, aspect: float = 1.0
+) -> tuple[int, int, np.ndarray]:
     """Pixel-integrated image of one point source at (x, y) carrying ``flux`` in total
     (``aspect``: pixel height / width; the PSF is round on the sky)."""
     if psf == "gaussian":
@@ -123,7 +126,7 @@ def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float =
     r = _table_radius_px(psf, sigma, aspect)
     x0, y0 = int(np.floor(x + 0.5)) - r, int(np.floor(y + 0.5)) - r
     n = 2 * r + 1
-    if True:                                  # (block kept for a small diff)
+    if True:  # (block kept for a small diff)
         table = _pixel_integral_table(psf, float(sigma), float(beta), float(aspect))
         # table[a, b] = pixel integral for a pixel centred (a/P - R - 0.5, b/P - R - 0.5) px from the star
         fy = (y0 - y + r + 0.5) * PHASES
@@ -141,8 +144,15 @@ def stamp(x: float, y: float, flux: float, psf: str = "gaussian", sigma: float =
     return y0, x0, patch
 
 
-def streak(xs: np.ndarray, ys: np.ndarray, flux: float, psf: str = "gaussian", sigma: float = 1.0,
-           beta: float = 3.0, aspect: float = 1.0) -> tuple[int, int, np.ndarray]:
+def streak(
+    xs: np.ndarray,
+    ys: np.ndarray,
+    flux: float,
+    psf: str = "gaussian",
+    sigma: float = 1.0,
+    beta: float = 3.0,
+    aspect: float = 1.0,
+) -> tuple[int, int, np.ndarray]:
     """Sum of stamps at positions (xs, ys), each with flux/len(xs): a motion-blurred star."""
     if len(xs) == 1:
         return stamp(float(xs[0]), float(ys[0]), flux, psf, sigma, beta, aspect)
@@ -155,7 +165,7 @@ def streak(xs: np.ndarray, ys: np.ndarray, flux: float, psf: str = "gaussian", s
     share = flux / len(xs)
     for x, y in zip(xs, ys):
         sy, sx, p = stamp(float(x), float(y), share, psf, sigma, beta, aspect)
-        out[sy - y0:sy - y0 + p.shape[0], sx - x0:sx - x0 + p.shape[1]] += p
+        out[sy - y0 : sy - y0 + p.shape[0], sx - x0 : sx - x0 + p.shape[1]] += p
     return y0, x0, out
 
 
@@ -172,5 +182,5 @@ def add_patch(image: np.ndarray, y0: int, x0: int, patch: np.ndarray) -> tuple[i
     yb, xb = min(y0 + patch.shape[0], h), min(x0 + patch.shape[1], w)
     if ya >= yb or xa >= xb:
         return None
-    image[ya:yb, xa:xb] += patch[ya - y0:yb - y0, xa - x0:xb - x0]
+    image[ya:yb, xa:xb] += patch[ya - y0 : yb - y0, xa - x0 : xb - x0]
     return ya, yb, xa, xb

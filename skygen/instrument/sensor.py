@@ -19,7 +19,8 @@ Two samplers give the same distribution:
 * ``fast`` (default): for a spatially uniform background the distribution of
   ``floor((Poisson(lambda_0) + N(0, sigma)) / gain)`` is computed once, exactly, and
   sampled for every pixel from one 32-bit uniform through a two-level lookup table
-  (probabilities resolved to 2^-32; only the top byte is drawn where it decides alone). Every pixel that receives anything else — star
+  (probabilities resolved to 2^-32; only the top byte is drawn where it decides alone). Every pixel that receives
+  anything else — star
   light, cosmic rays, hot or dead pixels — is drawn again with the exact per-pixel model
   (its LUT value is discarded, so the two draws never mix). The
   fast path neglects PRNU acting on the sub-electron diffuse sky only. A non-uniform
@@ -31,8 +32,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numpy as np
 import cv2
+import numpy as np
 from scipy.special import ndtr
 from scipy.stats import poisson
 
@@ -46,18 +47,27 @@ _AMBIGUOUS8 = 255
 class SensorMaps:
     """Static per-pixel maps of one physical sensor (same for every frame)."""
 
-    prnu: np.ndarray         # float32 (H, W), mean 1
-    offset_adu: np.ndarray   # int32 (H, W): bias + integer FPN
-    hot_index: np.ndarray    # flat indices of hot pixels
+    prnu: np.ndarray  # float32 (H, W), mean 1
+    offset_adu: np.ndarray  # int32 (H, W): bias + integer FPN
+    hot_index: np.ndarray  # flat indices of hot pixels
     hot_dark_e_s: np.ndarray  # their extra dark current, e-/s
-    dead_index: np.ndarray   # flat indices of dead pixels
-    hot_map: np.ndarray      # float32 (H, W): extra dark current, e-/s (0 except hot pixels)
-    dead_mask: np.ndarray    # bool (H, W)
+    dead_index: np.ndarray  # flat indices of dead pixels
+    hot_map: np.ndarray  # float32 (H, W): extra dark current, e-/s (0 except hot pixels)
+    dead_mask: np.ndarray  # bool (H, W)
 
 
 @lru_cache(maxsize=4)
-def sensor_maps(height: int, width: int, seed: int, prnu_frac: float, fpn_adu: float, bias_adu: int,
-                hot_fraction: float, hot_dark_e_s: float, dead_fraction: float) -> SensorMaps:
+def sensor_maps(
+    height: int,
+    width: int,
+    seed: int,
+    prnu_frac: float,
+    fpn_adu: float,
+    bias_adu: int,
+    hot_fraction: float,
+    hot_dark_e_s: float,
+    dead_fraction: float,
+) -> SensorMaps:
     """Draw the static maps from ``seed``; cached per process (same args, same maps)."""
     rng = np.random.default_rng([seed, 0x5E45])
     prnu = (1.0 + prnu_frac * rng.standard_normal((height, width), dtype=np.float32)).clip(0, None)
@@ -76,8 +86,9 @@ def sensor_maps(height: int, width: int, seed: int, prnu_frac: float, fpn_adu: f
     hot_map[hot] = strength
     dead_mask = np.zeros(height * width, bool)
     dead_mask[dead] = True
-    maps = SensorMaps(prnu, offset, hot, strength, dead, hot_map.reshape(height, width),
-                      dead_mask.reshape(height, width))
+    maps = SensorMaps(
+        prnu, offset, hot, strength, dead, hot_map.reshape(height, width), dead_mask.reshape(height, width)
+    )
     for arr in (prnu, offset, maps.hot_map, maps.dead_mask):
         arr.setflags(write=False)
     return maps
@@ -116,8 +127,8 @@ class BackgroundSampler:
         cdf = np.maximum.accumulate(cdf / cdf[-1])
         self.kmin = kmin
         # u (uint32) maps to the first j with u < thresholds[j]
-        self.thresholds = np.minimum(np.rint(cdf * 2.0 ** 32), 2.0 ** 32).astype(np.uint64)
-        self.thresholds[-1] = 2 ** 32
+        self.thresholds = np.minimum(np.rint(cdf * 2.0**32), 2.0**32).astype(np.uint64)
+        self.thresholds[-1] = 2**32
         prefixes = np.arange(65536, dtype=np.uint64) << np.uint64(16)
         j_lo = np.searchsorted(self.thresholds, prefixes, side="right")
         j_hi = np.searchsorted(self.thresholds, prefixes + np.uint64(65535), side="right")
@@ -152,7 +163,7 @@ class BackgroundSampler:
         top = rng.bit_generator.random_raw((n + 7) // 8).view(np.uint8)[:n]
         j = cv2.LUT(top, self.lut8).ravel()
         amb = np.flatnonzero(j == _AMBIGUOUS8)
-        if amb.size:                       # the straddling top bytes: 24 more bits, exact search
+        if amb.size:  # the straddling top bytes: 24 more bits, exact search
             low = rng.bit_generator.random_raw(amb.size) & np.uint64(0xFFFFFF)
             u = (top[amb].astype(np.uint64) << np.uint64(24)) | low
             j[amb] = np.searchsorted(self.thresholds, u, side="right")
@@ -200,12 +211,12 @@ def dark_e(sensor) -> float:
 class Exposure:
     """What reaches the sensor in one exposure (all in electrons over the exposure).
 
-    ``star_e``: expected photo-electrons from point sources per pixel (before PRNU);
-    ``charge_e``: charge deposited directly (cosmic rays), not Poisson-sampled again;
-    ``boxes``: half-open (y0, y1, x0, x1) rectangles outside which both are zero (they
-may overlap);
-    ``background_e``: uniform expected background (dark + sky);
-    ``background_map_e``: optional full non-uniform background (replaces the uniform one).
+        ``star_e``: expected photo-electrons from point sources per pixel (before PRNU);
+        ``charge_e``: charge deposited directly (cosmic rays), not Poisson-sampled again;
+        ``boxes``: half-open (y0, y1, x0, x1) rectangles outside which both are zero (they
+    may overlap);
+        ``background_e``: uniform expected background (dark + sky);
+        ``background_map_e``: optional full non-uniform background (replaces the uniform one).
     """
 
     star_e: np.ndarray
@@ -215,12 +226,13 @@ may overlap);
     background_map_e: np.ndarray | None = None
 
 
-def read_out(exp: Exposure, sensor, maps: SensorMaps, rng: np.random.Generator,
-             extra_read_noise_e: float = 0.0) -> tuple[np.ndarray, dict]:
+def read_out(
+    exp: Exposure, sensor, maps: SensorMaps, rng: np.random.Generator, extra_read_noise_e: float = 0.0
+) -> tuple[np.ndarray, dict]:
     """Sample one frame: electrons -> noise -> blooming -> ADC. Returns (uint16 image, info)."""
     h, w = exp.star_e.shape
     sigma = float(np.hypot(sensor.read_noise_e, extra_read_noise_e))
-    max_adu = 2 ** sensor.bit_depth - 1
+    max_adu = 2**sensor.bit_depth - 1
     t = sensor.exposure_s
     if sensor.sampler == "fast" and exp.background_map_e is None:
         sampler = background_sampler(round(float(exp.background_e), 9), round(sigma, 9), float(sensor.gain_e_per_adu))
@@ -263,8 +275,9 @@ def read_out(exp: Exposure, sensor, maps: SensorMaps, rng: np.random.Generator,
     return out, {"exact_pixels": int(idx.size), "bloomed_columns": bloomed}
 
 
-def _dense_background(sampler: BackgroundSampler, maps: SensorMaps, max_adu: int, n: int,
-                      rng: np.random.Generator) -> np.ndarray:
+def _dense_background(
+    sampler: BackgroundSampler, maps: SensorMaps, max_adu: int, n: int, rng: np.random.Generator
+) -> np.ndarray:
     """Every pixel drawn from the uniform-background distribution, offsets added, as uint16."""
     j = sampler.sample(n, rng)
     kmax = sampler.kmin + len(sampler.k) - 1
@@ -272,12 +285,15 @@ def _dense_background(sampler: BackgroundSampler, maps: SensorMaps, max_adu: int
     off = _OFFSET_CACHE.get(key)
     if off is None:
         lo, hi = int(maps.offset_adu.min()), int(maps.offset_adu.max())
-        off = (maps.offset_adu.ravel() + sampler.kmin).astype(np.uint16) \
-            if lo + sampler.kmin >= 0 and hi + kmax <= max_adu else None
+        off = (
+            (maps.offset_adu.ravel() + sampler.kmin).astype(np.uint16)
+            if lo + sampler.kmin >= 0 and hi + kmax <= max_adu
+            else None
+        )
         _OFFSET_CACHE.clear()
         _OFFSET_CACHE[key] = off if off is not None else False
     if off is not None and off is not False:
-        return np.add(j, off, dtype=np.uint16)    # no clipping possible: stay in uint16
+        return np.add(j, off, dtype=np.uint16)  # no clipping possible: stay in uint16
     k = j.astype(np.int32) + sampler.kmin + maps.offset_adu.ravel()
     return np.clip(k, 0, max_adu).astype(np.uint16)
 

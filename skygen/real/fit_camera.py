@@ -47,14 +47,14 @@ from pathlib import Path
 
 import numpy as np
 
-from skygen.instrument.camera import Camera
 from skygen.errors import ConfigError, SkygenError
+from skygen.instrument.camera import Camera
 
-BOX_PX = 64                 # background box of detection and pixel statistics
+BOX_PX = 64  # background box of detection and pixel statistics
 DETECT = {"threshold_sigma": 5.0, "min_area_px": 3}
 THRESHOLDS = (3.0, 4.0, 5.0, 6.0, 8.0)
-DEFAULT_FOV_RANGE = (5.0, 30.0)     # searched when neither a camera file nor a range is given
-PITCH_DEFAULT_UM = 5.5              # skygen's default camera's pixel pitch
+DEFAULT_FOV_RANGE = (5.0, 30.0)  # searched when neither a camera file nor a range is given
+PITCH_DEFAULT_UM = 5.5  # skygen's default camera's pixel pitch
 BOXES = (0, BOX_PX)
 #: a frame the fitted camera does not explain is dropped (:func:`disagreements`): its own solved field more
 #: than this far (relative) from the other frames', fewer matched stars than a lost-in-space solution
@@ -69,11 +69,13 @@ class FitError(SkygenError):
 
 
 # ----------------------------------------------------------------------------------- input
-def read_frames(paths: list[str], log, channel: str = "luminance") -> tuple[list[str], list[np.ndarray],
-                                                                            list[tuple[str, str]]]:
+def read_frames(
+    paths: list[str], log, channel: str = "luminance"
+) -> tuple[list[str], list[np.ndarray], list[tuple[str, str]]]:
     """(names, images, dropped): unreadable, multi-plane or empty files are dropped with their one-line reason
     (colour frames become one plane by ``channel``, saying so); frames of different sizes are refused."""
     from skygen.real.frames import FrameError, frame_files, read_frame
+
     files: list[Path] = []
     for p in paths:
         path = Path(p)
@@ -92,10 +94,12 @@ def read_frames(paths: list[str], log, channel: str = "luminance") -> tuple[list
     for n, im in zip(names, imgs):
         shapes.setdefault(im.shape, []).append(Path(n).name)
     if len(shapes) > 1:
-        parts = "; ".join(f"{w} x {h} px: {', '.join(v[:3])}{' ...' if len(v) > 3 else ''}"
-                          for (h, w), v in shapes.items())
-        raise ConfigError(f"frames of different sizes in one calibration ({parts}); give frames of one camera "
-                          "and read-out mode")
+        parts = "; ".join(
+            f"{w} x {h} px: {', '.join(v[:3])}{' ...' if len(v) > 3 else ''}" for (h, w), v in shapes.items()
+        )
+        raise ConfigError(
+            f"frames of different sizes in one calibration ({parts}); give frames of one camera and read-out mode"
+        )
     return names, imgs, dropped
 
 
@@ -112,6 +116,7 @@ def usable(img: np.ndarray, saturation: float) -> str:
 def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
     """The start config: the camera file, or a camera of the frames' size with the range's middle field."""
     from skygen.config import build_config, load_config
+
     h, w = shape
     if camera is not None:
         if fov_range is not None:
@@ -120,17 +125,26 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
         if pixel_aspect is not None:
             cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, pixel_aspect=pixel_aspect))
         if (cfg.camera.width_px, cfg.camera.height_px) != (w, h):
-            raise ConfigError(f"{camera}: camera is {cfg.camera.width_px} x {cfg.camera.height_px} px but the frames "
-                              f"are {w} x {h} px (width x height); give the camera of these frames")
+            raise ConfigError(
+                f"{camera}: camera is {cfg.camera.width_px} x {cfg.camera.height_px} px but the frames "
+                f"are {w} x {h} px (width x height); give the camera of these frames"
+            )
         return cfg
     lo, hi = fov_range
     if not 0 < lo < hi < 120:
         raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
     if not 0 < pixel_pitch_um <= 100:
         raise ConfigError(f"--pixel-pitch {pixel_pitch_um:g}: pixel width in micrometres, > 0 and <= 100")
-    data = {"camera": {"width_px": w, "height_px": h, "pixel_pitch_um": pixel_pitch_um, "fov_deg": 0.5 * (lo + hi),
-                       "pixel_aspect": pixel_aspect or 1.0},
-            "output": {"image_size_px": _image_size(w, h)}}
+    data = {
+        "camera": {
+            "width_px": w,
+            "height_px": h,
+            "pixel_pitch_um": pixel_pitch_um,
+            "fov_deg": 0.5 * (lo + hi),
+            "pixel_aspect": pixel_aspect or 1.0,
+        },
+        "output": {"image_size_px": _image_size(w, h)},
+    }
     return build_config(data)
 
 
@@ -143,13 +157,25 @@ def _image_size(w: int, h: int, want: int = 256) -> int:
 
 
 # ----------------------------------------------------------------------------------- the fit
-def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None, pixel_pitch_um=None,
-               pixel_aspect=None, epoch_yr=None, report_dir=None, command: str = "", log=print,
-               channel: str = "luminance") -> dict:
+def fit_camera(
+    paths: list[str],
+    out: str | Path,
+    *,
+    camera=None,
+    fov_range=None,
+    pixel_pitch_um=None,
+    pixel_aspect=None,
+    epoch_yr=None,
+    report_dir=None,
+    command: str = "",
+    log=print,
+    channel: str = "luminance",
+) -> dict:
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
     from skygen.sky.catalog import SkyIndex, load_catalog
+
     t0 = time.perf_counter()
     fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
     fr = load_frames(paths, log, channel)
@@ -165,11 +191,32 @@ def fit_camera(paths: list[str], out: str | Path, *, camera=None, fov_range=None
     px = measure_pixels(fr, solved, g, cfg0, sky, log)
     model = fit_model_terms(cfg0, g, px, solved, fr, table, pixel_pitch_um, with_start=camera is not None)
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
-    record = _record(fr.names, fr.dropped, solved, g, cam0, g.camera, px["mv"], px["meas"], px["zp_real"],
-                     model["exposure"], model["real_stats"], model["before"], model["after"], model["cfg"],
-                     fr.scale, fr.sat, fov_range, camera, command, timing, epoch)
+    record = _record(
+        fr.names,
+        fr.dropped,
+        solved,
+        g,
+        cam0,
+        g.camera,
+        px["mv"],
+        px["meas"],
+        px["zp_real"],
+        model["exposure"],
+        model["real_stats"],
+        model["before"],
+        model["after"],
+        model["cfg"],
+        fr.scale,
+        fr.sat,
+        fov_range,
+        camera,
+        command,
+        timing,
+        epoch,
+    )
     record["notes"] = notes
     from skygen.real.fit_report import write_camera_yaml, write_report
+
     write_camera_yaml(out, model["cfg"], record, command)
     if report_dir is not None:
         write_report(report_dir, record, [fr.image_of(fs.name) for fs in solved][:1], g)
@@ -181,6 +228,7 @@ class Frames:
     """The usable frames of a fit: names, images (divided by their value ``scale``), their background
     statistics (:func:`skygen.real.fit_pixels.background`, filled by :func:`solve_frames`), the frames
     dropped so far with the reason, and the data's bit depth and saturation level (scaled ADU)."""
+
     names: list
     imgs: list
     dropped: list
@@ -188,7 +236,7 @@ class Frames:
     bits: int
     sat: float
     bgs: list = dataclasses.field(default_factory=list)
-    other_camera: set = dataclasses.field(default_factory=set)    # names dropped as not the fitted camera's
+    other_camera: set = dataclasses.field(default_factory=set)  # names dropped as not the fitted camera's
 
     def image_of(self, name: str) -> np.ndarray:
         return self.imgs[self.names.index(name)]
@@ -205,18 +253,22 @@ def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log) -> tupl
     """(field range, pixel pitch, notes): the defaults filled in and said, the options checked before any work
     (a field range whose solver database would be too large is refused here, not after reading the frames)."""
     from skygen.real.platesolve import check_database_size
+
     if pixel_aspect is not None and not 0.1 <= pixel_aspect <= 10:
         raise ConfigError(f"--pixel-aspect {pixel_aspect:g}: pixel height / width between 0.1 and 10")
     notes = []
     if camera is None and fov_range is None:
         fov_range = DEFAULT_FOV_RANGE
-        notes.append(f"no --camera or --fov-range: the horizontal field was searched in {fov_range[0]:g}-"
-                     f"{fov_range[1]:g} deg")
+        notes.append(
+            f"no --camera or --fov-range: the horizontal field was searched in {fov_range[0]:g}-{fov_range[1]:g} deg"
+        )
     if camera is None and pixel_pitch_um is None:
         pixel_pitch_um = PITCH_DEFAULT_UM
-        notes.append(f"no --pixel-pitch: {pixel_pitch_um:g} um assumed (only camera.focal_length_mm depends on it; "
-                     "the field, and so every render, does not)")
-    if camera is None and 0 < fov_range[0] < fov_range[1] < 120:      # other ranges: start_config says why
+        notes.append(
+            f"no --pixel-pitch: {pixel_pitch_um:g} um assumed (only camera.focal_length_mm depends on it; "
+            "the field, and so every render, does not)"
+        )
+    if camera is None and 0 < fov_range[0] < fov_range[1] < 120:  # other ranges: start_config says why
         check_database_size(fov_range[0], fov_range[1])
     for n in notes:
         log(f"fit-camera: {n}")
@@ -226,6 +278,7 @@ def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log) -> tupl
 def load_frames(paths: list[str], log, channel: str = "luminance") -> Frames:
     """Step 1: read the frames, divide by the scale their values carry, drop blank and saturated ones."""
     from skygen.real import fit_pixels as P
+
     names, raw, dropped = read_frames(paths, log, channel)
     scale, bits, sat = P.value_scale(raw)
     fr = Frames([], [], dropped, scale, bits, sat)
@@ -248,6 +301,7 @@ def solve_frames(fr: Frames, cam0: Camera, fov_range, log) -> list:
     from skygen.real import fit_geometry as G
     from skygen.real import fit_pixels as P
     from skygen.real.platesolve import load_database
+
     if fov_range is None:
         db = load_database(cam0.fov_deg[0], log=log)
     else:
@@ -262,8 +316,11 @@ def solve_frames(fr: Frames, cam0: Camera, fov_range, log) -> list:
             fr.drop(n, why, log)
     solved = [fs for fs in frames if fs.solved]
     if not solved:
-        raise FitError(f"no frame solved ({len(fr.dropped)} dropped): " + "; ".join(
-            f"{Path(n).name}: {why}" for n, why in fr.dropped[:3]) + (" ..." if len(fr.dropped) > 3 else ""))
+        raise FitError(
+            f"no frame solved ({len(fr.dropped)} dropped): "
+            + "; ".join(f"{Path(n).name}: {why}" for n, why in fr.dropped[:3])
+            + (" ..." if len(fr.dropped) > 3 else "")
+        )
     return solved
 
 
@@ -273,8 +330,8 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
     are dropped and the fit made again from the others' own solutions, as if only they had been given.
     Unless the frames that agree are a majority: then it refuses (frames of more than one camera?).
     One frame has no other to disagree with: its fit stands. Returns (fit, the frames kept)."""
-    own = {fs.name: fs.R for fs in solved}          # each frame's lost-in-space solution
-    said: list[str] = []                            # the fit's notes, kept back until it stands
+    own = {fs.name: fs.R for fs in solved}  # each frame's lost-in-space solution
+    said: list[str] = []  # the fit's notes, kept back until it stands
     g = _fit_two_radii(solved, cam0, fov_range, sky, said.append)
     bad = disagreements(solved, g) if len(solved) > 1 else {}
     if not bad:
@@ -285,12 +342,17 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
     if 2 * len(kept) <= len(solved):
         others = [Path(n).name for n in bad]
         first = next(iter(bad.values()))
-        raise FitError(f"frames of more than one camera? only {len(kept)} of {len(solved)} solved frames agree with "
-                       f"the fitted camera (field {g.camera.fov_deg[0]:.2f} deg); the other {len(bad)} "
-                       f"({', '.join(others[:3])}{' ...' if len(others) > 3 else ''}) do not, e.g. {others[0]}: "
-                       f"{first}; give the frames of one camera and lens"
-                       + ("" if kept or fov_range is not None else
-                          " (if they are, the camera file's field may be far from theirs: try --fov-range)"))
+        raise FitError(
+            f"frames of more than one camera? only {len(kept)} of {len(solved)} solved frames agree with "
+            f"the fitted camera (field {g.camera.fov_deg[0]:.2f} deg); the other {len(bad)} "
+            f"({', '.join(others[:3])}{' ...' if len(others) > 3 else ''}) do not, e.g. {others[0]}: "
+            f"{first}; give the frames of one camera and lens"
+            + (
+                ""
+                if kept or fov_range is not None
+                else " (if they are, the camera file's field may be far from theirs: try --fov-range)"
+            )
+        )
     for n, why in bad.items():
         fr.drop(n, why, log)
         fr.other_camera.add(n)
@@ -303,8 +365,9 @@ def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):
     """The joint fit at a 6 px match radius (its attitudes replace the solutions), then at 2.5 px; from the
     start camera, or with a field range from the median field of :func:`majority_field`."""
     from skygen.real import fit_geometry as G
+
     start_cam = cam0
-    if fov_range is not None:                       # the field the solver found is the fit's start
+    if fov_range is not None:  # the field the solver found is the fit's start
         fov = float(np.median([fs.fov_deg for fs in majority_field(solved)]))
         start_cam = dataclasses.replace(cam0, f_px=cam0.width_px / 2 / np.tan(np.radians(fov) / 2))
     g = G.fit_geometry(solved, start_cam, sky, 6.0, log=lambda m: None)
@@ -328,23 +391,29 @@ def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE) -> dict:
     the frames it does explain were solved at (tetra3rs's field, comparable frame to frame; the
     fitted pinhole field differs from it by the distortion)."""
     matched = np.array([int(m.sum()) for m in g.keep])
-    rms = np.array([np.sqrt(np.mean(np.sum(r ** 2, 1))) if len(r) else np.inf for r in g.residuals])
+    rms = np.array([np.sqrt(np.mean(np.sum(r**2, 1))) if len(r) else np.inf for r in g.residuals])
     good = matched >= MIN_MATCHED
     ref = float(np.median([fs.fov_deg for fs, ok in zip(solved, good) if ok])) if good.any() else float("nan")
     rms_cut = max(RMS_FACTOR * g.rms_px, 1.0)
     bad = {}
     for fs, n, r in zip(solved, matched, rms):
         if n < MIN_MATCHED:
-            bad[fs.name] = (f"only {n} of its {len(fs.det['x_px'])} detections match catalogue stars under the fitted "
-                            f"camera (field {g.camera.fov_deg[0]:.2f} deg; its own solution: {fs.fov_deg:.2f} deg): "
-                            "a frame of another camera or lens, or a wrong solution")
+            bad[fs.name] = (
+                f"only {n} of its {len(fs.det['x_px'])} detections match catalogue stars under the fitted "
+                f"camera (field {g.camera.fov_deg[0]:.2f} deg; its own solution: {fs.fov_deg:.2f} deg): "
+                "a frame of another camera or lens, or a wrong solution"
+            )
         elif abs(fs.fov_deg / ref - 1) > tol:
-            bad[fs.name] = (f"solved at a {fs.fov_deg:.2f} deg field, the other frames at {ref:.2f} deg "
-                            f"({100 * abs(fs.fov_deg / ref - 1):.0f} % apart): a frame of another camera or lens")
+            bad[fs.name] = (
+                f"solved at a {fs.fov_deg:.2f} deg field, the other frames at {ref:.2f} deg "
+                f"({100 * abs(fs.fov_deg / ref - 1):.0f} % apart): a frame of another camera or lens"
+            )
         elif r > rms_cut:
-            bad[fs.name] = (f"its {n} matched stars sit {r:.2f} px rms from the fitted camera's projection, over "
-                            f"{rms_cut:.2f} px ({RMS_FACTOR:g} x the fit's {g.rms_px:.3f} px): a frame of another "
-                            "camera or lens, or a wrong solution")
+            bad[fs.name] = (
+                f"its {n} matched stars sit {r:.2f} px rms from the fitted camera's projection, over "
+                f"{rms_cut:.2f} px ({RMS_FACTOR:g} x the fit's {g.rms_px:.3f} px): a frame of another "
+                "camera or lens, or a wrong solution"
+            )
     return bad
 
 
@@ -352,11 +421,16 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
     """Step 4 and 5: gain, bias and read noise (mean-variance), PSF, hot pixels, the real zero point and
     the detector settings, on the frames of the fitted camera (frames of another camera left out)."""
     from skygen.real import fit_pixels as P
+
     own = [n for n in fr.names if n not in fr.other_camera]
     bgs = [fr.background_of(n) for n in own]
-    mv = P.gain_from_mean_variance(np.concatenate([b["box_level"] for b in bgs]),
-                                   np.concatenate([b["box_sigma"] for b in bgs]) ** 2,
-                                   cfg0.sensor.read_noise_e, cfg0.sensor.fpn_adu, cfg0.sensor.bias_adu)
+    mv = P.gain_from_mean_variance(
+        np.concatenate([b["box_level"] for b in bgs]),
+        np.concatenate([b["box_sigma"] for b in bgs]) ** 2,
+        cfg0.sensor.read_noise_e,
+        cfg0.sensor.fpn_adu,
+        cfg0.sensor.bias_adu,
+    )
     if mv["ok"]:
         gain, bias, read = mv["gain_e_per_adu"], mv["bias_adu"], mv["read_noise_e"]
     else:
@@ -370,13 +444,20 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
     hot = P.hot_pixels([fr.image_of(n) for n in own], [b["level_map"] for b in bgs], [b["sigma_map"] for b in bgs])
     zp_real, stars = _zero_point_real(solved, g, s_bgs, fr.sat)
     settings = choose_detector(solved, s_imgs, cam, g.rotations, sky)
-    meas = {"gain_e_per_adu": gain, "bias_adu": bias, "read_noise_e": read,
-            "level_adu": float(np.median([b["level_adu"] for b in bgs])),
-            "centre_adu": float(np.median([b["centre_adu"] for b in bgs])),
-            "corner_drop_adu": float(np.median([b["corner_drop_adu"] for b in bgs])),
-            "background_residual_adu": float(np.median([b["residual_std_adu"] for b in bgs])),
-            "gradient_adu": float(np.median([b["gradient_adu"] for b in bgs])), "bits": fr.bits, "psf": psf,
-            "hot": hot, "settings": settings}
+    meas = {
+        "gain_e_per_adu": gain,
+        "bias_adu": bias,
+        "read_noise_e": read,
+        "level_adu": float(np.median([b["level_adu"] for b in bgs])),
+        "centre_adu": float(np.median([b["centre_adu"] for b in bgs])),
+        "corner_drop_adu": float(np.median([b["corner_drop_adu"] for b in bgs])),
+        "background_residual_adu": float(np.median([b["residual_std_adu"] for b in bgs])),
+        "gradient_adu": float(np.median([b["gradient_adu"] for b in bgs])),
+        "bits": fr.bits,
+        "psf": psf,
+        "hot": hot,
+        "settings": settings,
+    }
     return {"mv": mv, "meas": meas, "zp_real": zp_real, "stars": stars}
 
 
@@ -385,6 +466,7 @@ def fit_model_terms(cfg0, g, px: dict, solved: list, fr: Frames, table, pixel_pi
     so that renders at the fitted attitudes give the real zero point, and the detections the catalogue
     lacks made ``corruptions.false_stars``. Returns the config and the real / rendered statistics."""
     from skygen.real.fit_geometry import radec_roll
+
     cam, meas, sat = g.camera, px["meas"], fr.sat
     exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
     attitudes = [radec_roll(R) for R in g.rotations]
@@ -404,13 +486,14 @@ def fit_model_terms(cfg0, g, px: dict, solved: list, fr: Frames, table, pixel_pi
     if deficit > 0:
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     after = _render_stats(cfg, attitudes, table, sat) if deficit > 0 else render_det
-    before = _render_stats(cfg0, attitudes, table, 2 ** cfg0.sensor.bit_depth - 1) if with_start else None
+    before = _render_stats(cfg0, attitudes, table, 2**cfg0.sensor.bit_depth - 1) if with_start else None
     return {"cfg": cfg, "exposure": exposure, "real_stats": real_stats, "before": before, "after": after}
 
 
 def _zero_point_real(solved, g, bgs, sat):
     """Zero point of the real frames and the matched unsaturated stars (flux ADU, Hp, B-V)."""
     from skygen.real.fit_pixels import zero_point
+
     flux, mag, bv, peak, lev = [], [], [], [], []
     for fs, m, b in zip(solved, g.keep, bgs):
         d = fs.det_index[m]
@@ -430,6 +513,7 @@ def _zero_point_real(solved, g, bgs, sat):
 def _exposure_from_stars(cfg0, stars, gain) -> float:
     """First estimate of exposure x throughput: detected electrons / the model's electrons per second."""
     from skygen.instrument.photometry import Photometry
+
     if stars["n"] == 0:
         return cfg0.sensor.exposure_s
     ph = Photometry.from_config(cfg0.optics, cfg0.photometry, cfg0.sensor)
@@ -440,7 +524,9 @@ def _exposure_from_stars(cfg0, stars, gain) -> float:
 def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
     """Threshold and background box that maximise (catalogue stars found) - (other detections)."""
     from scipy.spatial import cKDTree
+
     from skygen.instrument.detect import detect
+
     trees = []
     for fs, R in zip(solved, rotations):
         idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
@@ -459,8 +545,15 @@ def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
                 d, _ = tree.query(np.column_stack([det["x_px"], det["y_px"]]))
                 found += int(np.sum(d <= 2.0))
                 other += int(np.sum(d > 2.0))
-            rows.append({"threshold_sigma": thr, "background_box_px": box, "catalogue_per_frame": found / len(imgs),
-                         "other_per_frame": other / len(imgs), "score": (found - other) / len(imgs)})
+            rows.append(
+                {
+                    "threshold_sigma": thr,
+                    "background_box_px": box,
+                    "catalogue_per_frame": found / len(imgs),
+                    "other_per_frame": other / len(imgs),
+                    "score": (found - other) / len(imgs),
+                }
+            )
     best = max(rows, key=lambda r: (r["score"], r["threshold_sigma"]))
     return {**best, "min_area_px": DETECT["min_area_px"], "grid": rows}
 
@@ -469,23 +562,46 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     """The fitted config: the start config with the measured values in the model's own terms."""
     from skygen.config import build_config, config_dict
     from skygen.instrument.photometry import Photometry, dark_current_e_s
+
     d = config_dict(cfg0)
     s = cfg0.sensor
     gain = meas["gain_e_per_adu"]
     pitch = pixel_pitch_um or cfg0.camera.pixel_pitch_um
-    d["camera"].update({"pixel_pitch_um": pitch, "focal_length_mm": cam.f_px * pitch / 1000.0, "fov_deg": None,
-                        "principal_x_px": float(cam.cx_px), "principal_y_px": float(cam.cy_px),
-                        "k1": float(cam.k1), "k2": float(cam.k2), "pixel_aspect": float(cam.aspect)})
+    d["camera"].update(
+        {
+            "pixel_pitch_um": pitch,
+            "focal_length_mm": cam.f_px * pitch / 1000.0,
+            "fov_deg": None,
+            "principal_x_px": float(cam.cx_px),
+            "principal_y_px": float(cam.cy_px),
+            "k1": float(cam.k1),
+            "k2": float(cam.k2),
+            "pixel_aspect": float(cam.aspect),
+        }
+    )
     psf = meas["psf"]
     if psf["ok"]:
-        d["optics"].update({"psf": psf["psf"], "psf_sigma_px": float(np.clip(
-            psf["moffat_sigma_px"] if psf["psf"] == "moffat" else psf["gaussian_sigma_px"], 0.2, 20))})
+        d["optics"].update(
+            {
+                "psf": psf["psf"],
+                "psf_sigma_px": float(
+                    np.clip(psf["moffat_sigma_px"] if psf["psf"] == "moffat" else psf["gaussian_sigma_px"], 0.2, 20)
+                ),
+            }
+        )
         if psf["psf"] == "moffat":
             d["optics"]["moffat_beta"] = float(np.clip(psf["moffat_beta"], 1.1, 20))
     bits = meas["bits"]
-    d["sensor"].update({"exposure_s": float(exposure), "gain_e_per_adu": float(gain),
-                        "read_noise_e": float(meas["read_noise_e"]), "bias_adu": int(round(meas["bias_adu"])),
-                        "bit_depth": int(bits), "full_well_e": float(max(s.full_well_e, gain * (2 ** bits - 1)))})
+    d["sensor"].update(
+        {
+            "exposure_s": float(exposure),
+            "gain_e_per_adu": float(gain),
+            "read_noise_e": float(meas["read_noise_e"]),
+            "bias_adu": int(round(meas["bias_adu"])),
+            "bit_depth": int(bits),
+            "full_well_e": float(max(s.full_well_e, gain * (2**bits - 1))),
+        }
+    )
     fitted_sensor = build_config(d).sensor
     dark_e = dark_current_e_s(fitted_sensor) * exposure
     grad_e = meas["gradient_adu"] * gain
@@ -497,14 +613,20 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     ref = ph.sky_electrons_per_px_s(20.0, scale) * cam.aspect * exposure
     d["photometry"]["sky_mag_arcsec2"] = float(np.clip(20.0 - 2.5 * np.log10(max(sky_e, 1e-9) / ref), 10, 30))
     hot = meas["hot"]
-    d["corruptions"].update({"stray_light": float(min(grad_e / exposure, 1e7)),
-                             "hotpixels": float(min(hot["fraction"], 0.05))})
+    d["corruptions"].update(
+        {"stray_light": float(min(grad_e / exposure, 1e7)), "hotpixels": float(min(hot["fraction"], 0.05))}
+    )
     if hot["n_static"]:
         d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
     d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), 100.0))
     st = meas["settings"]
-    d["detection"].update({"threshold_sigma": st["threshold_sigma"], "min_area_px": st["min_area_px"],
-                           "background_box_px": st["background_box_px"]})
+    d["detection"].update(
+        {
+            "threshold_sigma": st["threshold_sigma"],
+            "min_area_px": st["min_area_px"],
+            "background_box_px": st["background_box_px"],
+        }
+    )
     w, h = cam.width_px, cam.height_px
     if w % d["output"]["image_size_px"] or h % (w // d["output"]["image_size_px"]):
         d["output"]["image_size_px"] = _image_size(w, h)
@@ -513,13 +635,19 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
 
 
 def _measure_real(img, settings, sat, fs, g, k) -> dict:
-    from skygen.real.frame_stats import frame_stats
     from skygen.real.fit_pixels import zero_point
+    from skygen.real.frame_stats import frame_stats
+
     st, _ = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
     m = g.keep[k]
     d = fs.det_index[m]
-    zp, n = zero_point(fs.det["flux_adu"][d].astype(float), fs.star_mag[m], fs.det["peak_adu"][d].astype(float),
-                       np.full(len(d), st["background_adu"]), sat)
+    zp, n = zero_point(
+        fs.det["flux_adu"][d].astype(float),
+        fs.star_mag[m],
+        fs.det["peak_adu"][d].astype(float),
+        np.full(len(d), st["background_adu"]),
+        sat,
+    )
     return {**st, "zero_point_mag": zp, "zero_point_stars": n}
 
 
@@ -529,6 +657,7 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     from skygen.real.fit_pixels import zero_point
     from skygen.real.frame_stats import frame_stats
     from skygen.render.frame import Renderer
+
     d = config_dict(cfg)
     ra, dec, roll = (tuple(float(a[i]) for a in attitudes) for i in range(3))
     d["attitude"] = {**d["attitude"], "mode": "list", "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
@@ -544,25 +673,62 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         img = f.image_full.astype(np.float32)
         st, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)
         from skygen.instrument.detect import match
+
         sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
         ok = sidx >= 0
-        zp, n = zero_point(det["flux_adu"][ok].astype(float), f.stars["mag"][sidx[ok]].astype(float),
-                           det["peak_adu"][ok].astype(float), np.full(int(ok.sum()), st["background_adu"]), sat)
+        zp, n = zero_point(
+            det["flux_adu"][ok].astype(float),
+            f.stars["mag"][sidx[ok]].astype(float),
+            det["peak_adu"][ok].astype(float),
+            np.full(int(ok.sum()), st["background_adu"]),
+            sat,
+        )
         rows.append({**st, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
     return rows
 
 
-def _record(names, dropped, solved, g, cam0, cam, mv, meas, zp_real, exposure, real_stats, before, after, cfg,
-            scale, sat, fov_range, camera, command, timing, epoch) -> dict:
+def _record(
+    names,
+    dropped,
+    solved,
+    g,
+    cam0,
+    cam,
+    mv,
+    meas,
+    zp_real,
+    exposure,
+    real_stats,
+    before,
+    after,
+    cfg,
+    scale,
+    sat,
+    fov_range,
+    camera,
+    command,
+    timing,
+    epoch,
+) -> dict:
     from skygen.config import config_dict
     from skygen.runtime import hardware
+
     per_frame = []
     for fs, r, p, R in zip(solved, g.residuals, g.positions, g.rotations):
         from skygen.real.fit_geometry import radec_roll
+
         ra, dec, roll = radec_roll(R)
-        per_frame.append({"frame": Path(fs.name).name, "solved_fov_deg": fs.fov_deg, "matched": int(len(r)),
-                          "rms_px": float(np.sqrt(np.mean(np.sum(r ** 2, 1)))) if len(r) else float("nan"),
-                          "ra_deg": ra, "dec_deg": dec, "roll_deg": roll})
+        per_frame.append(
+            {
+                "frame": Path(fs.name).name,
+                "solved_fov_deg": fs.fov_deg,
+                "matched": int(len(r)),
+                "rms_px": float(np.sqrt(np.mean(np.sum(r**2, 1)))) if len(r) else float("nan"),
+                "ra_deg": ra,
+                "dec_deg": dec,
+                "roll_deg": roll,
+            }
+        )
     allr = np.concatenate(g.residuals)
     allp = np.concatenate(g.positions)
     rad = np.hypot(allp[:, 0] - cam.cx_px, (allp[:, 1] - cam.cy_px) * cam.aspect)
@@ -570,24 +736,64 @@ def _record(names, dropped, solved, g, cam0, cam, mv, meas, zp_real, exposure, r
     radial = []
     for a, b in zip(edges[:-1], edges[1:]):
         sel = (rad >= a) & (rad < b)
-        radial.append({"r_lo_px": float(a), "r_hi_px": float(b), "n": int(sel.sum()),
-                       "rms_px": float(np.sqrt(np.mean(np.sum(allr[sel] ** 2, 1)))) if sel.any() else float("nan")})
+        radial.append(
+            {
+                "r_lo_px": float(a),
+                "r_hi_px": float(b),
+                "n": int(sel.sum()),
+                "rms_px": float(np.sqrt(np.mean(np.sum(allr[sel] ** 2, 1)))) if sel.any() else float("nan"),
+            }
+        )
     keys = ("background_adu", "noise_adu", "detections", "star_sigma_px", "zero_point_mag")
     med = lambda rows, k: float(np.nanmedian([r[k] for r in rows])) if rows else float("nan")  # noqa: E731
-    compare = {k: {"real": med(real_stats, k), "fitted": med(after, k),
-                   "start": med(before, k) if before else float("nan")} for k in keys}
+    compare = {
+        k: {"real": med(real_stats, k), "fitted": med(after, k), "start": med(before, k) if before else float("nan")}
+        for k in keys
+    }
     strip = lambda rows: [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows] if rows else None  # noqa: E731
-    return {"command": command, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "hardware": hardware(), "timing_s": timing, "epoch_yr": epoch, "value_scale": scale, "saturation_adu": sat,
-            "start": {"camera_file": str(camera) if camera else None, "fov_range_deg": list(fov_range) if fov_range else None,
-                      "f_px": cam0.f_px, "fov_deg": cam0.fov_deg[0], "aspect": cam0.aspect},
-            "frames": [Path(n).name for n in names], "solved": per_frame,
-            "dropped": [{"frame": Path(n).name, "reason": w} for n, w in dropped],
-            "geometry": {"f_px": cam.f_px, "fov_deg": cam.fov_deg[0], "fov_v_deg": cam.fov_deg[1], "aspect": cam.aspect,
-                         "cx_px": cam.cx_px, "cy_px": cam.cy_px, "k1": cam.k1, "k2": cam.k2, "fitted": g.fitted,
-                         "fixed": g.fixed, "sigma": g.sigma, "rms_px": g.rms_px, "n_matched": int(len(allr)),
-                         "radial": radial},
-            "mean_variance": mv, "pixels": {k: v for k, v in meas.items() if k != "settings"},
-            "detector": meas["settings"], "zero_point_real_mag": zp_real, "exposure_s": exposure,
-            "compare": compare, "real_stats": real_stats, "fitted_stats": strip(after), "start_stats": strip(before),
-            "config": config_dict(cfg), "_render_example": after[0]["_image"] if after else None}
+    return {
+        "command": command,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "hardware": hardware(),
+        "timing_s": timing,
+        "epoch_yr": epoch,
+        "value_scale": scale,
+        "saturation_adu": sat,
+        "start": {
+            "camera_file": str(camera) if camera else None,
+            "fov_range_deg": list(fov_range) if fov_range else None,
+            "f_px": cam0.f_px,
+            "fov_deg": cam0.fov_deg[0],
+            "aspect": cam0.aspect,
+        },
+        "frames": [Path(n).name for n in names],
+        "solved": per_frame,
+        "dropped": [{"frame": Path(n).name, "reason": w} for n, w in dropped],
+        "geometry": {
+            "f_px": cam.f_px,
+            "fov_deg": cam.fov_deg[0],
+            "fov_v_deg": cam.fov_deg[1],
+            "aspect": cam.aspect,
+            "cx_px": cam.cx_px,
+            "cy_px": cam.cy_px,
+            "k1": cam.k1,
+            "k2": cam.k2,
+            "fitted": g.fitted,
+            "fixed": g.fixed,
+            "sigma": g.sigma,
+            "rms_px": g.rms_px,
+            "n_matched": int(len(allr)),
+            "radial": radial,
+        },
+        "mean_variance": mv,
+        "pixels": {k: v for k, v in meas.items() if k != "settings"},
+        "detector": meas["settings"],
+        "zero_point_real_mag": zp_real,
+        "exposure_s": exposure,
+        "compare": compare,
+        "real_stats": real_stats,
+        "fitted_stats": strip(after),
+        "start_stats": strip(before),
+        "config": config_dict(cfg),
+        "_render_example": after[0]["_image"] if after else None,
+    }

@@ -12,7 +12,8 @@ length ``f_px`` (pixel widths), ``pixel_aspect`` (through its logarithm), princi
 attitude. A term is fitted only when the data can constrain it (:data:`RULES`; principal point and
 distortion need several frames and stars spread to the field's edge; ``k2`` needs many stars) and
 its 1-sigma uncertainty moves a corner star by less than ``max_corner_sigma_px`` (and, for k1 and k2,
-the fitted value is at least twice its uncertainty); otherwise it is fixed (principal point at the sensor centre, distortion 0) and the reason is recorded. Matches
+the fitted value is at least twice its uncertainty); otherwise it is fixed (principal point at the sensor centre,
+distortion 0) and the reason is recorded. Matches
 beyond 3.5 times the robust rms are dropped and the fit repeated (twice), with the matches
 re-made from the fitted camera in between.
 """
@@ -27,20 +28,26 @@ import numpy as np
 from skygen.instrument.camera import Camera
 from skygen.sky.attitude import matrix_to_radec_roll
 
-RULES = {"min_frames_distortion": 2, "min_stars_distortion": 30, "min_stars_k2": 150,
-         "min_edge_fraction": 0.7, "max_corner_sigma_px": 0.3}
+RULES = {
+    "min_frames_distortion": 2,
+    "min_stars_distortion": 30,
+    "min_stars_k2": 150,
+    "min_edge_fraction": 0.7,
+    "max_corner_sigma_px": 0.3,
+}
 
 
 @dataclass
 class FrameSolution:
     """One frame's detections, solution (camera -> ICRS matrix ``R``) and catalogue matches."""
+
     name: str
     det: dict
     R: np.ndarray | None = None
     fov_deg: float = float("nan")
     reason: str = ""
-    det_index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))   # matched detections
-    star_vec: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))    # their catalogue directions (ICRS)
+    det_index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # matched detections
+    star_vec: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their catalogue directions (ICRS)
     star_mag: np.ndarray = field(default_factory=lambda: np.zeros(0))
     star_bv: np.ndarray = field(default_factory=lambda: np.zeros(0))
     star_hip: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -50,7 +57,7 @@ class FrameSolution:
         return self.R is not None
 
 
-radec_roll = matrix_to_radec_roll          # (ra, dec, roll) degrees of a camera -> ICRS matrix
+radec_roll = matrix_to_radec_roll  # (ra, dec, roll) degrees of a camera -> ICRS matrix
 
 
 def _rotvec(w: np.ndarray) -> np.ndarray:
@@ -63,10 +70,12 @@ def _rotvec(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
 
 
-def solve_frame(db, det: dict, camera: Camera, fov_range, max_stars: int = 64,
-                match_threshold: float = 1e-5) -> tuple[np.ndarray | None, float, str]:
+def solve_frame(
+    db, det: dict, camera: Camera, fov_range, max_stars: int = 64, match_threshold: float = 1e-5
+) -> tuple[np.ndarray | None, float, str]:
     """tetra3rs lost-in-space: (camera -> ICRS matrix or None, solved horizontal FOV, refusal reason)."""
     from skygen.real.platesolve import ideal_centroids, tetra3rs
+
     n = min(len(det["x_px"]), max_stars)
     if n < 4:
         return None, float("nan"), f"too few stars to solve ({n} detections; tetra3rs needs at least 4, better 8+)"
@@ -76,10 +85,15 @@ def solve_frame(db, det: dict, camera: Camera, fov_range, max_stars: int = 64,
         geo = {"camera_model": tetra3rs().CameraModel(float(camera.f_px), int(camera.width_px), h_ideal)}
     else:
         lo, hi = fov_range
-        geo = {"fov_estimate_deg": 0.5 * (lo + hi), "fov_max_error_deg": 0.5 * (hi - lo),
-               "image_width": int(camera.width_px), "image_height": h_ideal}
-    res = db.solve_from_centroids(cents, match_threshold=match_threshold, solve_timeout_ms=5000,
-                                  max_patterns_checked=1_000_000, **geo)
+        geo = {
+            "fov_estimate_deg": 0.5 * (lo + hi),
+            "fov_max_error_deg": 0.5 * (hi - lo),
+            "image_width": int(camera.width_px),
+            "image_height": h_ideal,
+        }
+    res = db.solve_from_centroids(
+        cents, match_threshold=match_threshold, solve_timeout_ms=5000, max_patterns_checked=1_000_000, **geo
+    )
     if not res:
         why = str(res.status)
         hint = " (no match in the field-of-view range?)" if fov_range is not None else ""
@@ -92,6 +106,7 @@ def solve_frame(db, det: dict, camera: Camera, fov_range, max_stars: int = 64,
 def match_catalogue(fs: FrameSolution, camera: Camera, sky, radius_px: float) -> None:
     """Pair each detection with the nearest catalogue star projected through ``fs.R`` (each star once)."""
     from scipy.spatial import cKDTree
+
     idx = sky.cone(fs.R[:, 2], camera.corner_radius_rad() + 0.01)
     v = sky.vectors[idx]
     x, y, front = camera.project(v @ fs.R)
@@ -117,13 +132,13 @@ def match_catalogue(fs: FrameSolution, camera: Camera, sky, radius_px: float) ->
 @dataclass
 class GeometryFit:
     camera: Camera
-    rotations: list            # fitted camera -> ICRS matrix per solved frame
-    fitted: list               # names of the fitted camera terms
-    fixed: dict                # term -> reason it was fixed
-    sigma: dict                # term -> 1-sigma uncertainty
-    residuals: list            # per frame (N, 2) px residuals of the kept matches
-    positions: list            # per frame (N, 2) detected px of the kept matches
-    keep: list                 # per frame boolean mask over the frame's matches
+    rotations: list  # fitted camera -> ICRS matrix per solved frame
+    fitted: list  # names of the fitted camera terms
+    fixed: dict  # term -> reason it was fixed
+    sigma: dict  # term -> 1-sigma uncertainty
+    residuals: list  # per frame (N, 2) px residuals of the kept matches
+    positions: list  # per frame (N, 2) detected px of the kept matches
+    keep: list  # per frame boolean mask over the frame's matches
     rms_px: float = float("nan")
 
 
@@ -131,17 +146,18 @@ TERMS = ("f", "log_aspect", "cx", "cy", "k1", "k2")
 
 
 def _camera(base: Camera, p: dict) -> Camera:
-    return dataclasses.replace(base, f_px=p["f"], aspect=float(np.exp(p["log_aspect"])), cx_px=p["cx"],
-                               cy_px=p["cy"], k1=p["k1"], k2=p["k2"])
+    return dataclasses.replace(
+        base, f_px=p["f"], aspect=float(np.exp(p["log_aspect"])), cx_px=p["cx"], cy_px=p["cy"], k1=p["k1"], k2=p["k2"]
+    )
 
 
 def _residuals(theta, names, fixed_vals, base, frames, masks):
     p = dict(fixed_vals)
-    p.update(zip(names, theta[:len(names)]))
+    p.update(zip(names, theta[: len(names)]))
     cam = _camera(base, p)
     out = []
     for i, (fs, m) in enumerate(zip(frames, masks)):
-        w = theta[len(names) + 3 * i: len(names) + 3 * i + 3]
+        w = theta[len(names) + 3 * i : len(names) + 3 * i + 3]
         R = fs.R @ _rotvec(w)
         x, y, _ = cam.project(fs.star_vec[m] @ R)
         d = fs.det_index[m]
@@ -151,19 +167,28 @@ def _residuals(theta, names, fixed_vals, base, frames, masks):
 
 def _corner_effect(term: str, cam: Camera) -> float:
     """Pixels a corner star moves per unit change of ``term`` (to turn a sigma into a visible size)."""
-    r2 = ((cam.width_px / 2) ** 2 + (cam.height_px * cam.aspect / 2) ** 2) / cam.f_px ** 2
+    r2 = ((cam.width_px / 2) ** 2 + (cam.height_px * cam.aspect / 2) ** 2) / cam.f_px**2
     r = np.sqrt(r2) * cam.f_px
-    return {"f": r / cam.f_px, "log_aspect": cam.height_px / 2, "cx": 1.0, "cy": 1.0,
-            "k1": r * r2, "k2": r * r2 * r2}[term]
+    return {"f": r / cam.f_px, "log_aspect": cam.height_px / 2, "cx": 1.0, "cy": 1.0, "k1": r * r2, "k2": r * r2 * r2}[
+        term
+    ]
 
 
-def fit_geometry(frames: list[FrameSolution], start: Camera, sky, radius_px: float,
-                 rules: dict = RULES, log=lambda m: None) -> GeometryFit:
+def fit_geometry(
+    frames: list[FrameSolution], start: Camera, sky, radius_px: float, rules: dict = RULES, log=lambda m: None
+) -> GeometryFit:
     """The joint fit (see module doc) over the solved ``frames`` (matched already)."""
     from scipy.optimize import least_squares
+
     n_frames = len(frames)
-    vals = {"f": start.f_px, "log_aspect": float(np.log(start.aspect)), "cx": start.cx_px, "cy": start.cy_px,
-            "k1": start.k1, "k2": start.k2}
+    vals = {
+        "f": start.f_px,
+        "log_aspect": float(np.log(start.aspect)),
+        "cx": start.cx_px,
+        "cy": start.cy_px,
+        "k1": start.k1,
+        "k2": start.k2,
+    }
     centre = {"cx": (start.width_px - 1) / 2, "cy": (start.height_px - 1) / 2}
     fixed: dict = {}
     cam = start
@@ -171,11 +196,22 @@ def fit_geometry(frames: list[FrameSolution], start: Camera, sky, radius_px: flo
         match_catalogue(fs, cam, sky, radius_px)
     n_stars = sum(len(fs.det_index) for fs in frames)
     r_max = np.sqrt(((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2))
-    reach = max((np.max(np.hypot(fs.det["x_px"][fs.det_index] - cam.cx_px, fs.det["y_px"][fs.det_index] - cam.cy_px))
-                 for fs in frames if len(fs.det_index)), default=0.0) / r_max
+    reach = (
+        max(
+            (
+                np.max(np.hypot(fs.det["x_px"][fs.det_index] - cam.cx_px, fs.det["y_px"][fs.det_index] - cam.cy_px))
+                for fs in frames
+                if len(fs.det_index)
+            ),
+            default=0.0,
+        )
+        / r_max
+    )
     if n_frames < rules["min_frames_distortion"] or n_stars < rules["min_stars_distortion"]:
-        why = (f"{n_frames} solved frame(s), {n_stars} matched stars: distortion and principal point need at least "
-               f"{rules['min_frames_distortion']} frames and {rules['min_stars_distortion']} stars")
+        why = (
+            f"{n_frames} solved frame(s), {n_stars} matched stars: distortion and principal point need at least "
+            f"{rules['min_frames_distortion']} frames and {rules['min_stars_distortion']} stars"
+        )
         fixed.update({"k1": why, "k2": why, "cx": why, "cy": why})
     elif reach < rules["min_edge_fraction"]:
         why = f"matched stars reach only {100 * reach:.0f} % of the way to the corner"
@@ -193,24 +229,29 @@ def fit_geometry(frames: list[FrameSolution], start: Camera, sky, radius_px: flo
         masks = [np.ones(len(fs.det_index), bool) for fs in frames]
         theta = np.concatenate([[vals[t] for t in names], np.zeros(3 * n_frames)])
         for it in range(3):
-            res = least_squares(_residuals, theta, args=(names, vals, start, frames, masks), x_scale="jac",
-                                method="lm" if sum(m.sum() for m in masks) * 2 > len(theta) else "trf")
+            res = least_squares(
+                _residuals,
+                theta,
+                args=(names, vals, start, frames, masks),
+                x_scale="jac",
+                method="lm" if sum(m.sum() for m in masks) * 2 > len(theta) else "trf",
+            )
             theta = res.x
             r = res.fun.reshape(-1, 2)
             rr = np.hypot(r[:, 0], r[:, 1])
-            cut = 3.5 * np.median(rr) / 1.1774      # 3.5 sigma; the median of a 2-D Gaussian radius is 1.1774 sigma
+            cut = 3.5 * np.median(rr) / 1.1774  # 3.5 sigma; the median of a 2-D Gaussian radius is 1.1774 sigma
             new, pos = [], 0
             for fs, m in zip(frames, masks):
                 k = int(m.sum())
                 mm = m.copy()
-                mm[np.flatnonzero(m)] = rr[pos:pos + k] < max(cut, 0.5)
+                mm[np.flatnonzero(m)] = rr[pos : pos + k] < max(cut, 0.5)
                 pos += k
                 new.append(mm)
             if all((a == b).all() for a, b in zip(new, masks)):
                 break
             masks = new
         p = dict(vals)
-        p.update(zip(names, theta[:len(names)]))
+        p.update(zip(names, theta[: len(names)]))
         # uncertainties from the Jacobian (residual variance from the fit)
         J = res.jac
         dof = max(len(res.fun) - len(theta), 1)
@@ -221,27 +262,34 @@ def fit_geometry(frames: list[FrameSolution], start: Camera, sky, radius_px: flo
         except np.linalg.LinAlgError:
             sig = {t: float("inf") for t in names}
         cam = _camera(start, p)
-        loose = [t for t in ("k2", "k1", "cx", "cy") if t in sig and sig[t] * _corner_effect(t, cam) > rules["max_corner_sigma_px"]]
+        loose = [
+            t
+            for t in ("k2", "k1", "cx", "cy")
+            if t in sig and sig[t] * _corner_effect(t, cam) > rules["max_corner_sigma_px"]
+        ]
         weak = [t for t in ("k2", "k1") if t in sig and abs(p[t]) < 2 * sig[t]]
         if not loose and not weak:
             break
         t = (loose or weak)[0]
         grp = ("cx", "cy") if t in ("cx", "cy") else (t,)
         for g in grp:
-            fixed[g] = (f"not constrained by these frames: its 1-sigma uncertainty ({sig[t]:.3g}) moves a corner star "
-                        f"by {sig[t] * _corner_effect(t, cam):.2f} px > {rules['max_corner_sigma_px']} px" if loose else
-                        f"not significant: {p[t]:.3g} +- {sig[t]:.3g} (under 2 sigma); fixed at 0 rather than over-fitted")
+            fixed[g] = (
+                f"not constrained by these frames: its 1-sigma uncertainty ({sig[t]:.3g}) moves a corner star "
+                f"by {sig[t] * _corner_effect(t, cam):.2f} px > {rules['max_corner_sigma_px']} px"
+                if loose
+                else f"not significant: {p[t]:.3g} +- {sig[t]:.3g} (under 2 sigma); fixed at 0 rather than over-fitted"
+            )
             vals[g] = centre[g] if g in centre else 0.0
         log(f"fit-camera: fixing {', '.join(grp)}: {fixed[grp[0]]}")
-    rots = [fs.R @ _rotvec(theta[len(names) + 3 * i: len(names) + 3 * i + 3]) for i, fs in enumerate(frames)]
+    rots = [fs.R @ _rotvec(theta[len(names) + 3 * i : len(names) + 3 * i + 3]) for i, fs in enumerate(frames)]
     resid, posn, pos = [], [], 0
     r = res.fun.reshape(-1, 2)
     for fs, m in zip(frames, masks):
         k = int(m.sum())
-        resid.append(r[pos:pos + k])
+        resid.append(r[pos : pos + k])
         d = fs.det_index[m]
         posn.append(np.column_stack([fs.det["x_px"][d], fs.det["y_px"][d]]))
         pos += k
     allr = np.concatenate(resid) if resid else np.zeros((0, 2))
-    rms = float(np.sqrt(np.mean(np.sum(allr ** 2, axis=1)))) if len(allr) else float("nan")
+    rms = float(np.sqrt(np.mean(np.sum(allr**2, axis=1)))) if len(allr) else float("nan")
     return GeometryFit(cam, rots, names, fixed, sig, resid, posn, masks, rms)

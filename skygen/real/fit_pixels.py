@@ -41,12 +41,12 @@ def value_scale(images: list[np.ndarray]) -> tuple[int, int, float]:
     scale = 1
     if all(np.all(img == np.round(img)) for img in images):
         for k in range(8, 0, -1):
-            if all(np.all(np.mod(img[img < top], 2 ** k) == 0) for img in images):
-                scale = 2 ** k
+            if all(np.all(np.mod(img[img < top], 2**k) == 0) for img in images):
+                scale = 2**k
                 break
     top_scaled = top / scale
     bits = int(min(16, max(8, np.ceil(np.log2(np.floor(top_scaled) + 1)))))
-    return scale, bits, float(2 ** bits - 1)
+    return scale, bits, float(2**bits - 1)
 
 
 def background(img: np.ndarray, box_px: int = 64) -> dict:
@@ -57,18 +57,31 @@ def background(img: np.ndarray, box_px: int = 64) -> dict:
     xs = np.arange(box_px // 2, w, box_px)
     ly, lx = np.meshgrid(ys, xs, indexing="ij")
     lv = level[ly, lx].ravel()
-    sv = np.array([_difference_sigma(img[y - box_px // 2:y + box_px // 2, x - box_px // 2:x + box_px // 2])
-                   for y, x in zip(ly.ravel(), lx.ravel())])
+    sv = np.array(
+        [
+            _difference_sigma(img[y - box_px // 2 : y + box_px // 2, x - box_px // 2 : x + box_px // 2])
+            for y, x in zip(ly.ravel(), lx.ravel())
+        ]
+    )
     bx, by = lx.ravel() - (w - 1) / 2, ly.ravel() - (h - 1) / 2
-    r2 = (bx ** 2 + by ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)     # as skygen's vignetting: 1 at the corner
+    r2 = (bx**2 + by**2) / ((w / 2) ** 2 + (h / 2) ** 2)  # as skygen's vignetting: 1 at the corner
     A = np.column_stack([np.ones(lv.size), bx, by, r2])
     c = np.linalg.lstsq(A, lv, rcond=None)[0]
-    amp = abs(c[1]) * (w - 1) + abs(c[2]) * (h - 1)          # dark edge to bright edge of the plane
+    amp = abs(c[1]) * (w - 1) + abs(c[2]) * (h - 1)  # dark edge to bright edge of the plane
     resid = lv - A @ c
-    return {"level_map": level, "sigma_map": sigma, "box_level": lv, "box_sigma": sv,
-            "level_adu": float(np.median(level)), "noise_adu": float(np.median(sigma)), "centre_adu": float(c[0]),
-            "corner_drop_adu": float(-c[3]), "gradient_adu": float(amp),
-            "gradient_angle_deg": float(np.degrees(np.arctan2(c[2], c[1]))), "residual_std_adu": float(resid.std())}
+    return {
+        "level_map": level,
+        "sigma_map": sigma,
+        "box_level": lv,
+        "box_sigma": sv,
+        "level_adu": float(np.median(level)),
+        "noise_adu": float(np.median(sigma)),
+        "centre_adu": float(c[0]),
+        "corner_drop_adu": float(-c[3]),
+        "gradient_adu": float(amp),
+        "gradient_angle_deg": float(np.degrees(np.arctan2(c[2], c[1]))),
+        "residual_std_adu": float(resid.std()),
+    }
 
 
 def _difference_sigma(box: np.ndarray) -> float:
@@ -80,31 +93,38 @@ def _difference_sigma(box: np.ndarray) -> float:
     return float(keep.std() / 0.98657 / np.sqrt(2)) if keep.size > 10 else float(s / np.sqrt(2))
 
 
-def gain_from_mean_variance(levels: np.ndarray, variances: np.ndarray, read_noise_e: float, fpn_adu: float,
-                            bias_start: float) -> dict:
+def gain_from_mean_variance(
+    levels: np.ndarray, variances: np.ndarray, read_noise_e: float, fpn_adu: float, bias_start: float
+) -> dict:
     """Gain (e-/ADU), bias (ADU) and read noise (e-) from ``var = a + level / gain`` (see module doc).
     ``ok`` False when the levels span too little (< 20 % of their median) or the slope is not positive."""
     levels, variances = np.asarray(levels, float), np.asarray(variances, float)
     span = np.percentile(levels, 95) - np.percentile(levels, 5)
     keep = np.ones(levels.size, bool)
-    for _ in range(3):           # clip boxes whose noise is off the line (a bright star, a satellite trail)
+    for _ in range(3):  # clip boxes whose noise is off the line (a bright star, a satellite trail)
         A = np.column_stack([np.ones(keep.sum()), levels[keep]])
         a, b = np.linalg.lstsq(A, variances[keep], rcond=None)[0]
         r = variances - (a + b * levels)
         keep = np.abs(r) < 3 * 1.4826 * np.median(np.abs(r[keep])) + 1e-9
     out = {"intercept_adu2": float(a), "slope": float(b), "boxes": int(keep.sum()), "level_span_adu": float(span)}
     if span < 0.2 * np.median(levels) or b <= 0:
-        out.update(ok=False, why=(f"background levels span only {span:.1f} ADU" if b > 0 else
-                                  f"noise variance does not grow with level (slope {b:.3g})"))
+        out.update(
+            ok=False,
+            why=(
+                f"background levels span only {span:.1f} ADU"
+                if b > 0
+                else f"noise variance does not grow with level (slope {b:.3g})"
+            ),
+        )
         return out
     gain = 1.0 / b
     # a = read^2 / g^2 + 1/12 + fpn^2 - bias / g
-    bias = (read_noise_e ** 2 / gain ** 2 + 1 / 12 + fpn_adu ** 2 - a) * gain
+    bias = (read_noise_e**2 / gain**2 + 1 / 12 + fpn_adu**2 - a) * gain
     read = read_noise_e
     note = "read noise kept from the start camera; bias from the intercept"
     if bias < 0:
         bias = 0.0
-        read = float(np.sqrt(max((a - 1 / 12 - fpn_adu ** 2) * gain ** 2, 0.0)))
+        read = float(np.sqrt(max((a - 1 / 12 - fpn_adu**2) * gain**2, 0.0)))
         note = "bias 0 (the intercept leaves no room for one); read noise from the intercept"
     out.update(ok=True, gain_e_per_adu=float(gain), bias_adu=float(bias), read_noise_e=float(read), note=note)
     return out
@@ -123,15 +143,16 @@ _SUB = (np.arange(4) + 0.5) / 4 - 0.5
 
 def _moffat_img(p, yy, xx, aspect):
     x0, y0, flux, alpha, beta, b = p
-    dx = (xx[..., None, None] + _SUB[None, :] - x0)
+    dx = xx[..., None, None] + _SUB[None, :] - x0
     dy = (yy[..., None, None] + _SUB[:, None] - y0) * aspect
     prof = (1 + (dx * dx + dy * dy) / (alpha * alpha)) ** (-beta)
-    norm = (beta - 1) / (np.pi * alpha * alpha) * aspect      # per unit flux, per (column x row) pixel
+    norm = (beta - 1) / (np.pi * alpha * alpha) * aspect  # per unit flux, per (column x row) pixel
     return flux * norm * prof.mean(axis=(-1, -2)) + b
 
 
-def psf_fit(images, bg_maps, dets, matched, aspect: float, saturation: float, max_stars: int = 80,
-            box: int = 5) -> dict:
+def psf_fit(
+    images, bg_maps, dets, matched, aspect: float, saturation: float, max_stars: int = 80, box: int = 5
+) -> dict:
     """Median Gaussian sigma and Moffat (FWHM-sigma, beta) over isolated unsaturated matched stars (see module doc)."""
     rows = []
     for img, bgm, det, idx in zip(images, bg_maps, dets, matched):
@@ -147,19 +168,29 @@ def psf_fit(images, bg_maps, dets, matched, aspect: float, saturation: float, ma
             near = np.hypot(xs - x, ys - y)
             if np.sum(near < 3 * box) > 1:
                 continue
-            st = img[yi - box:yi + box + 1, xi - box:xi + box + 1] - bgm[yi - box:yi + box + 1, xi - box:xi + box + 1]
+            st = (
+                img[yi - box : yi + box + 1, xi - box : xi + box + 1]
+                - bgm[yi - box : yi + box + 1, xi - box : xi + box + 1]
+            )
             rows.append((float(det["flux_adu"][i]), st.astype(float), x - xi, y - yi))
     rows.sort(key=lambda r: -r[0])
     rows = rows[:max_stars]
-    yy, xx = np.mgrid[-box:box + 1, -box:box + 1].astype(float)
+    yy, xx = np.mgrid[-box : box + 1, -box : box + 1].astype(float)
     gs, ms, ratio = [], [], []
     for flux, st, dx, dy in rows:
         tot = max(st.sum(), 1.0)
-        pg = least_squares(lambda p: (_gauss_img(p, yy, xx, aspect) - st).ravel(), [dx, dy, tot, 1.5, 0.0],
-                           bounds=([-2, -2, 0, 0.3, -np.inf], [2, 2, np.inf, 10, np.inf]), x_scale=[0.1, 0.1, tot, 0.1, 1.0])
-        pm = least_squares(lambda p: (_moffat_img(p, yy, xx, aspect) - st).ravel(), [dx, dy, tot, 2.5, 3.0, 0.0],
-                           bounds=([-2, -2, 0, 0.3, 1.2, -np.inf], [2, 2, np.inf, 20, 20, np.inf]),
-                           x_scale=[0.1, 0.1, tot, 0.1, 0.3, 1.0])
+        pg = least_squares(
+            lambda p: (_gauss_img(p, yy, xx, aspect) - st).ravel(),
+            [dx, dy, tot, 1.5, 0.0],
+            bounds=([-2, -2, 0, 0.3, -np.inf], [2, 2, np.inf, 10, np.inf]),
+            x_scale=[0.1, 0.1, tot, 0.1, 1.0],
+        )
+        pm = least_squares(
+            lambda p: (_moffat_img(p, yy, xx, aspect) - st).ravel(),
+            [dx, dy, tot, 2.5, 3.0, 0.0],
+            bounds=([-2, -2, 0, 0.3, 1.2, -np.inf], [2, 2, np.inf, 20, 20, np.inf]),
+            x_scale=[0.1, 0.1, tot, 0.1, 0.3, 1.0],
+        )
         gs.append(pg.x[3])
         a, beta = pm.x[3], pm.x[4]
         ms.append((a * 2 * np.sqrt(2 ** (1 / beta) - 1) / (2 * np.sqrt(2 * np.log(2))), beta))
@@ -167,9 +198,14 @@ def psf_fit(images, bg_maps, dets, matched, aspect: float, saturation: float, ma
     if not gs:
         return {"ok": False, "why": "no isolated, unsaturated matched star to fit a PSF to", "n_stars": 0}
     ms = np.array(ms)
-    out = {"ok": True, "n_stars": len(gs), "gaussian_sigma_px": float(np.median(gs)),
-           "moffat_sigma_px": float(np.median(ms[:, 0])), "moffat_beta": float(np.median(ms[:, 1])),
-           "moffat_over_gaussian_sse": float(np.median(ratio))}
+    out = {
+        "ok": True,
+        "n_stars": len(gs),
+        "gaussian_sigma_px": float(np.median(gs)),
+        "moffat_sigma_px": float(np.median(ms[:, 0])),
+        "moffat_beta": float(np.median(ms[:, 1])),
+        "moffat_over_gaussian_sse": float(np.median(ratio)),
+    }
     out["psf"] = "moffat" if out["moffat_over_gaussian_sse"] < 0.9 and out["moffat_beta"] < 19 else "gaussian"
     return out
 
@@ -186,7 +222,7 @@ def hot_pixels(images, levels, sigmas, k_sigma: float = 8.0) -> dict:
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
                 if dy or dx:
-                    nb &= pad[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                    nb &= pad[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
         single = hi & nb
         hits.append(single)
         excess.append(np.where(single, img - lv, 0.0))
@@ -195,12 +231,18 @@ def hot_pixels(images, levels, sigmas, k_sigma: float = 8.0) -> dict:
     static = count >= need
     n = int(static.sum())
     ex = float(np.median(np.sum(excess, axis=0)[static] / count[static])) if n else 0.0
-    return {"n_static": n, "fraction": n / static.size, "excess_adu": ex, "frames_needed": need,
-            "single_pixel_spikes_per_frame": float(np.median([h.sum() for h in hits]))}
+    return {
+        "n_static": n,
+        "fraction": n / static.size,
+        "excess_adu": ex,
+        "frames_needed": need,
+        "single_pixel_spikes_per_frame": float(np.median([h.sum() for h in hits])),
+    }
 
 
-def zero_point(flux_adu: np.ndarray, mag: np.ndarray, peak_adu: np.ndarray, level_adu: np.ndarray,
-               saturation: float) -> tuple[float, int]:
+def zero_point(
+    flux_adu: np.ndarray, mag: np.ndarray, peak_adu: np.ndarray, level_adu: np.ndarray, saturation: float
+) -> tuple[float, int]:
     """(median of Hp + 2.5 log10 flux over unsaturated stars with positive flux, number used)."""
     ok = (flux_adu > 0) & (peak_adu + level_adu < 0.8 * saturation) & np.isfinite(mag)
     if not ok.any():

@@ -16,30 +16,34 @@ SECTIONS = ("camera", "optics", "photometry", "sensor", "corruptions", "detectio
 def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     """The fitted camera as a camera file (checked by loading it back)."""
     import yaml
+
     from skygen.config import config_dict, load_config
     from skygen.runtime import atomic_write_text
+
     d = config_dict(cfg)
     body = {s: {k: v for k, v in d[s].items() if v is not None} for s in SECTIONS}
     body["epoch_yr"] = d["epoch_yr"]
     g = record["geometry"]
     fixed = "; ".join(f"{k} fixed ({v})" for k, v in g["fixed"].items()) or "none fixed"
-    head = [f"# Fitted by skygen fit-camera from {len(record['solved'])} solved of "
-            f"{len(record['frames'])} usable frames ({record['created_utc']}):",
-            f"#   {command}" if command else "#   (from Python: skygen.real.fit_camera.fit_camera)",
-            f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
-            f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
-            "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
-            "and QE; photometry.sky_mag_arcsec2 the measured background, optics.vignetting its fall to the corners, "
-            "corruptions.stray_light its gradient;",
-            "# corruptions.false_stars the detections per frame that renders from the catalogue alone lack (fainter "
-            "stars than the catalogue holds).",
-            "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
-            "OUT-report/ beside this file."]
+    head = [
+        f"# Fitted by skygen fit-camera from {len(record['solved'])} solved of "
+        f"{len(record['frames'])} usable frames ({record['created_utc']}):",
+        f"#   {command}" if command else "#   (from Python: skygen.real.fit_camera.fit_camera)",
+        f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
+        f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
+        "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
+        "and QE; photometry.sky_mag_arcsec2 the measured background, optics.vignetting its fall to the corners, "
+        "corruptions.stray_light its gradient;",
+        "# corruptions.false_stars the detections per frame that renders from the catalogue alone lack (fainter "
+        "stars than the catalogue holds).",
+        "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
+        "OUT-report/ beside this file.",
+    ]
     head += [f"# note: {n}." for n in record.get("notes", [])]
     text = "\n".join(head) + "\n" + yaml.safe_dump(body, sort_keys=False)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
-    load_config(path)              # refuses anything skygen render / fusion predict would refuse
+    load_config(path)  # refuses anything skygen render / fusion predict would refuse
 
 
 def _fmt(v, nd=2):
@@ -49,78 +53,147 @@ def _fmt(v, nd=2):
 def markdown(r: dict) -> str:
     g, mv, px = r["geometry"], r["mean_variance"], r["pixels"]
     hw = r["hardware"]
-    cpu = (f"{hw.get('cpu_model', 'CPU')}, {hw.get('machine', '')}, {hw.get('usable_cores')} usable cores, "
-           f"load {hw.get('load_average_1m', float('nan')):.1f}") if isinstance(hw, dict) else str(hw)
-    lines = ["# skygen fit-camera report", "",
-             f"`{r['command'] or 'skygen.real.fit_camera.fit_camera(...)'}` ({cpu}, {r['created_utc']}): "
-             f"{len(r['frames'])} usable frames, {len(r['solved'])} solved; {r['timing_s']['total_s']:.1f} s in all "
-             f"(solving {r['timing_s']['solve_s']:.1f} s, geometry done at {r['timing_s']['geometry_s']:.1f} s). "
-             f"Frame values divided by {r['value_scale']} (the scale they carry); saturation {r['saturation_adu']:.0f} ADU.",
-             ""]
+    cpu = (
+        (
+            f"{hw.get('cpu_model', 'CPU')}, {hw.get('machine', '')}, {hw.get('usable_cores')} usable cores, "
+            f"load {hw.get('load_average_1m', float('nan')):.1f}"
+        )
+        if isinstance(hw, dict)
+        else str(hw)
+    )
+    lines = [
+        "# skygen fit-camera report",
+        "",
+        f"`{r['command'] or 'skygen.real.fit_camera.fit_camera(...)'}` ({cpu}, {r['created_utc']}): "
+        f"{len(r['frames'])} usable frames, {len(r['solved'])} solved; {r['timing_s']['total_s']:.1f} s in all "
+        f"(solving {r['timing_s']['solve_s']:.1f} s, geometry done at {r['timing_s']['geometry_s']:.1f} s). "
+        f"Frame values divided by {r['value_scale']} (the scale they carry); saturation {r['saturation_adu']:.0f} ADU.",
+        "",
+    ]
     if r.get("notes"):
         lines += [f"Note: {n}." for n in r["notes"]] + [""]
     if r["dropped"]:
         lines += ["Dropped frames:", ""] + [f"- `{d['frame']}`: {d['reason']}" for d in r["dropped"]] + [""]
     st = r["start"]
-    lines += ["## Geometry", "",
-              f"Start: {'`' + st['camera_file'] + '`' if st['camera_file'] else 'field of view searched in ' + str(st['fov_range_deg']) + ' deg'} "
-              f"(f = {st['f_px']:.1f} px, field {st['fov_deg']:.4f} deg, aspect {st['aspect']:.4f}).", "",
-              "| term | fitted | 1σ |", "|---|---|---|"]
-    for t, v in (("f", g["f_px"]), ("log_aspect", np.log(g["aspect"])), ("cx", g["cx_px"]), ("cy", g["cy_px"]),
-                 ("k1", g["k1"]), ("k2", g["k2"])):
+    lines += [
+        "## Geometry",
+        "",
+        "Start: "
+        + (f"`{st['camera_file']}`" if st["camera_file"] else f"field of view searched in {st['fov_range_deg']} deg")
+        + " "
+        f"(f = {st['f_px']:.1f} px, field {st['fov_deg']:.4f} deg, aspect {st['aspect']:.4f}).",
+        "",
+        "| term | fitted | 1σ |",
+        "|---|---|---|",
+    ]
+    for t, v in (
+        ("f", g["f_px"]),
+        ("log_aspect", np.log(g["aspect"])),
+        ("cx", g["cx_px"]),
+        ("cy", g["cy_px"]),
+        ("k1", g["k1"]),
+        ("k2", g["k2"]),
+    ):
         lines.append(f"| {t} | {v:.6g} | {g['sigma'][t]:.3g} |" if t in g["fitted"] else f"| {t} | {v:.6g} (fixed) | |")
-    lines += ["", f"Horizontal field {g['fov_deg']:.4f} deg, vertical {g['fov_v_deg']:.4f} deg, pixel aspect "
-              f"{g['aspect']:.5f}; {g['n_matched']} matched stars, residual **{g['rms_px']:.3f} px rms**.", ""]
+    lines += [
+        "",
+        f"Horizontal field {g['fov_deg']:.4f} deg, vertical {g['fov_v_deg']:.4f} deg, pixel aspect "
+        f"{g['aspect']:.5f}; {g['n_matched']} matched stars, residual **{g['rms_px']:.3f} px rms**.",
+        "",
+    ]
     for k, v in g["fixed"].items():
         lines.append(f"- {k} fixed: {v}")
-    lines += ["", "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for f in r["solved"]:
-        lines.append(f"| {f['frame']} | {f['solved_fov_deg']:.4f} | {f['matched']} | {f['rms_px']:.3f} | "
-                     f"{f['ra_deg']:.4f} | {f['dec_deg']:.4f} | {f['roll_deg']:.3f} |")
-    lines += ["", "Radial residuals: " + ", ".join(f"{b['r_lo_px']:.0f}–{b['r_hi_px']:.0f} px: {_fmt(b['rms_px'], 3)} "
-                                                   f"({b['n']})" for b in g["radial"]), "", "## Pixels", ""]
+        lines.append(
+            f"| {f['frame']} | {f['solved_fov_deg']:.4f} | {f['matched']} | {f['rms_px']:.3f} | "
+            f"{f['ra_deg']:.4f} | {f['dec_deg']:.4f} | {f['roll_deg']:.3f} |"
+        )
+    lines += [
+        "",
+        "Radial residuals: "
+        + ", ".join(
+            f"{b['r_lo_px']:.0f}–{b['r_hi_px']:.0f} px: {_fmt(b['rms_px'], 3)} ({b['n']})" for b in g["radial"]
+        ),
+        "",
+        "## Pixels",
+        "",
+    ]
     if mv["ok"]:
-        lines.append(f"- mean–variance over {mv['boxes']} background boxes (levels spanning {mv['level_span_adu']:.0f} "
-                     f"ADU): var = {mv['intercept_adu2']:.2f} + {mv['slope']:.4f} × level → gain "
-                     f"{mv['gain_e_per_adu']:.3f} e-/ADU, bias {mv['bias_adu']:.1f} ADU, read noise "
-                     f"{mv['read_noise_e']:.2f} e- ({mv['note']})")
+        lines.append(
+            f"- mean–variance over {mv['boxes']} background boxes (levels spanning {mv['level_span_adu']:.0f} "
+            f"ADU): var = {mv['intercept_adu2']:.2f} + {mv['slope']:.4f} × level → gain "
+            f"{mv['gain_e_per_adu']:.3f} e-/ADU, bias {mv['bias_adu']:.1f} ADU, read noise "
+            f"{mv['read_noise_e']:.2f} e- ({mv['note']})"
+        )
     else:
         lines.append(f"- gain, bias and read noise kept from the start camera: {mv['why']}")
     psf = px["psf"]
-    lines += [f"- background {px['level_adu']:.1f} ADU (median of box levels); fitted per frame as centre + gradient − "
-              f"drop × r²: centre {px['centre_adu']:.1f} ADU, gradient {px['gradient_adu']:.1f} ADU edge to edge, drop "
-              f"to the corner {px['corner_drop_adu']:.1f} ADU (optics.vignetting "
-              f"{r['config']['optics']['vignetting']:.3f}), box levels off that surface by {px['background_residual_adu']:.1f} "
-              "ADU rms (medians over frames)",
-              (f"- PSF from {psf['n_stars']} stars: Gaussian σ {psf['gaussian_sigma_px']:.3f} px; Moffat σ(FWHM) "
-               f"{psf['moffat_sigma_px']:.3f} px, β {psf['moffat_beta']:.2f}; Moffat/Gaussian squared residual "
-               f"{psf['moffat_over_gaussian_sse']:.2f} → **{psf['psf']}**") if psf["ok"] else f"- PSF: {psf['why']}",
-              f"- hot pixels: {px['hot']['n_static']} static ({px['hot']['fraction']:.2e} of pixels, in ≥ "
-              f"{px['hot']['frames_needed']} frames), excess {px['hot']['excess_adu']:.0f} ADU",
-              f"- zero point (Hp of a star giving 1 ADU of detected flux): {_fmt(r['zero_point_real_mag'], 3)} mag → "
-              f"sensor.exposure_s {r['exposure_s']:.4g} s (exposure × throughput, after one correction on renders)",
-              f"- detector: threshold {r['detector']['threshold_sigma']:g} σ, background box "
-              f"{r['detector']['background_box_px']} px ({r['detector']['catalogue_per_frame']:.1f} catalogue stars and "
-              f"{r['detector']['other_per_frame']:.1f} other detections per frame)",
-              f"- sources the catalogue lacks: real frames give {px.get('faint_sources_per_frame', 0):.1f} detections per "
-              "frame more than renders from the catalogue alone (median) → corruptions.false_stars "
-              f"{r['config']['corruptions']['false_stars']:.1f} per frame", "",
-              "## Real against rendered (medians over frames; renders at the fitted attitudes)", "",
-              "| quantity | real | start camera | fitted camera | fitted / real |", "|---|---|---|---|---|"]
-    lab = {"background_adu": "background (ADU)", "noise_adu": "noise σ (ADU)", "detections": "detections / frame",
-           "star_sigma_px": "star width σ (px)", "zero_point_mag": "zero point (mag)"}
+    lines += [
+        f"- background {px['level_adu']:.1f} ADU (median of box levels); fitted per frame as centre + gradient − "
+        f"drop × r²: centre {px['centre_adu']:.1f} ADU, gradient {px['gradient_adu']:.1f} ADU edge to edge, drop "
+        f"to the corner {px['corner_drop_adu']:.1f} ADU (optics.vignetting "
+        f"{r['config']['optics']['vignetting']:.3f}), box levels off that surface by "
+        f"{px['background_residual_adu']:.1f} "
+        "ADU rms (medians over frames)",
+        (
+            f"- PSF from {psf['n_stars']} stars: Gaussian σ {psf['gaussian_sigma_px']:.3f} px; Moffat σ(FWHM) "
+            f"{psf['moffat_sigma_px']:.3f} px, β {psf['moffat_beta']:.2f}; Moffat/Gaussian squared residual "
+            f"{psf['moffat_over_gaussian_sse']:.2f} → **{psf['psf']}**"
+        )
+        if psf["ok"]
+        else f"- PSF: {psf['why']}",
+        f"- hot pixels: {px['hot']['n_static']} static ({px['hot']['fraction']:.2e} of pixels, in ≥ "
+        f"{px['hot']['frames_needed']} frames), excess {px['hot']['excess_adu']:.0f} ADU",
+        f"- zero point (Hp of a star giving 1 ADU of detected flux): {_fmt(r['zero_point_real_mag'], 3)} mag → "
+        f"sensor.exposure_s {r['exposure_s']:.4g} s (exposure × throughput, after one correction on renders)",
+        f"- detector: threshold {r['detector']['threshold_sigma']:g} σ, background box "
+        f"{r['detector']['background_box_px']} px ({r['detector']['catalogue_per_frame']:.1f} catalogue stars and "
+        f"{r['detector']['other_per_frame']:.1f} other detections per frame)",
+        f"- sources the catalogue lacks: real frames give {px.get('faint_sources_per_frame', 0):.1f} detections per "
+        "frame more than renders from the catalogue alone (median) → corruptions.false_stars "
+        f"{r['config']['corruptions']['false_stars']:.1f} per frame",
+        "",
+        "## Real against rendered (medians over frames; renders at the fitted attitudes)",
+        "",
+        "| quantity | real | start camera | fitted camera | fitted / real |",
+        "|---|---|---|---|---|",
+    ]
+    lab = {
+        "background_adu": "background (ADU)",
+        "noise_adu": "noise σ (ADU)",
+        "detections": "detections / frame",
+        "star_sigma_px": "star width σ (px)",
+        "zero_point_mag": "zero point (mag)",
+    }
     for k, v in r["compare"].items():
-        rel = (f"{v['fitted'] - v['real']:+.3f} mag" if k == "zero_point_mag" else
-               f"{v['fitted'] / v['real']:.3f}" if v["real"] else "–")
+        rel = (
+            f"{v['fitted'] - v['real']:+.3f} mag"
+            if k == "zero_point_mag"
+            else f"{v['fitted'] / v['real']:.3f}"
+            if v["real"]
+            else "–"
+        )
         lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} |")
-    lines += ["", "Statistics are measured the same way on both (skygen.real.frame_stats): background and noise by the "
-              "whole-frame sigma-clipped estimator, detections with the fitted detector settings, star width as "
-              "the second moment in 9 × 9 px, zero point from matched stars.", "", "![fit](fit.png)", ""]
+    lines += [
+        "",
+        "Statistics are measured the same way on both (skygen.real.frame_stats): background and noise by the "
+        "whole-frame sigma-clipped estimator, detections with the fitted detector settings, star width as "
+        "the second moment in 9 × 9 px, zero point from matched stars.",
+        "",
+        "![fit](fit.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
 def write_report(folder, record: dict, real_example: list, g) -> None:
     from skygen.runtime import atomic_write_text, write_json
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rec = {k: v for k, v in record.items() if not k.startswith("_")}
@@ -131,11 +204,15 @@ def write_report(folder, record: dict, real_example: list, g) -> None:
 
 def _plot(path, record, real_example, g) -> None:
     import matplotlib
+
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
+
     from skygen.runtime import atomic_path
+
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     import os
+
     full = [f["frame"] for f in record["solved"]]
     cut = len(os.path.commonprefix(full)) if len(full) > 1 else 0
     names = [n[cut:][:28] for n in full]
@@ -150,8 +227,10 @@ def _plot(path, record, real_example, g) -> None:
     ax[1].set_xlabel("distance from principal point (px)")
     ax[1].set_ylabel("|residual| (px)")
     ax[1].set_title(f"radial, {record['geometry']['rms_px']:.3f} px rms")
-    for a, img, title in ((ax[2], real_example[0] if real_example else None, "real"),
-                          (ax[3], record.get("_render_example"), "rendered, fitted camera")):
+    for a, img, title in (
+        (ax[2], real_example[0] if real_example else None, "real"),
+        (ax[3], record.get("_render_example"), "rendered, fitted camera"),
+    ):
         if img is None:
             a.axis("off")
             continue

@@ -30,9 +30,9 @@ def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: i
         xi, yi = int(round(x)), int(round(y))
         if not (6 <= xi < w - 6 and 6 <= yi < h - 6):
             continue
-        ring = img[yi - 6:yi + 7, xi - 6:xi + 7].astype(np.float64)
+        ring = img[yi - 6 : yi + 7, xi - 6 : xi + 7].astype(np.float64)
         local = np.median(np.concatenate([ring[0], ring[-1], ring[1:-1, 0], ring[1:-1, -1]]))
-        st = np.clip(img[yi - 4:yi + 5, xi - 4:xi + 5] - local, 0, None)
+        st = np.clip(img[yi - 4 : yi + 5, xi - 4 : xi + 5] - local, 0, None)
         yy, xx = np.mgrid[-4:5, -4:5]
         tot = st.sum()
         if tot <= 0:
@@ -42,11 +42,20 @@ def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: i
     return float(np.median(sig)) if sig else float("nan")
 
 
-def frame_stats(img: np.ndarray, threshold_sigma: float, min_area_px: int, background_box_px: int,
-                saturation: float) -> tuple[dict, dict]:
+def frame_stats(
+    img: np.ndarray, threshold_sigma: float, min_area_px: int, background_box_px: int, saturation: float
+) -> tuple[dict, dict]:
     """({background_adu, noise_adu, detections, star_sigma_px}, the detections) of one frame."""
     from skygen.instrument.detect import detect, estimate_background
+
     bg, sigma = estimate_background(img)
     det, _, _ = detect(img, threshold_sigma, min_area_px, 100_000, background_box_px)
-    return ({"background_adu": bg, "noise_adu": sigma, "detections": int(len(det["x_px"])),
-             "star_sigma_px": star_width_px(img, det, bg, saturation)}, det)
+    return (
+        {
+            "background_adu": bg,
+            "noise_adu": sigma,
+            "detections": int(len(det["x_px"])),
+            "star_sigma_px": star_width_px(img, det, bg, saturation),
+        },
+        det,
+    )

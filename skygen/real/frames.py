@@ -31,7 +31,7 @@ from skygen.errors import ConfigError, DatasetError
 
 FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
 CHANNELS = ("luminance", "r", "g", "b", "sum")
-LUMINANCE_RGB = (0.2126, 0.7152, 0.0722)      # Rec. 709 (ITU-R BT.709) weights of R, G, B
+LUMINANCE_RGB = (0.2126, 0.7152, 0.0722)  # Rec. 709 (ITU-R BT.709) weights of R, G, B
 #: a monochrome frame is flagged as a raw Bayer mosaic when its four 2 x 2 sub-lattices' background
 #: levels differ by more than this factor (see :func:`bayer_warning`)
 BAYER_RATIO = 1.3
@@ -44,9 +44,10 @@ class FrameError(DatasetError):
 def _imread_quiet(path: Path):
     """``cv2.imread`` (unchanged depth) with OpenCV's log silenced; None when it cannot decode the file."""
     import cv2
+
     log = cv2.utils.logging
     level = log.getLogLevel()
-    log.setLogLevel(log.LOG_LEVEL_SILENT)     # libtiff's and libpng's warnings go through it
+    log.setLogLevel(log.LOG_LEVEL_SILENT)  # libtiff's and libpng's warnings go through it
     try:
         return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     finally:
@@ -79,15 +80,19 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
             img = _read_png_tiff(path, suffix, channel, say)
     except FrameError:
         raise
-    except Exception as exc:                      # decoders raise many types for damaged files
-        raise FrameError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    except Exception as exc:  # decoders raise many types for damaged files
+        raise FrameError(
+            f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     img = np.asarray(img)
     if img.ndim == 3 and img.shape[0] == 1:
         img = img[0]
     if img.ndim != 2:
         kind = "not an image" if img.ndim < 2 else "colour or multi-plane image"
-        raise FrameError(f"{path}: {kind} (shape {img.shape}); give one monochrome 2-D sensor read-out "
-                         "(colour is read from RGB or RGBA PNG and TIFF files)")
+        raise FrameError(
+            f"{path}: {kind} (shape {img.shape}); give one monochrome 2-D sensor read-out "
+            "(colour is read from RGB or RGBA PNG and TIFF files)"
+        )
     if img.size == 0:
         raise FrameError(f"{path}: image has no pixels")
     if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
@@ -101,8 +106,10 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
 
 def _read_fits(path: Path) -> np.ndarray:
     import warnings
+
     from astropy.io import fits
-    with warnings.catch_warnings(record=True) as caught:     # astropy's own WARNING lines: ours instead
+
+    with warnings.catch_warnings(record=True) as caught:  # astropy's own WARNING lines: ours instead
         warnings.simplefilter("always")
         try:
             with fits.open(path, memmap=False) as hdul:
@@ -110,8 +117,9 @@ def _read_fits(path: Path) -> np.ndarray:
         except Exception:
             truncated = next((str(w.message) for w in caught if "truncated" in str(w.message)), None)
             if truncated:
-                raise FrameError(f"{path}: truncated FITS file ({truncated.rstrip('.')}); "
-                                 "copy it again from its source") from None
+                raise FrameError(
+                    f"{path}: truncated FITS file ({truncated.rstrip('.')}); copy it again from its source"
+                ) from None
             raise
     if img is None:
         raise FrameError(f"{path}: no image HDU with 2-D data")
@@ -124,18 +132,21 @@ def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> np.ndarray:
         raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
     if suffix in (".tif", ".tiff"):
         import cv2
+
         pages = cv2.imcount(str(path))
-        if pages > 1:                     # reading page 1 alone would drop the others without a word
+        if pages > 1:  # reading page 1 alone would drop the others without a word
             raise FrameError(f"{path}: a multi-page TIFF ({pages} pages); give one frame per file")
     if img.ndim == 3 and img.shape[2] in (3, 4):
         alpha = img.shape[2] == 4
-        bgr = img[:, :, :3]                       # OpenCV's order: B, G, R (, A)
+        bgr = img[:, :, :3]  # OpenCV's order: B, G, R (, A)
         if np.array_equal(bgr[:, :, 0], bgr[:, :, 1]) and np.array_equal(bgr[:, :, 0], bgr[:, :, 2]):
-            return bgr[:, :, 0]                   # grey stored as RGB: one channel
+            return bgr[:, :, 0]  # grey stored as RGB: one channel
         plane, how = to_one_plane(bgr[:, :, ::-1], channel)
         bits = 8 * img.dtype.itemsize
-        say(f"{path}: colour frame ({'RGBA' if alpha else 'RGB'}, {bits} bit{'; alpha dropped' if alpha else ''}) "
-            f"read as one plane: {how}")
+        say(
+            f"{path}: colour frame ({'RGBA' if alpha else 'RGB'}, {bits} bit{'; alpha dropped' if alpha else ''}) "
+            f"read as one plane: {how}"
+        )
         return plane
     return img
 
@@ -145,8 +156,10 @@ def to_one_plane(rgb: np.ndarray, channel: str = "luminance") -> tuple[np.ndarra
     rgb = np.asarray(rgb, np.float32)
     if channel == "luminance":
         w = LUMINANCE_RGB
-        return (w[0] * rgb[..., 0] + w[1] * rgb[..., 1] + w[2] * rgb[..., 2],
-                f"luminance {w[0]} R + {w[1]} G + {w[2]} B (Rec. 709; --channel r, g, b or sum for another)")
+        return (
+            w[0] * rgb[..., 0] + w[1] * rgb[..., 1] + w[2] * rgb[..., 2],
+            f"luminance {w[0]} R + {w[1]} G + {w[2]} B (Rec. 709; --channel r, g, b or sum for another)",
+        )
     if channel == "sum":
         return rgb.sum(axis=2), "R + G + B (up to 3 x the file's range)"
     if channel in ("r", "g", "b"):
@@ -166,26 +179,29 @@ def bayer_warning(img: np.ndarray) -> str:
     h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
     if h < 16 or w < 16:
         return ""
-    step = max(1, int(np.sqrt(h * w / 4 / 250_000)))          # at most ~250 k cells looked at
+    step = max(1, int(np.sqrt(h * w / 4 / 250_000)))  # at most ~250 k cells looked at
     grid = img[:h, :w].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3).reshape(h // 2, w // 2, 4)
-    cells = grid[::step, ::step].reshape(-1, 4).astype(np.float64)          # one row per 2 x 2 cell
+    cells = grid[::step, ::step].reshape(-1, 4).astype(np.float64)  # one row per 2 x 2 cell
     cells = cells[np.all(np.isfinite(cells), axis=1)]
     if len(cells) < 64:
         return ""
-    q = np.sort(cells, axis=0)[len(cells) // 4: (3 * len(cells)) // 4 + 1]
-    lev = q.mean(axis=0)                                       # order: (0,0), (0,1), (1,0), (1,1)
+    q = np.sort(cells, axis=0)[len(cells) // 4 : (3 * len(cells)) // 4 + 1]
+    lev = q.mean(axis=0)  # order: (0,0), (0,1), (1,0), (1,1)
     spread = lev.max() - lev.min()
     if not lev.min() > 0 or lev.max() / lev.min() <= BAYER_RATIO:
         return ""
     if abs(lev[0] + lev[3] - lev[1] - lev[2]) < 0.25 * spread:
-        return ""                                              # rows or columns offset, not a colour mosaic
-    return (f"looks like a raw Bayer mosaic (the background of its four 2 x 2 sub-lattices is "
-            f"{', '.join(f'{v:.4g}' for v in lev)}: {lev.max() / lev.min():.2f} x apart); debayer it or give one "
-            "colour plane")
+        return ""  # rows or columns offset, not a colour mosaic
+    return (
+        f"looks like a raw Bayer mosaic (the background of its four 2 x 2 sub-lattices is "
+        f"{', '.join(f'{v:.4g}' for v in lev)}: {lev.max() / lev.min():.2f} x apart); debayer it or give one "
+        "colour plane"
+    )
 
 
 def _stderr(message: str) -> None:
     import sys
+
     print(message, file=sys.stderr, flush=True)
 
 
@@ -209,5 +225,6 @@ def mask_bad_pixels(img: np.ndarray, source: str = "frame") -> tuple[np.ndarray,
 
 def frame_files(folder: Path) -> list[Path]:
     """The frame files directly in ``folder`` (suffixes :data:`FRAME_SUFFIXES`, hidden ones skipped), by name."""
-    return sorted(p for p in folder.iterdir()
-                  if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith("."))
+    return sorted(
+        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
+    )

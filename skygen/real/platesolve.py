@@ -40,8 +40,13 @@ import numpy as np
 from skygen.errors import ConfigError, SkygenError
 from skygen.runtime import atomic_path
 
-DB_PARAMS = {"pattern_max_error": 0.001, "lattice_field_oversampling": 100, "patterns_per_lattice_field": 50,
-             "verification_stars_per_fov": 150, "epoch_proper_motion_year": 2025.0}
+DB_PARAMS = {
+    "pattern_max_error": 0.001,
+    "lattice_field_oversampling": 100,
+    "patterns_per_lattice_field": 50,
+    "verification_stars_per_fov": 150,
+    "epoch_proper_motion_year": 2025.0,
+}
 #: the database-size model (see the module doc): patterns of one 10 deg scale, bytes and build
 #: seconds per pattern, tetra3rs's step between the scales of a range
 PATTERNS_AT_10_DEG = 683_832
@@ -50,7 +55,7 @@ SECONDS_PER_PATTERN = 7.5e-6
 MULTISCALE_STEP = 1.5
 #: a field range whose database would be larger is refused (about 2.5 min of build on a loaded 2-core machine)
 MAX_DATABASE_MB = 500.0
-ANNOUNCE_S = 5.0            # builds estimated longer than this are announced before they start
+ANNOUNCE_S = 5.0  # builds estimated longer than this are announced before they start
 
 
 class SolverUnavailable(SkygenError):
@@ -69,8 +74,7 @@ def tetra3rs():
 def cache_dir() -> Path:
     """skygen's cache folder: ``$SKYGEN_CACHE``, else ``$FUSION_CACHE`` (its name before the database
     moved to skygen, still honoured), else ``~/.cache/skygen``."""
-    return Path(os.environ.get("SKYGEN_CACHE") or os.environ.get("FUSION_CACHE")
-                or Path.home() / ".cache" / "skygen")
+    return Path(os.environ.get("SKYGEN_CACHE") or os.environ.get("FUSION_CACHE") or Path.home() / ".cache" / "skygen")
 
 
 def _legacy_path(path: Path) -> Path:
@@ -106,21 +110,27 @@ def check_database_size(fov_deg: float, fov_max_deg: float | None, max_mb: float
     if fov_max_deg is None or float(fov_max_deg) <= float(fov_deg) or est["mb"] <= max_mb:
         return est
     lo, hi = float(fov_deg), float(fov_max_deg)
-    what = (f"field range {lo:g}-{hi:g} deg: its tetra3rs database would hold about {est['patterns'] / 1e6:.0f} M "
-            f"patterns ({est['mb'] / 1e3:.1f} GB, about {est['seconds'] / 60:.0f} min to build), over the "
-            f"{max_mb:g} MB limit")
+    what = (
+        f"field range {lo:g}-{hi:g} deg: its tetra3rs database would hold about {est['patterns'] / 1e6:.0f} M "
+        f"patterns ({est['mb'] / 1e3:.1f} GB, about {est['seconds'] / 60:.0f} min to build), over the "
+        f"{max_mb:g} MB limit"
+    )
     new_lo = hi
     if estimate_database(hi)["mb"] <= max_mb:
-        a, b = lo, hi                       # estimate(a) > max_mb >= estimate(b): bisect the lower end
+        a, b = lo, hi  # estimate(a) > max_mb >= estimate(b): bisect the lower end
         for _ in range(40):
             mid = 0.5 * (a + b)
             a, b = (a, mid) if estimate_database(mid, hi)["mb"] <= max_mb else (mid, b)
         new_lo = float(np.ceil(b * 10) / 10)
     if new_lo >= hi:
-        raise ConfigError(f"{what}; fields under about {_smallest_field(max_mb):.1f} deg are too narrow for a "
-                          "lost-in-space search over a range: give the camera (its focal length) instead")
-    raise ConfigError(f"{what}; search a narrower range, e.g. --fov-range {new_lo:g} {hi:g} (the field is "
-                      f"then >= {new_lo:g} deg), or give the camera")
+        raise ConfigError(
+            f"{what}; fields under about {_smallest_field(max_mb):.1f} deg are too narrow for a "
+            "lost-in-space search over a range: give the camera (its focal length) instead"
+        )
+    raise ConfigError(
+        f"{what}; search a narrower range, e.g. --fov-range {new_lo:g} {hi:g} (the field is "
+        f"then >= {new_lo:g} deg), or give the camera"
+    )
 
 
 def _smallest_field(max_mb: float) -> float:
@@ -143,8 +153,13 @@ def database_path(fov_deg: float, folder: str | Path | None = None, fov_max_deg:
 _DB_MEMO: dict = {}
 
 
-def load_database(fov_deg: float, folder: str | Path | None = None, log=None, fov_max_deg: float | None = None,
-                  max_mb: float = MAX_DATABASE_MB):
+def load_database(
+    fov_deg: float,
+    folder: str | Path | None = None,
+    log=None,
+    fov_max_deg: float | None = None,
+    max_mb: float = MAX_DATABASE_MB,
+):
     """The tetra3rs database for a horizontal FOV (or the range ``fov_deg``..``fov_max_deg``): from memory,
     the disk cache, or built and cached.
 
@@ -164,17 +179,21 @@ def load_database(fov_deg: float, folder: str | Path | None = None, log=None, fo
         span = f"{fov_deg:.2f}" if hi == float(fov_deg) else f"{fov_deg:.2f}-{hi:.2f}"
         est = check_database_size(fov_deg, fov_max_deg, max_mb)
         if est["seconds"] > ANNOUNCE_S:
-            (log or _stderr)(f"tetra3rs: building the database for a {span} deg field once (about "
-                             f"{est['patterns'] / 1e6:.1f} M patterns, {est['mb']:.0f} MB, ~{est['seconds']:.0f} s; "
-                             f"cached in {path.parent})")
+            (log or _stderr)(
+                f"tetra3rs: building the database for a {span} deg field once (about "
+                f"{est['patterns'] / 1e6:.1f} M patterns, {est['mb']:.0f} MB, ~{est['seconds']:.0f} s; "
+                f"cached in {path.parent})"
+            )
         t0 = time.perf_counter()
         db = t3.SolverDatabase.generate_from_gaia(max_fov_deg=hi, min_fov_deg=float(fov_deg), **DB_PARAMS)
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             db.save_to_file(str(tmp))
         if log:
-            log(f"tetra3rs: built database for a {span} deg field in {time.perf_counter() - t0:.1f} s "
-                f"({db.num_stars} stars) -> {path}")
+            log(
+                f"tetra3rs: built database for a {span} deg field in {time.perf_counter() - t0:.1f} s "
+                f"({db.num_stars} stars) -> {path}"
+            )
     _DB_MEMO[path] = db
     return db
 
@@ -186,5 +205,10 @@ def _stderr(message: str) -> None:
 def ideal_centroids(x_px, y_px, flux, camera) -> np.ndarray:
     """(N, 3) tetra3rs centroids: undistorted square-pixel pinhole pixels relative to the principal point, + flux."""
     v = camera.unproject(x_px, y_px)
-    return np.column_stack([camera.f_px * v[:, 0] / v[:, 2], camera.f_px * v[:, 1] / v[:, 2],
-                            np.maximum(np.asarray(flux, np.float64), 0.0)])
+    return np.column_stack(
+        [
+            camera.f_px * v[:, 0] / v[:, 2],
+            camera.f_px * v[:, 1] / v[:, 2],
+            np.maximum(np.asarray(flux, np.float64), 0.0),
+        ]
+    )

@@ -66,11 +66,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from skygen.render import binned_kernels as kern
 from skygen.instrument.psf import gaussian_radius_px, stamp, streak
 from skygen.instrument.sensor import BackgroundSampler, background_sampler
+from skygen.render import binned_kernels as kern
 
-ALIAS_BOUND = 1e-12      # largest tolerated aliasing of the block-sum model (see module doc)
+ALIAS_BOUND = 1e-12  # largest tolerated aliasing of the block-sum model (see module doc)
 
 
 # ---------------------------------------------------------------------------------- checks
@@ -79,7 +79,7 @@ def aliasing_bound(read_noise_e: float, gain_e_per_adu: float, n: int) -> float:
     if n <= 1:
         return 0.0
     s = read_noise_e / gain_e_per_adu
-    return float(n * np.exp(-2.0 * np.pi ** 2 * s * s * (n - 1) / n))
+    return float(n * np.exp(-2.0 * np.pi**2 * s * s * (n - 1) / n))
 
 
 def area_rounding(factor: int) -> str | None:
@@ -112,8 +112,10 @@ def unsupported_reason(renderer) -> str | None:
     s, cam = cfg.sensor, cfg.camera
     f = renderer.factor
     if cam.width_px % cfg.output.image_size_px or cam.height_px % max(f, 1) or f < 1:
-        return (f"stored size {cfg.output.image_size_px} is not an integer binning of the "
-                f"{cam.width_px} x {cam.height_px} sensor")
+        return (
+            f"stored size {cfg.output.image_size_px} is not an integer binning of the "
+            f"{cam.width_px} x {cam.height_px} sensor"
+        )
     if f == 1:
         return None
     if getattr(cam, "pixel_aspect", 1.0) != 1.0:
@@ -123,16 +125,18 @@ def unsupported_reason(renderer) -> str | None:
     sigma = float(np.hypot(s.read_noise_e, renderer.levels["read_noise"]))
     bound = aliasing_bound(sigma, s.gain_e_per_adu, f * f)
     if bound > ALIAS_BOUND:
-        return (f"read noise {sigma:g} e- is {sigma / s.gain_e_per_adu:.2f} ADU: the per-pixel quantisation "
-                f"shows in a {f}x{f} sum (model error bound {bound:.1e} > {ALIAS_BOUND:g})")
+        return (
+            f"read noise {sigma:g} e- is {sigma / s.gain_e_per_adu:.2f} ADU: the per-pixel quantisation "
+            f"shows in a {f}x{f} sum (model error bound {bound:.1e} > {ALIAS_BOUND:g})"
+        )
     low = int(renderer.maps.offset_adu.min())
     if low * s.gain_e_per_adu < 12 * sigma + 1:
         return f"the lowest pixel offset ({low} ADU) lets read noise clip pixels at 0 ADU"
     bg = renderer.background_e
-    top = min(s.full_well_e, s.gain_e_per_adu * (2 ** s.bit_depth - 1 - int(renderer.maps.offset_adu.max())))
+    top = min(s.full_well_e, s.gain_e_per_adu * (2**s.bit_depth - 1 - int(renderer.maps.offset_adu.max())))
     if bg + 12 * np.sqrt(bg) + 12 * sigma >= top:
         return f"the background ({bg:.4g} e-/px) reaches the full well or the ADC top"
-    if np.sqrt(bg + sigma ** 2) / (s.gain_e_per_adu * f) > 9:
+    if np.sqrt(bg + sigma**2) / (s.gain_e_per_adu * f) > 9:
         return "the stored background is too noisy for the binned renderer's 8-bit tables"
     return None
 
@@ -151,6 +155,7 @@ class BinnedRenderer:
         reason = unsupported_reason(renderer)
         if reason is not None:
             from skygen.errors import ConfigError
+
             raise ConfigError(f"binned rendering cannot reproduce this config: {reason}")
         self.r = renderer
         cfg = renderer.cfg
@@ -163,18 +168,18 @@ class BinnedRenderer:
         maps = self.maps = renderer.maps
         bm = self.to_block_major
         self.live = bm(~maps.dead_mask)
-        self.prnu = bm(maps.prnu * ~maps.dead_mask)                 # float32; 0 on dead pixels
+        self.prnu = bm(maps.prnu * ~maps.dead_mask)  # float32; 0 on dead pixels
         self.hot_e = bm(maps.hot_map.astype(np.float64) * s.exposure_s)
         self.offset = bm(maps.offset_adu.astype(np.int64))
-        self.offset_sum = self.offset.reshape(-1, n).sum(1)                              # O_b
+        self.offset_sum = self.offset.reshape(-1, n).sum(1)  # O_b
         self.offset_values, cls = np.unique(self.offset_sum, return_inverse=True)
         self.offset_class = cls.astype(np.uint8 if len(self.offset_values) <= 256 else np.int32)
         self.static_px = bm((maps.hot_map > 0) | maps.dead_mask)
         self.static_special = self.static_px.reshape(-1, n).any(1)
         self.static_blocks = np.flatnonzero(self.static_special)
-        self.max_adu = 2 ** s.bit_depth - 1
+        self.max_adu = 2**s.bit_depth - 1
         self.off_max = int(maps.offset_adu.max())
-        self._mark = np.zeros(hb * wb, np.uint8)     # scratch: blocks a source touches
+        self._mark = np.zeros(hb * wb, np.uint8)  # scratch: blocks a source touches
         self._slot = np.full(hb * wb, -1, np.int64)  # their compact slots (-1: none)
         self._blocks = np.zeros(hb * wb, np.int64)
         self._tables: dict = {}
@@ -196,7 +201,7 @@ class BinnedRenderer:
         for _ in range(self.n):
             out = np.convolve(out, px.pmf)
         keep = np.flatnonzero(out > 1e-300)
-        return self.n * int(px.kmin) + int(keep[0]), out[keep[0]:keep[-1] + 1]
+        return self.n * int(px.kmin) + int(keep[0]), out[keep[0] : keep[-1] + 1]
 
     def background_tables(self, lam: float, sigma: float):
         """Per offset class: the stored value's distribution, as the renderer's 2^-32 tables."""
@@ -205,19 +210,24 @@ class BinnedRenderer:
             smin, pmf = self.block_sum_pmf(lam, sigma)
             S = smin + np.arange(len(pmf))
             samplers = []
-            for O in self.offset_values:
-                v = np.clip(round_block_sums(S + O, self.n, self.rule), 0, self.max_adu)
+            for offset in self.offset_values:
+                v = np.clip(round_block_sums(S + offset, self.n, self.rule), 0, self.max_adu)
                 vals = np.arange(v.min(), v.max() + 1)
                 samplers.append(BackgroundSampler.from_pmf(vals, np.bincount(v - v.min(), weights=pmf)))
-            if any(sm.lut8 is None for sm in samplers):      # unsupported_reason keeps this away
+            if any(sm.lut8 is None for sm in samplers):  # unsupported_reason keeps this away
                 raise ValueError("stored background too noisy for the 8-bit table")
             L = max(len(sm.thresholds) for sm in samplers)
-            thr = np.full((len(samplers), L), 2 ** 32, np.uint64)
+            thr = np.full((len(samplers), L), 2**32, np.uint64)
             for c, sm in enumerate(samplers):
-                thr[c, :len(sm.thresholds)] = sm.thresholds
-            self._tables = {key: (np.stack([sm.lut8 for sm in samplers]), thr,
-                                  np.array([len(sm.thresholds) for sm in samplers], np.int64),
-                                  np.array([sm.kmin for sm in samplers], np.int64))}
+                thr[c, : len(sm.thresholds)] = sm.thresholds
+            self._tables = {
+                key: (
+                    np.stack([sm.lut8 for sm in samplers]),
+                    thr,
+                    np.array([len(sm.thresholds) for sm in samplers], np.int64),
+                    np.array([sm.kmin for sm in samplers], np.int64),
+                )
+            }
         return self._tables[key]
 
     def poisson_table(self, lam: float) -> np.ndarray:
@@ -226,9 +236,10 @@ class BinnedRenderer:
         key = round(lam, 9)
         if getattr(self, "_poisson_key", None) != key:
             from scipy.stats import poisson
+
             k = np.arange(0, int(lam + 14 * np.sqrt(lam) + 30))
-            cdf = np.minimum(np.rint(poisson.cdf(k, lam) * 2.0 ** 32), 2.0 ** 32).astype(np.uint64)
-            cdf[-1] = 2 ** 32
+            cdf = np.minimum(np.rint(poisson.cdf(k, lam) * 2.0**32), 2.0**32).astype(np.uint64)
+            cdf[-1] = 2**32
             self._poisson_key, self._poisson_thr = key, cdf
         return self._poisson_thr
 
@@ -249,16 +260,25 @@ class BinnedRenderer:
         if stars["paths"] is None and o.psf == "gaussian":
             x, y = np.asarray(stars["x_px"], np.float64), np.asarray(stars["y_px"], np.float64)
             radii = gaussian_radius_px(flux, o.psf_sigma_px).astype(np.int64) if len(flux) else np.zeros(0, np.int64)
-            boxes = self._boxes(np.floor(y + 0.5).astype(np.int64) - radii, np.floor(x + 0.5).astype(np.int64) - radii,
-                                2 * radii + 1, 2 * radii + 1)
-            return boxes, lambda buf, paint: kern.paint_gauss(buf, paint, self._slot, self.prnu, x, y, flux, radii,
-                                                          float(o.psf_sigma_px), self.f, h, w)
+            boxes = self._boxes(
+                np.floor(y + 0.5).astype(np.int64) - radii,
+                np.floor(x + 0.5).astype(np.int64) - radii,
+                2 * radii + 1,
+                2 * radii + 1,
+            )
+            return boxes, lambda buf, paint: kern.paint_gauss(
+                buf, paint, self._slot, self.prnu, x, y, flux, radii, float(o.psf_sigma_px), self.f, h, w
+            )
         if stars["paths"] is None:
-            st = [stamp(float(x), float(y), float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
-                  for x, y, fl in zip(stars["x_px"], stars["y_px"], flux)]
+            st = [
+                stamp(float(x), float(y), float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
+                for x, y, fl in zip(stars["x_px"], stars["y_px"], flux)
+            ]
         else:
-            st = [streak(xs, ys, float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
-                  for xs, ys, fl in zip(stars["paths"][0], stars["paths"][1], flux)]
+            st = [
+                streak(xs, ys, float(fl), o.psf, o.psf_sigma_px, o.moffat_beta)
+                for xs, ys, fl in zip(stars["paths"][0], stars["paths"][1], flux)
+            ]
         return self._patches(st, True)
 
     def _patches(self, patches, weighted: bool):
@@ -271,8 +291,25 @@ class BinnedRenderer:
         ww = np.array([p[2].shape[1] for p in patches], np.int64)
         starts = np.concatenate([[0], np.cumsum(hh * ww)[:-1]]).astype(np.int64)
         flat = np.concatenate([p[2].ravel() for p in patches]).astype(np.float64)
-        painter = lambda buf, paint: kern.paint_patches(buf, paint, self._slot, self.prnu, weighted,  # noqa: E731
-                                                        y0, x0, hh, ww, starts, flat, self.f, h, w)
+
+        def painter(buf, paint):
+            return kern.paint_patches(
+                buf,
+                paint,
+                self._slot,
+                self.prnu,
+                weighted,  # noqa: E731
+                y0,
+                x0,
+                hh,
+                ww,
+                starts,
+                flat,
+                self.f,
+                h,
+                w,
+            )
+
         return self._boxes(y0, x0, hh, ww), painter
 
     # ------------------------------------------------------------------ frame
@@ -280,6 +317,7 @@ class BinnedRenderer:
         """The stored-size uint16 ADU image (h/s, w/s) of ``scene``; every draw comes from the
         64-bit ``seed`` (default: from the scene's generator of stage ``binned_noise``)."""
         from skygen.instrument import corruptions as corr
+
         r, cfg = self.r, self.r.cfg
         s = cfg.sensor
         f, n, (hb, wb) = self.f, self.n, self.shape
@@ -311,7 +349,7 @@ class BinnedRenderer:
             paint_charge(charge, paint)
         flux = np.asarray(scene.stars["electrons"], np.float64)
         bloom_boxes = np.zeros((0, 4), np.int64)
-        if s.blooming and len(flux):           # as Renderer._deposit extends a bright star's box
+        if s.blooming and len(flux):  # as Renderer._deposit extends a bright star's box
             big = np.flatnonzero((boxes[:, 0] >= 0) & (peaks > 0.5 * s.full_well_e))
             if len(big):
                 extra = np.ceil(flux[big] / s.full_well_e).astype(np.int64) + 2
@@ -330,42 +368,91 @@ class BinnedRenderer:
         risky = np.zeros(m, bool)
         lam = np.empty(m)
         even = self.rule == "half_even"
-        kern.model_blocks(blocks, n, star, charge, has_charge, self.live, self.hot_e, self.static_special,
-                      float(r.background_e), bg_bm, use_map, sigma, g, self.offset_sum, limit, even, self.max_adu,
-                      state, self.poisson_table(n * float(r.background_e)), out, risky, lam)
+        kern.model_blocks(
+            blocks,
+            n,
+            star,
+            charge,
+            has_charge,
+            self.live,
+            self.hot_e,
+            self.static_special,
+            float(r.background_e),
+            bg_bm,
+            use_map,
+            sigma,
+            g,
+            self.offset_sum,
+            limit,
+            even,
+            self.max_adu,
+            state,
+            self.poisson_table(n * float(r.background_e)),
+            out,
+            risky,
+            lam,
+        )
         # 4. risky blocks, and as far along their columns as blooming reaches: pixel by pixel
         if risky.any():
             exact = self._exact_region(blocks[risky], lam[risky], bloom_boxes)
             hit = [bb for bb in bloom_boxes if self._touches(bb, exact)] if len(bloom_boxes) else []
-            kern.exact_blocks(exact, self._slot, n, f, wb, self.sensor_shape[0], star, charge, has_charge, paint,
-                          self.live, self.hot_e, self.static_px, float(r.background_e), bg_bm, use_map,
-                          use_map or s.sampler == "exact", np.array(hit, np.int64).reshape(-1, 4), bool(s.blooming), float(s.full_well_e), sigma, g,
-                          self.offset, self.max_adu, even, out)
+            kern.exact_blocks(
+                exact,
+                self._slot,
+                n,
+                f,
+                wb,
+                self.sensor_shape[0],
+                star,
+                charge,
+                has_charge,
+                paint,
+                self.live,
+                self.hot_e,
+                self.static_px,
+                float(r.background_e),
+                bg_bm,
+                use_map,
+                use_map or s.sampler == "exact",
+                np.array(hit, np.int64).reshape(-1, 4),
+                bool(s.blooming),
+                float(s.full_well_e),
+                sigma,
+                g,
+                self.offset,
+                self.max_adu,
+                even,
+                out,
+            )
         return out.reshape(hb, wb)
 
     def _touches(self, box, exact: np.ndarray) -> bool:
         f, wb = self.f, self.shape[1]
         by, bx = exact // wb, exact % wb
-        return bool(((by >= box[0] // f) & (by <= (box[1] - 1) // f) & (bx >= box[2] // f)
-                     & (bx <= (box[3] - 1) // f)).any())
+        return bool(
+            ((by >= box[0] // f) & (by <= (box[1] - 1) // f) & (bx >= box[2] // f) & (bx <= (box[3] - 1) // f)).any()
+        )
 
     def _exact_region(self, risky_blocks: np.ndarray, risky_lam: np.ndarray, bloom_boxes: np.ndarray) -> np.ndarray:
         """Risky blocks, extended along their columns as far as blooming can carry charge, and
         the whole (extended) box of a bloom-capable star that reaches them."""
         f, (hb, wb) = self.f, self.shape
         fw = self.r.cfg.sensor.full_well_e
-        reach = (np.ceil((risky_lam / fw + 2) / f).astype(np.int64) if self.r.cfg.sensor.blooming
-                 else np.zeros(len(risky_blocks), np.int64))
+        reach = (
+            np.ceil((risky_lam / fw + 2) / f).astype(np.int64)
+            if self.r.cfg.sensor.blooming
+            else np.zeros(len(risky_blocks), np.int64)
+        )
         key = (risky_blocks.tobytes(), reach.tobytes())
         if not len(bloom_boxes) and getattr(self, "_region_key", None) == key:
-            return self._region              # the usual case: the same saturating hot pixels as before
+            return self._region  # the usual case: the same saturating hot pixels as before
         sel = np.zeros((hb, wb), bool)
         for b, rb in zip(risky_blocks, reach):
             by, bx = divmod(int(b), wb)
-            sel[max(by - rb, 0):by + rb + 1, bx] = True
+            sel[max(by - rb, 0) : by + rb + 1, bx] = True
         for ya, yb, xa, xb in bloom_boxes:
-            if sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1].any():
-                sel[ya // f:(yb - 1) // f + 1, xa // f:(xb - 1) // f + 1] = True
+            if sel[ya // f : (yb - 1) // f + 1, xa // f : (xb - 1) // f + 1].any():
+                sel[ya // f : (yb - 1) // f + 1, xa // f : (xb - 1) // f + 1] = True
         region = np.flatnonzero(sel)
         if not len(bloom_boxes):
             self._region_key, self._region = key, region

@@ -132,8 +132,23 @@ def paint_patches(buf, paint, slot, weight, use_weight, y0s, x0s, hs, ws, starts
             continue
         pk = 0.0
         for yy in range(ya, yb):
-            pk = max(pk, _add(buf, paint, slot, weight, use_weight, f, wb, yy, xa, xb, flat,
-                              starts[i] + (yy - y0) * pw + (xa - x0)))
+            pk = max(
+                pk,
+                _add(
+                    buf,
+                    paint,
+                    slot,
+                    weight,
+                    use_weight,
+                    f,
+                    wb,
+                    yy,
+                    xa,
+                    xb,
+                    flat,
+                    starts[i] + (yy - y0) * pw + (xa - x0),
+                ),
+            )
         peaks[i] = pk
     return peaks
 
@@ -193,8 +208,30 @@ def _round(total, n, even, max_adu):
 
 
 @njit(cache=True)
-def model_blocks(blocks, n, star, charge, has_charge, live, hot_e, static_special, bg, bg_bm, use_map,
-                  sigma, g, offset_sum, limit, even, max_adu, state, bg_thr, out, risky, lam_out):
+def model_blocks(
+    blocks,
+    n,
+    star,
+    charge,
+    has_charge,
+    live,
+    hot_e,
+    static_special,
+    bg,
+    bg_bm,
+    use_map,
+    sigma,
+    g,
+    offset_sum,
+    limit,
+    even,
+    max_adu,
+    state,
+    bg_thr,
+    out,
+    risky,
+    lam_out,
+):
     """Stored values of the marked blocks (slot i = ``blocks[i]``) by the block-sum model (module
     doc), drawn from numba's generator (seeded by the caller), written into ``out`` (which
     holds the background-only draw of every block).
@@ -208,8 +245,8 @@ def model_blocks(blocks, n, star, charge, has_charge, live, hot_e, static_specia
     sn = sigma * math.sqrt(n)
     for i in range(len(blocks)):
         b = blocks[i]
-        bs = b * n                      # static maps (block-major)
-        bc = i * n                      # this frame's compact buffers
+        bs = b * n  # static maps (block-major)
+        bc = i * n  # this frame's compact buffers
         lam_bg = 0.0
         lam_star = 0.0
         chg = 0.0
@@ -246,7 +283,7 @@ def model_blocks(blocks, n, star, charge, has_charge, live, hot_e, static_specia
             continue
         if special:
             e_bg = np.random.poisson(lam_bg)
-        else:                            # Poisson(n * background) from its 2^-32 table
+        else:  # Poisson(n * background) from its 2^-32 table
             u = _next(state) >> np.uint64(32)
             lo, hi = 0, len(bg_thr) - 1
             while lo < hi:
@@ -287,8 +324,34 @@ def _bloom_column(col, full_well):
 
 
 @njit(cache=True)
-def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, live, hot_e, static_px, bg,
-                  bg_bm, use_map, all_on, bloom_boxes, blooming, full_well, sigma, g, offset, max_adu, even, out):
+def exact_blocks(
+    exact,
+    slot,
+    n,
+    f,
+    wb,
+    h,
+    star,
+    charge,
+    has_charge,
+    paint,
+    live,
+    hot_e,
+    static_px,
+    bg,
+    bg_bm,
+    use_map,
+    all_on,
+    bloom_boxes,
+    blooming,
+    full_well,
+    sigma,
+    g,
+    offset,
+    max_adu,
+    even,
+    out,
+):
     """Blocks drawn pixel by pixel as :func:`skygen.instrument.sensor.read_out` draws them: Poisson,
     cosmic charge, dead pixels, blooming (spilled charge kept only on pixels the full renderer
     draws exactly: source boxes, their blooming extensions, hot and dead pixels; every pixel
@@ -316,7 +379,9 @@ def exact_blocks(exact, slot, n, f, wb, h, star, charge, has_charge, paint, live
                     c = charge[sl * n + j]
             on[k] = on[k] or static_px[bs] or all_on
             for q in range(len(bloom_boxes)):
-                if (bloom_boxes[q, 0] <= ys[k] < bloom_boxes[q, 1]) and (bloom_boxes[q, 2] <= xs[k] < bloom_boxes[q, 3]):
+                if (bloom_boxes[q, 0] <= ys[k] < bloom_boxes[q, 1]) and (
+                    bloom_boxes[q, 2] <= xs[k] < bloom_boxes[q, 3]
+                ):
                     on[k] = True
             v = np.random.poisson(lam) + c
             if not live[bs]:
@@ -375,7 +440,7 @@ def background_draw(state, cls, lut8, thr, nthr, vmin, amb):
         j = lut8[c, u >> np.uint64(24)]
         if j == amb:
             lo, hi = 0, nthr[c] - 1
-            while lo < hi:                      # first j with u < thr[c, j]
+            while lo < hi:  # first j with u < thr[c, j]
                 mid = (lo + hi) // 2
                 if u < thr[c, mid]:
                     hi = mid

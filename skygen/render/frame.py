@@ -9,25 +9,24 @@ worker pool, or after a resume.
 from __future__ import annotations
 
 import contextlib
-
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from skygen.instrument import corruptions as corr
-from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
-from skygen.instrument.camera import Camera
-from skygen.sky.catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
-from skygen.instrument.detect import detect, match
 from skygen.errors import ConfigError
 from skygen.identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
+from skygen.instrument import corruptions as corr
+from skygen.instrument.camera import Camera
+from skygen.instrument.detect import detect, match
 from skygen.instrument.photometry import Photometry, dark_current_e_s
 from skygen.instrument.psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
 from skygen.instrument.sensor import Exposure, read_out, sensor_maps
+from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
+from skygen.sky.catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
-BLUR_STEP_PX = 0.25   # sub-exposure spacing of a motion-blurred star
+BLUR_STEP_PX = 0.25  # sub-exposure spacing of a motion-blurred star
 #: fewest catalogue stars above the detection limit a field must hold on average: below it most
 #: frames (Poisson P(0) > 60 %) show no star at all, which no solver and no model can use
 MIN_DETECTABLE_PER_FIELD = 0.5
@@ -91,7 +90,7 @@ class Scene:
     stray_light_rad: float | None
     log: dict
     index_in_split: int = 0
-    rng_key: int | tuple = 0          # the random-stream key of the frame (Renderer.stream_key)
+    rng_key: int | tuple = 0  # the random-stream key of the frame (Renderer.stream_key)
 
 
 class Renderer:
@@ -104,6 +103,7 @@ class Renderer:
         streams by the global frame index, as schema 1.x datasets were rendered (to
         re-render frames of such a dataset exactly)."""
         from skygen.config import config_dict
+
         self.cfg = cfg
         self.rng_tag = rng_tag
         self.legacy_streams = legacy_streams
@@ -112,9 +112,11 @@ class Renderer:
         self.camera = Camera.from_config(cfg.camera)
         self.photometry = Photometry.from_config(o, cfg.photometry, s)
         # a pixel covers pixel_scale^2 * aspect arcsec^2 of sky (non-square pixels: taller rows see more sky)
-        self.sky_e = self.photometry.sky_electrons_per_px_s(cfg.photometry.sky_mag_arcsec2,
-                                                            self.camera.pixel_scale_arcsec) * s.exposure_s \
+        self.sky_e = (
+            self.photometry.sky_electrons_per_px_s(cfg.photometry.sky_mag_arcsec2, self.camera.pixel_scale_arcsec)
+            * s.exposure_s
             * self.camera.aspect
+        )
         self.dark_e = dark_current_e_s(s) * s.exposure_s
         self.background_e = self.dark_e + self.sky_e
         self.levels = corr.levels_of(cfg)
@@ -130,9 +132,17 @@ class Renderer:
         self.sky = SkyIndex(table, cfg.epoch_yr, self.mag_limit - self.mag_offset_to_hp)
         if cfg.catalog.mag_limit is not None:
             self._check_stars_per_field(table)
-        self.maps = sensor_maps(cfg.camera.height_px, cfg.camera.width_px, s.sensor_seed, s.prnu_frac,
-                                s.fpn_adu, s.bias_adu, cfg.corruptions.hotpixels, s.hot_pixel_dark_e_s,
-                                s.dead_pixel_fraction)
+        self.maps = sensor_maps(
+            cfg.camera.height_px,
+            cfg.camera.width_px,
+            s.sensor_seed,
+            s.prnu_frac,
+            s.fpn_adu,
+            s.bias_adu,
+            cfg.corruptions.hotpixels,
+            s.hot_pixel_dark_e_s,
+            s.dead_pixel_fraction,
+        )
         self.psf_radius = stamp_radius_px(o.psf, o.psf_sigma_px / min(self.camera.aspect, 1.0))
         self.split_bounds = split_bounds(cfg.n_frames, cfg.output.split_fractions)
         self.factor = cfg.camera.width_px // cfg.output.image_size_px
@@ -150,7 +160,7 @@ class Renderer:
         """Variance (e-^2) of the noise that does not grow with the exposure: read, quantisation, FPN."""
         s = self.cfg.sensor
         g = s.gain_e_per_adu
-        return s.read_noise_e ** 2 + extra_read_e ** 2 + g * g / 12.0 + (g * s.fpn_adu) ** 2
+        return s.read_noise_e**2 + extra_read_e**2 + g * g / 12.0 + (g * s.fpn_adu) ** 2
 
     def _field_sr(self) -> float:
         """Solid angle of the rectangular field, steradians."""
@@ -166,7 +176,7 @@ class Renderer:
         drown the stars on purpose."""
         field_sr = self._field_sr()
         mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
-        needed = int(np.ceil(MIN_DETECTABLE_PER_FIELD * 4 * np.pi / field_sr))   # stars on the sky for that
+        needed = int(np.ceil(MIN_DETECTABLE_PER_FIELD * 4 * np.pi / field_sr))  # stars on the sky for that
         limit = self._detection_limit(extra_read_e=0.0)
         if needed > len(mags) or (np.isfinite(limit) and limit >= mags[needed - 1]):
             return
@@ -180,7 +190,8 @@ class Renderer:
             f"{MIN_DETECTABLE_PER_FIELD:g} needs Hp {need_mag:.2f}); check the units of sensor.exposure_s "
             f"({s.exposure_s:g} s: Hp {need_mag:.2f} needs >= {self._exposure_for_limit(need_mag):.3g} s), "
             f"optics.aperture_mm ({self.cfg.optics.aperture_mm:g}) and sensor.gain_e_per_adu "
-            f"({s.gain_e_per_adu:g} e-/ADU), or lower detection.threshold_sigma")
+            f"({s.gain_e_per_adu:g} e-/ADU), or lower detection.threshold_sigma"
+        )
 
     def _exposure_for_limit(self, mag_hp: float) -> float:
         """The exposure (s) at which a solar-type star of ``mag_hp`` reaches the detection threshold in
@@ -189,7 +200,7 @@ class Renderer:
         o, s = self.cfg.optics, self.cfg.sensor
         F = float(self.photometry.electrons_per_s(np.array([mag_hp]), np.array([0.65]))[0])
         p = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
-        k2 = self.cfg.detection.threshold_sigma ** 2
+        k2 = self.cfg.detection.threshold_sigma**2
         b, c = self.background_e / s.exposure_s, self._floor_e2(0.0)
         a = (F * p) ** 2
         return float((k2 * b + np.sqrt(k2 * k2 * b * b + 4 * a * k2 * c)) / (2 * a))
@@ -202,15 +213,17 @@ class Renderer:
         field_sr = self._field_sr()
         per_field = len(self.sky) * field_sr / (4 * np.pi)
         mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
-        needed = int(np.ceil(4 * np.pi / field_sr))                    # stars on the sky for 1 per field
+        needed = int(np.ceil(4 * np.pi / field_sr))  # stars on the sky for 1 per field
         if per_field >= 1 or needed > len(mags):
             return
         need = float(mags[needed - 1])
         auto = self.detection_limit_mag + self.cfg.catalog.mag_margin
-        raise ConfigError(f"catalog.mag_limit={self.mag_limit:g} leaves {len(self.sky)} catalog stars (the brightest "
-                          f"is Hp {mags[0]:.2f}), {per_field:.2g} per {np.degrees(fx):.1f} x {np.degrees(fy):.1f} deg "
-                          f"field on average: frames would be nearly empty. Give catalog.mag_limit >= {need:.1f} "
-                          f"(1 star per field), or null (detection limit + catalog.mag_margin = Hp {auto:.2f})")
+        raise ConfigError(
+            f"catalog.mag_limit={self.mag_limit:g} leaves {len(self.sky)} catalog stars (the brightest "
+            f"is Hp {mags[0]:.2f}), {per_field:.2g} per {np.degrees(fx):.1f} x {np.degrees(fy):.1f} deg "
+            f"field on average: frames would be nearly empty. Give catalog.mag_limit >= {need:.1f} "
+            f"(1 star per field), or null (detection limit + catalog.mag_margin = Hp {auto:.2f})"
+        )
 
     def _detection_limit(self, extra_read_e: float | None = None) -> float:
         """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold
@@ -225,11 +238,13 @@ class Renderer:
         in every pixel, so no star can be seen; None otherwise."""
         s = self.cfg.sensor
         adu = s.bias_adu + self.background_e / s.gain_e_per_adu
-        top = 2 ** s.bit_depth - 1
+        top = 2**s.bit_depth - 1
         if self.background_e >= s.full_well_e or adu >= top:
-            return (f"every pixel saturates: the background alone is {self.background_e:.3g} e-/px over the "
-                    f"{s.exposure_s:g} s exposure (full well {s.full_well_e:g} e-, ADC top {top} ADU); "
-                    "frames will hold no detectable star. Shorten sensor.exposure_s")
+            return (
+                f"every pixel saturates: the background alone is {self.background_e:.3g} e-/px over the "
+                f"{s.exposure_s:g} s exposure (full well {s.full_well_e:g} e-, ADC top {top} ADU); "
+                "frames will hold no detectable star. Shorten sensor.exposure_s"
+            )
         return None
 
     def split_of(self, i: int) -> int:
@@ -277,7 +292,7 @@ class Renderer:
         blur = np.linalg.norm(omega) * cfg.sensor.exposure_s
         margin = (self.psf_radius + 2) / self.camera.f_px
         idx = self.sky.cone(R[:, 2], self._corner + blur + margin)
-        v_cam = self.sky.vectors[idx] @ R           # rows: camera-frame directions
+        v_cam = self.sky.vectors[idx] @ R  # rows: camera-frame directions
         x, y, front = self.camera.project(v_cam)
         table = self.sky.table
         margin_px = self.psf_radius + 1
@@ -288,14 +303,24 @@ class Renderer:
             xs, ys = [], []
             for tau in taus:
                 rot = rotation_about(omega, np.linalg.norm(omega) * tau)
-                px, py, _ = self.camera.project(v_cam @ rot)   # v_cam(tau) = rot.T @ v_cam
+                px, py, _ = self.camera.project(v_cam @ rot)  # v_cam(tau) = rot.T @ v_cam
                 xs.append(px)
                 ys.append(py)
             paths = (np.array(xs).T, np.array(ys).T)
-        e = self.photometry.electrons_per_s(table.mag[idx] + self.mag_offset_to_hp, table.bv[idx]) * cfg.sensor.exposure_s
+        e = (
+            self.photometry.electrons_per_s(table.mag[idx] + self.mag_offset_to_hp, table.bv[idx])
+            * cfg.sensor.exposure_s
+        )
         e = e * self.vignetting(x, y)
-        return {"hip_id": table.hip[idx], "x_px": x, "y_px": y, "mag": table.mag[idx],
-                "bv": table.bv[idx], "electrons": e, "paths": paths}
+        return {
+            "hip_id": table.hip[idx],
+            "x_px": x,
+            "y_px": y,
+            "mag": table.mag[idx],
+            "bv": table.bv[idx],
+            "electrons": e,
+            "paths": paths,
+        }
 
     def _false_stars(self, rng: np.random.Generator) -> dict:
         n = int(rng.poisson(self.levels["false_stars"]))
@@ -306,8 +331,15 @@ class Renderer:
         mag = rng.uniform(lim - 4.0, lim, n).astype(np.float32)
         bv = np.full(n, np.nan, np.float32)
         e = self.photometry.electrons_per_s(mag, None) * self.cfg.sensor.exposure_s * self.vignetting(x, y)
-        return {"hip_id": np.full(n, -1, np.int64), "x_px": x, "y_px": y, "mag": mag, "bv": bv,
-                "electrons": e, "paths": None}
+        return {
+            "hip_id": np.full(n, -1, np.int64),
+            "x_px": x,
+            "y_px": y,
+            "mag": mag,
+            "bv": bv,
+            "electrons": e,
+            "paths": None,
+        }
 
     def _deposit(self, stars: dict, star_e: np.ndarray) -> list:
         """Add every star's stamp (or streak) into ``star_e``; return the boxes touched."""
@@ -316,18 +348,22 @@ class Renderer:
         if stars["paths"] is None and o.psf == "gaussian":
             stamps = gaussian_stamps(stars["x_px"], stars["y_px"], flux, o.psf_sigma_px, self.camera.aspect)
         elif stars["paths"] is None:
-            stamps = [stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
-                      for x, y, f in zip(stars["x_px"], stars["y_px"], flux)]
+            stamps = [
+                stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
+                for x, y, f in zip(stars["x_px"], stars["y_px"], flux)
+            ]
         else:
-            stamps = [streak(xs, ys, float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
-                      for xs, ys, f in zip(stars["paths"][0], stars["paths"][1], flux)]
+            stamps = [
+                streak(xs, ys, float(f), o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
+                for xs, ys, f in zip(stars["paths"][0], stars["paths"][1], flux)
+            ]
         boxes = []
         fw, h = s.full_well_e, star_e.shape[0]
         for (y0, x0, patch), f in zip(stamps, flux):
             box = add_patch(star_e, y0, x0, patch)
             if box is None:
                 continue
-            if s.blooming and patch.max() > 0.5 * fw:   # may bloom: leave room along the columns
+            if s.blooming and patch.max() > 0.5 * fw:  # may bloom: leave room along the columns
                 extra = int(np.ceil(f / fw)) + 2
                 box = (max(box[0] - extra, 0), min(box[1] + extra, h), box[2], box[3])
             boxes.append(box)
@@ -354,13 +390,19 @@ class Renderer:
             log["false_stars"] = {"n": len(fake["x_px"])}
             stars = {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else stars[k]) for k in stars}
             if stars["paths"] is not None and len(fake["x_px"]):
-                stars["paths"] = (np.concatenate([stars["paths"][0], np.repeat(fake["x_px"][:, None], len(taus), 1)]),
-                                  np.concatenate([stars["paths"][1], np.repeat(fake["y_px"][:, None], len(taus), 1)]))
+                stars["paths"] = (
+                    np.concatenate([stars["paths"][0], np.repeat(fake["x_px"][:, None], len(taus), 1)]),
+                    np.concatenate([stars["paths"][1], np.repeat(fake["y_px"][:, None], len(taus), 1)]),
+                )
         cosmic, cboxes = [], []
         if self.levels["cosmic_rays"] > 0:
-            cosmic, cboxes, n_hits = corr.cosmic_ray_charge(sh, cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
-                                                            self.levels["cosmic_rays"],
-                                                            corr.stage_rng(seed, key, "cosmic_rays" + self.rng_tag))
+            cosmic, cboxes, n_hits = corr.cosmic_ray_charge(
+                sh,
+                cfg.camera.pixel_pitch_um,
+                cfg.sensor.exposure_s,
+                self.levels["cosmic_rays"],
+                corr.stage_rng(seed, key, "cosmic_rays" + self.rng_tag),
+            )
             log["cosmic_rays"] = {"n_hits": n_hits}
         stray = None
         if self.levels["stray_light"] > 0:
@@ -374,11 +416,12 @@ class Renderer:
         if self.levels["stray_light"] == 0 and cfg.optics.vignetting == 0:
             return None
         sh = (cfg.camera.height_px, cfg.camera.width_px)
-        yy, xx = np.mgrid[0:sh[0], 0:sh[1]]
+        yy, xx = np.mgrid[0 : sh[0], 0 : sh[1]]
         bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
         if scene.stray_light_rad is not None:
-            bg_map += corr.stray_light_ramp(sh, self.levels["stray_light"], cfg.sensor.exposure_s,
-                                            scene.stray_light_rad)
+            bg_map += corr.stray_light_ramp(
+                sh, self.levels["stray_light"], cfg.sensor.exposure_s, scene.stray_light_rad
+            )
         return bg_map
 
     # ------------------------------------------------------------------ frame
@@ -395,9 +438,13 @@ class Renderer:
                 add_patch(charge, y0, x0, p)
             boxes += scene.cosmic_boxes
         exposure = Exposure(star_e, charge, boxes, self.background_e, self.background_map(scene))
-        full, info = read_out(exposure, cfg.sensor, self.maps,
-                              corr.stage_rng(cfg.seed, scene.rng_key, "noise" + self.rng_tag),
-                              self.levels["read_noise"])
+        full, info = read_out(
+            exposure,
+            cfg.sensor,
+            self.maps,
+            corr.stage_rng(cfg.seed, scene.rng_key, "noise" + self.rng_tag),
+            self.levels["read_noise"],
+        )
         log = {"blooming": {"columns": info["bloomed_columns"]}} if info["bloomed_columns"] else {}
         return full, log
 
@@ -429,8 +476,9 @@ class Renderer:
         h, w = full.shape
         return cv2.resize(full, (w // self.factor, h // self.factor), interpolation=cv2.INTER_AREA)
 
-    def finish(self, scene: "Scene", full: np.ndarray, image: np.ndarray | None = None,
-               log: dict | None = None) -> Frame:
+    def finish(
+        self, scene: "Scene", full: np.ndarray, image: np.ndarray | None = None, log: dict | None = None
+    ) -> Frame:
         """Detect, match and store: the :class:`Frame` of ``scene`` from its full-resolution
         uint16 ADU frame ``full`` (H, W) (and its stored-size ``image``, area-averaged here
         when None). Shared by both backends."""
@@ -445,19 +493,36 @@ class Renderer:
         sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
         hip = true["hip_id"][np.maximum(sidx, 0)] if len(true["hip_id"]) else np.full(len(sidx), -1)
-        det["hip_id"] = np.where(sidx >= 0, hip, -1).astype(np.int64)   # (a frame may hold no true star)
+        det["hip_id"] = np.where(sidx >= 0, hip, -1).astype(np.int64)  # (a frame may hold no true star)
         det, dlog = corr.apply_detection_corruptions(det, self.levels, cfg.seed, scene.rng_key, stream=self.rng_tag)
         log.update(dlog)
         if image is None:
             image = self.downsample(full)
         q = matrix_to_quaternion(scene.rotation)
         ra, dec = scene.ra_deg, scene.dec_deg
-        if self.rng_tag:            # a stream's sample: no dataset identity
+        if self.rng_tag:  # a stream's sample: no dataset identity
             fid = 0
         elif self.legacy_streams:
             fid = legacy_frame_ids(self._config_dict, [i])[0]
         else:
             fid = frame_ids(self._config_dict, [scene.split], [scene.index_in_split], [i])[0]
-        return Frame(i, scene.split, ra, dec, scene.roll_deg, radec_to_vec(np.radians(ra), np.radians(dec)), q,
-                     image, full if cfg.output.full_res else None, self.factor, true, det, bg, sigma,
-                     dict(self.levels), log, scene.index_in_split, int(fid))
+        return Frame(
+            i,
+            scene.split,
+            ra,
+            dec,
+            scene.roll_deg,
+            radec_to_vec(np.radians(ra), np.radians(dec)),
+            q,
+            image,
+            full if cfg.output.full_res else None,
+            self.factor,
+            true,
+            det,
+            bg,
+            sigma,
+            dict(self.levels),
+            log,
+            scene.index_in_split,
+            int(fid),
+        )

@@ -17,14 +17,15 @@ import multiprocessing as mp
 
 import numpy as np
 
-from skygen.instrument import corruptions as corr
 from skygen.config import build_config
+from skygen.instrument import corruptions as corr
 
 _CACHE: dict = {}
 
 
 def _renderer(cfg_dict: dict, name: str, extra: float, legacy: bool = False):
     from skygen.render.frame import Renderer
+
     key = (json.dumps(cfg_dict, sort_keys=True), name, extra, legacy)
     if key not in _CACHE:
         _CACHE.clear()
@@ -42,15 +43,14 @@ def _render_some(args) -> list[dict]:
     return out
 
 
-def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers: int = 1,
-                     progress=None) -> list[dict]:
+def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers: int = 1, progress=None) -> list[dict]:
     """Images (stored size) and detections of frames ``positions`` of dataset ``ds``
     (a :class:`skygen.datasets.shards.Dataset`) with ``extra`` severity of corruption ``name``.
 
     ``progress`` (optional) is called with the number of frames finished so far.
     """
     c = corr.get(name)
-    corr.with_extra(build_config(ds.config), name, extra)          # validates the severity
+    corr.with_extra(build_config(ds.config), name, extra)  # validates the severity
     positions = np.asarray(positions, dtype=np.int64)
     if c.stage == "detections" or extra == 0:
         out = []
@@ -65,8 +65,8 @@ def perturbed_frames(ds, name: str, extra: float, positions: np.ndarray, workers
                 progress(k + 1)
         return out
     indices = ds.frames["index"][positions]
-    chunks = [indices[i:i + 16] for i in range(0, len(indices), 16)]
-    legacy = str(ds.schema_version).startswith("1.")   # 1.x frames: streams keyed by global index
+    chunks = [indices[i : i + 16] for i in range(0, len(indices), 16)]
+    legacy = str(ds.schema_version).startswith("1.")  # 1.x frames: streams keyed by global index
     tasks = [(ds.config, name, float(extra), ch, legacy) for ch in chunks]
     results = []
     if workers <= 1 or len(chunks) == 1:
@@ -90,6 +90,7 @@ def _pool(workers: int):
     (each worker keeps its Renderer for the last config it saw)."""
     if workers not in _POOLS:
         import atexit
+
         pool = mp.get_context("spawn").Pool(workers)
         _POOLS[workers] = pool
         atexit.register(pool.terminate)

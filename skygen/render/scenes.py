@@ -21,18 +21,18 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skygen.instrument import corruptions as corr
 from skygen import hashrng
-from skygen.sky.attitude import attitude_matrices, boresights_from_uniforms
+from skygen.instrument import corruptions as corr
 from skygen.render.frame import Scene
+from skygen.sky.attitude import attitude_matrices, boresights_from_uniforms
 
 # draw ids under the stream key (skygen.stream.samples keeps its own below 64 and at >= 512)
-D_ATT = 0              # 0..2
+D_ATT = 0  # 0..2
 D_NFALSE = 16
 D_COSMIC = 18
 D_COSMIC_SEED = 19
 D_STRAY = 20
-D_FALSE = 1 << 36      # + 4 * k: false star k (x, y, magnitude)
+D_FALSE = 1 << 36  # + 4 * k: false star k (x, y, magnitude)
 
 
 class SceneBuilder:
@@ -43,13 +43,15 @@ class SceneBuilder:
         self.r, self.key = r, key
         cfg, cam = r.cfg, r.camera
         sky = r.sky
-        self.e_star = (r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
-                       * cfg.sensor.exposure_s)
-        radius = r._corner + (r.psf_radius + 2) / cam.f_px          # as Renderer._stars, no blur
+        self.e_star = (
+            r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv) * cfg.sensor.exposure_s
+        )
+        radius = r._corner + (r.psf_radius + 2) / cam.f_px  # as Renderer._stars, no blur
         self.chord = 2.0 * np.sin(min(radius, np.pi) / 2.0)
         self.margin_px = r.psf_radius + 1
-        self.cosmic_rate = corr.cosmic_ray_rate((cfg.camera.height_px, cfg.camera.width_px),
-                                                cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s, 1.0)
+        self.cosmic_rate = corr.cosmic_ray_rate(
+            (cfg.camera.height_px, cfg.camera.width_px), cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s, 1.0
+        )
 
     def scenes(self, idx: np.ndarray, levels: dict[str, np.ndarray]) -> list:
         """Scenes of samples ``idx`` with per-sample corruption ``levels`` (the renderer's levels
@@ -58,7 +60,10 @@ class SceneBuilder:
         cfg, cam, sky = r.cfg, r.camera, r.sky
         idx = np.asarray(idx, np.int64)
         B = len(idx)
-        lv = lambda name: np.broadcast_to(np.asarray(levels.get(name, r.levels[name]), np.float64), (B,))
+
+        def lv(name):
+            return np.broadcast_to(np.asarray(levels.get(name, r.levels[name]), np.float64), (B,))
+
         if (lv("motion_blur") > 0).any():
             out = []
             for j, i in enumerate(idx):
@@ -69,7 +74,7 @@ class SceneBuilder:
         ra, dec, roll = boresights_from_uniforms(cfg.attitude, idx, u)
         R = attitude_matrices(ra, dec, roll)
         pairs = cKDTree(R[:, :, 2]).sparse_distance_matrix(sky.tree, self.chord + 1e-12, output_type="ndarray")
-        order = np.lexsort((pairs["j"], pairs["i"]))                # per frame, catalog order (as cone())
+        order = np.lexsort((pairs["j"], pairs["i"]))  # per frame, catalog order (as cone())
         fr, star = pairs["i"][order].astype(np.int64), pairs["j"][order].astype(np.int64)
         v_cam = np.einsum("nji,nj->ni", R[fr], sky.vectors[star])
         x, y, front = cam.project(v_cam)
@@ -85,8 +90,15 @@ class SceneBuilder:
         for j, i in enumerate(idx):
             a, b = bounds[j], bounds[j + 1]
             s = star[a:b]
-            stars = {"hip_id": t.hip[s], "x_px": x[a:b], "y_px": y[a:b], "mag": t.mag[s], "bv": t.bv[s],
-                     "electrons": e[a:b], "paths": None}
+            stars = {
+                "hip_id": t.hip[s],
+                "x_px": x[a:b],
+                "y_px": y[a:b],
+                "mag": t.mag[s],
+                "bv": t.bv[s],
+                "electrons": e[a:b],
+                "paths": None,
+            }
             log: dict = {}
             if lv("false_stars")[j] > 0:
                 stars = self._false_stars(stars, int(i), int(nf[j]))
@@ -95,16 +107,36 @@ class SceneBuilder:
             if lv("cosmic_rays")[j] > 0:
                 if nc[j]:
                     rng = np.random.default_rng(int(hashrng.bits(key, i, D_COSMIC_SEED)))
-                    cosmic, cboxes, _ = corr.cosmic_ray_charge((cfg.camera.height_px, cfg.camera.width_px),
-                                                               cfg.camera.pixel_pitch_um, cfg.sensor.exposure_s,
-                                                               float(lv("cosmic_rays")[j]), rng, n=int(nc[j]))
+                    cosmic, cboxes, _ = corr.cosmic_ray_charge(
+                        (cfg.camera.height_px, cfg.camera.width_px),
+                        cfg.camera.pixel_pitch_um,
+                        cfg.sensor.exposure_s,
+                        float(lv("cosmic_rays")[j]),
+                        rng,
+                        n=int(nc[j]),
+                    )
                 log["cosmic_rays"] = {"n_hits": int(nc[j])}
             stray = None
             if stray_on[j]:
                 stray = float(2 * np.pi * hashrng.uniform(key, i, D_STRAY))
                 log["stray_light"] = {"direction_deg": round(float(np.degrees(stray)), 4)}
-            out.append(Scene(int(i), -1, float(ra[j]), float(dec[j]), float(roll[j]), R[j], stars, cosmic, cboxes,
-                             stray, log, int(i), int(i)))
+            out.append(
+                Scene(
+                    int(i),
+                    -1,
+                    float(ra[j]),
+                    float(dec[j]),
+                    float(roll[j]),
+                    R[j],
+                    stars,
+                    cosmic,
+                    cboxes,
+                    stray,
+                    log,
+                    int(i),
+                    int(i),
+                )
+            )
         return out
 
     def _false_stars(self, stars: dict, i: int, n: int) -> dict:
@@ -117,6 +149,12 @@ class SceneBuilder:
         lim = r.detection_limit_mag
         mag = (lim - 4.0 + 4.0 * hashrng.uniform(self.key, i, d + 2)).astype(np.float32)
         e = r.photometry.electrons_per_s(mag, None) * r.cfg.sensor.exposure_s * r.vignetting(x, y)
-        fake = {"hip_id": np.full(n, -1, np.int64), "x_px": x, "y_px": y, "mag": mag,
-                "bv": np.full(n, np.nan, np.float32), "electrons": e}
+        fake = {
+            "hip_id": np.full(n, -1, np.int64),
+            "x_px": x,
+            "y_px": y,
+            "mag": mag,
+            "bv": np.full(n, np.nan, np.float32),
+            "electrons": e,
+        }
         return {k: (np.concatenate([stars[k], fake[k]]) if k != "paths" else None) for k in stars}

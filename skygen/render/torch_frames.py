@@ -57,14 +57,14 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from skygen.sky.catalog import radec_to_vec
 from skygen.errors import ConfigError
 from skygen.instrument.psf import peak_fraction, stamp, stamp_radius_px, streak
-from skygen.render.frame import Frame, Renderer, Scene
 from skygen.instrument.sensor import background_sampler, bloom
+from skygen.render.frame import Frame, Renderer, Scene
+from skygen.sky.catalog import radec_to_vec
 
 _SQRT2 = math.sqrt(2.0)
-_AMBIGUOUS = -1e9   # marks a 16-bit prefix whose ADU value needs the full 32-bit search
+_AMBIGUOUS = -1e9  # marks a 16-bit prefix whose ADU value needs the full 32-bit search
 
 
 def resolve_device(name: str) -> torch.device:
@@ -75,8 +75,11 @@ def resolve_device(name: str) -> torch.device:
         raise ConfigError(f"render.device: {name!r} is not a torch device; use cpu, cuda or cuda:N") from None
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise ConfigError(f"render.device={name}: CUDA is not available on this machine (torch {torch.__version__}, "
-                              "built for CUDA " f"{torch.version.cuda}); use render.device=cpu")
+            raise ConfigError(
+                f"render.device={name}: CUDA is not available on this machine (torch {torch.__version__}, "
+                "built for CUDA "
+                f"{torch.version.cuda}); use render.device=cpu"
+            )
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise ConfigError(f"render.device={name}: only {torch.cuda.device_count()} CUDA device(s) here")
     elif dev.type != "cpu":
@@ -136,7 +139,7 @@ class TorchRenderer:
         self.shape = (cam.height_px, cam.width_px)
         self.factor = self.base.factor
         m, dev = self.base.maps, self.device
-        self.prnu = torch.tensor(m.prnu.ravel(), dtype=torch.float32, device=dev)   # (copies: maps are read-only)
+        self.prnu = torch.tensor(m.prnu.ravel(), dtype=torch.float32, device=dev)  # (copies: maps are read-only)
         self.offset = torch.tensor(m.offset_adu.ravel(), dtype=torch.float32, device=dev)
         self.hot_e = torch.tensor((m.hot_map * np.float32(s.exposure_s)).ravel(), device=dev)
         self.dead = torch.tensor(m.dead_mask.ravel(), device=dev)
@@ -147,8 +150,9 @@ class TorchRenderer:
         self.static_index = self.static_touched.nonzero().squeeze(1)
         self.offset_range = (int(m.offset_adu.min()), int(m.offset_adu.max()))
         self.psf_radius = self.base.psf_radius
-        self.peak_fraction = peak_fraction(cfg.optics.psf, cfg.optics.psf_sigma_px, cfg.optics.moffat_beta) \
-            * (1.0 + 6.0 * s.prnu_frac)                          # conservative: the brightest PRNU pixel
+        self.peak_fraction = peak_fraction(cfg.optics.psf, cfg.optics.psf_sigma_px, cfg.optics.moffat_beta) * (
+            1.0 + 6.0 * s.prnu_frac
+        )  # conservative: the brightest PRNU pixel
         self._lut: dict = {}
         h, w = self.shape
         if cfg.optics.vignetting > 0:
@@ -179,8 +183,15 @@ class TorchRenderer:
             touched = []
             for b, sc in enumerate(scenes):
                 for y0, x0, patch in _host_stamps(sc.stars, o.psf, o.psf_sigma_px, o.moffat_beta):
-                    touched.append(self._scatter(out, np.full(1, b), np.array([y0]), np.array([x0]),
-                                                 torch.as_tensor(patch[None], dtype=torch.float32, device=self.device)))
+                    touched.append(
+                        self._scatter(
+                            out,
+                            np.full(1, b),
+                            np.array([y0]),
+                            np.array([x0]),
+                            torch.as_tensor(patch[None], dtype=torch.float32, device=self.device),
+                        )
+                    )
             return out, touched
         b, x, y, f = _point_sources(scenes)
         if len(b) == 0:
@@ -199,17 +210,18 @@ class TorchRenderer:
         flat = self._scatter(out, b, y0.astype(np.int64) - self.radius, x0.astype(np.int64) - self.radius, patches)
         return out, [flat]
 
-    def _scatter(self, out: torch.Tensor, b: np.ndarray, y0: np.ndarray, x0: np.ndarray,
-                 patches: torch.Tensor) -> torch.Tensor:
+    def _scatter(
+        self, out: torch.Tensor, b: np.ndarray, y0: np.ndarray, x0: np.ndarray, patches: torch.Tensor
+    ) -> torch.Tensor:
         """Add (N, n, m) ``patches`` whose top-left pixels are (y0, x0) into frames ``b`` of ``out``,
         clipped; returns the flat batch indices written."""
         h, w = self.shape
         dev = self.device
         n, m = patches.shape[1:]
-        rows = torch.as_tensor(y0, device=dev)[:, None] + torch.arange(n, device=dev)     # (N, n)
-        cols = torch.as_tensor(x0, device=dev)[:, None] + torch.arange(m, device=dev)     # (N, m)
+        rows = torch.as_tensor(y0, device=dev)[:, None] + torch.arange(n, device=dev)  # (N, n)
+        cols = torch.as_tensor(x0, device=dev)[:, None] + torch.arange(m, device=dev)  # (N, m)
         ok = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
-        flat = (torch.as_tensor(b, device=dev)[:, None, None] * (h * w) + rows[:, :, None] * w + cols[:, None, :])
+        flat = torch.as_tensor(b, device=dev)[:, None, None] * (h * w) + rows[:, :, None] * w + cols[:, None, :]
         flat = flat[ok]
         out.view(-1).index_add_(0, flat, patches[ok])
         return flat
@@ -225,7 +237,7 @@ class TorchRenderer:
         for b, sc in enumerate(scenes):
             st = sc.stars
             for s in np.flatnonzero(np.asarray(st["electrons"]) > limit):
-                xs = st["x_px"][s:s + 1] if st["paths"] is None else st["paths"][0][s]
+                xs = st["x_px"][s : s + 1] if st["paths"] is None else st["paths"][0][s]
                 lo = max(int(np.floor(xs.min() + 0.5)) - self.psf_radius, 0)
                 hi = min(int(np.floor(xs.max() + 0.5)) + self.psf_radius + 1, w)
                 c = np.arange(lo, hi)
@@ -269,8 +281,14 @@ class TorchRenderer:
         return self.background + ramp
 
     # ------------------------------------------------------------------ sensor (device)
-    def read_out(self, star_e: torch.Tensor, charge_e: torch.Tensor | None, background_e: torch.Tensor,
-                 generator: torch.Generator, touched: torch.Tensor | None = None) -> tuple[torch.Tensor, list[int]]:
+    def read_out(
+        self,
+        star_e: torch.Tensor,
+        charge_e: torch.Tensor | None,
+        background_e: torch.Tensor,
+        generator: torch.Generator,
+        touched: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, list[int]]:
         """Electrons -> ADU for a batch. ``star_e``: (B, H*W) e- before PRNU; ``charge_e``:
         (B, H*W) cosmic-ray e- or None; ``background_e``: expected dark + sky e- per pixel
         (scalar tensor when uniform). Returns the (B, H*W) float32 ADU frames (integer
@@ -296,7 +314,7 @@ class TorchRenderer:
                 mask |= charge_e > 0
             if s.blooming:
                 h, w = self.shape
-                may_bloom = (star_e.view(-1, h, w) > 0.5 * s.full_well_e).any(dim=1, keepdim=True)   # (B, 1, W)
+                may_bloom = (star_e.view(-1, h, w) > 0.5 * s.full_well_e).any(dim=1, keepdim=True)  # (B, 1, W)
                 mask |= may_bloom.expand(-1, h, -1).reshape(mask.shape)
             idx = mask.view(-1).nonzero().squeeze(1)
         else:
@@ -319,13 +337,18 @@ class TorchRenderer:
         key = (round(background_e, 9), round(self.read_sigma_e, 9))
         if key not in self._lut:
             smp = background_sampler(key[0], key[1], float(s.gain_e_per_adu))
-            lut = smp.lut16.astype(np.float32) + smp.kmin        # the ADU value (before offsets) of each prefix
-            lut[smp.lut16 == 65535] = _AMBIGUOUS                 # ambiguous prefix: search the thresholds
+            lut = smp.lut16.astype(np.float32) + smp.kmin  # the ADU value (before offsets) of each prefix
+            lut[smp.lut16 == 65535] = _AMBIGUOUS  # ambiguous prefix: search the thresholds
             off = self.offset_range
-            may_clip = off[0] + smp.kmin < 0 or off[1] + smp.kmin + len(smp.k) - 1 > 2 ** s.bit_depth - 1
-            self._lut = {key: (torch.as_tensor(lut, device=self.device),
-                               torch.as_tensor(smp.thresholds.astype(np.int64), device=self.device),
-                               float(smp.kmin), may_clip)}
+            may_clip = off[0] + smp.kmin < 0 or off[1] + smp.kmin + len(smp.k) - 1 > 2**s.bit_depth - 1
+            self._lut = {
+                key: (
+                    torch.as_tensor(lut, device=self.device),
+                    torch.as_tensor(smp.thresholds.astype(np.int64), device=self.device),
+                    float(smp.kmin),
+                    may_clip,
+                )
+            }
         lut, thresholds, kmin, may_clip = self._lut[key]
         top = torch.randint(0, 65536, shape, generator=generator, dtype=torch.int32, device=self.device).view(-1)
         k = lut.index_select(0, top)
@@ -335,10 +358,16 @@ class TorchRenderer:
             u = top[amb].to(torch.int64) * 65536 + low
             k[amb] = torch.searchsorted(thresholds, u, right=True).to(torch.float32) + kmin
         out = k.view(shape).add_(self.offset)
-        return out.clamp_(0, 2 ** s.bit_depth - 1) if may_clip else out
+        return out.clamp_(0, 2**s.bit_depth - 1) if may_clip else out
 
-    def _exact(self, star_e: torch.Tensor, charge_e: torch.Tensor | None, background_e: torch.Tensor,
-               idx: torch.Tensor | None, generator: torch.Generator) -> tuple[torch.Tensor, list[int]]:
+    def _exact(
+        self,
+        star_e: torch.Tensor,
+        charge_e: torch.Tensor | None,
+        background_e: torch.Tensor,
+        idx: torch.Tensor | None,
+        generator: torch.Generator,
+    ) -> tuple[torch.Tensor, list[int]]:
         """The per-pixel model on every pixel (``idx`` None: (B, H*W) out) or on the flat
         indices ``idx`` of the batch (1-D out)."""
         s = self.cfg.sensor
@@ -363,7 +392,7 @@ class TorchRenderer:
         if s.blooming and bool((e > s.full_well_e).any()):
             if idx is None:
                 bloomed = self._bloom(e)
-            else:   # spill inside a cube holding only the drawn pixels (whole columns of saturating stars)
+            else:  # spill inside a cube holding only the drawn pixels (whole columns of saturating stars)
                 cube = torch.zeros(n_frames * hw, dtype=e.dtype, device=e.device)
                 cube[idx] = e
                 bloomed = self._bloom(cube.view(n_frames, hw))
@@ -372,25 +401,31 @@ class TorchRenderer:
         if self.read_sigma_e > 0:
             e += self.read_sigma_e * torch.randn(e.shape, generator=generator, device=e.device, dtype=e.dtype)
         adu = torch.floor(e / s.gain_e_per_adu) + (self.offset if pix is None else self.offset[pix])
-        return adu.clamp_(0, 2 ** s.bit_depth - 1), bloomed
+        return adu.clamp_(0, 2**s.bit_depth - 1), bloomed
 
     def _bloom(self, e: torch.Tensor) -> list[int]:
         """Spill charge above full well along the columns of the few frames that have any (host)."""
         fw = self.cfg.sensor.full_well_e
         h, w = self.shape
         cube = e.view(len(e), h, w)
-        over = (cube > fw).any(dim=1)                       # (B, W)
+        over = (cube > fw).any(dim=1)  # (B, W)
         if not bool(over.any()):
             return [0] * len(e)
         bs, cs = over.nonzero(as_tuple=True)
-        cols = cube[bs, :, cs].double().cpu().numpy().T.copy()     # (H, n)
+        cols = cube[bs, :, cs].double().cpu().numpy().T.copy()  # (H, n)
         bloom(cols, fw)
         cube[bs, :, cs] = torch.as_tensor(cols.T, dtype=e.dtype, device=e.device)
         return np.bincount(bs.cpu().numpy(), minlength=len(e)).tolist()
 
     # ------------------------------------------------------------------ batch
-    def rasterise(self, scenes: list[Scene], generator: torch.Generator | None = None, *, full_res: bool = False,
-                  dtype: torch.dtype = torch.float32) -> Batch:
+    def rasterise(
+        self,
+        scenes: list[Scene],
+        generator: torch.Generator | None = None,
+        *,
+        full_res: bool = False,
+        dtype: torch.dtype = torch.float32,
+    ) -> Batch:
         """Frames of ``scenes`` on the device; see :func:`render_batch` for the arguments."""
         if not scenes:
             raise ConfigError("rasterise: empty batch (pass at least one scene)")
@@ -412,8 +447,14 @@ class TorchRenderer:
         logs = [{"blooming": {"columns": n}} if n else {} for n in bloomed]
         return Batch(images, full if full_res else None, list(scenes), logs, self.shape)
 
-    def render_batch(self, indices, generator: torch.Generator | None = None, *, full_res: bool = False,
-                     dtype: torch.dtype = torch.float32) -> Batch:
+    def render_batch(
+        self,
+        indices,
+        generator: torch.Generator | None = None,
+        *,
+        full_res: bool = False,
+        dtype: torch.dtype = torch.float32,
+    ) -> Batch:
         """:meth:`scenes` then :meth:`rasterise`."""
         return self.rasterise(self.scenes(indices), generator, full_res=full_res, dtype=dtype)
 
@@ -456,7 +497,9 @@ def _host_stamps(stars: dict, psf: str, sigma: float, beta: float) -> list:
     """Moffat/Airy stamps (and streaks) from :mod:`skygen.instrument.psf`, as the NumPy renderer makes them."""
     flux = np.asarray(stars["electrons"], dtype=np.float64)
     if stars["paths"] is None:
-        return [stamp(float(x), float(y), float(f), psf, sigma, beta) for x, y, f in zip(stars["x_px"], stars["y_px"], flux)]
+        return [
+            stamp(float(x), float(y), float(f), psf, sigma, beta) for x, y, f in zip(stars["x_px"], stars["y_px"], flux)
+        ]
     return [streak(xs, ys, float(f), psf, sigma, beta) for xs, ys, f in zip(stars["paths"][0], stars["paths"][1], flux)]
 
 
@@ -465,8 +508,15 @@ def _cached(cfg, device: str) -> TorchRenderer:
     return TorchRenderer(cfg, device)
 
 
-def render_batch(cfg, indices, device: str | None = None, generator: torch.Generator | None = None, *,
-                 full_res: bool = False, dtype: torch.dtype = torch.float32) -> Batch:
+def render_batch(
+    cfg,
+    indices,
+    device: str | None = None,
+    generator: torch.Generator | None = None,
+    *,
+    full_res: bool = False,
+    dtype: torch.dtype = torch.float32,
+) -> Batch:
     """Render frames ``indices`` of config ``cfg`` on ``device`` in one batch (for on-the-fly training).
 
     ``device``: ``cpu``, ``cuda`` or ``cuda:N`` (default ``cfg.render.device``); a CUDA

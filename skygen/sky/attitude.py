@@ -71,11 +71,13 @@ def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit quaternion [w, x, y, z]."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -135,7 +137,7 @@ def boresights_from_uniforms(acfg, idx: np.ndarray, u: np.ndarray) -> tuple[np.n
         return (360.0 * u[:, 0]) % 360.0, np.degrees(np.arcsin(2.0 * u[:, 1] - 1.0)), roll
     cos_r = np.cos(np.radians(acfg.region_radius_deg))
     cos_t = 1.0 - u[:, 1] * (1.0 - cos_r)
-    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
     phi = 2 * np.pi * u[:, 0]
     local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
     v = local @ attitude_matrix(acfg.region_ra_deg, acfg.region_dec_deg, 0.0).T
@@ -175,16 +177,36 @@ def matrices_to_quaternions(R: np.ndarray) -> np.ndarray:
         t = tr[k == case]
         if case == 0:
             w = np.sqrt(1.0 + t) / 2
-            c = [w, (m[:, 2, 1] - m[:, 1, 2]) / (4 * w), (m[:, 0, 2] - m[:, 2, 0]) / (4 * w), (m[:, 1, 0] - m[:, 0, 1]) / (4 * w)]
+            c = [
+                w,
+                (m[:, 2, 1] - m[:, 1, 2]) / (4 * w),
+                (m[:, 0, 2] - m[:, 2, 0]) / (4 * w),
+                (m[:, 1, 0] - m[:, 0, 1]) / (4 * w),
+            ]
         elif case == 1:
             x = np.sqrt(1.0 + 2 * m[:, 0, 0] - t) / 2
-            c = [(m[:, 2, 1] - m[:, 1, 2]) / (4 * x), x, (m[:, 0, 1] + m[:, 1, 0]) / (4 * x), (m[:, 0, 2] + m[:, 2, 0]) / (4 * x)]
+            c = [
+                (m[:, 2, 1] - m[:, 1, 2]) / (4 * x),
+                x,
+                (m[:, 0, 1] + m[:, 1, 0]) / (4 * x),
+                (m[:, 0, 2] + m[:, 2, 0]) / (4 * x),
+            ]
         elif case == 2:
             y = np.sqrt(1.0 + 2 * m[:, 1, 1] - t) / 2
-            c = [(m[:, 0, 2] - m[:, 2, 0]) / (4 * y), (m[:, 0, 1] + m[:, 1, 0]) / (4 * y), y, (m[:, 1, 2] + m[:, 2, 1]) / (4 * y)]
+            c = [
+                (m[:, 0, 2] - m[:, 2, 0]) / (4 * y),
+                (m[:, 0, 1] + m[:, 1, 0]) / (4 * y),
+                y,
+                (m[:, 1, 2] + m[:, 2, 1]) / (4 * y),
+            ]
         else:
             z = np.sqrt(1.0 + 2 * m[:, 2, 2] - t) / 2
-            c = [(m[:, 1, 0] - m[:, 0, 1]) / (4 * z), (m[:, 0, 2] + m[:, 2, 0]) / (4 * z), (m[:, 1, 2] + m[:, 2, 1]) / (4 * z), z]
+            c = [
+                (m[:, 1, 0] - m[:, 0, 1]) / (4 * z),
+                (m[:, 0, 2] + m[:, 2, 0]) / (4 * z),
+                (m[:, 1, 2] + m[:, 2, 1]) / (4 * z),
+                z,
+            ]
         q[k == case] = np.stack(c, -1)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.where(q[:, :1] < 0, -q, q)

@@ -42,9 +42,15 @@ MAS_TO_RAD = np.pi / 180 / 3600e3
 
 # (name, first byte, last byte), 1-based inclusive, from the ESA I/311 ReadMe.
 HIP2_COLUMNS = (
-    ("hip", 1, 6), ("ra_rad", 16, 28), ("dec_rad", 30, 42), ("plx_mas", 44, 50),
-    ("pmra_mas_yr", 52, 59), ("pmdec_mas_yr", 61, 68), ("mag", 130, 136),
-    ("bv", 153, 158), ("vi", 166, 171),
+    ("hip", 1, 6),
+    ("ra_rad", 16, 28),
+    ("dec_rad", 30, 42),
+    ("plx_mas", 44, 50),
+    ("pmra_mas_yr", 52, 59),
+    ("pmdec_mas_yr", 61, 68),
+    ("mag", 130, 136),
+    ("bv", 153, 158),
+    ("vi", 166, 171),
 )
 HIP2_LINE_LENGTH = 276
 
@@ -53,24 +59,33 @@ HIP2_LINE_LENGTH = 276
 class StarTable:
     """Stars at the catalog epoch. Angles in radians, proper motions in mas/yr."""
 
-    hip: np.ndarray         # int64
-    ra_rad: np.ndarray      # float64
-    dec_rad: np.ndarray     # float64
+    hip: np.ndarray  # int64
+    ra_rad: np.ndarray  # float64
+    dec_rad: np.ndarray  # float64
     pmra_mas_yr: np.ndarray  # float64, includes cos(dec)
     pmdec_mas_yr: np.ndarray
-    mag: np.ndarray         # float32, in ``band``
-    bv: np.ndarray          # float32, NaN where unknown
+    mag: np.ndarray  # float32, in ``band``
+    bv: np.ndarray  # float32, NaN where unknown
     epoch_yr: float
     source: str
-    band: str = "Hp"        # photometric band of ``mag``: "Hp" (Hipparcos) or "V"
+    band: str = "Hp"  # photometric band of ``mag``: "Hp" (Hipparcos) or "V"
 
     def __len__(self) -> int:
         return int(self.hip.shape[0])
 
     def select(self, mask: np.ndarray) -> "StarTable":
-        return StarTable(self.hip[mask], self.ra_rad[mask], self.dec_rad[mask],
-                         self.pmra_mas_yr[mask], self.pmdec_mas_yr[mask], self.mag[mask],
-                         self.bv[mask], self.epoch_yr, self.source, self.band)
+        return StarTable(
+            self.hip[mask],
+            self.ra_rad[mask],
+            self.dec_rad[mask],
+            self.pmra_mas_yr[mask],
+            self.pmdec_mas_yr[mask],
+            self.mag[mask],
+            self.bv[mask],
+            self.epoch_yr,
+            self.source,
+            self.band,
+        )
 
 
 def hipparcos_path() -> Path:
@@ -83,7 +98,7 @@ def hipparcos_path() -> Path:
 
 def _field(block: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """Columns lo..hi (1-based, inclusive) of a (N, line) uint8 block as stripped bytes."""
-    raw = np.ascontiguousarray(block[:, lo - 1:hi]).view(f"S{hi - lo + 1}").ravel()
+    raw = np.ascontiguousarray(block[:, lo - 1 : hi]).view(f"S{hi - lo + 1}").ravel()
     return np.char.strip(raw)
 
 
@@ -103,8 +118,9 @@ def parse_hipparcos2(path: str | Path) -> StarTable:
         raise CatalogError(f"cannot read catalog {path}: {exc}") from None
     stride = HIP2_LINE_LENGTH + 1
     if data.size == 0 or data.size % stride or data[HIP2_LINE_LENGTH] != ord("\n"):
-        raise CatalogError(f"{path}: not the fixed-width Hipparcos-2 (I/311) format "
-                           f"({HIP2_LINE_LENGTH}-character lines expected)")
+        raise CatalogError(
+            f"{path}: not the fixed-width Hipparcos-2 (I/311) format ({HIP2_LINE_LENGTH}-character lines expected)"
+        )
     block = data.reshape(-1, stride)
     cols = {name: _field(block, lo, hi) for name, lo, hi in HIP2_COLUMNS}
     try:
@@ -114,9 +130,17 @@ def parse_hipparcos2(path: str | Path) -> StarTable:
         raise CatalogError(f"{path}: a column does not parse as a number ({exc})") from None
     pmra = np.nan_to_num(vals["pmra_mas_yr"])
     pmde = np.nan_to_num(vals["pmdec_mas_yr"])
-    return StarTable(hip, vals["ra_rad"], vals["dec_rad"], pmra, pmde,
-                     vals["mag"].astype(np.float32), vals["bv"].astype(np.float32),
-                     HIPPARCOS_EPOCH_YR, "hipparcos2:" + path.name)
+    return StarTable(
+        hip,
+        vals["ra_rad"],
+        vals["dec_rad"],
+        pmra,
+        pmde,
+        vals["mag"].astype(np.float32),
+        vals["bv"].astype(np.float32),
+        HIPPARCOS_EPOCH_YR,
+        "hipparcos2:" + path.name,
+    )
 
 
 def load_catalog(path: str | Path | None = None) -> StarTable:
@@ -129,11 +153,22 @@ def load_catalog(path: str | Path | None = None) -> StarTable:
 
 def write_npz(table: StarTable, path: str | Path) -> None:
     from skygen.runtime import atomic_path
+
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, hip=table.hip, ra_rad=table.ra_rad, dec_rad=table.dec_rad,
-                 pmra_mas_yr=table.pmra_mas_yr, pmdec_mas_yr=table.pmdec_mas_yr, mag=table.mag,
-                 bv=table.bv, epoch_yr=table.epoch_yr, source=table.source, band=table.band,
-                 format="skygen-catalog-1")
+        np.savez(
+            tmp,
+            hip=table.hip,
+            ra_rad=table.ra_rad,
+            dec_rad=table.dec_rad,
+            pmra_mas_yr=table.pmra_mas_yr,
+            pmdec_mas_yr=table.pmdec_mas_yr,
+            mag=table.mag,
+            bv=table.bv,
+            epoch_yr=table.epoch_yr,
+            source=table.source,
+            band=table.band,
+            format="skygen-catalog-1",
+        )
 
 
 def read_npz(path: str | Path) -> StarTable:
@@ -141,9 +176,18 @@ def read_npz(path: str | Path) -> StarTable:
         with np.load(path, allow_pickle=False) as z:
             if str(z["format"]) != "skygen-catalog-1":
                 raise CatalogError(f"{path}: not a skygen catalog file")
-            return StarTable(z["hip"], z["ra_rad"], z["dec_rad"], z["pmra_mas_yr"],
-                             z["pmdec_mas_yr"], z["mag"], z["bv"], float(z["epoch_yr"]), str(z["source"]),
-                             str(z["band"]))
+            return StarTable(
+                z["hip"],
+                z["ra_rad"],
+                z["dec_rad"],
+                z["pmra_mas_yr"],
+                z["pmdec_mas_yr"],
+                z["mag"],
+                z["bv"],
+                float(z["epoch_yr"]),
+                str(z["source"]),
+                str(z["band"]),
+            )
     except (OSError, KeyError, ValueError) as exc:
         raise CatalogError(f"{path}: unreadable catalog file ({exc})") from None
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skygen.sky.catalog import HIPPARCOS_EPOCH_YR, StarTable
 from skygen.errors import CatalogError
+from skygen.sky.catalog import HIPPARCOS_EPOCH_YR, StarTable
 
 
 @dataclass(frozen=True)
@@ -28,13 +28,23 @@ class VizierSource:
 
 
 SOURCES = {
-    "hipparcos-v": VizierSource("hipparcos-v", "I/239/hip_main",
-                                ("HIP", "RAICRS", "DEICRS", "pmRA", "pmDE", "Vmag", "B-V"), "Vmag",
-                                HIPPARCOS_EPOCH_YR, "Hipparcos (ESA 1997) with Johnson V, 118k stars, epoch J1991.25"),
-    "tycho2": VizierSource("tycho2", "I/259/tyc2",
-                           ("TYC1", "TYC2", "TYC3", "RAmdeg", "DEmdeg", "pmRA", "pmDE", "BTmag", "VTmag"), "VTmag",
-                           2000.0, "Tycho-2 (Hog et al. 2000), 2.5M stars, mean positions at J2000; "
-                                   "V = VT - 0.090 (BT - VT), B-V = 0.850 (BT - VT)"),
+    "hipparcos-v": VizierSource(
+        "hipparcos-v",
+        "I/239/hip_main",
+        ("HIP", "RAICRS", "DEICRS", "pmRA", "pmDE", "Vmag", "B-V"),
+        "Vmag",
+        HIPPARCOS_EPOCH_YR,
+        "Hipparcos (ESA 1997) with Johnson V, 118k stars, epoch J1991.25",
+    ),
+    "tycho2": VizierSource(
+        "tycho2",
+        "I/259/tyc2",
+        ("TYC1", "TYC2", "TYC3", "RAmdeg", "DEmdeg", "pmRA", "pmDE", "BTmag", "VTmag"),
+        "VTmag",
+        2000.0,
+        "Tycho-2 (Hog et al. 2000), 2.5M stars, mean positions at J2000; "
+        "V = VT - 0.090 (BT - VT), B-V = 0.850 (BT - VT)",
+    ),
 }
 
 
@@ -48,8 +58,10 @@ def query_vizier(source: VizierSource, mag_limit: float):
     try:
         result = viz.query_constraints(catalog=source.table, **{source.mag_column: f"<{mag_limit}"})
     except Exception as exc:  # network errors come in many types
-        raise CatalogError(f"VizieR query for {source.table} failed ({type(exc).__name__}: {exc}); "
-                           "check the network connection, or use the bundled Hipparcos-2 (catalog.path=null)") from None
+        raise CatalogError(
+            f"VizieR query for {source.table} failed ({type(exc).__name__}: {exc}); "
+            "check the network connection, or use the bundled Hipparcos-2 (catalog.path=null)"
+        ) from None
     if len(result) == 0:
         raise CatalogError(f"VizieR returned no table for {source.table}")
     return result[0]
@@ -78,14 +90,24 @@ def table_to_stars(source: VizierSource, table) -> StarTable:
         mag = np.where(np.isfinite(colour), vt - 0.090 * colour, vt)
         bv = 0.850 * colour
     ok = np.isfinite(ra) & np.isfinite(dec) & np.isfinite(mag)
-    return StarTable(ids[ok], np.radians(ra[ok]), np.radians(dec[ok]), np.nan_to_num(pmra[ok]),
-                     np.nan_to_num(pmde[ok]), mag[ok].astype(np.float32), bv[ok].astype(np.float32),
-                     source.epoch_yr, f"vizier:{source.table}", band="V")
+    return StarTable(
+        ids[ok],
+        np.radians(ra[ok]),
+        np.radians(dec[ok]),
+        np.nan_to_num(pmra[ok]),
+        np.nan_to_num(pmde[ok]),
+        mag[ok].astype(np.float32),
+        bv[ok].astype(np.float32),
+        source.epoch_yr,
+        f"vizier:{source.table}",
+        band="V",
+    )
 
 
 def fetch(name: str, out, mag_limit: float = 9.0) -> StarTable:
     """Fetch catalog ``name`` (a key of SOURCES) and save it as ``out`` (.npz)."""
     from skygen.sky.catalog import write_npz
+
     try:
         source = SOURCES[name]
     except KeyError:

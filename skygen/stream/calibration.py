@@ -18,9 +18,19 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skygen.stream.emulator import (BANK_ROWS_PER_BIN, BLEND_MAX_PX, GAP_EDGES, ISOLATION_PX, STREAM_CORRUPTIONS, U_EDGES,
-                       DetectorModel, calibration_key, gap_px, threshold_electrons)
 from skygen.errors import ConfigError, DatasetError
+from skygen.stream.emulator import (
+    BANK_ROWS_PER_BIN,
+    BLEND_MAX_PX,
+    GAP_EDGES,
+    ISOLATION_PX,
+    STREAM_CORRUPTIONS,
+    U_EDGES,
+    DetectorModel,
+    calibration_key,
+    gap_px,
+    threshold_electrons,
+)
 
 
 def _logistic_fit(gap: np.ndarray, resolved: np.ndarray) -> np.ndarray:
@@ -28,6 +38,7 @@ def _logistic_fit(gap: np.ndarray, resolved: np.ndarray) -> np.ndarray:
     transition are few, so a two-parameter curve beats a binned rate), tabulated at the
     centres of GAP_EDGES."""
     from scipy.optimize import minimize
+
     y = resolved.astype(np.float64)
 
     def nll(p):
@@ -38,7 +49,7 @@ def _logistic_fit(gap: np.ndarray, resolved: np.ndarray) -> np.ndarray:
     if 0 < y.sum() < len(y):
         res = minimize(nll, start, method="Nelder-Mead")
         g0, w = res.x[0], np.exp(res.x[1])
-    else:                     # all resolved or all merged: a step at the edge of the data
+    else:  # all resolved or all merged: a step at the edge of the data
         g0, w = (gap.min() - 0.5, 0.1) if y.all() else (gap.max() + 0.5, 0.1)
     centres = 0.5 * (GAP_EDGES[1:] + GAP_EDGES[:-1])
     return 1.0 / (1.0 + np.exp(-(centres - g0) / max(w, 1e-3)))
@@ -46,7 +57,7 @@ def _logistic_fit(gap: np.ndarray, resolved: np.ndarray) -> np.ndarray:
 
 def _binned_rate(values: np.ndarray, hits: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
-    ok = (values >= edges[0])
+    ok = values >= edges[0]
     tot = np.bincount(b[ok], minlength=len(edges) - 1).astype(np.float64)
     hit = np.bincount(b[ok], weights=hits[ok].astype(np.float64), minlength=len(edges) - 1)
     return hit, tot
@@ -55,19 +66,28 @@ def _binned_rate(values: np.ndarray, hits: np.ndarray, edges: np.ndarray) -> tup
 @dataclass
 class _Tallies:
     """What the calibration frames add up to, frame by frame (:func:`_tally_frame`)."""
-    u: list = field(default_factory=list)              # log10(electrons / threshold) of isolated sources
-    hit: list = field(default_factory=list)            # ... and whether the detector found them
-    rows: list = field(default_factory=list)           # residual rows of matched isolated detections
-    rows_bin: list = field(default_factory=list)       # ... and their brightness bin
-    pair_d: list = field(default_factory=list)         # gap of close pairs of bright stars
-    pair_res: list = field(default_factory=list)       # ... and whether both were detected (resolved)
-    spur_counts: list = field(default_factory=list)    # spurious detections per frame
-    spur_rows: list = field(default_factory=list)      # ... their flux, peak and area
+
+    u: list = field(default_factory=list)  # log10(electrons / threshold) of isolated sources
+    hit: list = field(default_factory=list)  # ... and whether the detector found them
+    rows: list = field(default_factory=list)  # residual rows of matched isolated detections
+    rows_bin: list = field(default_factory=list)  # ... and their brightness bin
+    pair_d: list = field(default_factory=list)  # gap of close pairs of bright stars
+    pair_res: list = field(default_factory=list)  # ... and whether both were detected (resolved)
+    spur_counts: list = field(default_factory=list)  # spurious detections per frame
+    spur_rows: list = field(default_factory=list)  # ... their flux, peak and area
     frames: int = 0
 
 
-def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_px: float, info: dict | None = None,
-        rng: np.random.Generator | None = None, extra_pairs: tuple | None = None) -> DetectorModel:
+def fit(
+    frames,
+    threshold_e: float,
+    key: dict,
+    gain_e_per_adu: float,
+    psf_sigma_px: float,
+    info: dict | None = None,
+    rng: np.random.Generator | None = None,
+    extra_pairs: tuple | None = None,
+) -> DetectorModel:
     """Fit a :class:`DetectorModel` from ``(true_stars, detections)`` pairs of rendered frames.
 
     ``true_stars`` has ``x_px``, ``y_px``, ``electrons``; ``detections`` has the detector's
@@ -85,26 +105,43 @@ def fit(frames, threshold_e: float, key: dict, gain_e_per_adu: float, psf_sigma_
     hit, tot = _binned_rate(u_all, hit_all, U_EDGES)
     rows = np.concatenate(t.rows) if t.rows else np.zeros((0, 5))
     if len(rows) == 0:
-        raise DatasetError("the calibration frames hold no matched detections of isolated stars; "
-                           "render brighter or more frames")
+        raise DatasetError(
+            "the calibration frames hold no matched detections of isolated stars; render brighter or more frames"
+        )
     rows_bin = np.concatenate(t.rows_bin) if t.rows_bin else np.zeros(0, np.int64)
     start, bank = _residual_bank(rows, rows_bin, rng)
     if extra_pairs is not None:
         t.pair_d.append(extra_pairs[0])
         t.pair_res.append(extra_pairs[1])
-    p_res = _logistic_fit(np.concatenate(t.pair_d), np.concatenate(t.pair_res)) if t.pair_d \
-        else np.ones(len(GAP_EDGES) - 1)
+    p_res = (
+        _logistic_fit(np.concatenate(t.pair_d), np.concatenate(t.pair_res)) if t.pair_d else np.ones(len(GAP_EDGES) - 1)
+    )
     counts = np.asarray(t.spur_counts)
     pmf, sp = _spurious_model(counts, t.spur_rows, rng)
     info = dict(info or {})
-    info.update({"frames": t.frames, "isolated_sources": int(len(u_all)), "matched_rows": int(len(rows)),
-                 "spurious_per_frame": float(counts.mean()), "pairs_for_blending": int(sum(len(p) for p in t.pair_d)),
-                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
-    return DetectorModel(key=key, threshold_e=float(threshold_e), psf_sigma_px=float(psf_sigma_px),
-                         completeness=_monotone(hit, tot), bank_start=start,
-                         bank=bank, p_resolved=p_res, spurious_pmf=pmf,
-                         spurious={"flux_adu": sp[:, 0], "peak_adu": sp[:, 1], "area_px": sp[:, 2]},
-                         gain_e_per_adu=float(gain_e_per_adu), info=info)
+    info.update(
+        {
+            "frames": t.frames,
+            "isolated_sources": int(len(u_all)),
+            "matched_rows": int(len(rows)),
+            "spurious_per_frame": float(counts.mean()),
+            "pairs_for_blending": int(sum(len(p) for p in t.pair_d)),
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    )
+    return DetectorModel(
+        key=key,
+        threshold_e=float(threshold_e),
+        psf_sigma_px=float(psf_sigma_px),
+        completeness=_monotone(hit, tot),
+        bank_start=start,
+        bank=bank,
+        p_resolved=p_res,
+        spurious_pmf=pmf,
+        spurious={"flux_adu": sp[:, 0], "peak_adu": sp[:, 1], "area_px": sp[:, 2]},
+        gain_e_per_adu=float(gain_e_per_adu),
+        info=info,
+    )
 
 
 def _tally_frame(t: _Tallies, stars: dict, det: dict, threshold_e: float, psf_sigma_px: float) -> None:
@@ -130,8 +167,9 @@ def _tally_frame(t: _Tallies, stars: dict, det: dict, threshold_e: float, psf_si
             if len(pr):
                 a, b = good[pr[:, 0]], good[pr[:, 1]]
                 # only pairs with no third source nearby: the pair alone decides
-                third = np.array([len(c) for c in tree.query_ball_point(pts[a], ISOLATION_PX)]) \
-                    + np.array([len(c) for c in tree.query_ball_point(pts[b], ISOLATION_PX)])
+                third = np.array([len(c) for c in tree.query_ball_point(pts[a], ISOLATION_PX)]) + np.array(
+                    [len(c) for c in tree.query_ball_point(pts[b], ISOLATION_PX)]
+                )
                 clean = third <= 4
                 d = np.hypot(sx[a] - sx[b], sy[a] - sy[b])
                 t.pair_d.append(gap_px(e[a], e[b], d, threshold_e, psf_sigma_px)[clean])
@@ -145,12 +183,19 @@ def _tally_frame(t: _Tallies, stars: dict, det: dict, threshold_e: float, psf_si
 
     def col(name: str, rows: np.ndarray) -> np.ndarray:
         return np.asarray(det[name], np.float64)[rows]
+
     if len(m):
-        t.rows.append(np.column_stack([
-            col("x_px", m) - sx[s], col("y_px", m) - sy[s],
-            np.log10(np.maximum(col("flux_adu", m), 1e-3) / e[s]),
-            np.log10(np.maximum(col("peak_adu", m), 1e-3) / e[s]),
-            col("area_px", m)]))
+        t.rows.append(
+            np.column_stack(
+                [
+                    col("x_px", m) - sx[s],
+                    col("y_px", m) - sy[s],
+                    np.log10(np.maximum(col("flux_adu", m), 1e-3) / e[s]),
+                    np.log10(np.maximum(col("peak_adu", m), 1e-3) / e[s]),
+                    col("area_px", m),
+                ]
+            )
+        )
         t.rows_bin.append(np.clip(np.searchsorted(U_EDGES, u[s], side="right") - 1, 0, len(U_EDGES) - 2))
     sp = np.flatnonzero(sidx < 0)
     t.spur_counts.append(len(sp))
@@ -169,8 +214,13 @@ def _residual_bank(rows: np.ndarray, rows_bin: np.ndarray, rng: np.random.Genera
         chosen.append(r)
     start = np.concatenate([[0], np.cumsum([len(c) for c in chosen])]).astype(np.int64)
     sel = rows[np.concatenate(chosen)]
-    return start, {"dx": sel[:, 0], "dy": sel[:, 1], "log_flux_ratio": sel[:, 2], "log_peak_ratio": sel[:, 3],
-                   "area": sel[:, 4]}
+    return start, {
+        "dx": sel[:, 0],
+        "dy": sel[:, 1],
+        "log_flux_ratio": sel[:, 2],
+        "log_peak_ratio": sel[:, 3],
+        "area": sel[:, 4],
+    }
 
 
 def _spurious_model(counts: np.ndarray, spur_rows: list, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -216,7 +266,9 @@ def _monotone(hit: np.ndarray, tot: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------- calibrate
 
 
-def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: int = 6) -> tuple[np.ndarray, np.ndarray]:
+def painted_pairs(
+    renderer, n_frames: int, rng: np.random.Generator, per_side: int = 6
+) -> tuple[np.ndarray, np.ndarray]:
     """A designed blending experiment on the real sensor model and detector.
 
     Catalog pairs near the merging separation are rare (a few known doubles), so blending
@@ -229,6 +281,7 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
     from skygen.instrument.detect import detect, match
     from skygen.instrument.psf import add_patch, stamp
     from skygen.instrument.sensor import Exposure, read_out
+
     cfg = renderer.cfg
     h, w = cfg.camera.height_px, cfg.camera.width_px
     o, d = cfg.optics, cfg.detection
@@ -244,11 +297,19 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
         xa, ya = xx.ravel() + rng.uniform(-0.5, 0.5, n), yy.ravel() + rng.uniform(-0.5, 0.5, n)
         xb, yb = xa + sep * np.cos(ang), ya + sep * np.sin(ang)
         xs, ys, es = np.concatenate([xa, xb]), np.concatenate([ya, yb]), np.concatenate([e[:, 0], e[:, 1]])
-        boxes = [add_patch(img, *stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta,
-                                       renderer.camera.aspect))
-                 for x, y, f in zip(xs, ys, es)]
-        full, _ = read_out(Exposure(img, None, [b for b in boxes if b], renderer.background_e, None), cfg.sensor,
-                           renderer.maps, rng, renderer.levels["read_noise"])
+        boxes = [
+            add_patch(
+                img, *stamp(float(x), float(y), float(f), o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect)
+            )
+            for x, y, f in zip(xs, ys, es)
+        ]
+        full, _ = read_out(
+            Exposure(img, None, [b for b in boxes if b], renderer.background_e, None),
+            cfg.sensor,
+            renderer.maps,
+            rng,
+            renderer.levels["read_noise"],
+        )
         det, _, _ = detect(full, d.threshold_sigma, d.min_area_px, 4 * n + 64, d.background_box_px)
         sidx = match(det["x_px"], det["y_px"], xs, ys, es, d.match_radius_px)
         found = np.zeros(2 * n, bool)
@@ -261,6 +322,7 @@ def painted_pairs(renderer, n_frames: int, rng: np.random.Generator, per_side: i
 def calibration_config(cfg):
     """``cfg`` with the stream-applied corruptions off (the calibration must not contain them)."""
     from skygen.config import build_config, config_dict
+
     data = config_dict(cfg)
     for name in STREAM_CORRUPTIONS:
         data["corruptions"][name] = 0.0
@@ -271,6 +333,7 @@ def calibrate_from_renders(cfg, n_frames: int = 2000, tag: str = "@calibration",
     """Render ``n_frames`` calibration frames (their own random streams) and fit the emulator."""
     from skygen.config import config_dict
     from skygen.render.frame import Renderer
+
     cfg = calibration_config(cfg)
     r = Renderer(cfg, rng_tag=tag)
 
@@ -284,10 +347,19 @@ def calibrate_from_renders(cfg, n_frames: int = 2000, tag: str = "@calibration",
     d = config_dict(cfg)
     n_pair_frames = max(10, n_frames // 20)
     pairs = painted_pairs(r, n_pair_frames, np.random.default_rng([cfg.seed, 7]))
-    return fit(frames(), threshold_electrons(r), calibration_key(d), cfg.sensor.gain_e_per_adu, cfg.optics.psf_sigma_px,
-               {"source": f"{n_frames} frames rendered with rng tag {tag!r}, seed {cfg.seed}; blending also from "
-                          f"{len(pairs[0])} painted pairs in {n_pair_frames} frames",
-                "skygen_detector": "skygen.instrument.detect.detect"}, extra_pairs=pairs)
+    return fit(
+        frames(),
+        threshold_electrons(r),
+        calibration_key(d),
+        cfg.sensor.gain_e_per_adu,
+        cfg.optics.psf_sigma_px,
+        {
+            "source": f"{n_frames} frames rendered with rng tag {tag!r}, seed {cfg.seed}; blending also from "
+            f"{len(pairs[0])} painted pairs in {n_pair_frames} frames",
+            "skygen_detector": "skygen.instrument.detect.detect",
+        },
+        extra_pairs=pairs,
+    )
 
 
 def calibrate_from_dataset(path: str | Path, max_frames: int | None = None) -> DetectorModel:
@@ -295,20 +367,31 @@ def calibrate_from_dataset(path: str | Path, max_frames: int | None = None) -> D
     from skygen.config import build_config
     from skygen.datasets.shards import open_dataset
     from skygen.render.frame import Renderer
+
     with open_dataset(path) as ds:
         config = ds.config
         bad = [n for n in STREAM_CORRUPTIONS[1:] if float(config["corruptions"][n]) != 0.0]
         if bad:
-            raise ConfigError(f"{path}: rendered with detection-level corruptions {bad}; calibrate on a dataset "
-                              "without them (the stream applies them itself), or let `skygen calibrate` render "
-                              "its own frames")
+            raise ConfigError(
+                f"{path}: rendered with detection-level corruptions {bad}; calibrate on a dataset "
+                "without them (the stream applies them itself), or let `skygen calibrate` render "
+                "its own frames"
+            )
         cfg = build_config(config)
         r = Renderer(cfg)
         n = len(ds) if max_frames is None else min(max_frames, len(ds))
         frames = ((ds.true_stars(i), ds.detections(i)) for i in range(n))
         pairs = painted_pairs(r, max(10, n // 20), np.random.default_rng([cfg.seed, 7]))
-        return fit(frames, threshold_electrons(r), calibration_key(config), cfg.sensor.gain_e_per_adu,
-                   cfg.optics.psf_sigma_px,
-                   {"source": f"dataset {Path(path).name} ({ds.manifest.get('dataset_id')}), first {n} frames; "
-                              f"blending also from {len(pairs[0])} painted pairs",
-                    "skygen_detector": "skygen.instrument.detect.detect"}, extra_pairs=pairs)
+        return fit(
+            frames,
+            threshold_electrons(r),
+            calibration_key(config),
+            cfg.sensor.gain_e_per_adu,
+            cfg.optics.psf_sigma_px,
+            {
+                "source": f"dataset {Path(path).name} ({ds.manifest.get('dataset_id')}), first {n} frames; "
+                f"blending also from {len(pairs[0])} painted pairs",
+                "skygen_detector": "skygen.instrument.detect.detect",
+            },
+            extra_pairs=pairs,
+        )

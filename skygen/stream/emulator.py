@@ -61,10 +61,10 @@ from skygen.errors import ConfigError, DatasetError
 
 CALIBRATION_FORMAT = "skygen-detector-calibration"
 CALIBRATION_VERSION = 1
-U_EDGES = np.round(np.arange(-1.0, 5.0001, 0.1), 6)    # log10(electrons / threshold_e)
-GAP_EDGES = np.round(np.arange(-6.0, 6.0001, 0.25), 6)   # px, gap between the threshold radii of a pair
-BLEND_MAX_PX = 12.0          # pairs further apart than this are always resolved
-ISOLATION_PX = 10.0          # sources with a detectable neighbour closer than this are not used for rows
+U_EDGES = np.round(np.arange(-1.0, 5.0001, 0.1), 6)  # log10(electrons / threshold_e)
+GAP_EDGES = np.round(np.arange(-6.0, 6.0001, 0.25), 6)  # px, gap between the threshold radii of a pair
+BLEND_MAX_PX = 12.0  # pairs further apart than this are always resolved
+ISOLATION_PX = 10.0  # sources with a detectable neighbour closer than this are not used for rows
 BANK_ROWS_PER_BIN = 200
 KEY_SECTIONS = ("camera", "optics", "photometry", "sensor", "detection")
 KEY_CORRUPTIONS = ("hotpixels", "cosmic_rays", "motion_blur", "stray_light", "read_noise")
@@ -84,32 +84,39 @@ def calibration_key(config: dict) -> dict:
         key[f"corruptions.{name}"] = config["corruptions"][name]
     key["detection.max_detections"] = config["detection"]["max_detections"]
     from skygen.identity import NEUTRAL_DEFAULTS
+
     return {k: v for k, v in key.items() if not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])}
 
 
 def threshold_electrons(renderer) -> float:
     """Electrons a centred point source needs for its peak pixel to reach the threshold."""
     from skygen.instrument.psf import peak_fraction
+
     o = renderer.cfg.optics
-    return float(renderer.cfg.detection.threshold_sigma * renderer.noise_e()
-                 / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect))
+    return float(
+        renderer.cfg.detection.threshold_sigma
+        * renderer.noise_e()
+        / peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, renderer.camera.aspect)
+    )
 
 
 @dataclass(frozen=True)
 class DetectorModel:
-    """A fitted emulator (see the module docstring). Build with :func:`skygen.stream.calibration.calibrate_from_renders` or :func:`load`."""
+    """A fitted emulator (see the module docstring).
+
+    Build with :func:`skygen.stream.calibration.calibrate_from_renders` or :func:`load`."""
 
     key: dict
     threshold_e: float
-    completeness: np.ndarray          # (n_bins,) per U_EDGES bin
-    bank_start: np.ndarray            # (n_bins + 1,) rows of bin b: bank[...][start[b]:start[b+1]]
-    bank: dict                        # dx, dy, log_flux_ratio, log_peak_ratio, area
-    p_resolved: np.ndarray            # (len(GAP_EDGES) - 1,) per footprint-gap bin
+    completeness: np.ndarray  # (n_bins,) per U_EDGES bin
+    bank_start: np.ndarray  # (n_bins + 1,) rows of bin b: bank[...][start[b]:start[b+1]]
+    bank: dict  # dx, dy, log_flux_ratio, log_peak_ratio, area
+    p_resolved: np.ndarray  # (len(GAP_EDGES) - 1,) per footprint-gap bin
     psf_sigma_px: float
-    spurious_pmf: np.ndarray          # P(n spurious detections in a frame), n = 0, 1, ...
-    spurious: dict                    # flux_adu, peak_adu, area_px rows
+    spurious_pmf: np.ndarray  # P(n spurious detections in a frame), n = 0, 1, ...
+    spurious: dict  # flux_adu, peak_adu, area_px rows
     gain_e_per_adu: float
-    info: dict                        # how it was made, summary statistics
+    info: dict  # how it was made, summary statistics
 
     # ------------------------------------------------------------------ lookups
     def __post_init__(self) -> None:
@@ -126,8 +133,7 @@ class DetectorModel:
         return gap_px(e_a, e_b, d_px, self.threshold_e, self.psf_sigma_px)
 
     def p_resolved_of(self, e_a: np.ndarray, e_b: np.ndarray, d_px: np.ndarray) -> np.ndarray:
-        b = np.clip(np.searchsorted(GAP_EDGES, self.gap(e_a, e_b, d_px), side="right") - 1, 0,
-                    len(self.p_resolved) - 1)
+        b = np.clip(np.searchsorted(GAP_EDGES, self.gap(e_a, e_b, d_px), side="right") - 1, 0, len(self.p_resolved) - 1)
         return np.where(np.asarray(d_px) > BLEND_MAX_PX, 1.0, self.p_resolved[b])
 
     def blend_radius_px(self, electrons_each: float) -> float:
@@ -149,8 +155,16 @@ class DetectorModel:
         return np.where(u < U_EDGES[0], 0.0, p)
 
     # ------------------------------------------------------------------ emulation
-    def emulate(self, key, sample: np.ndarray, source_id: np.ndarray, frame: np.ndarray, x: np.ndarray,
-                y: np.ndarray, electrons: np.ndarray) -> dict:
+    def emulate(
+        self,
+        key,
+        sample: np.ndarray,
+        source_id: np.ndarray,
+        frame: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        electrons: np.ndarray,
+    ) -> dict:
         """Emulated detections of sources (one row each, any number of frames at once).
 
         ``sample`` is each source's sample index and ``source_id`` a per-sample unique id
@@ -196,11 +210,15 @@ class DetectorModel:
         ur = hashrng.uniform(key, np.asarray(sample)[idx], draw[idx] + _D_ROW)
         r = self.bank_start[b] + np.minimum((ur * n_rows).astype(np.int64), n_rows - 1)
         bk = self.bank
-        return {"src": idx, "frame": np.asarray(frame)[idx],
-                "x_px": xs[idx] + bk["dx"][r], "y_px": ys[idx] + bk["dy"][r],
-                "flux_adu": (e[idx] * 10 ** bk["log_flux_ratio"][r]).astype(np.float32),
-                "peak_adu": (e[idx] * 10 ** bk["log_peak_ratio"][r]).astype(np.float32),
-                "area_px": bk["area"][r].astype(np.int32)}
+        return {
+            "src": idx,
+            "frame": np.asarray(frame)[idx],
+            "x_px": xs[idx] + bk["dx"][r],
+            "y_px": ys[idx] + bk["dy"][r],
+            "flux_adu": (e[idx] * 10 ** bk["log_flux_ratio"][r]).astype(np.float32),
+            "peak_adu": (e[idx] * 10 ** bk["log_peak_ratio"][r]).astype(np.float32),
+            "area_px": bk["area"][r].astype(np.int32),
+        }
 
     def spurious_detections(self, key, samples: np.ndarray, draw_base: int, width_px: int, height_px: int) -> dict:
         """Spurious detections of frames ``samples`` (one entry per frame): rows with ``frame``
@@ -212,26 +230,41 @@ class DetectorModel:
         k = np.arange(len(frame)) - np.repeat(np.cumsum(n) - n, n)
         s = samples[frame]
         d = draw_base + 1 + 4 * k
-        r = np.minimum((hashrng.uniform(key, s, d) * len(self.spurious["flux_adu"])).astype(np.int64),
-                       len(self.spurious["flux_adu"]) - 1)
-        return {"frame": frame, "x_px": -0.5 + width_px * hashrng.uniform(key, s, d + 1),
-                "y_px": -0.5 + height_px * hashrng.uniform(key, s, d + 2),
-                "flux_adu": self.spurious["flux_adu"][r].astype(np.float32),
-                "peak_adu": self.spurious["peak_adu"][r].astype(np.float32),
-                "area_px": self.spurious["area_px"][r].astype(np.int32)}
+        r = np.minimum(
+            (hashrng.uniform(key, s, d) * len(self.spurious["flux_adu"])).astype(np.int64),
+            len(self.spurious["flux_adu"]) - 1,
+        )
+        return {
+            "frame": frame,
+            "x_px": -0.5 + width_px * hashrng.uniform(key, s, d + 1),
+            "y_px": -0.5 + height_px * hashrng.uniform(key, s, d + 2),
+            "flux_adu": self.spurious["flux_adu"][r].astype(np.float32),
+            "peak_adu": self.spurious["peak_adu"][r].astype(np.float32),
+            "area_px": self.spurious["area_px"][r].astype(np.int32),
+        }
 
     # ------------------------------------------------------------------ persistence
     def to_json(self) -> dict:
-        r = lambda a, d=5: np.round(np.asarray(a, np.float64), d).tolist()
-        body = {"format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION, "key": self.key,
-                "threshold_e": self.threshold_e, "gain_e_per_adu": self.gain_e_per_adu,
-                "u_edges": r(U_EDGES, 6), "gap_edges_px": r(GAP_EDGES, 6), "psf_sigma_px": self.psf_sigma_px,
-                "completeness": r(self.completeness), "p_resolved": r(self.p_resolved),
-                "bank_start": self.bank_start.tolist(),
-                "bank": {k: (v.astype(int).tolist() if k == "area" else r(v, 4)) for k, v in self.bank.items()},
-                "spurious_pmf": r(self.spurious_pmf, 6),
-                "spurious": {k: (v.astype(int).tolist() if k == "area_px" else r(v, 2)) for k, v in self.spurious.items()},
-                "info": self.info}
+        def r(a, d=5):
+            return np.round(np.asarray(a, np.float64), d).tolist()
+
+        body = {
+            "format": CALIBRATION_FORMAT,
+            "version": CALIBRATION_VERSION,
+            "key": self.key,
+            "threshold_e": self.threshold_e,
+            "gain_e_per_adu": self.gain_e_per_adu,
+            "u_edges": r(U_EDGES, 6),
+            "gap_edges_px": r(GAP_EDGES, 6),
+            "psf_sigma_px": self.psf_sigma_px,
+            "completeness": r(self.completeness),
+            "p_resolved": r(self.p_resolved),
+            "bank_start": self.bank_start.tolist(),
+            "bank": {k: (v.astype(int).tolist() if k == "area" else r(v, 4)) for k, v in self.bank.items()},
+            "spurious_pmf": r(self.spurious_pmf, 6),
+            "spurious": {k: (v.astype(int).tolist() if k == "area_px" else r(v, 2)) for k, v in self.spurious.items()},
+            "info": self.info,
+        }
         body["sha256"] = _digest(body)
         return body
 
@@ -244,6 +277,7 @@ def _digest(body: dict) -> str:
 def save(model: DetectorModel, path: str | Path) -> Path:
     """Write the calibration as JSON (atomically)."""
     from skygen.datasets.shards import write_json_atomic
+
     path = Path(path)
     write_json_atomic(path, model.to_json())
     return path
@@ -255,31 +289,49 @@ def load(path: str | Path) -> DetectorModel:
     try:
         body = json.loads(path.read_text())
     except FileNotFoundError:
-        raise DatasetError(f"{path}: detector calibration not found; make one with `skygen calibrate DATASET "
-                           f"--out {path}` or use the shipped default") from None
+        raise DatasetError(
+            f"{path}: detector calibration not found; make one with `skygen calibrate DATASET "
+            f"--out {path}` or use the shipped default"
+        ) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetError(f"{path}: not a readable detector calibration (JSON: {exc}); re-create it with "
-                           "`skygen calibrate`") from None
+        raise DatasetError(
+            f"{path}: not a readable detector calibration (JSON: {exc}); re-create it with `skygen calibrate`"
+        ) from None
     if not isinstance(body, dict) or body.get("format") != CALIBRATION_FORMAT:
-        raise DatasetError(f"{path}: not a skygen detector calibration (format {body.get('format') if isinstance(body, dict) else None!r}); "
-                           "give a file written by `skygen calibrate`")
+        raise DatasetError(
+            f"{path}: not a skygen detector calibration "
+            f"(format {body.get('format') if isinstance(body, dict) else None!r}); "
+            "give a file written by `skygen calibrate`"
+        )
     if body.get("version") != CALIBRATION_VERSION:
-        raise DatasetError(f"{path}: calibration version {body.get('version')!r}; this skygen reads version "
-                           f"{CALIBRATION_VERSION} (re-create it with `skygen calibrate`)")
+        raise DatasetError(
+            f"{path}: calibration version {body.get('version')!r}; this skygen reads version "
+            f"{CALIBRATION_VERSION} (re-create it with `skygen calibrate`)"
+        )
     if body.get("sha256") != _digest(body):
-        raise DatasetError(f"{path}: calibration checksum mismatch (edited or damaged); re-create it with "
-                           "`skygen calibrate`")
+        raise DatasetError(
+            f"{path}: calibration checksum mismatch (edited or damaged); re-create it with `skygen calibrate`"
+        )
     try:
         if body["u_edges"] != np.round(U_EDGES, 6).tolist() or body["gap_edges_px"] != np.round(GAP_EDGES, 6).tolist():
             raise DatasetError(f"{path}: calibration bins differ from this skygen's; re-create it")
-        a = lambda v, t=np.float64: np.asarray(v, t)
+
+        def a(v, t=np.float64):
+            return np.asarray(v, t)
+
         return DetectorModel(
-            key=body["key"], threshold_e=float(body["threshold_e"]), completeness=a(body["completeness"]),
-            bank_start=a(body["bank_start"], np.int64), bank={k: a(v) for k, v in body["bank"].items()},
-            p_resolved=a(body["p_resolved"]), spurious_pmf=a(body["spurious_pmf"]),
+            key=body["key"],
+            threshold_e=float(body["threshold_e"]),
+            completeness=a(body["completeness"]),
+            bank_start=a(body["bank_start"], np.int64),
+            bank={k: a(v) for k, v in body["bank"].items()},
+            p_resolved=a(body["p_resolved"]),
+            spurious_pmf=a(body["spurious_pmf"]),
             spurious={k: a(v) for k, v in body["spurious"].items()},
-            gain_e_per_adu=float(body["gain_e_per_adu"]), info=body.get("info", {}),
-            psf_sigma_px=float(body["psf_sigma_px"]))
+            gain_e_per_adu=float(body["gain_e_per_adu"]),
+            info=body.get("info", {}),
+            psf_sigma_px=float(body["psf_sigma_px"]),
+        )
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: detector calibration is incomplete ({exc!r}); re-create it") from None
 
@@ -296,9 +348,11 @@ def check_compatible(model: DetectorModel, config: dict, source: str = "calibrat
     if diff:
         details = ", ".join(f"{k}: calibrated {model.key.get(k)!r}, asked {want.get(k)!r}" for k in diff[:6])
         more = f" and {len(diff) - 6} more" if len(diff) > 6 else ""
-        raise ConfigError(f"{source} was made for another camera/sensor ({details}{more}); make one for this "
-                          "config with `skygen calibrate --config YOUR.yaml --out detector.json` (renders its "
-                          "own frames) and pass it with --calibration")
+        raise ConfigError(
+            f"{source} was made for another camera/sensor ({details}{more}); make one for this "
+            "config with `skygen calibrate --config YOUR.yaml --out detector.json` (renders its "
+            "own frames) and pass it with --calibration"
+        )
 
 
 def _norm(v):
@@ -308,5 +362,8 @@ def _norm(v):
 # ---------------------------------------------------------------------------------- fitting
 def gap_px(e_a, e_b, d_px, threshold_e: float, sigma_px: float) -> np.ndarray:
     """Separation minus the radii at which two Gaussian stars fall to the threshold, px."""
-    r = lambda e: sigma_px * np.sqrt(2 * np.log(np.maximum(np.asarray(e, np.float64) / threshold_e, 1.0)))
+
+    def r(e):
+        return sigma_px * np.sqrt(2 * np.log(np.maximum(np.asarray(e, np.float64) / threshold_e, 1.0)))
+
     return np.asarray(d_px, np.float64) - r(e_a) - r(e_b)

@@ -48,18 +48,17 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skygen.instrument import corruptions as corr
-from skygen.stream import emulator as emu
 from skygen import hashrng
+from skygen.errors import ConfigError
+from skygen.instrument import corruptions as corr
 from skygen.sky.attitude import attitude_matrices, boresights_from_uniforms, matrices_to_quaternions
 from skygen.sky.catalog import radec_to_vec
-from skygen.errors import ConfigError
+from skygen.stream import emulator as emu
 
 KINDS = ("frames", "detections")
 FRAMES_RENDERERS = ("binned", "full")
@@ -68,13 +67,13 @@ TAGS = {"frames": "@stream-frames", "detections": "@stream-detections"}
 DETECTION_KEYS = ("x_px", "y_px", "flux_adu", "peak_adu", "area_px", "hip_id", "star_index")
 STAR_KEYS = ("hip_id", "x_px", "y_px", "mag", "electrons")
 # draw ids of the detection stream (per sample); per-source ids live above SOURCE_BASE
-_D_ATT = 0            # 0..2
-_D_LEVEL = 8          # one per RANGED corruption
+_D_ATT = 0  # 0..2
+_D_LEVEL = 8  # one per RANGED corruption
 _D_NFALSE = 16
-_D_IMAGE = 17         # frames stream (binned): the seed of the image's noise
+_D_IMAGE = 17  # frames stream (binned): the seed of the image's noise
 _D_SPUR = 1 << 40
-_D_CORR = 1 << 44     # detection-level corruptions: + 4 * source id
-_FALSE_ID = 1 << 30   # source ids of false stars: _FALSE_ID + k (catalog rows are below)
+_D_CORR = 1 << 44  # detection-level corruptions: + 4 * source id
+_FALSE_ID = 1 << 30  # source ids of false stars: _FALSE_ID + k (catalog rows are below)
 SOURCE_BASE = 64
 
 
@@ -89,12 +88,16 @@ def check_ranges(level_ranges: dict | None) -> dict[str, tuple[float, float]]:
     for name, rng in (level_ranges or {}).items():
         corr.get(name)
         if name not in RANGED:
-            raise ConfigError(f"stream level range for {name!r}: only {', '.join(RANGED)} can vary per sample "
-                              "(sensor-stage corruptions are fixed by the config)")
+            raise ConfigError(
+                f"stream level range for {name!r}: only {', '.join(RANGED)} can vary per sample "
+                "(sensor-stage corruptions are fixed by the config)"
+            )
         lo, hi = (float(v) for v in rng)
         if not (0 <= lo <= hi) or (name == "dropout" and hi > 1):
-            raise ConfigError(f"stream level range for {name!r}: {[lo, hi]} must satisfy 0 <= lo <= hi"
-                              f"{' <= 1' if name == 'dropout' else ''}")
+            raise ConfigError(
+                f"stream level range for {name!r}: {[lo, hi]} must satisfy 0 <= lo <= hi"
+                f"{' <= 1' if name == 'dropout' else ''}"
+            )
         if hi > 0:
             out[name] = (lo, hi)
     return out
@@ -110,6 +113,7 @@ class DetectionBatch:
     ``dec_deg``, ``roll_deg``, ``unit_vector`` (B, 3), ``quaternion`` (B, 4); ``levels``
     the per-sample severity of every ranged corruption.
     """
+
     index: np.ndarray
     offsets: np.ndarray
     detections: dict
@@ -124,11 +128,13 @@ class DetectionBatch:
     def sample(self, j: int) -> dict:
         lo, hi = self.offsets[j], self.offsets[j + 1]
         slo, shi = self.star_offsets[j], self.star_offsets[j + 1]
-        return {"index": int(self.index[j]),
-                **{k: (v[j] if np.ndim(v) == 1 else v[j].copy()) for k, v in self.labels.items()},
-                "detections": {k: v[lo:hi] for k, v in self.detections.items()},
-                "stars": {k: v[slo:shi] for k, v in self.stars.items()},
-                "levels": {k: float(v[j]) for k, v in self.levels.items()}}
+        return {
+            "index": int(self.index[j]),
+            **{k: (v[j] if np.ndim(v) == 1 else v[j].copy()) for k, v in self.labels.items()},
+            "detections": {k: v[lo:hi] for k, v in self.detections.items()},
+            "stars": {k: v[slo:shi] for k, v in self.stars.items()},
+            "levels": {k: float(v[j]) for k, v in self.levels.items()},
+        }
 
 
 def partition(start: int, rank: int = 0, world: int = 1) -> Iterator[int]:
@@ -146,14 +152,24 @@ def partition(start: int, rank: int = 0, world: int = 1) -> Iterator[int]:
 class SampleStream:
     """Samples of one render configuration (see the module docstring)."""
 
-    def __init__(self, cfg, kind: str = "detections", *, calibration=None, level_ranges: dict | None = None,
-                 catalog=None, frames_renderer: str = "binned"):
+    def __init__(
+        self,
+        cfg,
+        kind: str = "detections",
+        *,
+        calibration=None,
+        level_ranges: dict | None = None,
+        catalog=None,
+        frames_renderer: str = "binned",
+    ):
         from skygen.render.frame import Renderer
+
         self.kind = check_kind(kind)
         self.level_ranges = check_ranges(level_ranges)
         if frames_renderer not in FRAMES_RENDERERS:
-            raise ConfigError(f"frames renderer {frames_renderer!r} is unknown; choose one of: "
-                              f"{', '.join(FRAMES_RENDERERS)}")
+            raise ConfigError(
+                f"frames renderer {frames_renderer!r} is unknown; choose one of: {', '.join(FRAMES_RENDERERS)}"
+            )
         self.cfg = cfg
         self.renderer = Renderer(cfg, catalog=catalog, rng_tag=TAGS[kind])
         self.key = hashrng.stream_key(cfg.seed, TAGS[kind])
@@ -163,6 +179,7 @@ class SampleStream:
         self.frames_renderer = frames_renderer if kind == "frames" else None
         if kind == "frames":
             from skygen.render.scenes import SceneBuilder
+
             self.scene_builder = SceneBuilder(self.renderer, self.key)
             if frames_renderer == "binned":
                 self._setup_binned(calibration)
@@ -170,8 +187,9 @@ class SampleStream:
             self.model = _load_calibration(calibration, cfg)
             r = self.renderer
             sky = r.sky
-            e_star = (r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
-                      * cfg.sensor.exposure_s)
+            e_star = (
+                r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv) * cfg.sensor.exposure_s
+            )
             # only stars the emulator can detect (p > 0 somewhere on the sensor) take part;
             # fainter ones never change a detection set, and skipping them halves the cost
             visible = self.model.p_detect(e_star) > 0
@@ -186,23 +204,27 @@ class SampleStream:
     def _setup_binned(self, calibration) -> None:
         """The binned renderer and the emulator for a ``frames`` stream, or the full renderer
         with one warning when either cannot serve this config exactly."""
-        from skygen.render.binned import BinnedRenderer, unsupported_reason
         from skygen.errors import SkygenError
+        from skygen.render.binned import BinnedRenderer, unsupported_reason
+
         torch = getattr(self.cfg, "render", None) is not None and self.cfg.render.backend == "torch"
-        reason = "render.backend=torch rasterises full frames on its device" if torch else \
-            unsupported_reason(self.renderer)
+        reason = (
+            "render.backend=torch rasterises full frames on its device" if torch else unsupported_reason(self.renderer)
+        )
         if reason is None:
             try:
                 self.model = _load_calibration(calibration, self.cfg)
             except SkygenError as exc:
-                if calibration is not None:       # the user's own file: a mistake to report
+                if calibration is not None:  # the user's own file: a mistake to report
                     raise
                 reason = f"the shipped detector-emulator calibration does not fit this config ({exc})"
         if reason is not None:
             self.frames_renderer = "full"
             if not torch:
-                _warn_once(f"skygen frames stream: rendering full frames and downsampling (~15 ms per sample), "
-                           f"not the binned renderer: {reason}")
+                _warn_once(
+                    f"skygen frames stream: rendering full frames and downsampling (~15 ms per sample), "
+                    f"not the binned renderer: {reason}"
+                )
             return
         self.binned = BinnedRenderer(self.renderer)
 
@@ -210,9 +232,11 @@ class SampleStream:
         r = self.renderer
         brightest = float(np.nanmin(r.sky.table.mag)) if len(r.sky) else np.inf
         if not np.isfinite(r.detection_limit_mag) or r.detection_limit_mag < brightest + r.mag_offset_to_hp:
-            raise ConfigError(f"this config detects no star: its detection limit (Hp {r.detection_limit_mag:.2f}) is "
-                              f"brighter than the brightest catalog star (Hp {brightest:.2f}); lengthen "
-                              "sensor.exposure_s, enlarge optics.aperture_mm or lower detection.threshold_sigma")
+            raise ConfigError(
+                f"this config detects no star: its detection limit (Hp {r.detection_limit_mag:.2f}) is "
+                f"brighter than the brightest catalog star (Hp {brightest:.2f}); lengthen "
+                "sensor.exposure_s, enlarge optics.aperture_mm or lower detection.threshold_sigma"
+            )
 
     # ------------------------------------------------------------------ levels
     def levels_of(self, index: np.ndarray) -> dict[str, np.ndarray]:
@@ -269,10 +293,15 @@ class SampleStream:
         import torch
 
         from skygen.render.torch_frames import TorchRenderer
+
         if getattr(self, "_torch", None) is None or (device is not None and str(self._torch.device) != str(device)):
             self._torch = TorchRenderer(self.cfg, device, renderer=self.renderer)
         levels = self.levels_of(np.array(idx))
-        per = [{k: float(v[j]) for k, v in levels.items()} for j in range(len(idx))] if self.level_ranges else [None] * len(idx)
+        per = (
+            [{k: float(v[j]) for k, v in levels.items()} for j in range(len(idx))]
+            if self.level_ranges
+            else [None] * len(idx)
+        )
         scenes = self.scene_builder.scenes(np.array(idx), levels)
         gen = torch.Generator(device=self._torch.device)
         gen.manual_seed(int(hashrng.bits(self.key, idx[0], 7) >> np.uint64(1)))
@@ -292,8 +321,9 @@ class SampleStream:
         sensor), then the detector's cap and the detection-level corruptions, as in
         :meth:`batch`. ``background_adu`` and ``noise_adu`` are the nominal values (no
         detector ran). Sample ``i`` is the same alone or in any batch."""
-        from skygen.sky.attitude import matrix_to_quaternion
         from skygen.render.frame import Frame
+        from skygen.sky.attitude import matrix_to_quaternion
+
         idx = np.asarray(indices, np.int64).ravel()
         if self.binned is None:
             raise ConfigError("binned_frames() needs a frames stream with the binned renderer")
@@ -312,8 +342,11 @@ class SampleStream:
             trues.append({k: v[inside] for k, v in st.items() if k != "paths"})
         n_src = np.array([len(t["x_px"]) for t in trues], np.int64)
         fr = np.repeat(np.arange(B), n_src)
-        row = np.arange(len(fr)) - np.repeat(np.cumsum(n_src) - n_src, n_src)      # row in the frame's table
-        cat = lambda k: np.concatenate([t[k] for t in trues]) if B else np.zeros(0)
+        row = np.arange(len(fr)) - np.repeat(np.cumsum(n_src) - n_src, n_src)  # row in the frame's table
+
+        def cat(k):
+            return np.concatenate([t[k] for t in trues]) if B else np.zeros(0)
+
         x, y, e, hip = cat("x_px"), cat("y_px"), cat("electrons").astype(np.float64), cat("hip_id")
         det_fr, det = self._emulated(key, idx, fr, row, row, x, y, e, hip, levels)
         det_off = np.concatenate([[0], np.cumsum(np.bincount(det_fr, minlength=B))])
@@ -322,12 +355,31 @@ class SampleStream:
         noise_adu = r.noise_e() / s.gain_e_per_adu
         frames = []
         for j, (sc, img, true, lv) in enumerate(zip(scenes, images, trues, per)):
-            d = {k: v[det_off[j]:det_off[j + 1]] for k, v in det.items()}
+            d = {k: v[det_off[j] : det_off[j + 1]] for k, v in det.items()}
             ra, dec = sc.ra_deg, sc.dec_deg
             applied = {**r.levels, **(lv or {})}
-            frames.append(Frame(int(idx[j]), -1, ra, dec, sc.roll_deg, radec_to_vec(np.radians(ra), np.radians(dec)),
-                                matrix_to_quaternion(sc.rotation), img, None, r.factor, true, d, bg_adu, noise_adu,
-                                applied, {**sc.log, "renderer": "binned"}, sc.index_in_split, 0))
+            frames.append(
+                Frame(
+                    int(idx[j]),
+                    -1,
+                    ra,
+                    dec,
+                    sc.roll_deg,
+                    radec_to_vec(np.radians(ra), np.radians(dec)),
+                    matrix_to_quaternion(sc.rotation),
+                    img,
+                    None,
+                    r.factor,
+                    true,
+                    d,
+                    bg_adu,
+                    noise_adu,
+                    applied,
+                    {**sc.log, "renderer": "binned"},
+                    sc.index_in_split,
+                    0,
+                )
+            )
         return frames
 
     # ------------------------------------------------------------------ detections
@@ -344,7 +396,7 @@ class SampleStream:
         # attitude (the renderer's distribution, counter-based draws)
         u = hashrng.uniform(key, idx[:, None], _D_ATT + np.arange(3)[None, :])
         ra, dec, roll = boresights_from_uniforms(self.cfg.attitude, idx, u)
-        R = attitude_matrices(ra, dec, roll)                                  # (B, 3, 3)
+        R = attitude_matrices(ra, dec, roll)  # (B, 3, 3)
         bore = R[:, :, 2]
         # catalog stars: cone search, projection, photometry
         chord = 2.0 * np.sin(self._cone / 2.0)
@@ -355,7 +407,7 @@ class SampleStream:
         ok = front & cam.inside(x, y)
         star, fr, x, y = star[ok], fr[ok], x[ok], y[ok]
         e = self._e_star[star] * r.vignetting(x, y)
-        src_id = self._rows[star]        # the catalog row: a star's draws do not depend on the field
+        src_id = self._rows[star]  # the catalog row: a star's draws do not depend on the field
         hip = self._hip[star]
         mag = self._mag[star]
         # false stars (scene): Poisson count per sample, uniform positions, magnitudes as the renderer's
@@ -383,8 +435,13 @@ class SampleStream:
         # the emulated detector
         det_fr, det = self._emulated(key, idx, fr, src_id, row_in_frame, x, y, e, hip, levels)
         n_det = np.bincount(det_fr, minlength=B)
-        labels = {"ra_deg": ra, "dec_deg": dec, "roll_deg": roll,
-                  "unit_vector": radec_to_vec(np.radians(ra), np.radians(dec)), "quaternion": matrices_to_quaternions(R)}
+        labels = {
+            "ra_deg": ra,
+            "dec_deg": dec,
+            "roll_deg": roll,
+            "unit_vector": radec_to_vec(np.radians(ra), np.radians(dec)),
+            "quaternion": matrices_to_quaternions(R),
+        }
         stars = {"hip_id": hip, "x_px": x, "y_px": y, "mag": mag, "electrons": e.astype(np.float32)}
         return DetectionBatch(idx, np.concatenate([[0], np.cumsum(n_det)]), det, star_offsets, stars, labels, levels)
 
@@ -410,10 +467,18 @@ class SampleStream:
         if self.kind == "detections":
             return self.batch([i]).sample(0)
         f = self.frame(i)
-        return {"index": i, "ra_deg": f.ra_deg, "dec_deg": f.dec_deg, "roll_deg": f.roll_deg,
-                "unit_vector": f.unit_vector, "quaternion": f.quaternion, "image": f.image,
-                "detections": {k: f.detections[k] for k in DETECTION_KEYS},
-                "stars": {k: f.stars[k] for k in STAR_KEYS}, "levels": {k: f.applied[k] for k in RANGED}}
+        return {
+            "index": i,
+            "ra_deg": f.ra_deg,
+            "dec_deg": f.dec_deg,
+            "roll_deg": f.roll_deg,
+            "unit_vector": f.unit_vector,
+            "quaternion": f.quaternion,
+            "image": f.image,
+            "detections": {k: f.detections[k] for k in DETECTION_KEYS},
+            "stars": {k: f.stars[k] for k in STAR_KEYS},
+            "levels": {k: f.applied[k] for k in RANGED},
+        }
 
     def __iter__(self):
         return (self.sample(i) for i in partition(0))
@@ -432,19 +497,29 @@ def _warn_once(message: str) -> None:
 
 def _load_calibration(calibration, cfg) -> "emu.DetectorModel":
     from skygen.config import config_dict
+
     if calibration is None:
         calibration = emu.default_calibration_path()
     model = calibration if isinstance(calibration, emu.DetectorModel) else emu.load(calibration)
-    emu.check_compatible(model, config_dict(cfg),
-                         f"detector calibration {calibration if not isinstance(calibration, emu.DetectorModel) else ''}".strip())
+    emu.check_compatible(
+        model,
+        config_dict(cfg),
+        f"detector calibration {calibration if not isinstance(calibration, emu.DetectorModel) else ''}".strip(),
+    )
     return model
 
 
 def _one(batch, b: int):
     """Frame ``b`` of a torch-renderer batch as a batch of one (for per-frame detection levels)."""
     from dataclasses import replace as _replace
-    return _replace(batch, images=batch.images[b:b + 1], full=batch.full[b:b + 1], scenes=[batch.scenes[b]],
-                    logs=[batch.logs[b]])
+
+    return _replace(
+        batch,
+        images=batch.images[b : b + 1],
+        full=batch.full[b : b + 1],
+        scenes=[batch.scenes[b]],
+        logs=[batch.logs[b]],
+    )
 
 
 def _cap(fr, det, det_id, B, cap):
@@ -483,12 +558,24 @@ def frames_as_batch(frames) -> DetectionBatch:
     """Rendered frames (``frames`` stream samples) in the :class:`DetectionBatch` layout."""
     det = {k: np.concatenate([f.detections[k] for f in frames]) for k in DETECTION_KEYS}
     stars = {k: np.concatenate([f.stars[k] for f in frames]) for k in STAR_KEYS}
-    off = lambda rows: np.concatenate([[0], np.cumsum([len(r["x_px"]) for r in rows])]).astype(np.int64)
-    labels = {k: np.array([getattr(f, k) for f in frames]) for k in ("ra_deg", "dec_deg", "roll_deg", "unit_vector",
-                                                                      "quaternion")}
+
+    def off(rows):
+        return np.concatenate([[0], np.cumsum([len(r["x_px"]) for r in rows])]).astype(np.int64)
+
+    labels = {
+        k: np.array([getattr(f, k) for f in frames])
+        for k in ("ra_deg", "dec_deg", "roll_deg", "unit_vector", "quaternion")
+    }
     levels = {k: np.array([f.applied[k] for f in frames]) for k in RANGED}
-    return DetectionBatch(np.array([f.index for f in frames]), off([f.detections for f in frames]), det,
-                          off([f.stars for f in frames]), stars, labels, levels)
+    return DetectionBatch(
+        np.array([f.index for f in frames]),
+        off([f.detections for f in frames]),
+        det,
+        off([f.stars for f in frames]),
+        stars,
+        labels,
+        levels,
+    )
 
 
 def stream_summary(batches) -> dict:
@@ -503,13 +590,24 @@ def stream_summary(batches) -> dict:
         ok = sidx >= 0
         mags.append(b.stars["mag"][b.star_offsets[fr[ok]] + sidx[ok]])
     mags = np.concatenate(mags) if mags else np.zeros(0)
-    q = lambda a, p: float(np.percentile(a, p)) if len(a) else float("nan")
-    return {"samples": int(len(n_det)), "detections_per_sample": {"mean": float(n_det.mean()), "p10": q(n_det, 10),
-                                                                 "median": q(n_det, 50), "p90": q(n_det, 90),
-                                                                 "min": int(n_det.min()), "max": int(n_det.max())},
-            "fewer_than_3": float((n_det < 3).mean()),
-            "detected_mag": {"p10": q(mags, 10), "median": q(mags, 50), "p90": q(mags, 90)},
-            "spurious_share": spur / max(total, 1)}
+
+    def q(a, p):
+        return float(np.percentile(a, p)) if len(a) else float("nan")
+
+    return {
+        "samples": int(len(n_det)),
+        "detections_per_sample": {
+            "mean": float(n_det.mean()),
+            "p10": q(n_det, 10),
+            "median": q(n_det, 50),
+            "p90": q(n_det, 90),
+            "min": int(n_det.min()),
+            "max": int(n_det.max()),
+        },
+        "fewer_than_3": float((n_det < 3).mean()),
+        "detected_mag": {"p10": q(mags, 10), "median": q(mags, 50), "p90": q(mags, 90)},
+        "spurious_share": spur / max(total, 1),
+    }
 
 
 __all__ = ["KINDS", "SampleStream", "DetectionBatch", "partition", "stream_summary"]
