@@ -32,6 +32,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
+from skygen.cli import add_channel_argument
 from skygen.errors import ConfigError, SkygenError
 
 from . import __version__
@@ -546,13 +547,7 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
         "gradients); 0: one level per frame (default: the camera's detection.background_box_px, "
         "0 unless set, as the renders and the training)",
     )
-    p.add_argument(
-        "--channel",
-        choices=("luminance", "r", "g", "b", "sum"),
-        default="luminance",
-        help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
-        "one of the r, g, b planes, or their sum",
-    )
+    add_channel_argument(p)
     p.add_argument(
         "--detector",
         choices=("skygen", "tetra3rs"),

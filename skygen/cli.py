@@ -64,6 +64,17 @@ def _load(args):
     return load_config(args.config, sets)
 
 
+def add_channel_argument(p: argparse.ArgumentParser) -> None:
+    """--channel: how colour frames become one plane (skygen fit-camera, fusion predict; skygen.real.frames)."""
+    p.add_argument(
+        "--channel",
+        choices=("luminance", "r", "g", "b", "sum"),
+        default="luminance",
+        help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
+        "one of the r, g, b planes, or their sum",
+    )
+
+
 def _config_args(p: argparse.ArgumentParser, with_n: bool = True) -> None:
     """--config, --set, --seed (and --n): the one config system's options, shared by several commands."""
     p.add_argument("--config", metavar="FILE.yaml", help="YAML config (keys as in `skygen config`)")
@@ -269,13 +280,7 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF read as one plane, see "
         "--channel) or folders of them",
     )
-    p.add_argument(
-        "--channel",
-        choices=("luminance", "r", "g", "b", "sum"),
-        default="luminance",
-        help="colour (RGB/RGBA) frames become one plane: luminance (Rec. 709 weights; default), "
-        "one of the r, g, b planes, or their sum",
-    )
+    add_channel_argument(p)
     p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
     p.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
     p.add_argument(
