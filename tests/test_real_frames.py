@@ -121,3 +121,14 @@ def test_a_raw_bayer_mosaic_stored_as_mono_is_flagged_in_one_line(tmp_path):
     assert len(said["bayer.png"]) == 1 and "looks like a raw Bayer mosaic" in said["bayer.png"][0]
     assert said["bayer.png"][0].endswith("debayer it or give one colour plane")
     assert said["mono.png"] == said["columns.png"] == said["faint.png"] == []
+
+
+def test_a_colour_file_whose_planes_hold_a_mosaic_gets_only_the_colour_line(tmp_path):
+    """A colour file was converted to one plane on purpose; a 2 x 2 pattern left in its planes (a camera
+    that stores its raw mosaic in every channel) gets no 'debayer it' warning the user cannot act on."""
+    mosaic = _star_field(levels=(40, 90, 90, 30))
+    cv2.imwrite(str(tmp_path / "rgb.png"), np.dstack([mosaic, mosaic // 2, mosaic]))
+    lines = []
+    img = read_frame(tmp_path / "rgb.png", log=lines.append)
+    assert img.shape == (128, 160)
+    assert len(lines) == 1 and "colour frame" in lines[0] and "Bayer" not in lines[0]

@@ -71,13 +71,14 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
         raise FrameError(f"{path}: empty file")
     if suffix not in FRAME_SUFFIXES:
         raise FrameError(f"{path}: unsupported file type {suffix or '(none)'}; give {', '.join(FRAME_SUFFIXES)}")
+    colour = False  # a colour file was converted: its planes are no mosaic to warn about
     try:
         if suffix == ".npy":
             img = np.load(path, allow_pickle=False)
         elif suffix in (".fits", ".fit", ".fts"):
             img = _read_fits(path)
         else:
-            img = _read_png_tiff(path, suffix, channel, say)
+            img, colour = _read_png_tiff(path, suffix, channel, say)
     except FrameError:
         raise
     except Exception as exc:  # decoders raise many types for damaged files
@@ -98,7 +99,7 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
     if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
         raise FrameError(f"{path}: pixel type {img.dtype} is not a real number (integer or float pixels only)")
     img = img.astype(np.float32)
-    warning = bayer_warning(img)
+    warning = None if colour else bayer_warning(img)
     if warning:
         say(f"{path}: {warning}")
     return img
@@ -126,7 +127,8 @@ def _read_fits(path: Path) -> np.ndarray:
     return img
 
 
-def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> np.ndarray:
+def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> tuple[np.ndarray, bool]:
+    """The image (one plane for a colour file) and whether it was a colour file."""
     img = _imread_quiet(path)
     if img is None:
         raise FrameError(f"{path}: not a readable {suffix[1:].upper()} image (damaged or truncated?)")
@@ -140,15 +142,15 @@ def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> np.ndarray:
         alpha = img.shape[2] == 4
         bgr = img[:, :, :3]  # OpenCV's order: B, G, R (, A)
         if np.array_equal(bgr[:, :, 0], bgr[:, :, 1]) and np.array_equal(bgr[:, :, 0], bgr[:, :, 2]):
-            return bgr[:, :, 0]  # grey stored as RGB: one channel
+            return bgr[:, :, 0], False  # grey stored as RGB: one channel
         plane, how = to_one_plane(bgr[:, :, ::-1], channel)
         bits = 8 * img.dtype.itemsize
         say(
             f"{path}: colour frame ({'RGBA' if alpha else 'RGB'}, {bits} bit{'; alpha dropped' if alpha else ''}) "
             f"read as one plane: {how}"
         )
-        return plane
-    return img
+        return plane, True
+    return img, False
 
 
 def to_one_plane(rgb: np.ndarray, channel: str = "luminance") -> tuple[np.ndarray, str]:
