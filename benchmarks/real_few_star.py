@@ -1,0 +1,303 @@
+"""Few-star solving on real frames: the brightest N real detections, every prior-free solver side by side.
+
+    python benchmarks/real_few_star.py FRAMES... --camera CAMERA.yaml [--n 3 4 5 6 8]
+                                       [--solvers tetra3rs whole-sky tetra3rs>whole-sky] --out DIR
+
+For every frame: detect with skygen's detector and the camera's detection settings (exactly what
+``fusion predict --camera CAMERA.yaml`` does: :meth:`fusion.solve.predict.Predictor.detect`, the camera's
+``detection.background_box_px`` included), then solve with *all* detections by tetra3rs lost-in-space.
+That solution is the frame's truth when it is beyond doubt (false-positive probability <=
+``--truth-max-fpp`` and >= ``--truth-min-matched`` matched stars); other frames are reported and left out.
+Then, for each N, only the brightest N detections go to each registered prior-free solver
+(``fusion.build_solver(name, camera)``, one shared tetra3rs database). Scored as ``fusion benchmark`` does:
+**correct** = boresight within ``--correct-deg`` (0.1) and roll within ``--correct-roll-deg`` (1) degrees of
+the truth, **wrong** = any other returned attitude, **refused** = none; median and p95 wall-clock ms per solve
+(one process, one call at a time). Also the share of frames where one of the brightest N detections is not
+among the detections the truth solution matched (hot pixels, stars beyond the catalogue, blends).
+
+A skygen dataset folder (``skygen render --full-res``) may be given instead of frame files: its full-resolution
+frames are detected the same way and their truth is the rendered attitude (``--max-frames`` caps them), so the
+same cells on renders of a fitted camera predict the real ones.
+
+Writes DIR/real_few_star.json and DIR/real_few_star.md and prints the Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PRIOR_FREE_DEFAULT = ("tetra3rs", "whole-sky", "tetra3rs>whole-sky")
+
+
+def prior_free_solvers() -> list[str]:
+    """Registered solvers that need no prior (no model, no benchmark oracle)."""
+    from fusion.solve.registry import SOLVERS
+
+    return [name for name, spec in SOLVERS.items() if spec.prior is None]
+
+
+def load_frames(paths: list[str], max_frames: int | None = None, channel: str = "luminance"):
+    """(name, full-resolution image, truth matrix or None) per frame; errors as (name, None, message)."""
+    from fusion.solve.frames import iter_inputs
+
+    out = []
+    for p in paths:
+        path = Path(p)
+        if path.is_dir() and (path / "manifest.json").exists():
+            from skygen.datasets.shards import open_dataset
+
+            with open_dataset(path) as ds:
+                n = len(ds) if max_frames is None else min(max_frames, len(ds))
+                for pos in range(n):
+                    q = np.asarray(ds.boresight["quaternion"][pos], np.float64)
+                    out.append((f"{path}#{int(ds.frames['index'][pos])}", ds.image(pos, full_res=True), q))
+            continue
+        for name, img, _det, _stored, err in iter_inputs([str(path)], max_frames, channel):
+            out.append((name, img, err))
+    return out
+
+
+def run(
+    frames: list,
+    camera: str | Path,
+    n_values=(3, 4, 5, 6, 8),
+    solvers=PRIOR_FREE_DEFAULT,
+    *,
+    truth_max_fpp: float = 1e-20,
+    truth_min_matched: int = 10,
+    correct_deg: float = 0.1,
+    correct_roll_deg: float = 1.0,
+    background_box: int | None = None,
+    log=print,
+) -> dict:
+    """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``."""
+    from fusion.solve.base import Solution, boresight_error_deg, roll_error_deg
+    from fusion.solve.predict import Predictor
+    from fusion.solve.registry import SOLVERS, build_solver, make_context
+    from skygen.sky.attitude import matrix_to_radec_roll, quaternion_to_matrix
+
+    for name in solvers:
+        if name not in SOLVERS or SOLVERS[name].prior is not None:
+            raise SystemExit(
+                f"--solvers {name}: not a prior-free registered solver ({', '.join(prior_free_solvers())})"
+            )
+    pred = Predictor(camera=camera, background_box=background_box)
+    cam = pred.camera
+    t0 = time.perf_counter()
+    ctx = make_context(cam)
+    built = {name: build_solver(name, cam, context=ctx) for name in solvers}
+    setup_s = time.perf_counter() - t0
+    truth_solver = ctx.tetra
+
+    kept, dropped = [], []
+    for name, img, extra in frames:
+        if img is None:
+            dropped.append({"frame": name, "reason": f"unreadable: {extra}"})
+            continue
+        pred.check_shape(img, name)
+        det, bg, sigma = pred.detect(img)
+        rec = {"frame": name, "n_detections": len(det), "background_adu": bg, "noise_adu": sigma}
+        if extra is not None and not isinstance(extra, str):  # a rendered frame: its true attitude
+            m_true = quaternion_to_matrix(np.asarray(extra))
+            full = truth_solver.solve(det, cam)
+            rec["truth"] = "rendered attitude"
+            rec["all_detection_solve"] = (
+                "refused"
+                if not isinstance(full, Solution)
+                else (
+                    "correct"
+                    if boresight_error_deg(m_true, full.matrix) <= correct_deg
+                    and roll_error_deg(full.roll_deg, matrix_to_radec_roll(m_true)[2]) <= correct_roll_deg
+                    else "wrong"
+                )
+            )
+            matched_rows = set(full.matched[:, 0].tolist()) if isinstance(full, Solution) else None
+        else:
+            full = truth_solver.solve(det, cam)
+            if not isinstance(full, Solution):
+                dropped.append({**rec, "reason": f"all-detection tetra3rs solve refused: {full.reason}"})
+                continue
+            fpp = float(full.extra.get("false_positive_probability", 1.0))
+            rec.update({"truth": "all-detection tetra3rs", "truth_matched": full.n_matched, "truth_fpp": fpp})
+            if fpp > truth_max_fpp or full.n_matched < truth_min_matched:
+                dropped.append({**rec, "reason": f"truth not beyond doubt ({full.n_matched} matched, fpp {fpp:.3g})"})
+                continue
+            m_true = full.matrix
+            matched_rows = set(full.matched[:, 0].tolist())
+        rec["_det"], rec["_m"], rec["_matched_rows"] = det, m_true, matched_rows
+        kept.append(rec)
+    log(f"{len(kept)} of {len(frames)} frames kept with a truth attitude; {len(dropped)} left out")
+    # untimed warm-up: numba kernels, pair indices (the 3-star bright tier too) and caches are built on first use
+    t0 = time.perf_counter()
+    if kept:
+        for solver in built.values():
+            for n in sorted({min(n_values), max(n_values)}):
+                solver.solve(kept[0]["_det"].brightest(n), cam)
+    warmup_s = time.perf_counter() - t0
+
+    cells = []
+    for n in n_values:
+        row = {"n": int(n), "frames": 0, "solvers": {}}
+        usable = [r for r in kept if len(r["_det"]) >= n]
+        row["frames"] = len(usable)
+        row["frames_with_fewer_detections"] = len(kept) - len(usable)
+        with_truth_rows = [r for r in usable if r["_matched_rows"] is not None]
+        non_cat = sum(any(i not in r["_matched_rows"] for i in range(n)) for r in with_truth_rows)
+        row["share_non_catalogue_in_brightest"] = non_cat / len(with_truth_rows) if with_truth_rows else None
+        for sname, solver in built.items():
+            ok = wrong = refused = 0
+            ms = []
+            errs = []
+            for r in usable:
+                d = r["_det"].brightest(n)
+                roll_true = matrix_to_radec_roll(r["_m"])[2]
+                t = time.perf_counter()
+                res = solver.solve(d, cam)
+                ms.append((time.perf_counter() - t) * 1e3)
+                if not isinstance(res, Solution):
+                    refused += 1
+                    continue
+                b, o = boresight_error_deg(r["_m"], res.matrix), roll_error_deg(res.roll_deg, roll_true)
+                errs.append((b, o))
+                if b <= correct_deg and o <= correct_roll_deg:
+                    ok += 1
+                else:
+                    wrong += 1
+                    log(f"WRONG {sname} N={n} {r['frame']}: boresight {b:.3f} deg, roll {o:.3f} deg off")
+            k = max(len(usable), 1)
+            row["solvers"][sname] = {
+                "correct": ok / k,
+                "wrong": wrong / k,
+                "refused": refused / k,
+                "n_correct": ok,
+                "n_wrong": wrong,
+                "n_refused": refused,
+                "median_ms": float(np.median(ms)) if ms else None,
+                "p95_ms": float(np.percentile(ms, 95)) if ms else None,
+            }
+        cells.append(row)
+        log(
+            f"N={n}: "
+            + ", ".join(f"{s} {v['n_correct']}/{row['frames']}" for s, v in row["solvers"].items())
+            + f" (wrong: {sum(v['n_wrong'] for v in row['solvers'].values())})"
+        )
+    frames_out = [{k: v for k, v in r.items() if not k.startswith("_")} for r in kept]
+    return {
+        "camera": str(camera),
+        "camera_fov_deg": [float(v) for v in cam.fov_deg],
+        "sensor_px": [int(cam.width_px), int(cam.height_px)],
+        "detection": {
+            "threshold_sigma": pred.cfg.detection.threshold_sigma,
+            "min_area_px": pred.cfg.detection.min_area_px,
+            "max_detections": pred.cfg.detection.max_detections,
+            "background_box_px": pred.background_box,
+        },
+        "solvers": list(solvers),
+        "n_values": [int(n) for n in n_values],
+        "truth_rule": f"all-detection tetra3rs solve with false-positive probability <= {truth_max_fpp:g} "
+        f"and >= {truth_min_matched} matched stars (rendered frames: the rendered attitude)",
+        "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
+        "frames_given": len(frames),
+        "frames_kept": len(kept),
+        "frames": frames_out,
+        "dropped": dropped,
+        "cells": cells,
+        "setup_s": setup_s,
+        "warmup_s": warmup_s,
+        "host": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "python": platform.python_version(),
+        },
+    }
+
+
+def _pct(x) -> str:
+    return "–" if x is None else f"{100 * x:.0f} %"
+
+
+def markdown(res: dict, title: str | None = None) -> str:
+    solvers = res["solvers"]
+    lines = []
+    if title:
+        lines += [f"### {title}", ""]
+    lines += [
+        f"Camera `{res['camera']}` ({res['camera_fov_deg'][0]:.3f}° × {res['camera_fov_deg'][1]:.3f}°, "
+        f"{res['sensor_px'][0]} × {res['sensor_px'][1]} px); {res['frames_kept']} of {res['frames_given']} frames "
+        f"with a truth attitude ({res['truth_rule']}). Correct: {res['correct_definition']}. "
+        "Cells: correct / wrong / refused, median / p95 ms per solve.",
+        "",
+        "| N brightest | frames | " + " | ".join(solvers) + " | brightest N not all matched by the truth |",
+        "|---|---|" + "---|" * len(solvers) + "---|",
+    ]
+    for c in res["cells"]:
+        cells = []
+        for s in solvers:
+            v = c["solvers"][s]
+            ms = "–" if v["median_ms"] is None else f"{v['median_ms']:.2f} / {v['p95_ms']:.2f} ms"
+            cells.append(f"**{_pct(v['correct'])}** / {_pct(v['wrong'])} / {_pct(v['refused'])}, {ms}")
+        lines.append(
+            f"| {c['n']} | {c['frames']} | " + " | ".join(cells) + f" | {_pct(c['share_non_catalogue_in_brightest'])} |"
+        )
+    if res["dropped"]:
+        lines += ["", "Left out: " + "; ".join(f"{Path(d['frame']).name}: {d['reason']}" for d in res["dropped"])]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("frames", nargs="+", help="frame files, folders of them, or a skygen dataset folder (--full-res)")
+    p.add_argument("--camera", required=True, help="camera YAML (configs/cameras/*.yaml or skygen fit-camera's)")
+    p.add_argument("--n", type=int, nargs="+", default=[3, 4, 5, 6, 8], help="brightest-N cells")
+    p.add_argument("--solvers", nargs="+", default=list(PRIOR_FREE_DEFAULT), help="prior-free registered solvers")
+    p.add_argument("--channel", default="luminance", help="colour frames: luminance, r, g, b or sum")
+    p.add_argument("--max-frames", type=int, default=None, help="first N frames of each folder or dataset")
+    p.add_argument("--truth-max-fpp", type=float, default=1e-20)
+    p.add_argument("--truth-min-matched", type=int, default=10)
+    p.add_argument("--correct-deg", type=float, default=0.1)
+    p.add_argument("--correct-roll-deg", type=float, default=1.0)
+    p.add_argument(
+        "--background-box",
+        type=int,
+        default=None,
+        help="detector background box, px (default: the camera's detection.background_box_px; 64 for sky glow, "
+        "as `fusion predict --background-box 64`)",
+    )
+    p.add_argument("--title", default=None)
+    p.add_argument("--out", required=True, help="folder for real_few_star.json and real_few_star.md")
+    a = p.parse_args(argv)
+    frames = load_frames(a.frames, a.max_frames, a.channel)
+    res = run(
+        frames,
+        a.camera,
+        a.n,
+        a.solvers,
+        truth_max_fpp=a.truth_max_fpp,
+        truth_min_matched=a.truth_min_matched,
+        correct_deg=a.correct_deg,
+        correct_roll_deg=a.correct_roll_deg,
+        background_box=a.background_box,
+        log=lambda s: print(s, file=sys.stderr),
+    )
+    res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    md = markdown(res, a.title)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "real_few_star.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
+    (out / "real_few_star.md").write_text(md + f"\nCommand: `{res['command']}`\n")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
