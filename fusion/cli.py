@@ -526,6 +526,15 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
         + ", ".join(n for n, sp in SOLVERS.items() if sp.prior != "oracle")
         + " (learned ones need --checkpoint)",
     )
+    p.add_argument(
+        "--track",
+        type=float,
+        nargs="?",
+        const=1.0,
+        metavar="DEG",
+        help="--solve over a sequence of frames: each solved attitude is the next frame's hint, DEG its 1-sigma "
+        "error (default 1); lost in space where tracking refuses",
+    )
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
@@ -579,6 +588,7 @@ def _run_predict(args: argparse.Namespace) -> int:
         lis_first=args.lis_first,
         solver=args.solver,
         fov_range=tuple(args.fov_range) if args.fov_range else None,
+        track_deg=args.track,
     )
     return 1 if failed else 0
 
@@ -638,6 +648,18 @@ def _add_benchmark(p: argparse.ArgumentParser) -> None:
         "--correct-roll-deg", type=float, default=1.0, help="roll error counted as correct, in (0, 180] (default 1 deg)"
     )
     add_search_arguments(p, "--top-k")  # the fine-stage solvers run as fusion predict --solve does
+    p.add_argument(
+        "--track-hint-deg",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="DEG",
+        help="add tracking cells: every solver gets a hint, the true attitude turned by DEG about a random axis "
+        "(DEG also its 1-sigma error), e.g. 0.5 2 5; at each N of --track-n",
+    )
+    p.add_argument(
+        "--track-n", type=int, nargs="+", default=[2, 3], metavar="N", help="N of the tracking cells (default 2 3)"
+    )
 
 
 def _run_benchmark(args: argparse.Namespace) -> int:
@@ -664,6 +686,8 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         top_k=args.search_k,
         search=args.search,
         focal_tol=args.focal_tol,
+        track_hint_deg=tuple(args.track_hint_deg),
+        track_n=tuple(args.track_n),
     )
     return 0
 

@@ -99,7 +99,7 @@ def test_compiled_scores_equal_brute_force(s):
         parts.append(p)
         seps.append(q)
         base += len(p)
-    tried, A, B, K, S, R = anchor_hypotheses(
+    args = (
         i,
         j,
         t,
@@ -119,6 +119,11 @@ def test_compiled_scores_equal_brute_force(s):
         -1.0,
         0,
     )
+    free = (np.array([1.0, 0, 0]), -2.0)  # no roll bound
+    tried, A, B, K, S, R = anchor_hypotheses(*args, 1 << 62, *free)
+    # the work budget: exactly that many hypotheses, the first ones in order (a count, not a clock)
+    cut = anchor_hypotheses(*args, 7, *free)
+    assert cut[0] == 7 and cut[1].tolist() == A[:7].tolist() and cut[4].tolist() == S[:7].tolist()
     assert tried == 2 * (hi - lo) == len(A) > 0
     for a, b, kf, score, r in zip(A, B, K, S, R):
         want, r_want = brute_force_scores(t, i, j, a, b, kf, vec, tol_n)

@@ -87,10 +87,18 @@ def test_benchmark_cli_writes_tables_and_plots(small_dataset, tmp_path, monkeypa
             s = c["solvers"][name]
             assert s["correct"] + s["wrong"] + s["refused"] == pytest.approx(1.0)
             assert s["wrong"] == 0
+            # latency tails beside the median, every call timed (refusals too)
+            assert s["ms_per_frame_median"] <= s["ms_per_frame_p95"] <= s["ms_per_frame_p99"] <= s["ms_per_frame_max"]
+            assert sum(s["refusals_by_status"].values()) == round(s["refused"] * s["frames"])
+            assert s["false_match_probability_sum"] >= 0
     assert r["cells"][1]["solvers"]["tetra3rs"]["correct"] > 0.5  # 12 clean stars: solved
     assert r["solvers"] == ["tetra3rs", "oracle-prior"] and r["notes"] == []
+    solved = r["cells"][1]["solvers"]["tetra3rs"]
+    assert solved["coverage"]["frames"] == round(solved["correct"] * solved["frames"])
+    assert 0 <= solved["coverage"]["cross_1sigma"] <= solved["coverage"]["cross_2sigma"] <= 1
     md = (out / "benchmark.md").read_text()
     assert "correct" in md and "| clean | 12 |" in md
+    assert "p50 / p95 / p99" in md and "Refusals by status" in md and "| clean | 12 | tetra3rs |" in md
     assert (out / "success_vs_n.png").stat().st_size > 1000
     assert (out / "success_vs_false_stars.png").exists()
 

@@ -22,14 +22,52 @@ Outputs (conventions of :mod:`skygen.conventions`)
     angle of image up (-y) from north through east; ``matched`` = (detection row, catalog
     id) pairs; ``residual_arcsec`` = rms angle between matched detections and their
     catalog stars; ``confidence`` in [0, 1] (solver-specific; for tetra3rs ``1 - p`` with p
-    its false-positive probability). :class:`Refusal` — the solver declines, with a reason.
-    A wrong attitude is worse than a refusal: the benchmark counts them separately.
+    its false-positive probability); ``status`` = ``"solved"``. :class:`Refusal` — the solver
+    declines, with a reason and a ``status`` code. A wrong attitude is worse than a refusal: the
+    benchmark counts them separately.
+
+The certificate of a solution
+    ``false_match_probability`` — the solver's own probability that the identification is a
+    coincidence (the fine stage: its expected number of coincidental hypotheses E_false, so
+    ``confidence = 1 - E_false``; tetra3rs: its ``probability``, the false-positive probability of
+    its verification). ``None`` where a solver gives none.
+
+    ``covariance_arcsec`` — 1-sigma attitude uncertainty ``[sigma_x, sigma_y, sigma_roll]``
+    (arcseconds): the small rotation taking the true attitude to the returned one, as a rotation
+    vector in the camera frame (x, y: about the camera's +x and +y axes, i.e. the boresight moving
+    along image -y and +x; roll: about the boresight, +z), and ``covariance_matrix_arcsec2`` its
+    full 3 x 3 covariance (arcsec^2). From the matched stars alone (:func:`attitude_covariance`):
+    with ``v_i`` the matched detections' unit vectors in the camera frame and sigma the per-axis
+    angular centroid error,
+
+        C = sigma^2 * (sum_i (I - v_i v_i^T))^-1,
+        sigma^2 = max(n * rms^2 / (2 n - 3), sigma_floor^2)
+
+    (each star constrains the two directions perpendicular to itself; ``rms`` the matched stars'
+    rms residual angle after the fit, 2n measurements less 3 fitted angles; ``sigma_floor`` the
+    camera's pixel scale times ``CENTROID_FLOOR_PX``, so three stars that happen to fit perfectly
+    do not claim a perfect attitude). Near the boresight this is sigma_x = sigma_y ~ sigma / sqrt(n)
+    and sigma_roll ~ sigma / (sqrt(n) * rho_rms), rho_rms the matched stars' rms distance from their
+    own centroid (radians). It assumes the matches are right and the centroid errors independent;
+    ``fusion benchmark`` reports how often the true error lies within 1 and 2 sigma (coverage).
+
+Refusal status codes (:data:`REFUSAL_STATUSES`)
+    ``too_few_stars`` fewer detections than the method needs (or none); ``no_pattern`` no catalogue
+    pattern matches the detections where the solver searched; ``budget_exhausted`` the solver's
+    work budget ran out before a decision (the fine stage: ``max_hypotheses``, a count, so the same
+    on every machine; tetra3rs: its timeout); ``ambiguous`` several attitudes explain the
+    detections equally well; ``weak_evidence`` a best candidate whose chance of being a coincidence
+    is too high (or that no candidate could reach the bar any more); ``not_verified`` a candidate
+    that verification rejected (tetra3rs tracking did not confirm it, a mismatched star pulled the
+    refined attitude off, a mirror image); ``invalid_input`` nothing could be searched (a
+    degenerate camera model); ``other`` a solver that gives no code (the default, for solvers
+    written before the codes).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -62,6 +100,20 @@ class Detections:
         return Detections(self.x_px[:n], self.y_px[:n], self.flux_adu[:n])
 
 
+REFUSAL_STATUSES: dict[str, str] = {
+    "too_few_stars": "fewer detections than the method needs (or none)",
+    "no_pattern": "no catalogue pattern matches the detections where the solver searched",
+    "budget_exhausted": "the work budget ran out before a decision",
+    "ambiguous": "several attitudes explain the detections equally well",
+    "weak_evidence": "the best candidate's chance of being a coincidence is too high",
+    "not_verified": "verification rejected the candidate",
+    "invalid_input": "nothing could be searched (a degenerate camera model)",
+    "other": "the solver gives no code",
+}
+HINT_RADIUS_SIGMAS = 3.0  # tracking: a hint with 1-sigma error s leaves the attitudes within 3 s of it
+CENTROID_FLOOR_PX = 0.05  # the smallest per-axis centroid error an attitude covariance assumes (pixels)
+
+
 @dataclass(frozen=True)
 class Solution:
     quaternion: np.ndarray  # [w, x, y, z], camera -> ICRS, w >= 0
@@ -74,6 +126,9 @@ class Solution:
     solver: str
     time_ms: float = 0.0
     extra: dict = field(default_factory=dict)
+    false_match_probability: float | None = None  # see the module docstring
+    covariance_matrix_arcsec2: np.ndarray | None = None  # (3, 3), camera-frame rotation vector (x, y, roll)
+    status: ClassVar[str] = "solved"
 
     @property
     def n_matched(self) -> int:
@@ -83,9 +138,16 @@ class Solution:
     def matrix(self) -> np.ndarray:
         return quaternion_to_matrix(self.quaternion)
 
+    @property
+    def covariance_arcsec(self) -> np.ndarray | None:
+        """1-sigma ``[x, y, roll]`` (arcsec): the square roots of the covariance's diagonal."""
+        c = self.covariance_matrix_arcsec2
+        return None if c is None else np.sqrt(np.diag(c))
+
     def to_dict(self) -> dict:
+        cov = self.covariance_matrix_arcsec2
         return {
-            "status": "solved",
+            "status": self.status,
             "solver": self.solver,
             "quaternion_wxyz": [float(v) for v in self.quaternion],
             "ra_deg": self.ra_deg,
@@ -95,6 +157,9 @@ class Solution:
             "matched": self.matched.tolist(),
             "residual_arcsec": self.residual_arcsec,
             "confidence": self.confidence,
+            "false_match_probability": self.false_match_probability,
+            "covariance_arcsec": None if cov is None else [float(v) for v in np.sqrt(np.diag(cov))],
+            "covariance_matrix_arcsec2": None if cov is None else np.asarray(cov, float).tolist(),
             "time_ms": self.time_ms,
             **self.extra,
         }
@@ -102,14 +167,22 @@ class Solution:
 
 @dataclass(frozen=True)
 class Refusal:
+    """The solver declines: ``reason`` in words, ``status`` one of :data:`REFUSAL_STATUSES`."""
+
     reason: str
     solver: str
     time_ms: float = 0.0
     extra: dict = field(default_factory=dict)
+    status: str = "other"
+
+    def __post_init__(self):
+        if self.status not in REFUSAL_STATUSES:
+            raise ValueError(f"Refusal status {self.status!r}: one of {', '.join(REFUSAL_STATUSES)}")
 
     def to_dict(self) -> dict:
         return {
             "status": "refused",
+            "refusal_status": self.status,
             "solver": self.solver,
             "reason": self.reason,
             "time_ms": self.time_ms,
@@ -138,14 +211,20 @@ class FallbackSolver:
         return getattr(self.second, "prior", None)
 
     def solve(self, detections: Detections, camera, image: np.ndarray | None = None, **kw) -> Solution | Refusal:
-        a = self.first.solve(detections, camera, image)
+        track = {k: kw[k] for k in ("hint", "hint_sigma_deg") if kw.get(k) is not None}
+        a = self.first.solve(detections, camera, image, **track)  # a tracking hint goes to both
         if isinstance(a, Solution):
             return a
         b = self.second.solve(detections, camera, image, **kw)
         if isinstance(b, Solution):
             return b
+        # the status is the second's: it searched last and most (the first's is in the reason)
         return Refusal(
-            f"{a.solver}: {a.reason}; {b.solver}: {b.reason}", self.name, a.time_ms + b.time_ms, {**a.extra, **b.extra}
+            f"{a.solver}: {a.reason}; {b.solver}: {b.reason}",
+            self.name,
+            a.time_ms + b.time_ms,
+            {**a.extra, **b.extra},
+            b.status,
         )
 
 
@@ -158,6 +237,27 @@ def solution_from_matrix(m: np.ndarray, **kw) -> Solution:
     """A :class:`Solution` from a camera -> ICRS rotation matrix and the remaining fields."""
     ra, dec, roll = radec_roll_from_matrix(m)
     return Solution(matrix_to_quaternion(m), ra, dec, roll, **kw)
+
+
+def attitude_covariance(u: np.ndarray, residual_arcsec: float, pixel_scale_arcsec: float) -> np.ndarray:
+    """The 3 x 3 attitude covariance (arcsec^2) of a rotation fitted to matched stars (module docstring).
+
+    ``u`` (n, 3): the matched detections' unit vectors in the camera frame; ``residual_arcsec``: their rms
+    angle from their catalogue stars after the fit; ``pixel_scale_arcsec``: of the camera (the floor of
+    the per-axis centroid error is :data:`CENTROID_FLOOR_PX` pixels)."""
+    u = np.asarray(u, np.float64).reshape(-1, 3)
+    n = len(u)
+    sigma2 = max(n * residual_arcsec**2 / max(2 * n - 3, 1), (CENTROID_FLOOR_PX * pixel_scale_arcsec) ** 2)
+    info = n * np.eye(3) - u.T @ u  # sum of (I - v v^T)
+    return sigma2 * np.linalg.pinv(info)
+
+
+def rotation_vector_deg(m_a: np.ndarray, m_b: np.ndarray) -> np.ndarray:
+    """Rotation vector (degrees) of ``m_a^T m_b``: the rotation taking attitude ``m_a`` to ``m_b`` in ``m_a``'s
+    camera frame (x, y cross-boresight, z roll), the frame of :attr:`Solution.covariance_matrix_arcsec2`."""
+    from scipy.spatial.transform import Rotation
+
+    return np.degrees(Rotation.from_matrix(np.asarray(m_a).T @ np.asarray(m_b)).as_rotvec())
 
 
 def rotation_angle_deg(m_a: np.ndarray, m_b: np.ndarray) -> float:

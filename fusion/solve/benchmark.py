@@ -53,8 +53,21 @@ true roll, **wrong** otherwise; a refusal is **refused**. A wrong star identific
 degrees; the looser roll bound keeps correct identifications of a few close stars with
 noisy centroids (roll is the weakly constrained angle then) from counting as wrong, and
 the error statistics report the precision. Boresight and roll errors are over
-returned attitudes (median, p95 and max, arcseconds); ms/frame is the mean wall time of the
-solver call on one core. A region is correct when it is the max-cosine region of the true
+returned attitudes (median, p95 and max, arcseconds); ms/frame is the wall time of the
+solver call on one core: mean, median, p95, p99 and max over every call of the cell, refusals
+included (``ms_per_frame``, ``ms_per_frame_median``, ``_p95``, ``_p99``, ``_max``). Per cell and
+solver the report also counts refusals by status (``refusals_by_status``, the codes of
+:data:`fusion.solve.base.REFUSAL_STATUSES`), sums the answers' false-match probabilities
+(``false_match_probability_sum``: the wrong answers to expect if they are calibrated, beside
+``wrong``) and checks each correct answer's attitude covariance against its true error
+(``coverage``: the fraction within 1 and 2 sigma, cross-boresight and roll; 68 / 95 % if calibrated).
+
+Tracking cells (``--track-hint-deg 0.5 2 5``, at each N of ``--track-n``, default 2 and 3): the clean
+detections, and every solver is given a hint, the true attitude turned by that angle about a random
+axis (one draw per frame, :func:`track_hint`), with that angle as the hint's 1-sigma error
+(``solve(..., hint=, hint_sigma_deg=)``: the fine stage searches the attitudes within 3 sigma, tetra3rs
+tracks with ``hint_uncertainty_deg`` = 3 sigma, strict).
+A region is correct when it is the max-cosine region of the true
 boresight (as ``fusion evaluate`` labels frames).
 
 Outputs in ``--out``: ``benchmark.json`` (every cell, every solver), ``benchmark.md``
@@ -78,12 +91,13 @@ from skygen.lock import FolderLock
 from skygen.runtime import atomic_write_text, hardware_line, write_json
 
 from ..errors import ConfigError
-from .base import Detections, Solution, boresight_error_deg, roll_error_deg
+from .base import Detections, Solution, boresight_error_deg, roll_error_deg, rotation_vector_deg
 from .registry import SOLVERS as REGISTERED
 
 DETECTION_CORRUPTIONS = ("dropout", "false_stars", "centroid_noise", "magnitude_noise")
 FULL_N = (3, 4, 5, 6, 7, 8, 10, 12, 15, 20)
 SMALL_N = (4, 6, 10)
+TRACK_N = (2, 3)  # tracking cells: where lost in space cannot work
 # every registered solver, and ``learned``: the model's regions alone (top-1/top-3, no attitude)
 SOLVERS = tuple(REGISTERED) + ("learned",)
 DEFAULT_SOLVERS = ("tetra3rs", "oracle-prior", "sim85-prior", "learned", "learned+fine")
@@ -147,13 +161,18 @@ def check_grid(frames: int, n_values, corruption_n, correct_deg: float, correct_
             raise ConfigError(f"{flag} {value:g}: the error counted as correct must be in (0, 180] degrees")
 
 
-def grid(n_values, corruption_n, corruptions, severities: dict | None = None) -> list[dict]:
+def grid(
+    n_values, corruption_n, corruptions, severities: dict | None = None, track_hint_deg=(), track_n=TRACK_N
+) -> list[dict]:
     """Cells: clean at every N of ``n_values``; each corruption's severities (default: the registry's nonzero
-    sweep) at every N of ``corruption_n``."""
+    sweep) at every N of ``corruption_n``; tracking (clean detections, a hint ``track_hint_deg`` off) at every N
+    of ``track_n``."""
     cells = [{"corruption": None, "severity": 0.0, "n": int(n)} for n in n_values]
     for name in corruptions:
         sev = (severities or {}).get(name) or [s for s in corr.get(name).sweep if s > 0]
         cells += [{"corruption": name, "severity": float(s), "n": int(n)} for n in corruption_n for s in sev]
+    for deg in track_hint_deg:
+        cells += [{"corruption": None, "severity": 0.0, "n": int(n), "track_hint_deg": float(deg)} for n in track_n]
     return cells
 
 
@@ -166,15 +185,47 @@ def default_centroids(k: int = 15) -> np.ndarray:
     return spherical_kmeans(v / np.linalg.norm(v, axis=1, keepdims=True), k, seed=0, n_init=2).centroids
 
 
+def coverage(solutions: list, truth: list) -> dict | None:
+    """How often the true attitude error lies within 1 and 2 sigma of each solution's covariance
+    (:attr:`Solution.covariance_arcsec`; 68 / 95 % for a calibrated Gaussian): ``cross_*`` pools the
+    two cross-boresight axes, ``roll_*`` the roll axis; ``frames``: solutions with a covariance."""
+    errs, sig = [], []
+    for res, (m_true, _) in zip(solutions, truth):
+        if res.covariance_arcsec is not None:
+            errs.append(np.abs(rotation_vector_deg(m_true, res.matrix)) * 3600)
+            sig.append(res.covariance_arcsec)
+    if not errs:
+        return None
+    z = np.array(errs) / np.maximum(np.array(sig), 1e-12)
+    out: dict = {"frames": len(z)}
+    for k in (1, 2):
+        out[f"cross_{k}sigma"] = float(np.mean(z[:, :2] <= k))
+        out[f"roll_{k}sigma"] = float(np.mean(z[:, 2] <= k))
+    out["cross_error_over_sigma_median"] = float(np.median(z[:, :2]))
+    out["roll_error_over_sigma_median"] = float(np.median(z[:, 2]))
+    return out
+
+
 def _summary(results: list, truth: list, secs: list, correct_deg: float, correct_roll_deg: float) -> dict:
     ok = wrong = refused = 0
     bore, roll = [], []
+    statuses: dict[str, int] = {}
+    good, good_truth = [], []
+    fmp_sum = fmp_wrong = 0.0  # summed false-match probabilities of every answer, and of the wrong ones
     for res, (m_true, roll_true) in zip(results, truth):
         if not isinstance(res, Solution):
             refused += 1
+            statuses[res.status] = statuses.get(res.status, 0) + 1
             continue
         b, o = boresight_error_deg(m_true, res.matrix), roll_error_deg(res.roll_deg, roll_true)
-        ok, wrong = (ok + 1, wrong) if b <= correct_deg and o <= correct_roll_deg else (ok, wrong + 1)
+        right = b <= correct_deg and o <= correct_roll_deg
+        ok, wrong = (ok + 1, wrong) if right else (ok, wrong + 1)
+        fmp = res.false_match_probability
+        fmp_sum += 0.0 if fmp is None else fmp
+        fmp_wrong += 0.0 if fmp is None or right else fmp
+        if right:
+            good.append(res)
+            good_truth.append((m_true, roll_true))
         bore.append(b * 3600)
         roll.append(o * 3600)
     n = len(results)
@@ -191,8 +242,16 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
         "refused": refused / n,
         "boresight_error_arcsec": stat(bore),
         "roll_error_arcsec": stat(roll),
+        "refusals_by_status": dict(sorted(statuses.items())),
+        "false_match_probability_sum": fmp_sum,  # the wrong answers expected, if the probabilities are right
+        "false_match_probability_of_wrong": fmp_wrong,
+        "coverage": coverage(good, good_truth),
+        # every call timed, refusals included (a refusal that searches everything is the tail)
         "ms_per_frame": 1e3 * float(np.mean(secs)),
         "ms_per_frame_median": 1e3 * float(np.median(secs)),
+        "ms_per_frame_p95": 1e3 * float(np.percentile(secs, 95)),
+        "ms_per_frame_p99": 1e3 * float(np.percentile(secs, 99)),
+        "ms_per_frame_max": 1e3 * float(np.max(secs)),
     }
 
 
@@ -239,6 +298,8 @@ def run_benchmark(
     top_k: int | None = None,
     search: str = "fine",
     focal_tol: float = 0.02,
+    track_hint_deg=(),
+    track_n=TRACK_N,
     log=print,
     warn=None,
 ) -> dict:
@@ -255,6 +316,11 @@ def run_benchmark(
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     check_search_options(focal_tol, top_k, "--top-k")
     check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
+    bad = [d for d in track_hint_deg if not 0 < d <= 20]
+    if bad:
+        raise ConfigError(f"--track-hint-deg {bad[0]:g}: a hint's error in (0, 20] degrees, e.g. 0.5 2 5")
+    if any(n < 1 for n in track_n):
+        raise ConfigError(f"--track-n {min(track_n)}: each N must be at least 1")
     solvers = check_solvers(solvers, checkpoint)
     corruptions = resolve_corruptions(corruptions)
     out = Path(out)
@@ -276,6 +342,8 @@ def run_benchmark(
         "top_k": top_k,
         "search": search,
         "focal_tol": focal_tol,
+        "track_hint_deg": tuple(track_hint_deg),
+        "track_n": tuple(track_n),
     }
     with FolderLock(out, what="fusion benchmark"):
         return _run_benchmark(data, out, checkpoint, list(solvers), settings, log, warn)
@@ -363,9 +431,21 @@ def build_solvers(ctx, solvers: list[str]) -> tuple[dict, dict]:
     return built, composite
 
 
-def solve_all(solver, dets: list, fr: BenchmarkFrames) -> tuple[list, list]:
+def track_hint(m_true: np.ndarray, angle_deg: float, seed: int, frame_index: int) -> np.ndarray:
+    """A tracking cell's hint: the true camera -> ICRS matrix turned by ``angle_deg`` about a random axis of the
+    camera frame (one draw per (dataset seed, frame), the same for every solver and every angle)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = corr.stage_rng(seed, frame_index, "track_hint/benchmark")
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    return np.asarray(m_true) @ Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix()
+
+
+def solve_all(solver, dets: list, fr: BenchmarkFrames, hint_deg: float = 0.0) -> tuple[list, list]:
     """(answers, seconds) of ``solver`` on each frame's detections; the benchmark's truth-ranked priors
-    receive each frame's probabilities."""
+    receive each frame's probabilities; ``hint_deg`` > 0: tracking, each frame's :func:`track_hint` with a
+    1-sigma error of ``hint_deg``."""
     from .priors import OraclePrior
 
     oracle = getattr(solver, "prior", None)
@@ -373,10 +453,20 @@ def solve_all(solver, dets: list, fr: BenchmarkFrames) -> tuple[list, list]:
     results, secs = [], []
     for j, d in enumerate(dets):
         kw = {"probabilities": oracle.probabilities_for(fr.v_true[j], int(fr.index[j]))} if oracle is not None else {}
+        if hint_deg > 0:
+            kw = {"hint": track_hint(fr.truth[j][0], hint_deg, fr.seed, int(fr.index[j])), "hint_sigma_deg": hint_deg}
         t0 = time.perf_counter()
         results.append(solver.solve(d, fr.camera, fr.images[j], **kw))
         secs.append(time.perf_counter() - t0)
     return results, secs
+
+
+def warm_up(built: dict, fr: BenchmarkFrames) -> None:
+    """One untimed solve per solver on the first frame: compiling the fine stage's loops (numba) and loading
+    its pair index take seconds once per process, which would otherwise be the first cell's p99."""
+    if fr.tables:
+        for solver in built.values():
+            solve_all(solver, [Detections.from_table(fr.tables[0])], fr)
 
 
 def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, learned, correct: tuple) -> dict:
@@ -392,8 +482,9 @@ def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, le
     ]
     row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
     answers = {}
+    hint_deg = float(cell.get("track_hint_deg") or 0.0)
     for name, solver in built.items():
-        results, secs = answers[name] = solve_all(solver, dets, fr)
+        results, secs = answers[name] = solve_all(solver, dets, fr, hint_deg)
         row["solvers"][name] = _summary(results, fr.truth, secs, *correct)
     for name, (a, b) in composite.items():
         (ra, sa), (rb, sb) = answers[a], answers[b]
@@ -404,7 +495,7 @@ def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, le
             [x if ok else x + y for x, y, ok in zip(sa, sb, first)],
             *correct,
         )
-    if learned is not None:
+    if learned is not None and not hint_deg:
         prior, centroids, labels, search_labels, top_k = learned
         row["solvers"]["learned"] = _learned_cell(
             prior, dets, fr.images, labels, fr.v_true, centroids, search_labels, top_k
@@ -443,6 +534,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
     )
     level = getattr(ctx.prior, "level", "coarse")
     built, composite = build_solvers(ctx, solvers)
+    warm_up(built, fr)
     labels = np.argmax(fr.v_true @ centroids.T, axis=1)
     search_labels = np.argmax(fr.v_true @ ctx.search_centroids.T, axis=1)
     learned = (
@@ -450,7 +542,9 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
         if "learned" in solvers
         else None
     )
-    cells = grid(st["n_values"], st["corruption_n"], st["corruptions"], st["severities"])
+    cells = grid(
+        st["n_values"], st["corruption_n"], st["corruptions"], st["severities"], st["track_hint_deg"], st["track_n"]
+    )
     log(f"benchmark: {len(fr.tables)} frames x {len(cells)} cells; solvers: {', '.join(solvers)}")
     rows = []
     for ci, cell in enumerate(cells):
@@ -523,7 +617,13 @@ def _learned_cell(prior, dets, images, labels, v_true, centroids, search_labels,
 
 
 def _cell_name(c: dict) -> str:
+    if c.get("track_hint_deg"):
+        return f"track, hint {c['track_hint_deg']:g}° off"
     return "clean" if c["corruption"] is None else f"{c['corruption']}={c['severity']:g}"
+
+
+def _is_clean(row: dict) -> bool:
+    return row["corruption"] is None and not row.get("track_hint_deg")
 
 
 def _cell_line(row: dict, i: int, n: int) -> str:
@@ -548,7 +648,8 @@ def markdown(r: dict) -> str:
         f"{r['wall_time_s']:.0f} s in all.",
         "",
         f"**correct** = {r['correct_definition']}; **wrong** = any other returned attitude; **refused** = no "
-        "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame (mean; median).",
+        "attitude returned. Each entry: correct / wrong / refused (%), then ms per frame (mean; p50 / p95 / p99, "
+        "every call timed, refusals included).",
         "",
     ]
     lines += [f"- {n}" for n in r["notes"]] + ([""] if r["notes"] else [])
@@ -562,10 +663,9 @@ def markdown(r: dict) -> str:
         cols = []
         for name in full:
             s = row["solvers"][name]
-            med = s.get("ms_per_frame_median")
             cols.append(
                 f"{100 * s['correct']:.0f} / {100 * s['wrong']:.0f} / {100 * s['refused']:.0f} "
-                f"({s['ms_per_frame']:.1f} ms" + ("" if med is None else f"; median {med:.1f}") + ")"
+                f"({s['ms_per_frame']:.1f} ms; {_tail_text(s)})"
             )
         if "learned" in r["solvers"]:
             s = row["solvers"]["learned"]
@@ -584,14 +684,54 @@ def markdown(r: dict) -> str:
         "|---|" + "---|" * len(full),
     ]
     for row in r["cells"]:
-        if row["corruption"] is None:
+        if _is_clean(row):
             cols = []
             for name in full:
                 s = row["solvers"][name]
                 b, o = s["boresight_error_arcsec"], s["roll_error_arcsec"]
                 cols.append("–" if b is None else f"{b['median']:.1f} / {o['median']:.1f}")
             lines.append(f"| {row['n']} | " + " | ".join(cols) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _certificate_lines(r, full)) + "\n"
+
+
+def _tail_text(s: dict) -> str:
+    """p50 / p95 / p99 of one cell's timings (older reports: the median only)."""
+    med, p95, p99 = (s.get(f"ms_per_frame_{k}") for k in ("median", "p95", "p99"))
+    if med is None:
+        return "median –"
+    return f"{med:.1f} / {p95:.1f} / {p99:.1f}" if p99 is not None else f"median {med:.1f}"
+
+
+def _certificate_lines(r: dict, full: list) -> list:
+    """The refusals by status, and each solution's certificate checked against the truth: the wrong answers
+    its false-match probabilities expect (their sum) beside those counted, and how often the true error of
+    a correct answer lies within 1 / 2 sigma of its covariance (68 / 95 % if calibrated)."""
+    if not any("refusals_by_status" in row["solvers"].get(n, {}) for row in r["cells"] for n in full):
+        return []
+    lines = [
+        "",
+        "Refusals by status (frames), and the certificate of the answers: wrong answers counted / expected "
+        "(the sum of their false-match probabilities); correct answers whose true error lies within 1σ / 2σ "
+        "of their covariance, cross-boresight (x and y pooled) and roll (68 / 95 % if calibrated):",
+        "",
+        "| cell | N | solver | refusals by status | wrong / expected | cross 1σ / 2σ | roll 1σ / 2σ |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in r["cells"]:
+        for name in full:
+            s = row["solvers"][name]
+            if "refusals_by_status" not in s:
+                continue
+            by = ", ".join(f"{k} {v}" for k, v in s["refusals_by_status"].items()) or "–"
+            wrong = round(s["wrong"] * s["frames"])
+            c = s.get("coverage")
+            cross = "–" if c is None else f"{100 * c['cross_1sigma']:.0f} / {100 * c['cross_2sigma']:.0f} %"
+            roll = "–" if c is None else f"{100 * c['roll_1sigma']:.0f} / {100 * c['roll_2sigma']:.0f} %"
+            lines.append(
+                f"| {_cell_name(row)} | {row['n']} | {name} | {by} | {wrong} / "
+                f"{s['false_match_probability_sum']:.2g} | {cross} | {roll} |"
+            )
+    return lines
 
 
 def _search_text(r: dict) -> str:
@@ -608,7 +748,7 @@ def plot(r: dict, out: Path) -> None:
 
     plt = _figure()
     full = [s for s in r["solvers"] if s != "learned"]
-    clean = [row for row in r["cells"] if row["corruption"] is None]
+    clean = [row for row in r["cells"] if _is_clean(row)]
     if clean:
         fig, ax = plt.subplots(figsize=(6, 4))
         ns = [row["n"] for row in clean]

@@ -80,7 +80,25 @@ about ten times more per region searched; the hypothesis count H accumulates, so
 more regions demands stronger evidence. The prior is pluggable: any
 :class:`fusion.solve.priors.RegionPrior`, or probabilities passed to
 :meth:`CoarseToFineSolver.solve`. Doubtful candidates are :class:`~fusion.solve.base.Refusal`
-values (the reason why), never strings.
+values (the reason why, and a status code), never strings.
+
+**Work budget.** At most ``max_hypotheses`` hypotheses per solve, every pass and region together
+(default: :data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of pairs);
+where they run out without an accepted attitude the answer is a refusal with status
+``budget_exhausted``. A count, not a clock: the same frame gets the same answer on every machine.
+
+**Certificate.** A solution's ``false_match_probability`` is its E_false above (so ``confidence =
+1 - E_false``), its covariance that of :func:`fusion.solve.base.attitude_covariance` from the stars it
+matched (tetra3rs's matches where tetra3rs confirmed it).
+
+**Tracking** (``solve(..., hint=M, hint_sigma_deg=s)``): one region, every attitude within 3 s of the hint M
+(:func:`hint_region`: boresight and camera +x both within 3 s, so the roll is bounded as well as the
+pointing), searched as a prior's region is (region index -2). H then counts only the hypotheses consistent
+with the hint: a handful, so three stars reach the confidence bar. tetra3rs's verification does not know the
+hint (its false-positive test over its database rejects most three-star matches), so an unconfirmed
+tracking candidate is returned where its confidence reaches ``tracking_unverified_confidence`` (1 - 1e-3)
+instead of ``unverified_confidence``. This trusts the hint: a wrong hint can only lead to an attitude
+near it. Two stars are refused (``too_few_stars``): one pair leaves no independent evidence.
 """
 
 from __future__ import annotations
@@ -93,9 +111,29 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .base import Detections, Refusal, Solution, rotation_angle_deg, solution_from_matrix
+from .base import (
+    HINT_RADIUS_SIGMAS,
+    Detections,
+    Refusal,
+    Solution,
+    attitude_covariance,
+    rotation_angle_deg,
+    solution_from_matrix,
+)
 from .match import anchor_hypotheses, partner_table
 from .pairs import load_or_build
+
+# the work budget per solve (hypotheses, both passes and every region together). Chosen from measurement:
+# on 100 rendered frames x 13 cells of the small grid (+ N = 3, 5) every correct whole-sky answer came
+# within 90,492 hypotheses (p99 31,430; centroid noise 1 px the costliest), while refusals searched up
+# to 763,000 (1-2 s); 150,000 leaves a margin of 1.7 over the costliest correct answer. A camera whose
+# catalogue cut holds more pairs per separation window (a narrower field, a finer pixel) tries more
+# hypotheses for the same frame, so the default (max_hypotheses=None) is scaled by its mean number of
+# catalogue pairs in one detection pair's +-2 tol_px window, relative to that of the 20 deg camera
+# above (REFERENCE_WINDOW_PAIRS); never below MAX_HYPOTHESES. The fitted Blackfly camera (11.5 deg, 25,273
+# stars in the cut): x 5.0, 749,000 (its 8 real frames need 6,500-22,000 at N = 4-6).
+MAX_HYPOTHESES = 150_000
+REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
 
 
 @dataclass(frozen=True)
@@ -103,7 +141,21 @@ class Region:
     center: np.ndarray  # (3,) ICRS unit vector
     radius_deg: float  # every boresight of the region lies within this angle of the centre
     probability: float
-    index: int
+    index: int  # the prior's region; -1: the rest of the sky (then_whole_sky); -2: a tracking hint's
+    x_axis: np.ndarray | None = None  # a tracking hint's camera +x (ICRS): the roll is bounded too
+
+
+def hint_region(hint: np.ndarray, hint_sigma_deg: float) -> Region:
+    """The region a tracking hint (camera -> ICRS matrix, 1-sigma ``hint_sigma_deg``) leaves: attitudes within
+    ``HINT_RADIUS_SIGMAS`` sigma of it, i.e. boresight and camera +x axis both within that angle of the hint's
+    (a rotation by an angle moves no axis farther than that angle)."""
+    if not (np.isfinite(hint_sigma_deg) and 0 < hint_sigma_deg <= 60):
+        raise ValueError(f"hint_sigma_deg={hint_sigma_deg}: the hint's 1-sigma error, in (0, 60] degrees")
+    m = np.asarray(hint, np.float64)
+    if m.shape != (3, 3) or not np.allclose(m.T @ m, np.eye(3), atol=1e-6) or np.linalg.det(m) < 0:
+        raise ValueError("hint: a 3 x 3 rotation matrix (camera -> ICRS), e.g. the previous Solution.matrix")
+    radius = min(180.0, HINT_RADIUS_SIGMAS * float(hint_sigma_deg))
+    return Region(np.ascontiguousarray(m[:, 2]), radius, 1.0, -2, np.ascontiguousarray(m[:, 0]))
 
 
 def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndarray:
@@ -193,6 +245,7 @@ class CoarseToFineSolver:
         min_matches: int = 3,
         min_confidence: float = 0.99,
         unverified_confidence: float = 1 - 1e-6,
+        tracking_unverified_confidence: float = 1 - 1e-3,
         verify_with_tetra3rs: bool = True,
         focal_tol: float = 0.0,
         anchor_order: str = "fewest",
@@ -203,6 +256,7 @@ class CoarseToFineSolver:
         few_top_k_factor: int = 4,
         then_whole_sky: bool = False,
         max_detections: int | None = 24,
+        max_hypotheses: int | None = None,
     ):
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
@@ -217,8 +271,13 @@ class CoarseToFineSolver:
         if max_detections is not None and max_detections < 3:
             raise ValueError(f"max_detections={max_detections}: at least 3, or None (all)")
         self.max_detections = max_detections
+        if max_hypotheses is not None and (
+            isinstance(max_hypotheses, bool) or not isinstance(max_hypotheses, int) or max_hypotheses < 1
+        ):
+            raise ValueError(f"max_hypotheses={max_hypotheses!r}: a positive number of hypotheses per solve, or None")
         self.max_pair_detections, self.verify = max_pair_detections, verify_with_tetra3rs
         self.unverified_confidence = unverified_confidence
+        self.tracking_unverified_confidence = tracking_unverified_confidence
         self.bright_max_detections = int(bright_max_detections)
         if photometric_mag is not None and not photometric_mag > 0:
             raise ValueError(f"photometric_mag={photometric_mag}: a positive magnitude scatter, or None (off)")
@@ -259,6 +318,10 @@ class CoarseToFineSolver:
                 )
             )
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
+        if max_hypotheses is None:  # the budget scales with the catalogue's density of pairs (see MAX_HYPOTHESES)
+            window = len(self.tiers[0].pairs.sep) * 4 * self.tol_rad / max_sep
+            max_hypotheses = int(round(MAX_HYPOTHESES * max(1.0, window / REFERENCE_WINDOW_PAIRS)))
+        self.max_hypotheses = max_hypotheses
 
     # ---------------------------------------------------------------- regions
     def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None, top_k: int | None = None) -> list[Region]:
@@ -271,9 +334,10 @@ class CoarseToFineSolver:
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
     # ---------------------------------------------------------------- search
-    def _hypotheses(self, tier: _Tier, u: np.ndarray, region: Region, s: float, tables: dict):
+    def _hypotheses(self, tier: _Tier, u: np.ndarray, region: Region, s: float, tables: dict, budget: int):
         """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) of the
-        hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`)."""
+        hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`), at
+        most ``budget`` hypotheses in all (the last pair's are cut short where it runs out)."""
         idx, tol = tier.pairs, self.tol_rad
         cap = np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol)
         star_ok = (tier.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(tier.vec), bool)
@@ -316,7 +380,11 @@ class CoarseToFineSolver:
                 region.center,
                 cos_r,
                 3,
+                budget,
+                region.center if region.x_axis is None else region.x_axis,
+                -2.0 if region.x_axis is None else cos_r,
             )
+            budget -= tried
             yield rots, ks, scores, tried
 
     def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict):
@@ -349,14 +417,20 @@ class CoarseToFineSolver:
         ok = np.isfinite(dist)
         return np.flatnonzero(ok), idx[ok]
 
-    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0, tier: _Tier | None = None) -> float:
-        """1 - expected number of coincidental hypotheses with ``score`` or more matches (see module doc),
-        with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
-        match also passes the photometric test (1: not tested)."""
+    def expected_false(
+        self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0, tier: _Tier | None = None
+    ) -> float:
+        """E_false: the expected number of coincidental hypotheses with ``score`` or more matches (see module
+        doc), with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
+        match also passes the photometric test (1: not tested). Infinite for two matches or fewer."""
         tier = tier or self.tiers[0]
         if score - 2 <= 0:
-            return 0.0
-        return float(max(0.0, 1.0 - n_hypotheses * _chance_sum(tier.p_chance, n_det, score) * q))
+            return math.inf
+        return float(n_hypotheses * _chance_sum(tier.p_chance, n_det, score) * q)
+
+    def confidence(self, n_hypotheses: int, n_det: int, score: int, q: float = 1.0, tier: _Tier | None = None) -> float:
+        """``max(0, 1 - E_false)`` (:meth:`expected_false`)."""
+        return float(max(0.0, 1.0 - self.expected_false(n_hypotheses, n_det, score, q, tier)))
 
     # ---------------------------------------------------------------- photometry
     def _photometric_q(self, tier: _Tier, flux: np.ndarray, samples: int = 4000) -> float:
@@ -396,34 +470,50 @@ class CoarseToFineSolver:
         s = int(scores[best])
         rivals = np.flatnonzero(scores == s)
         if any(rotation_angle_deg(rots[best], rots[k]) > 0.5 for k in rivals):
-            return Refusal(f"ambiguous: several attitudes match {s} of {n} detections", self.name)
+            return Refusal(f"ambiguous: several attitudes match {s} of {n} detections", self.name, status="ambiguous")
         conf = self.confidence(tried, n, s, tier=tier)
         if s >= self.min_matches and conf < self.min_confidence and self.photometric_mag is not None:
             det_rows, cat_rows = self._matches(tier, rots[best], _unit_at(u[:, :2] / u[:, 2:3], ks[best]))
             if self._photometric_pass(tier, cat_rows, det_rows, flux):
                 conf = self.confidence(tried, n, s, self._photometric_q(tier, flux[det_rows]), tier=tier)
         if s < self.min_matches or conf < self.min_confidence:
-            return Refusal(f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}", self.name)
+            return Refusal(
+                f"weak evidence: {s} of {n} detections matched, confidence {conf:.3g}",
+                self.name,
+                status="weak_evidence",
+            )
         return best
 
     def solve(
-        self, detections: Detections, camera=None, image=None, probabilities: np.ndarray | None = None
+        self,
+        detections: Detections,
+        camera=None,
+        image=None,
+        probabilities: np.ndarray | None = None,
+        hint: np.ndarray | None = None,
+        hint_sigma_deg: float = 1.0,
     ) -> Solution | Refusal:
+        """An attitude or a refusal (module docstring). ``probabilities``: the regions' prior (default: the
+        solver's prior's). ``hint``: tracking; a camera -> ICRS matrix (the previous frame's
+        :attr:`Solution.matrix`) with 1-sigma error ``hint_sigma_deg``: the one region searched is every
+        attitude within 3 sigma of it (:func:`hint_region`), the prior is not consulted, and H counts only
+        that region's hypotheses, so three stars suffice where lost in space needs four or more."""
         t0 = time.perf_counter()
+        tracking = hint_region(hint, hint_sigma_deg) if hint is not None else None
         camera = camera or self.tetra.camera
 
         def ms():
             return (time.perf_counter() - t0) * 1e3
 
         if len(detections) < 3:
-            return Refusal(f"too few detections ({len(detections)})", self.name, ms())
+            return Refusal(f"too few detections ({len(detections)})", self.name, ms(), status="too_few_stars")
         # the brightest max_detections identify; tetra3rs verifies with all of them. Each detection scored costs a
         # partner table per anchor star (a real 11 deg frame with 64 detections: ~60 of them per search)
         every = detections
         if self.max_detections is not None and len(detections) > self.max_detections:
             detections = detections.brightest(self.max_detections)
         centroids = None
-        if probabilities is None and self.prior is not None:
+        if probabilities is None and self.prior is not None and tracking is None:
             probabilities = self.prior.probabilities(detections, image)
         if probabilities is not None:
             centroids = self.prior.centroids if self.prior is not None else None
@@ -435,7 +525,8 @@ class CoarseToFineSolver:
         # three detections: the bright tier (a chance triangle needs three bright stars, so H and p both
         # shrink); more: the full cut, where four or more stars leave few look-alikes anyway
         tier = self.tiers[-1] if n <= self.bright_max_detections else self.tiers[0]
-        tried, last = 0, Refusal("no catalog pair matches the detections in the prior's regions", self.name)
+        tried = 0
+        last = Refusal("no catalog pair matches the detections in the prior's regions", self.name, status="no_pattern")
         # strict first (the nominal focal length, every region), then within +-focal_tol: a wider
         # search finds more coincidences, so it runs only where the strict one found nothing,
         # and the hypotheses of both count towards H
@@ -444,8 +535,11 @@ class CoarseToFineSolver:
         # only its own hypotheses, so it searches few_top_k_factor times as many (20 -> 80 fine regions:
         # 47 -> 51 % at N = 3 on results/benchmark's frames, the true region's own rate)
         few = n <= self.bright_max_detections
-        regions = self.regions(probabilities, centroids, self.top_k * self.few_top_k_factor if few else None)
-        if self.then_whole_sky and probabilities is not None:
+        if tracking is not None:
+            regions = [tracking]
+        else:
+            regions = self.regions(probabilities, centroids, self.top_k * self.few_top_k_factor if few else None)
+        if self.then_whole_sky and probabilities is not None and tracking is None:
             # where the prior's regions refuse (a prior misled by noisy magnitudes, say), the rest of the sky;
             # H keeps counting (the prior's regions are counted again inside it: conservative)
             regions.append(Region(np.array([0.0, 0.0, 1.0]), 180.0, 0.0, -1))
@@ -455,7 +549,7 @@ class CoarseToFineSolver:
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
-                for r, k, sc, t in self._hypotheses(tier, u, region, s, tables):
+                for r, k, sc, t in self._hypotheses(tier, u, region, s, tables, self.max_hypotheses - tried):
                     tried += t
                     best_possible = self.confidence(tried, n, n, tier=tier)
                     if best_possible < self.min_confidence and self.photometric_mag is not None:
@@ -471,21 +565,35 @@ class CoarseToFineSolver:
                             self.name,
                             ms(),
                             {"hypotheses": tried},
+                            "weak_evidence",
                         )
-                    if not len(sc):
-                        continue
-                    rots, ks, scores = np.concatenate([rots, r]), np.concatenate([ks, k]), np.concatenate([scores, sc])
-                    verdict = self._decide(tier, rots, ks, scores, tried, u, flux)
-                    if isinstance(verdict, int):
-                        sol = self._finish(
-                            tier, rots[verdict], float(ks[verdict]), u, detections, camera, region, tried, t0, every
+                    doubtful = False
+                    if len(sc):
+                        rots, ks = np.concatenate([rots, r]), np.concatenate([ks, k])
+                        scores = np.concatenate([scores, sc])
+                        verdict = self._decide(tier, rots, ks, scores, tried, u, flux)
+                        if isinstance(verdict, int):
+                            sol = self._finish(
+                                tier, rots[verdict], float(ks[verdict]), u, detections, camera, region, tried, t0, every
+                            )
+                            if isinstance(sol, Solution):
+                                return sol
+                            last, doubtful = sol, True
+                        else:
+                            last = verdict
+                    if tried >= self.max_hypotheses:
+                        # the work budget: a count of hypotheses, so the same answer on every machine
+                        return Refusal(
+                            f"work budget exhausted: {tried} hypotheses (max_hypotheses) without an accepted "
+                            f"attitude; last: {last.reason}",
+                            self.name,
+                            ms(),
+                            {"hypotheses": tried},
+                            "budget_exhausted",
                         )
-                        if isinstance(sol, Solution):
-                            return sol
-                        last = sol
+                    if doubtful:
                         break  # this pass's best is doubtful: go on
-                    last = verdict
-        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried})
+        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried}, last.status)
 
     def refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
         """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
@@ -532,7 +640,8 @@ class CoarseToFineSolver:
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
         rot, k, det_rows, cat_rows, uk = self.refine(tier, rot, k, u, self.focal_tol)
         score = len(det_rows)
-        conf = self.confidence(tried, len(u), score, tier=tier)
+        e_false = self.expected_false(tried, len(u), score, tier=tier)
+        conf = max(0.0, 1.0 - e_false)
         flux = np.asarray(detections.flux_adu, np.float64)
         evidence = "geometry"
         if (
@@ -540,13 +649,14 @@ class CoarseToFineSolver:
             and conf < self.unverified_confidence
             and self._photometric_pass(tier, cat_rows, det_rows, flux)
         ):
-            conf_p = self.confidence(tried, len(u), score, self._photometric_q(tier, flux[det_rows]), tier=tier)
-            if conf_p > conf:
-                conf, evidence = conf_p, "geometry and photometry"
+            e_p = self.expected_false(tried, len(u), score, self._photometric_q(tier, flux[det_rows]), tier=tier)
+            if e_p < e_false:
+                e_false, conf, evidence = e_p, max(0.0, 1.0 - e_p), "geometry and photometry"
         if score < self.min_matches or conf < self.min_confidence:
             return Refusal(
                 f"weak evidence after refinement: {score} of {len(u)} detections matched, confidence {conf:.3g}",
                 self.name,
+                status="weak_evidence",
             )
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
         extra = {
@@ -581,34 +691,36 @@ class CoarseToFineSolver:
                     f"tetra3rs confirmed the stars, but its attitude leaves {resid_px:.2f} px rms and moves "
                     f"our matched stars beyond {self.tol_px} px: a mismatched star; no trustworthy attitude",
                     self.name,
+                    status="not_verified",
                 )
             if confirmed:
                 extra["refined_by"] = "tetra3rs tracking"
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 extra["fov_deg"] = [res.extra.get("fov_deg", cam_k.fov_deg[0]), cam_k.fov_deg[1]]
-                return Solution(
-                    res.quaternion,
-                    res.ra_deg,
-                    res.dec_deg,
-                    res.roll_deg,
-                    res.matched,
-                    res.residual_arcsec,
-                    conf,
-                    self.name,
-                    (time.perf_counter() - t0) * 1e3,
-                    extra,
-                )
-            elif conf < self.unverified_confidence:
+                return dataclasses.replace(
+                    res,
+                    confidence=conf,
+                    solver=self.name,
+                    time_ms=(time.perf_counter() - t0) * 1e3,
+                    extra=extra,
+                    false_match_probability=min(1.0, e_false),
+                )  # tetra3rs's attitude and its covariance (from every star it matched)
+            elif conf < (self.tracking_unverified_confidence if region.index == -2 else self.unverified_confidence):
                 return Refusal(
-                    "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar", self.name
+                    "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar",
+                    self.name,
+                    status="not_verified",
                 )
         resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
+        rms_arcsec = float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600)
         return solution_from_matrix(
             rot,
             matched=np.column_stack([det_rows, tier.ids[cat_rows]]),
-            residual_arcsec=float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600),
+            residual_arcsec=rms_arcsec,
             confidence=conf,
             solver=self.name,
             time_ms=(time.perf_counter() - t0) * 1e3,
             extra=extra,
+            false_match_probability=min(1.0, e_false),
+            covariance_matrix_arcsec2=attitude_covariance(uk[det_rows], rms_arcsec, cam_k.pixel_scale_arcsec),
         )

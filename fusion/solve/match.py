@@ -103,6 +103,9 @@ def anchor_hypotheses(
     center,
     cos_r: float,
     min_score: int,
+    max_tried: int,
+    x_axis,
+    cos_x: float,
 ):
     """Hypotheses of anchor pair (i, j) over pair-index rows ``[lo, hi)``.
 
@@ -112,7 +115,10 @@ def anchor_hypotheses(
     stars A, stars B, focal factors, scores, rotations) of the hypotheses with at least ``min_score``
     matches whose boresight lies in the cap (``center``, ``cos_r``). ``tried`` counts only hypotheses
     whose boresight lies in the cap: one outside it is never accepted in this region, so it cannot be
-    a false match of this region (and the caps of neighbouring regions do not count it twice).
+    a false match of this region (and the caps of neighbouring regions do not count it twice). At most
+    ``max_tried`` hypotheses are tried (the work budget left; ``tried == max_tried`` means it ran out).
+    ``x_axis``, ``cos_x``: a tracking hint also bounds the roll: a hypothesis whose camera +x axis lies
+    farther than ``arccos(cos_x)`` from ``x_axis`` (ICRS) is outside the region too (``cos_x`` < -1: no bound).
     """
     n = t.shape[0]
     ax, ay, az = _unit(t[i, 0], t[i, 1], 1.0)
@@ -137,6 +143,8 @@ def anchor_hypotheses(
     for k in range(n):
         d1[k] = _angle(u1[i, 0], u1[i, 1], u1[i, 2], u1[k, 0], u1[k, 1], u1[k, 2])
     for q in range(lo, hi):
+        if tried >= max_tried:
+            break
         for orient in range(2):
             a = first[q] if orient == 0 else second[q]
             b = second[q] if orient == 0 else first[q]
@@ -152,6 +160,10 @@ def anchor_hypotheses(
                 r = triad(ui, uj, vec[a], vec[b])
                 if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
                     continue  # its boresight lies in another region
+                if r[0, 0] * x_axis[0] + r[1, 0] * x_axis[1] + r[2, 0] * x_axis[2] < cos_x - 1e-12:
+                    continue  # its roll lies outside the hint's
+            if tried >= max_tried:
+                break  # the budget: a count, so the same answer on every machine
             tried += 1
             delta = abs(_angle(ui[0], ui[1], ui[2], uj[0], uj[1], uj[2]) - sep[q])
             score = 1 + (1 if delta <= tol_n[j] else 0)

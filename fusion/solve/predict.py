@@ -40,7 +40,18 @@ Per frame:
    whole-sky fine stage where it refuses (``tetra3rs>whole-sky``); ``--solver NAME`` picks any registered
    solver (:mod:`fusion.solve.registry`). A full attitude
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
-   confidence) or an explicit refusal with its reason.
+   confidence, ``false_match_probability``, ``covariance_arcsec`` [x, y, roll] 1 sigma and
+   ``covariance_matrix_arcsec2``: :mod:`fusion.solve.base`) with ``"status": "solved"``, or an
+   explicit refusal (``"status": "refused"``) with its reason and a ``refusal_status`` code
+   (``too_few_stars``, ``no_pattern``, ``budget_exhausted``, ``ambiguous``, ``weak_evidence``,
+   ``not_verified``, ...: :data:`fusion.solve.base.REFUSAL_STATUSES`).
+
+``--track [DEG]`` (with ``--solve``): the frames are a sequence (in the order given, folders by name); each
+frame's solved attitude is the hint of the next, with a 1-sigma error of DEG degrees (default 1: how far the
+camera may turn between frames). The solver then searches only the attitudes within 3 DEG of the hint
+(``solve(..., hint=, hint_sigma_deg=)``: three stars can be enough), and where that is refused, lost in
+space as without ``--track``; the record says ``"tracking": {"hint_sigma_deg", "tracked", "refused"}``. A
+refused or failed frame leaves the next without a hint.
 
 A frame with no detection (blank, capped, overexposed, or a threshold too high for its
 exposure) gives no region probabilities and no attitude: its record says ``"status":
@@ -68,6 +79,7 @@ training dataset.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -78,11 +90,12 @@ from skygen.config import build_config as build_render_config
 from skygen.instrument.camera import Camera
 from skygen.instrument.detect import detect
 from skygen.runtime import atomic_path, atomic_write_bytes, dumps_json
+from skygen.sky.attitude import quaternion_to_matrix
 
 from ..errors import ConfigError
 from ..model.checkpoint import differences_warning, load_checkpoint
 from ..model.inputs import downsample
-from .base import Detections, Refusal
+from .base import Detections, Refusal, Solution
 from .frames import FrameError, iter_inputs, mask_bad_pixels
 
 
@@ -269,7 +282,15 @@ class Predictor:
         """The frame at the model's stored size (what the image branch sees)."""
         return downsample(img, self.factor)
 
-    def run(self, source: str, det: Detections, stored: np.ndarray | None, extra: dict) -> dict:
+    def run(
+        self,
+        source: str,
+        det: Detections,
+        stored: np.ndarray | None,
+        extra: dict,
+        hint: np.ndarray | None = None,
+        hint_sigma_deg: float = 1.0,
+    ) -> dict:
         rec = {
             "frame": source,
             "status": "ok",
@@ -283,7 +304,9 @@ class Predictor:
         if not len(det):  # nothing to read: no region probabilities (they would be the model's bias)
             rec.update({"status": "no_detections", "reason": self.no_detections_reason(extra)})
             if self.solver is not None:
-                rec["solution"] = Refusal("no detections in the frame", self.solver.name).to_dict()
+                rec["solution"] = Refusal(
+                    "no detections in the frame", self.solver.name, status="too_few_stars"
+                ).to_dict()
             return rec
         probs = search_probs = None
         if self.prior is not None:
@@ -305,7 +328,16 @@ class Predictor:
             ]
         if self.solver is not None:
             kw = {"probabilities": search_probs} if search_probs is not None else {}
-            res = self.solver.solve(det, self.camera, stored, **kw)
+            res = None
+            if hint is not None:  # tracking: the previous frame's attitude; lost in space where it fails
+                res = self.solver.solve(det, self.camera, stored, hint=hint, hint_sigma_deg=hint_sigma_deg)
+                rec["tracking"] = {"hint_sigma_deg": hint_sigma_deg, "tracked": isinstance(res, Solution)}
+            if not isinstance(res, Solution):
+                lost = res
+                res = self.solver.solve(det, self.camera, stored, **kw)
+                if lost is not None:  # the time spent tracking counts too
+                    rec["tracking"]["refused"] = lost.to_dict()
+                    res = dataclasses.replace(res, time_ms=res.time_ms + lost.time_ms)
             rec["solution"] = res.to_dict()
         return rec
 
@@ -385,9 +417,11 @@ def predict(
     solver=None,
     fov_range=None,
     channel="luminance",
+    track_deg=None,
 ) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
-    become one plane (``channel``: luminance, r, g, b or sum)."""
+    become one plane (``channel``: luminance, r, g, b or sum). ``track_deg`` (with ``solve``): the frames are
+    a sequence; each solved attitude is the next frame's hint with that 1-sigma error (degrees)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
@@ -395,6 +429,13 @@ def predict(
         raise ConfigError(
             f"--fov-range {fov_range[0]:g} {fov_range[1]:g}: give 0 < LO < HI < 120 degrees (horizontal field)"
         )
+    if track_deg is not None:
+        if not solve:
+            raise ConfigError("--track: the previous frame's attitude is the hint of the next solve; add --solve")
+        if fov_range is not None:
+            raise ConfigError("--track: tracking needs the camera's field; give --camera (not --fov-range)")
+        if not 0 < track_deg <= 20:
+            raise ConfigError(f"--track {track_deg:g}: the hint's 1-sigma error in (0, 20] degrees, e.g. 1")
     if fov_range is not None and camera is None and checkpoint is None:
         camera = _camera_of_first_frame(frames, fov_range, channel)
     pred = Predictor(
@@ -417,6 +458,7 @@ def predict(
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)
     differences = _dataset_differences(frames, pred, err)
     records, failed = [], 0
+    previous: np.ndarray | None = None  # tracking: the camera -> ICRS matrix of the frame before, if solved
     with contextlib.ExitStack() as stack:
         # --out is written beside its final name and renamed when every frame is done: an interrupted or
         # failed run (a full disk) leaves no file with fewer lines than frames that looks whole
@@ -439,7 +481,10 @@ def predict(
                     }
                 else:
                     det, extra = Detections.from_table(table), {"detections_from": "dataset"}
-                rec = pred.run(source, det, stored, extra)
+                hint = previous if track_deg is not None else None
+                rec = pred.run(source, det, stored, extra, hint, track_deg or 1.0)
+                sol = rec.get("solution", {})
+                previous = quaternion_to_matrix(sol["quaternion_wxyz"]) if sol.get("status") == "solved" else None
                 rec["total_ms"] = (time.perf_counter() - t0) * 1e3
                 diffs = {
                     **pred.config_differences,
@@ -454,6 +499,7 @@ def predict(
                     overlay(Path(overlay_dir) / f"{Path(name).stem}.png", img if img is not None else stored, det, rec)
             except FrameError as exc:
                 failed += 1
+                previous = None
                 rec = {"frame": source, "error": str(exc)}
                 err(f"fusion predict: {exc}")
             records.append(rec)

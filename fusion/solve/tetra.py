@@ -30,6 +30,7 @@ a 20° field builds in about a second.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -38,9 +39,17 @@ import numpy as np
 from skygen.real import platesolve
 from skygen.real.platesolve import DB_PARAMS, SolverUnavailable, cache_dir, database_path, load_database  # noqa: F401
 
-from .base import Detections, Refusal, Solution, solution_from_matrix
+from .base import HINT_RADIUS_SIGMAS, Detections, Refusal, Solution, attitude_covariance, solution_from_matrix
 
 _tetra3rs = platesolve.tetra3rs
+
+# tetra3rs's SolveFailure.status -> our refusal status (base.REFUSAL_STATUSES); its timeout is its only budget
+FAILURE_STATUS = {
+    "no_match": "no_pattern",
+    "timeout": "budget_exhausted",
+    "too_few": "too_few_stars",
+    "invalid_config": "invalid_input",
+}
 
 
 def ideal_centroids(det: Detections, camera) -> np.ndarray:
@@ -89,7 +98,22 @@ class Tetra3Solver:
             self._models[key] = self.t3.CameraModel(float(key[0]), key[1], key[2])
         return self._models[key]
 
-    def solve(self, detections: Detections, camera=None, image=None) -> Solution | Refusal:
+    def solve(
+        self,
+        detections: Detections,
+        camera=None,
+        image=None,
+        hint: np.ndarray | None = None,
+        hint_sigma_deg: float = 1.0,
+    ) -> Solution | Refusal:
+        """Lost-in-space, or with ``hint`` (a camera -> ICRS matrix, 1-sigma error ``hint_sigma_deg``) tetra3rs
+        tracking with ``hint_uncertainty_deg`` = 3 sigma, strict (no lost-in-space where it fails)."""
+        if hint is not None:
+            if not (np.isfinite(hint_sigma_deg) and 0 < hint_sigma_deg <= 60):
+                raise ValueError(f"hint_sigma_deg={hint_sigma_deg}: the hint's 1-sigma error, in (0, 60] degrees")
+            return self.solve_with_hint(
+                detections, camera or self.camera, hint, HINT_RADIUS_SIGMAS * hint_sigma_deg, name=self.name
+            )
         return self._run(detections, camera or self.camera, self.name, {})
 
     def solve_with_hint(
@@ -111,7 +135,9 @@ class Tetra3Solver:
     def _run(self, det: Detections, camera, name: str, kw: dict) -> Solution | Refusal:
         t0 = time.perf_counter()
         if len(det) < 3:
-            return Refusal(f"too few detections ({len(det)})", name, (time.perf_counter() - t0) * 1e3)
+            return Refusal(
+                f"too few detections ({len(det)})", name, (time.perf_counter() - t0) * 1e3, status="too_few_stars"
+            )
         cents = ideal_centroids(det, camera)
         if self.fov_range is not None and "attitude_hint" not in kw:
             # unknown field: without distortion the ideal centroids do not depend on the focal length
@@ -134,13 +160,18 @@ class Tetra3Solver:
         )
         ms = (time.perf_counter() - t0) * 1e3
         if not res:
-            return Refusal(str(res.status), name, ms)
+            return Refusal(str(res.status), name, ms, status=FAILURE_STATUS.get(str(res.status), "other"))
         if res.parity_flip:
-            return Refusal("parity-flipped match (mirror image): not a physical attitude", name, ms)
+            return Refusal(
+                "parity-flipped match (mirror image): not a physical attitude", name, ms, status="not_verified"
+            )
         matched = np.column_stack(
             [np.asarray(res.matched_centroids, np.int64), np.asarray(res.matched_catalog_ids, np.int64)]
         )
         p = float(res.probability)
+        if self.fov_range is not None:  # the field it found, not the camera's nominal one
+            camera = dataclasses.replace(camera, f_px=camera.width_px / 2 / np.tan(np.radians(res.fov_deg) / 2))
+        u = camera.unproject(det.x_px[matched[:, 0]], det.y_px[matched[:, 0]])
         return solution_from_matrix(
             np.asarray(res.rotation_matrix_icrs_to_camera).T,
             matched=matched,
@@ -148,6 +179,8 @@ class Tetra3Solver:
             confidence=float(max(0.0, 1.0 - p)),
             solver=name,
             time_ms=ms,
+            false_match_probability=p,
+            covariance_matrix_arcsec2=attitude_covariance(u, float(res.rmse_arcsec), camera.pixel_scale_arcsec),
             extra={
                 "false_positive_probability": p,
                 "fov_deg": float(res.fov_deg),

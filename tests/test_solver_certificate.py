@@ -1,0 +1,299 @@
+"""What a solve certifies: refusal status codes, the work budget, the false-match probability and the
+attitude covariance (issue 37), checked against rendered truth and a Monte Carlo of the covariance formula."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion.solve.base import (
+    REFUSAL_STATUSES,
+    Detections,
+    FallbackSolver,
+    Refusal,
+    Solution,
+    attitude_covariance,
+    rotation_vector_deg,
+)
+from skygen.config import load_config
+from skygen.render.frame import Renderer
+from skygen.sky.attitude import attitude_matrix
+
+pytest.importorskip("tetra3rs")
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return Renderer(load_config(overrides=["n_frames=20"]))
+
+
+@pytest.fixture(scope="module")
+def tetra(renderer, tmp_path_factory):
+    from fusion.solve.tetra import Tetra3Solver
+
+    return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
+
+
+@pytest.fixture(scope="module")
+def whole_sky(tetra):
+    from fusion.solve.fine import CoarseToFineSolver
+
+    return CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02)
+
+
+def _truth(f):
+    return attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+
+
+# --------------------------------------------------------------------------- status codes
+def test_refusal_status_is_one_of_a_fixed_set_and_travels_in_the_json():
+    assert Refusal("x", "s").status == "other"  # a solver written before the codes
+    with pytest.raises(ValueError, match="too_few_stars"):
+        Refusal("x", "s", status="gave_up")
+    d = Refusal("budget", "s", 1.0, {"hypotheses": 5}, "budget_exhausted").to_dict()
+    assert d["status"] == "refused" and d["refusal_status"] == "budget_exhausted" and d["hypotheses"] == 5
+    assert Solution.status == "solved"
+    assert set(REFUSAL_STATUSES) >= {"too_few_stars", "no_pattern", "budget_exhausted", "ambiguous"}
+
+
+def test_every_refusal_carries_its_status(renderer, tetra, whole_sky):
+    f = renderer.render(0)
+    det = Detections.from_table(f.detections)
+    assert tetra.solve(det.brightest(2), renderer.camera).status == "too_few_stars"
+    assert whole_sky.solve(det.brightest(2), renderer.camera).status == "too_few_stars"
+    rng = np.random.default_rng(1)
+    noise = Detections(rng.uniform(0, 1023, 12), rng.uniform(0, 1023, 12), np.sort(rng.uniform(1e3, 1e4, 12))[::-1])
+    t = tetra.solve(noise, renderer.camera)
+    assert isinstance(t, Refusal) and t.status == {"no_match": "no_pattern", "timeout": "budget_exhausted"}[t.reason]
+    w = whole_sky.solve(noise.brightest(6), renderer.camera)
+    assert isinstance(w, Refusal) and w.status in ("weak_evidence", "ambiguous", "no_pattern", "budget_exhausted")
+    three = whole_sky.solve(det.brightest(3), renderer.camera)  # whole sky, 3 stars: the bar is out of reach
+    if isinstance(three, Refusal):
+        assert three.status == "weak_evidence"
+    both = FallbackSolver(tetra, whole_sky).solve(noise.brightest(6), renderer.camera)
+    assert isinstance(both, Refusal) and both.status == w.status  # the chain reports the last solver's code
+
+
+# --------------------------------------------------------------------------- the work budget
+def test_the_hypothesis_budget_refuses_deterministically(renderer, tetra):
+    """A budget too small to identify anything: refused with budget_exhausted after exactly that many
+    hypotheses, the same on every call (a count, not a clock); a generous one solves the same frame."""
+    from fusion.solve.fine import MAX_HYPOTHESES, CoarseToFineSolver
+
+    f = renderer.render(4)
+    det = Detections.from_table(f.detections).brightest(5)
+    small = CoarseToFineSolver(tetra, None, focal_tol=0.02, max_hypotheses=50)
+    a, b = small.solve(det, renderer.camera), small.solve(det, renderer.camera)
+    assert isinstance(a, Refusal) and a.status == "budget_exhausted" and "max_hypotheses" in a.reason
+    assert a.extra["hypotheses"] == b.extra["hypotheses"] == 50
+    big = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    assert big.max_hypotheses == MAX_HYPOTHESES
+    res = big.solve(det, renderer.camera)
+    assert isinstance(res, Solution) and res.extra["hypotheses"] <= MAX_HYPOTHESES
+    # a denser catalogue per separation window (here: twice the tolerance) gets a proportionally larger budget
+    assert CoarseToFineSolver(tetra, None, tol_px=4.0).max_hypotheses == pytest.approx(2 * MAX_HYPOTHESES, rel=0.1)
+    for bad in (0, -3, 1.5, True):
+        with pytest.raises(ValueError, match="max_hypotheses"):
+            CoarseToFineSolver(tetra, None, max_hypotheses=bad)
+
+
+# --------------------------------------------------------------------------- the certificate
+def test_solutions_carry_a_false_match_probability_and_a_covariance(renderer, tetra, whole_sky):
+    solved = 0
+    for i in range(6):
+        f = renderer.render(i)
+        det = Detections.from_table(f.detections)
+        lis = tetra.solve(det, renderer.camera)
+        if isinstance(lis, Solution):
+            assert lis.false_match_probability == lis.extra["false_positive_probability"]
+        res = whole_sky.solve(det.brightest(5), renderer.camera)
+        if not isinstance(res, Solution):
+            continue
+        solved += 1
+        # the fine stage's own E_false: confidence = 1 - E_false, within float rounding
+        assert 0 <= res.false_match_probability <= 1 - whole_sky.min_confidence
+        assert res.confidence == pytest.approx(1 - res.false_match_probability, abs=1e-12)
+        sx, sy, sr = res.covariance_arcsec
+        pix = renderer.camera.pixel_scale_arcsec
+        assert 0 < sx < pix and 0 < sy < pix  # a few stars fix the boresight to a fraction of a pixel
+        assert sr > max(sx, sy)  # roll: the lever arm is the stars' spread, less than a radian
+        err = np.abs(rotation_vector_deg(_truth(f), res.matrix)) * 3600
+        assert np.all(err < 6 * res.covariance_arcsec)  # no wild miss of the stated uncertainty
+        d = res.to_dict()
+        assert d["status"] == "solved" and len(d["covariance_arcsec"]) == 3
+        assert np.shape(d["covariance_matrix_arcsec2"]) == (3, 3)
+        assert d["false_match_probability"] == res.false_match_probability
+    assert solved >= 4
+
+
+def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
+    """Stars in a 20 deg field with Gaussian centroid errors, a least-squares rotation fitted to them: the
+    spread of the fitted rotation over many draws equals attitude_covariance's (to ~10 %, 2,000 draws)."""
+    from fusion.solve.fine import _kabsch
+
+    rng = np.random.default_rng(7)
+    n, sigma = 6, 2e-5  # radians per axis (~4 arcsec)
+    xy = rng.uniform(-0.17, 0.17, (n, 2))
+    u = np.column_stack([xy, np.ones(n)])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rot_true = attitude_matrix(40.0, 10.0, 30.0)
+    sky = u @ rot_true.T
+    vecs, rms = [], []
+    for _ in range(2000):
+        e = rng.normal(0, sigma, (n, 3))
+        e -= np.sum(e * u, axis=1, keepdims=True) * u  # perpendicular: two components per star
+        un = (u + e) / np.linalg.norm(u + e, axis=1, keepdims=True)
+        r = _kabsch(un, sky)
+        vecs.append(rotation_vector_deg(rot_true, r) * 3600)
+        ang = np.arccos(np.clip(np.sum((un @ r.T) * sky, axis=1), -1, 1))
+        rms.append(np.degrees(np.sqrt(np.mean(ang**2))) * 3600)
+    empirical = np.cov(np.array(vecs).T)
+    # the formula from each draw's own residuals, averaged (the fit leaves 2n - 3 degrees of freedom)
+    tiny_pixel = 1e-6  # keep the centroid floor out of the way
+    formula = np.mean([attitude_covariance(u, r, tiny_pixel) for r in rms], axis=0)
+    np.testing.assert_allclose(np.sqrt(np.diag(formula)), np.sqrt(np.diag(empirical)), rtol=0.1)
+    assert np.sqrt(formula[2, 2]) > 3 * np.sqrt(formula[0, 0])  # roll is the weak axis of a small field
+    # and with the true sigma: the formula exactly (no residual noise)
+    exact = attitude_covariance(u, np.degrees(sigma) * 3600 * np.sqrt((2 * n - 3) * 2 / (2 * n)), tiny_pixel)
+    np.testing.assert_allclose(np.sqrt(np.diag(exact)), np.sqrt(np.diag(empirical)), rtol=0.1)
+
+
+def test_benchmark_summary_reports_tails_statuses_and_coverage():
+    """_summary on made-up answers: the latency percentiles include the refusals, refusals are counted by
+    status, and coverage counts errors within 1 and 2 sigma per axis."""
+    from fusion.solve.base import solution_from_matrix
+    from fusion.solve.benchmark import _summary
+
+    truth_m = attitude_matrix(10.0, 20.0, 30.0)
+    truth = [(truth_m, 30.0)] * 5
+
+    def answer(offset_arcsec, sigma_arcsec):
+        from scipy.spatial.transform import Rotation
+
+        m = truth_m @ Rotation.from_rotvec([np.radians(offset_arcsec / 3600), 0, 0]).as_matrix()  # about camera x
+        return solution_from_matrix(
+            m,
+            matched=np.zeros((4, 2), np.int64),
+            residual_arcsec=1.0,
+            confidence=0.999,
+            solver="s",
+            false_match_probability=1e-3,
+            covariance_matrix_arcsec2=np.diag([sigma_arcsec**2] * 3),
+        )
+
+    results = [
+        answer(5.0, 10.0),  # within 1 sigma on every axis
+        answer(15.0, 10.0),  # between 1 and 2 sigma on one axis
+        answer(50.0, 10.0),  # beyond 2 sigma
+        Refusal("x", "s", status="budget_exhausted"),
+        Refusal("y", "s", status="weak_evidence"),
+    ]
+    secs = [0.001, 0.002, 0.003, 0.5, 0.004]  # the refusal is the tail
+    s = _summary(results, truth, secs, 0.1, 1.0)
+    assert s["correct"] == pytest.approx(0.6) and s["refused"] == pytest.approx(0.4)
+    assert s["refusals_by_status"] == {"budget_exhausted": 1, "weak_evidence": 1}
+    assert s["ms_per_frame_median"] == pytest.approx(3.0)
+    assert s["ms_per_frame_median"] < s["ms_per_frame_p95"] < s["ms_per_frame_p99"] <= s["ms_per_frame_max"] == 500
+    assert s["false_match_probability_sum"] == pytest.approx(3e-3)
+    c = s["coverage"]
+    assert c["frames"] == 3
+    # each offset turns about camera x only: of the 6 cross values (x, y of 3 answers) 4 lie within 1 sigma, 5 within 2
+    assert c["cross_1sigma"] == pytest.approx(4 / 6) and c["cross_2sigma"] == pytest.approx(5 / 6)
+    assert c["roll_1sigma"] == 1.0
+
+
+# --------------------------------------------------------------------------- tracking
+def test_tracking_identifies_three_stars_near_a_hint_and_nothing_far_from_it(renderer, tetra, whole_sky):
+    """Three detections: lost in space over the whole sky cannot reach the bar; with a hint 2 deg off the
+    hint's region holds a handful of hypotheses, so most frames solve, all correctly. A hint 30 deg off
+    (claiming 2 deg) leaves the true attitude outside the region searched: never an answer. Two stars are
+    refused as too few."""
+    from fusion.solve.benchmark import track_hint
+
+    solved = 0
+    for i in range(8):
+        f = renderer.render(i)
+        m = _truth(f)
+        det = Detections.from_table(f.detections).brightest(3)
+        hint = track_hint(m, 2.0, 11, i)
+        assert 1.99 < np.degrees(np.arccos((np.trace(m.T @ hint) - 1) / 2)) < 2.01
+        res = whole_sky.solve(det, renderer.camera, hint=hint, hint_sigma_deg=2.0)
+        if isinstance(res, Solution):
+            solved += 1
+            err = np.abs(rotation_vector_deg(m, res.matrix)) * 3600
+            assert np.all(err < np.array([60, 60, 600])) and np.all(err < 4 * res.covariance_arcsec)  # the truth
+            assert res.extra["region"] == -2 and res.false_match_probability <= 1e-3
+        far = whole_sky.solve(det, renderer.camera, hint=track_hint(m, 30.0, 11, i), hint_sigma_deg=2.0)
+        assert isinstance(far, Refusal)
+        two = whole_sky.solve(det.brightest(2), renderer.camera, hint=hint, hint_sigma_deg=2.0)
+        assert isinstance(two, Refusal) and two.status == "too_few_stars"
+        # tetra3rs and a chain take the same keywords (the chain passes the hint to both)
+        assert isinstance(tetra.solve(det, renderer.camera, hint=hint, hint_sigma_deg=2.0), (Solution, Refusal))
+        chained = FallbackSolver(tetra, whole_sky).solve(det, renderer.camera, hint=hint, hint_sigma_deg=2.0)
+        assert type(chained) is type(res)
+    assert solved >= 4
+    with pytest.raises(ValueError, match="hint_sigma_deg"):
+        whole_sky.solve(det, renderer.camera, hint=hint, hint_sigma_deg=0.0)
+    with pytest.raises(ValueError, match="rotation matrix"):
+        whole_sky.solve(det, renderer.camera, hint=2 * hint, hint_sigma_deg=1.0)
+
+
+def test_benchmark_tracking_cells(small_dataset, tmp_path, monkeypatch):
+    import json
+
+    from fusion.cli import main
+
+    monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "bench"
+    args = ["benchmark", "--data", str(small_dataset), "--out", str(out), "--split", "train", "--frames", "4"]
+    args += ["--n", "6", "--corruptions", "none", "--solvers", "tetra3rs", "whole-sky", "--track-hint-deg", "2"]
+    assert main(args) == 0
+    r = json.loads((out / "benchmark.json").read_text())
+    track = [c for c in r["cells"] if c.get("track_hint_deg")]
+    assert [(c["track_hint_deg"], c["n"]) for c in track] == [(2.0, 2), (2.0, 3)]
+    assert track[0]["solvers"]["whole-sky"]["refusals_by_status"] == {"too_few_stars": 4}
+    assert all(c["solvers"][s]["wrong"] == 0 for c in track for s in ("tetra3rs", "whole-sky"))
+    assert "| track, hint 2° off | 3 |" in (out / "benchmark.md").read_text()
+    assert main([*args[:-1], "40"]) == 2  # a hint 40 deg off is not tracking
+
+
+def test_predict_track_uses_the_previous_solution_as_the_hint(small_dataset, tmp_path, monkeypatch):
+    """``fusion predict --track``: frame k's attitude is frame k + 1's hint; the same frame twice is tracked,
+    a hint far off is refused by tracking and the frame is solved lost in space instead."""
+    import json
+
+    import yaml
+
+    from fusion.cli import main
+    from fusion.solve.benchmark import track_hint
+    from fusion.solve.predict import Predictor
+    from skygen.datasets import open_dataset
+    from skygen.sky.attitude import quaternion_to_matrix
+
+    monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
+    with open_dataset(small_dataset) as ds:
+        (tmp_path / "cam.yaml").write_text(yaml.safe_dump({k: ds.config[k] for k in ("camera", "detection", "output")}))
+        tables = [ds.detections(i) for i in range(8)]
+        truth = [quaternion_to_matrix(q) for q in ds.boresight["quaternion"][:8]]
+    cam = str(tmp_path / "cam.yaml")
+    pred = Predictor(camera=cam, solve=True)
+    tracked = 0
+    for table, m in zip(tables, truth):
+        det = Detections.from_table(table)
+        rec = pred.run("f", det, None, {}, track_hint(m, 0.5, 3, 0), 0.5)
+        assert "tracking" in rec
+        if rec["tracking"]["tracked"]:
+            tracked += 1
+            assert rec["solution"]["status"] == "solved" and "refused" not in rec["tracking"]
+        far = pred.run("f", det, None, {}, track_hint(m, 40.0, 3, 0), 0.5)
+        assert far["tracking"]["tracked"] is False and far["tracking"]["refused"]["status"] == "refused"
+        # lost in space answers instead, as without --track
+        assert far["solution"]["status"] == pred.run("f", det, None, {})["solution"]["status"]
+    assert tracked >= 4
+    out = tmp_path / "t.jsonl"
+    args = ["predict", str(small_dataset), str(small_dataset), "--max-frames", "1", "--camera", cam, "--solve"]
+    assert main([*args, "--track", "0.5", "--out", str(out)]) == 0
+    first, second = (json.loads(line) for line in out.read_text().splitlines())
+    assert "tracking" not in first  # nothing before it
+    assert second["tracking"]["tracked"] == (first["solution"]["status"] == "solved")
+    assert main([*args[:-1], "--track"]) == 2  # tracking needs --solve
