@@ -49,11 +49,11 @@ def stage_times(cfg, n: int) -> dict:
     for i in range(n):
         t0 = time.perf_counter()
         ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(cfg.seed, i, "attitude"))
-        omega, _, taus = r._motion(corr.stage_rng(cfg.seed, i, "motion_blur"))
-        stars = r._stars(attitude_matrix(ra, dec, roll), omega, taus)
+        omega, _, taus = r.motion_path(corr.stage_rng(cfg.seed, i, "motion_blur"))
+        stars = r.visible_stars(attitude_matrix(ra, dec, roll), omega, taus)
         t1 = time.perf_counter()
         star_e = np.zeros(sh, np.float32)
-        boxes = r._deposit(stars, star_e)
+        boxes = r.deposit(stars, star_e)
         t2 = time.perf_counter()
         full, _ = read_out(
             Exposure(star_e, None, boxes, r.background_e), cfg.sensor, r.maps, corr.stage_rng(cfg.seed, i, "noise")

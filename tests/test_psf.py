@@ -43,7 +43,7 @@ def test_gaussian_stamp_is_exact_pixel_integral():
 
 
 def test_vectorised_gaussian_matches_single():
-    # brightest first: stamps come back in input order whatever their sizes (render._deposit
+    # brightest first: stamps come back in input order whatever their sizes (Renderer.deposit
     # pairs them with the fluxes to size a blooming star's box)
     xs, ys, fl = np.array([40.7, 3.2, 17.0]), np.array([20.1, 9.9, 30.5]), np.array([2e5, 50.0, 3e3])
     for (y0, x0, p), x, y, f in zip(gaussian_stamps(xs, ys, fl, 1.2), xs, ys, fl):

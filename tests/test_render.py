@@ -49,13 +49,13 @@ def test_true_stars_are_where_the_detector_finds_them():
 def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     cfg = load_config(overrides=CLEAN + ["corruptions.motion_blur=1.0"])
     r = Renderer(cfg)
-    omega, n, taus = r._motion(np.random.default_rng(0))
+    omega, n, taus = r.motion_path(np.random.default_rng(0))
     assert n > 10 and abs(np.degrees(np.linalg.norm(omega)) - 1.0) < 1e-12
     from skygen.sky.attitude import attitude_matrix
 
-    stars = r._stars(attitude_matrix(10, 20, 30), omega, taus)
+    stars = r.visible_stars(attitude_matrix(10, 20, 30), omega, taus)
     star_e = np.zeros((1024, 1024), np.float32)
-    r._deposit(stars, star_e)
+    r.deposit(stars, star_e)
     inside = r.camera.inside(stars["paths"][0].min(1), stars["paths"][1].min(1), -12) & r.camera.inside(
         stars["paths"][0].max(1), stars["paths"][1].max(1), -12
     )

@@ -23,7 +23,7 @@ def small(small_overrides):
 
 def numpy_star_light(r: Renderer, scene) -> np.ndarray:
     out = np.zeros((r.cfg.camera.height_px, r.cfg.camera.width_px), np.float32)
-    r._deposit(scene.stars, out)
+    r.deposit(scene.stars, out)
     return out.astype(np.float64)
 
 

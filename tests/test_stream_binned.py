@@ -356,7 +356,7 @@ def test_scene_builder_draws_scenes_like_the_renderer(renderer):
     # same attitude -> the renderer's own star selection and projection
     sc = built[7]
     with r.with_levels({}):
-        stars = r._stars(sc.rotation, np.zeros(3), np.zeros(1))
+        stars = r.visible_stars(sc.rotation, np.zeros(3), np.zeros(1))
     cat = sc.stars["hip_id"] >= 0
     np.testing.assert_array_equal(np.sort(stars["hip_id"]), np.sort(sc.stars["hip_id"][cat]))
     np.testing.assert_allclose(np.sort(stars["electrons"]), np.sort(sc.stars["electrons"][cat]), rtol=1e-6)

@@ -259,7 +259,7 @@ def read_out(
     bloomed = 0
     if sensor.blooming and (e > sensor.full_well_e).any():
         # Saturating stars' boxes reach flux/full_well rows further along their columns
-        # (render._deposit), so spilled charge always lands on pixels drawn here.
+        # (Renderer.deposit), so spilled charge always lands on pixels drawn here.
         cols = np.unique(idx[e > sensor.full_well_e] % w)
         charge = np.zeros((h, w))
         charge.ravel()[idx] = e

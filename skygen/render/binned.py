@@ -349,7 +349,7 @@ class BinnedRenderer:
             paint_charge(charge, paint)
         flux = np.asarray(scene.stars["electrons"], np.float64)
         bloom_boxes = np.zeros((0, 4), np.int64)
-        if s.blooming and len(flux):  # as Renderer._deposit extends a bright star's box
+        if s.blooming and len(flux):  # as Renderer.deposit extends a bright star's box
             big = np.flatnonzero((boxes[:, 0] >= 0) & (peaks > 0.5 * s.full_well_e))
             if len(big):
                 extra = np.ceil(flux[big] / s.full_well_e).astype(np.int64) + 2

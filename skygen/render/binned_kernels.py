@@ -77,7 +77,7 @@ def _add(buf, paint, slot, weight, use_weight, f, wb, yy, xa, xb, vals, v0):
 def paint_gauss(buf, paint, slot, weight, xs, ys, flux, radii, sigma, f, h, w):
     """Add Gaussian stamps (exactly as :func:`skygen.instrument.psf.gaussian_stamps`: erf differences,
     normalised to the flux), times the pixels' ``weight`` (PRNU, 0 on dead pixels), into the
-    compact buffer; return each stamp's peak pixel (unweighted, as Renderer._deposit sees it)."""
+    compact buffer; return each stamp's peak pixel (unweighted, as Renderer.deposit sees it)."""
     wb = w // f
     peaks = np.zeros(len(xs))
     row = np.empty(64)

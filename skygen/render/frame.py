@@ -271,7 +271,7 @@ class Renderer:
         return 1.0 - v * r2
 
     # ------------------------------------------------------------------ stages
-    def _motion(self, rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray]:
+    def motion_path(self, rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray]:
         """Angular-rate vector (rad/s, camera frame), number of sub-steps, sub-times (s)."""
         rate = np.radians(self.levels["motion_blur"])
         t = self.cfg.sensor.exposure_s
@@ -286,7 +286,7 @@ class Renderer:
         taus = ((np.arange(n) + 0.5) / n - 0.5) * t
         return omega, n, taus
 
-    def _stars(self, R: np.ndarray, omega: np.ndarray, taus: np.ndarray) -> dict:
+    def visible_stars(self, R: np.ndarray, omega: np.ndarray, taus: np.ndarray) -> dict:
         """Catalog stars whose light can reach the sensor, with sub-exposure positions."""
         cfg = self.cfg
         blur = np.linalg.norm(omega) * cfg.sensor.exposure_s
@@ -341,7 +341,7 @@ class Renderer:
             "paths": None,
         }
 
-    def _deposit(self, stars: dict, star_e: np.ndarray) -> list:
+    def deposit(self, stars: dict, star_e: np.ndarray) -> list:
         """Add every star's stamp (or streak) into ``star_e``; return the boxes touched."""
         o, s = self.cfg.optics, self.cfg.sensor
         flux = np.asarray(stars["electrons"], dtype=np.float64)
@@ -381,10 +381,10 @@ class Renderer:
         ra, dec, roll = sample_boresight(cfg.attitude, i, corr.stage_rng(seed, key, "attitude" + self.rng_tag))
         R = attitude_matrix(ra, dec, roll)
         log: dict = {}
-        omega, _, taus = self._motion(corr.stage_rng(seed, key, "motion_blur" + self.rng_tag))
+        omega, _, taus = self.motion_path(corr.stage_rng(seed, key, "motion_blur" + self.rng_tag))
         if len(taus) > 1:
             log["motion_blur"] = {"rate_deg_s_cam": np.degrees(omega).round(6).tolist(), "substeps": len(taus)}
-        stars = self._stars(R, omega, taus)
+        stars = self.visible_stars(R, omega, taus)
         if self.levels["false_stars"] > 0:
             fake = self._false_stars(corr.stage_rng(seed, key, "false_stars" + self.rng_tag))
             log["false_stars"] = {"n": len(fake["x_px"])}
@@ -430,7 +430,7 @@ class Renderer:
         cfg = self.cfg
         sh = (cfg.camera.height_px, cfg.camera.width_px)
         star_e = np.zeros(sh, np.float32)
-        boxes = self._deposit(scene.stars, star_e)
+        boxes = self.deposit(scene.stars, star_e)
         charge = None
         if scene.cosmic_rays:
             charge = np.zeros(sh, np.float32)

@@ -46,7 +46,7 @@ class SceneBuilder:
         self.e_star = (
             r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv) * cfg.sensor.exposure_s
         )
-        radius = r._corner + (r.psf_radius + 2) / cam.f_px  # as Renderer._stars, no blur
+        radius = r._corner + (r.psf_radius + 2) / cam.f_px  # as Renderer.visible_stars, no blur
         self.chord = 2.0 * np.sin(min(radius, np.pi) / 2.0)
         self.margin_px = r.psf_radius + 1
         self.cosmic_rate = corr.cosmic_ray_rate(
