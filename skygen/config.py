@@ -321,7 +321,27 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     """Defaults, then the YAML file (if any), then ``key=value`` overrides; validated.
 
     A file with a ``camera:`` section must describe the whole camera (:data:`CAMERA_FILE_KEYS`;
-    an override may supply a key the file lacks)."""
+    an override may supply a key the file lacks).
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        A YAML file with any subset of the keys ``skygen config --keys`` lists (UTF-8 text).
+    overrides : sequence of str
+        Dotted ``key=value`` settings applied after the file, e.g. ``"sensor.exposure_s=0.05"``;
+        each value is read as YAML and checked against the key's type, range and unit.
+
+    Returns
+    -------
+    RenderConfig
+        The resolved, frozen configuration (units in the field names: ``exposure_s``, ``fov_deg``...).
+
+    Raises
+    ------
+    skygen.errors.ConfigError
+        An unknown key (with the nearest valid one), a value of the wrong type or out of range, an
+        unreadable or non-UTF-8 file, or a config whose frames would hold no detectable star.
+    """
     data = configlib.read_yaml(path) if path else {}
     data = configlib.merge_overrides(data, list(overrides))
     if path:

@@ -353,7 +353,28 @@ def resolve_checkpoint(path: str | Path) -> Path:
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu", note=None) -> Checkpoint:
     """Load and check a fusion checkpoint (a file, or a run folder: its best.pt); CheckpointError otherwise,
     also when its weights no longer match the sha256 stored at save (:func:`verify_weights`; ``note``
-    receives the one-line note for a file that predates checksums, default stderr)."""
+    receives the one-line note for a file that predates checksums, default stderr).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``best.pt`` / ``last.pt`` written by ``fusion train``, or its run folder.
+    map_location : str or torch.device
+        Where the tensors go (``"cpu"`` by default).
+    note : callable, optional
+        Receives one line for a checkpoint written before weights carried a sha256.
+
+    Returns
+    -------
+    Checkpoint
+        Typed: the training config, the render config of its data, the regions (unit-vector
+        centroids, ICRS), the weights; ``build_model()`` gives the network in eval mode.
+
+    Raises
+    ------
+    fusion.errors.CheckpointError
+        Not a file of ``fusion train``, a newer format, truncated, or weights that fail their sha256.
+    """
     path = resolve_checkpoint(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")

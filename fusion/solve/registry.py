@@ -239,6 +239,33 @@ def build_solver(
     the learned solvers; ``search``/``search_k``/``focal_tol``: the fine stage's settings, as
     ``fusion predict --solve`` takes them. Pass ``context`` to share one tetra3rs database
     between several solvers.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SOLVERS` (``fusion benchmark --help`` lists them with a line each).
+    camera : skygen.instrument.camera.Camera
+        The camera whose detections the solver will be given (pixels of its full-resolution sensor).
+    prior : fusion.solve.priors.RegionPrior, optional
+        Required by the solvers registered with ``prior="learned"``.
+    search : {"fine", "coarse"}
+        Which regions of the prior the fine stage searches; ``search_k`` how many (default per level).
+    focal_tol : float
+        Relative focal-length uncertainty the fine stage fits within (0.02 = 2 %).
+    log : callable, optional
+        Receives one line when a database or index is built.
+    context : SolverContext, optional
+        Shares one tetra3rs database and already-built solvers between calls.
+
+    Returns
+    -------
+    Solver
+        An object with ``solve(detections, camera, image=None, **kw) -> Solution | Refusal``.
+
+    Raises
+    ------
+    skygen.errors.ConfigError
+        An unknown name, or a learned solver without a prior.
     """
     from ..errors import ConfigError
 

@@ -507,6 +507,26 @@ def open_dataset(path: str | Path) -> Dataset:
     Checks the manifest, each shard's format name and schema major version, and that
     each shard's size matches the manifest (a cheap truncation check; ``skygen
     validate`` also verifies checksums). Use as a context manager.
+
+    Parameters
+    ----------
+    path : str or Path
+        A folder written by ``skygen render`` or ``skygen merge`` (its ``manifest.json``), or one
+        ``.h5`` shard.
+
+    Returns
+    -------
+    Dataset
+        Lazy: tables of every frame (``frames``, ``boresight`` in degrees, ICRS) are read at once,
+        images (``image(i)``: uint16 ADU, ``[y, x]``), detections and true stars (pixels of the
+        full-resolution sensor, ``(0.5, 0.5)`` the centre of the top-left pixel) on demand. HDF5
+        files open in the process that reads them, so a ``Dataset`` can cross into DataLoader workers.
+
+    Raises
+    ------
+    skygen.errors.DatasetError
+        A missing or unfinished dataset, a foreign or truncated file, or a newer major schema
+        version, each in one line that says what to do.
     """
     path = Path(path)
     if path.is_file():

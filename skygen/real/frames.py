@@ -59,7 +59,28 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
 
     A colour PNG or TIFF becomes one plane by ``channel`` (:data:`CHANNELS`; see the module doc) and a
     monochrome frame that looks like a raw Bayer mosaic is flagged: each with one line through ``log``
-    (on stderr when None)."""
+    (on stderr when None).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.png``, ``.tif``/``.tiff``, ``.fits``/``.fit``/``.fts`` or ``.npy``: one full-resolution read-out.
+    channel : {"luminance", "r", "g", "b", "sum"}
+        How a colour file becomes one plane (Rec. 709 luminance by default).
+    log : callable, optional
+        Receives the one-line notes (colour conversion, a suspected mosaic).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, shape ``(height, width)``, in the file's own linear units (ADU as stored: a 12-bit
+        value scaled by 16 in a 16-bit TIFF stays scaled; ``skygen.real.fit_pixels.value_scale`` finds it).
+
+    Raises
+    ------
+    FrameError
+        Missing, empty, damaged, multi-page, multi-plane or non-numeric files, with the reason.
+    """
     if channel not in CHANNELS:
         raise ConfigError(f"channel {channel!r}: give one of {', '.join(CHANNELS)}")
     say = log or _stderr

