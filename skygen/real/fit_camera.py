@@ -20,20 +20,28 @@
    matched stars, or residuals over 3 x the fit's rms) are dropped with the reason and the fit made
    again without them; when they are half the solved frames or more, the fit is refused (frames of
    more than one camera?). Their pixels are left out of steps 4-6 too.
-4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, gain/bias/read noise from the
-   mean-variance relation, PSF (Gaussian or Moffat), hot pixels, the photometric zero point.
+4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
+   pixels, the photometric zero point. The sensor (:mod:`skygen.real.fit_sensor`): gain, bias and read
+   noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
+   on too short a lever arm, whose bias would sit above the darkest background, or whose background is
+   clipped at the ADC's floor is refused, and gain and background electrons are fitted directly to the
+   background's level and noise instead (one line on the terminal and in the report says so).
 5. Detector settings: the threshold and background box that find the most catalogue stars net of
    other detections on these frames. Real frames show stars fainter than the catalogue's
    completeness; the detections they have beyond renders of the fitted camera (median per frame)
    become ``corruptions.false_stars`` (point sources at random places up to the detection limit).
-6. The model's own terms: electrons from the gain; the zero point becomes ``sensor.exposure_s``
-   (exposure x throughput: the start camera's aperture, transmission and QE are kept, so the fitted
-   exposure absorbs the atmosphere and any other loss); the background becomes
-   ``photometry.sky_mag_arcsec2`` (after the start camera's dark current), its fall towards the
-   corners ``optics.vignetting``, the gradient ``corruptions.stray_light`` (a ramp of the same size,
-   random direction). Frames are then rendered
-   at the fitted attitudes and the exposure corrected once so that the zero point measured on the
-   renders equals the real one (the detector's flux is not a star's whole flux).
+6. The model's own terms (:mod:`skygen.real.fit_render`): electrons from the gain; the zero point becomes
+   ``sensor.exposure_s`` (exposure x throughput: the start camera's aperture, transmission and QE are kept,
+   so the fitted exposure absorbs the atmosphere and any other loss); the background becomes
+   ``photometry.sky_mag_arcsec2`` (after the start camera's dark current, lowered when it alone would
+   outshine the darkest corner), its fall towards the corners ``optics.vignetting``, the gradient
+   ``corruptions.stray_light`` (a ramp of the same size, random direction). Frames are then rendered at the
+   fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
+   the real one (the detector's flux is not a star's whole flux). The renders' background, its noise, the
+   star width and the detections per frame are checked against the frames
+   (:data:`skygen.real.frame_stats.TOLERANCES`: 10, 15, 10, 25 %); a statistic that is off is corrected
+   once where a term fits it directly, and what is still off is a WARNING on the terminal, at the top of
+   the report and in the camera file's header.
 7. Write the camera YAML (checked by loading it with :func:`skygen.config.load_config`) and a report
    (``REPORT.md``, ``fit.json``, ``fit.png``): residuals per frame and radial, real against rendered
    statistics for the start camera (when given) and the fitted one.
@@ -116,6 +124,7 @@ def usable(img: np.ndarray, saturation: float) -> str:
 def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
     """The start config: the camera file, or a camera of the frames' size with the range's middle field."""
     from skygen.config import build_config, load_config
+    from skygen.real.fit_render import image_size
 
     h, w = shape
     if camera is not None:
@@ -143,17 +152,9 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
             "fov_deg": 0.5 * (lo + hi),
             "pixel_aspect": pixel_aspect or 1.0,
         },
-        "output": {"image_size_px": _image_size(w, h)},
+        "output": {"image_size_px": image_size(w, h)},
     }
     return build_config(data)
-
-
-def _image_size(w: int, h: int, want: int = 256) -> int:
-    """The stored width: the largest divisor of ``w`` <= ``want`` whose factor also divides ``h`` (else ``w``)."""
-    for size in range(min(want, w), 7, -1):
-        if w % size == 0 and h % (w // size) == 0:
-            return size
-    return w
 
 
 # ----------------------------------------------------------------------------------- the fit
@@ -174,6 +175,7 @@ def fit_camera(
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
+    from skygen.real.fit_render import fit_model_terms
     from skygen.sky.catalog import SkyIndex, load_catalog
 
     t0 = time.perf_counter()
@@ -188,8 +190,8 @@ def fit_camera(
     t_solve = time.perf_counter() - t0
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
     t_geom = time.perf_counter() - t0
-    px = measure_pixels(fr, solved, g, cfg0, sky, log)
-    model = fit_model_terms(cfg0, g, px, solved, fr, table, pixel_pitch_um, with_start=camera is not None)
+    px = measure_pixels(fr, solved, g, cfg0, sky, log, camera_file=camera is not None)
+    model = fit_model_terms(cfg0, g, px, solved, fr, table, pixel_pitch_um, with_start=camera is not None, log=log)
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
     record = _record(
         fr.names,
@@ -215,6 +217,16 @@ def fit_camera(
         epoch,
     )
     record["notes"] = notes
+    record["start"]["dark_current_e_s"] = cfg0.sensor.dark_current_e_s
+    record["checks"] = model["checks"]
+    record["correction"] = model["correction"]
+    record["warnings"] = model["warnings"]
+    if model["warnings"]:
+        log(
+            "fit-camera: WARNING: renders of this camera contradict the frames it was fitted on: "
+            + "; ".join(model["warnings"])
+            + (f" (see {report_dir}/REPORT.md)" if report_dir is not None else "")
+        )
     from skygen.real.fit_report import write_camera_yaml, write_report
 
     write_camera_yaml(out, model["cfg"], record, command)
@@ -417,25 +429,35 @@ def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE) -> dict:
     return bad
 
 
-def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
-    """Step 4 and 5: gain, bias and read noise (mean-variance), PSF, hot pixels, the real zero point and
-    the detector settings, on the frames of the fitted camera (frames of another camera left out)."""
+def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: bool = False) -> dict:
+    """Step 4 and 5: the sensor (:func:`skygen.real.fit_sensor.fit_sensor`: the mean-variance line where the
+    frames constrain it, else a direct fit of the background's level and noise, saying so), PSF, hot pixels,
+    the real zero point and the detector settings, on the frames of the fitted camera (frames of another
+    camera left out). ``camera_file``: the start camera is the user's (its bias may be kept)."""
     from skygen.real import fit_pixels as P
+    from skygen.real.fit_sensor import fit_sensor
 
     own = [n for n in fr.names if n not in fr.other_camera]
     bgs = [fr.background_of(n) for n in own]
-    mv = P.gain_from_mean_variance(
-        np.concatenate([b["box_level"] for b in bgs]),
-        np.concatenate([b["box_sigma"] for b in bgs]) ** 2,
-        cfg0.sensor.read_noise_e,
-        cfg0.sensor.fpn_adu,
-        cfg0.sensor.bias_adu,
+    boxes = sensor_boxes(bgs)
+    start_name = "the camera file's" if camera_file else "skygen's default camera's"
+    pattern = P.fixed_pattern(
+        [fr.image_of(n) for n in own],
+        [b["level_map"] for b in bgs],
+        [b["sigma_map"] for b in bgs],
+        cfg0.sensor.prnu_frac,
     )
-    if mv["ok"]:
-        gain, bias, read = mv["gain_e_per_adu"], mv["bias_adu"], mv["read_noise_e"]
-    else:
-        gain, bias, read = cfg0.sensor.gain_e_per_adu, float(cfg0.sensor.bias_adu), cfg0.sensor.read_noise_e
-        log(f"fit-camera: gain, bias and read noise kept from the start camera: {mv['why']}")
+    sensor, sensor_rec = fit_sensor(
+        boxes,
+        cfg0.sensor,
+        cfg0.sensor.bias_adu if camera_file else None,
+        int(round(fr.sat)),
+        start_name,
+        fpn_measured=pattern["fpn_adu"],
+    )
+    sensor_rec["fixed_pattern"] = pattern
+    if sensor.said:
+        log(f"fit-camera: {sensor.said}")
     cam = g.camera
     s_imgs = [fr.image_of(fs.name) for fs in solved]
     s_bgs = [fr.background_of(fs.name) for fs in solved]
@@ -445,9 +467,7 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
     zp_real, stars = _zero_point_real(solved, g, s_bgs, fr.sat)
     settings = choose_detector(solved, s_imgs, cam, g.rotations, sky)
     meas = {
-        "gain_e_per_adu": gain,
-        "bias_adu": bias,
-        "read_noise_e": read,
+        **sensor.terms(float(np.median([b["centre_adu"] for b in bgs])), int(round(fr.sat))),
         "level_adu": float(np.median([b["level_adu"] for b in bgs])),
         "centre_adu": float(np.median([b["centre_adu"] for b in bgs])),
         "corner_drop_adu": float(np.median([b["corner_drop_adu"] for b in bgs])),
@@ -458,36 +478,18 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log) -> dict:
         "hot": hot,
         "settings": settings,
     }
-    return {"mv": mv, "meas": meas, "zp_real": zp_real, "stars": stars}
+    return {"mv": sensor_rec, "meas": meas, "zp_real": zp_real, "stars": stars, "boxes": boxes, "sensor": sensor}
 
 
-def fit_model_terms(cfg0, g, px: dict, solved: list, fr: Frames, table, pixel_pitch_um, with_start: bool) -> dict:
-    """Step 6: the measurements in the model's own terms (:func:`build_fitted`), the exposure corrected once
-    so that renders at the fitted attitudes give the real zero point, and the detections the catalogue
-    lacks made ``corruptions.false_stars``. Returns the config and the real / rendered statistics."""
-    from skygen.real.fit_geometry import radec_roll
-
-    cam, meas, sat = g.camera, px["meas"], fr.sat
-    exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
-    attitudes = [radec_roll(R) for R in g.rotations]
-    real_stats = [_measure_real(fr.image_of(fs.name), meas["settings"], sat, fs, g, k) for k, fs in enumerate(solved)]
-    cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
-    render_zp = _render_stats(cfg, attitudes, table, sat)
-    zp_sim = float(np.nanmedian([r["zero_point_mag"] for r in render_zp]))
-    if np.isfinite(zp_sim) and np.isfinite(px["zp_real"]):
-        exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim))
-        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
-    # stars the catalogue lacks (Hipparcos is complete to about V 8; a real frame shows fainter ones): the
-    # detections real frames have beyond the renders' become corruptions.false_stars (point sources at
-    # random places, magnitudes up to the detection limit)
-    render_det = _render_stats(cfg, attitudes, table, sat)
-    deficit = float(np.median([a["detections"] - b["detections"] for a, b in zip(real_stats, render_det)]))
-    meas["faint_sources_per_frame"] = max(deficit, 0.0)
-    if deficit > 0:
-        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
-    after = _render_stats(cfg, attitudes, table, sat) if deficit > 0 else render_det
-    before = _render_stats(cfg0, attitudes, table, 2**cfg0.sensor.bit_depth - 1) if with_start else None
-    return {"cfg": cfg, "exposure": exposure, "real_stats": real_stats, "before": before, "after": after}
+def sensor_boxes(bgs: list) -> dict:
+    """The background boxes of all frames (:func:`skygen.real.fit_pixels.background`) as the sensor fit's
+    arrays: level, noise variance (odd-row differences), the level's own noise and the clipped sigma."""
+    return {
+        "level": np.concatenate([b["box_level"] for b in bgs]),
+        "variance": np.concatenate([b["box_sigma"] for b in bgs]) ** 2,
+        "level_noise": np.concatenate([b["box_level_noise"] for b in bgs]),
+        "sigma": np.concatenate([b["box_clip_sigma"] for b in bgs]),
+    }
 
 
 def _zero_point_real(solved, g, bgs, sat):
@@ -508,17 +510,6 @@ def _zero_point_real(solved, g, bgs, sat):
     zp, n = zero_point(flux, mag, peak, lev, sat)
     ok = (flux > 0) & (peak + lev < 0.8 * sat)
     return zp, {"flux_adu": flux[ok], "mag": mag[ok], "bv": bv[ok], "n": n}
-
-
-def _exposure_from_stars(cfg0, stars, gain) -> float:
-    """First estimate of exposure x throughput: detected electrons / the model's electrons per second."""
-    from skygen.instrument.photometry import Photometry
-
-    if stars["n"] == 0:
-        return cfg0.sensor.exposure_s
-    ph = Photometry.from_config(cfg0.optics, cfg0.photometry, cfg0.sensor)
-    e_s = ph.electrons_per_s(stars["mag"], stars["bv"])
-    return float(np.clip(np.median(stars["flux_adu"] * gain / e_s), 1e-4, 3600))
 
 
 def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
@@ -556,135 +547,6 @@ def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
             )
     best = max(rows, key=lambda r: (r["score"], r["threshold_sigma"]))
     return {**best, "min_area_px": DETECT["min_area_px"], "grid": rows}
-
-
-def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=None):
-    """The fitted config: the start config with the measured values in the model's own terms."""
-    from skygen.config import build_config, config_dict
-    from skygen.instrument.photometry import Photometry, dark_current_e_s
-
-    d = config_dict(cfg0)
-    s = cfg0.sensor
-    gain = meas["gain_e_per_adu"]
-    pitch = pixel_pitch_um or cfg0.camera.pixel_pitch_um
-    d["camera"].update(
-        {
-            "pixel_pitch_um": pitch,
-            "focal_length_mm": cam.f_px * pitch / 1000.0,
-            "fov_deg": None,
-            "principal_x_px": float(cam.cx_px),
-            "principal_y_px": float(cam.cy_px),
-            "k1": float(cam.k1),
-            "k2": float(cam.k2),
-            "pixel_aspect": float(cam.aspect),
-        }
-    )
-    psf = meas["psf"]
-    if psf["ok"]:
-        d["optics"].update(
-            {
-                "psf": psf["psf"],
-                "psf_sigma_px": float(
-                    np.clip(psf["moffat_sigma_px"] if psf["psf"] == "moffat" else psf["gaussian_sigma_px"], 0.2, 20)
-                ),
-            }
-        )
-        if psf["psf"] == "moffat":
-            d["optics"]["moffat_beta"] = float(np.clip(psf["moffat_beta"], 1.1, 20))
-    bits = meas["bits"]
-    d["sensor"].update(
-        {
-            "exposure_s": float(exposure),
-            "gain_e_per_adu": float(gain),
-            "read_noise_e": float(meas["read_noise_e"]),
-            "bias_adu": int(round(meas["bias_adu"])),
-            "bit_depth": int(bits),
-            "full_well_e": float(max(s.full_well_e, gain * (2**bits - 1))),
-        }
-    )
-    fitted_sensor = build_config(d).sensor
-    dark_e = dark_current_e_s(fitted_sensor) * exposure
-    grad_e = meas["gradient_adu"] * gain
-    # level at the centre = bias + dark + sky + half the stray-light ramp; the corner loses vignetting x sky
-    sky_e = (meas["centre_adu"] - meas["bias_adu"]) * gain - dark_e - grad_e / 2
-    d["optics"]["vignetting"] = float(np.clip(meas["corner_drop_adu"] * gain / sky_e, 0.0, 0.9)) if sky_e > 0 else 0.0
-    ph = Photometry.from_config(cfg0.optics, cfg0.photometry, fitted_sensor)
-    scale = np.degrees(1.0 / cam.f_px) * 3600
-    ref = ph.sky_electrons_per_px_s(20.0, scale) * cam.aspect * exposure
-    d["photometry"]["sky_mag_arcsec2"] = float(np.clip(20.0 - 2.5 * np.log10(max(sky_e, 1e-9) / ref), 10, 30))
-    hot = meas["hot"]
-    d["corruptions"].update(
-        {"stray_light": float(min(grad_e / exposure, 1e7)), "hotpixels": float(min(hot["fraction"], 0.05))}
-    )
-    if hot["n_static"]:
-        d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
-    d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), 100.0))
-    st = meas["settings"]
-    d["detection"].update(
-        {
-            "threshold_sigma": st["threshold_sigma"],
-            "min_area_px": st["min_area_px"],
-            "background_box_px": st["background_box_px"],
-        }
-    )
-    w, h = cam.width_px, cam.height_px
-    if w % d["output"]["image_size_px"] or h % (w // d["output"]["image_size_px"]):
-        d["output"]["image_size_px"] = _image_size(w, h)
-    d["attitude"] = config_dict(build_config({}))["attitude"]
-    return build_config(d)
-
-
-def _measure_real(img, settings, sat, fs, g, k) -> dict:
-    from skygen.real.fit_pixels import zero_point
-    from skygen.real.frame_stats import frame_stats
-
-    st, _ = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
-    m = g.keep[k]
-    d = fs.det_index[m]
-    zp, n = zero_point(
-        fs.det["flux_adu"][d].astype(float),
-        fs.star_mag[m],
-        fs.det["peak_adu"][d].astype(float),
-        np.full(len(d), st["background_adu"]),
-        sat,
-    )
-    return {**st, "zero_point_mag": zp, "zero_point_stars": n}
-
-
-def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
-    """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
-    from skygen.config import build_config, config_dict
-    from skygen.real.fit_pixels import zero_point
-    from skygen.real.frame_stats import frame_stats
-    from skygen.render.frame import Renderer
-
-    d = config_dict(cfg)
-    ra, dec, roll = (tuple(float(a[i]) for a in attitudes) for i in range(3))
-    d["attitude"] = {**d["attitude"], "mode": "list", "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
-    d["n_frames"] = len(attitudes)
-    d["output"] = {**d["output"], "full_res": True}
-    d["render"] = {**d["render"], "backend": "numpy", "device": "cpu"}
-    c = build_config(d)
-    r = Renderer(c, catalog=table)
-    det_cfg = c.detection
-    rows = []
-    for i in range(len(attitudes)):
-        f = r.render(i)
-        img = f.image_full.astype(np.float32)
-        st, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)
-        from skygen.instrument.detect import match
-
-        sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
-        ok = sidx >= 0
-        zp, n = zero_point(
-            det["flux_adu"][ok].astype(float),
-            f.stars["mag"][sidx[ok]].astype(float),
-            det["peak_adu"][ok].astype(float),
-            np.full(int(ok.sum()), st["background_adu"]),
-            sat,
-        )
-        rows.append({**st, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
-    return rows
 
 
 def _record(
@@ -745,7 +607,8 @@ def _record(
             }
         )
     keys = ("background_adu", "noise_adu", "detections", "star_sigma_px", "zero_point_mag")
-    med = lambda rows, k: float(np.nanmedian([r[k] for r in rows])) if rows else float("nan")  # noqa: E731
+    from skygen.real.frame_stats import median_of as med
+
     compare = {
         k: {"real": med(real_stats, k), "fitted": med(after, k), "start": med(before, k) if before else float("nan")}
         for k in keys
@@ -785,7 +648,8 @@ def _record(
             "n_matched": int(len(allr)),
             "radial": radial,
         },
-        "mean_variance": mv,
+        "sensor": {k: v for k, v in mv.items() if k != "mean_variance"},
+        "mean_variance": mv["mean_variance"],
         "pixels": {k: v for k, v in meas.items() if k != "settings"},
         "detector": meas["settings"],
         "zero_point_real_mag": zp_real,

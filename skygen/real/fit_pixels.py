@@ -9,12 +9,14 @@ divided by 16); electrons only through the fitted gain; pixel positions in skyge
   and ``level = centre + gx x + gy y - drop r^2`` fitted to the box levels (``r^2`` normalised to 1 at
   the corner, as skygen's ``optics.vignetting``): the level at the centre, the large-scale gradient
   (ADU from the dark edge to the bright edge, and its direction) and the vignetting drop at the corner.
-* :func:`gain_from_mean_variance` — the background's noise variance (from differences of neighbouring
-  pixels, so a gradient inside a box does not count as noise) against its level over all boxes of all
-  frames: ``var = a + level / gain`` (shot noise of the sky and dark charge); the
-  intercept holds read noise, quantisation and FPN minus ``bias / gain``, so one of bias and read
-  noise must be known (the start camera's read noise is kept, the bias follows from the intercept;
-  where that makes the bias negative, the bias is set to 0 and the read noise follows instead).
+* the background boxes' noise (from differences of horizontal neighbours in the odd rows, so a gradient
+  inside a box does not count as noise and the noise does not share pixels with the level, which the
+  even rows give): the input of the sensor fit (:mod:`skygen.real.fit_sensor`).
+* :func:`fixed_pattern` — the offset pattern every frame shares (FPN, ADU rms): the covariance of two
+  frames' background residuals (frame minus its level map; pixels within 3 sigma in both, so stars, which
+  move between pointings, and hot pixels are out), net of the start camera's PRNU on the level; the
+  median over consecutive pairs, as the sigma of skygen's rounded FPN of that variance. Temporal noise does
+  not correlate between frames; the pattern does.
 * :func:`psf_fit` — Gaussian and Moffat profiles (pixel-integrated, round on the sky with the
   fitted pixel aspect) fitted to isolated, unsaturated matched stars; the Moffat is kept when it
   lowers the median squared residual by more than 10 %.
@@ -31,7 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erf
 
-from skygen.instrument.detect import background_map
+from skygen.instrument.detect import background_map, estimate_background
 
 
 def value_scale(images: list[np.ndarray]) -> tuple[int, int, float]:
@@ -50,19 +52,27 @@ def value_scale(images: list[np.ndarray]) -> tuple[int, int, float]:
 
 
 def background(img: np.ndarray, box_px: int = 64) -> dict:
-    """Level/noise maps, box samples and a fitted plane (level at the centre, gradient amplitude and angle)."""
+    """Level/noise maps, box samples and a fitted plane (level at the centre, gradient amplitude and angle).
+
+    The plane is fitted to the level map at the box centres. Per box, for the sensor fit: ``box_level`` and
+    ``box_clip_sigma`` (skygen's clipped estimator on the box's even rows), ``box_sigma`` (difference noise of
+    its odd rows) and ``box_level_noise`` (the level's own standard error, ADU)."""
     h, w = img.shape
     level, sigma = background_map(img, box_px)
     ys = np.arange(box_px // 2, h, box_px)
     xs = np.arange(box_px // 2, w, box_px)
     ly, lx = np.meshgrid(ys, xs, indexing="ij")
+    # each box's level and clipped sigma from its even rows, its difference noise from its odd rows: the
+    # noise shares no pixel with the level (and no neighbour box's level: no median filter over a curved sky)
+    boxes = [
+        img[y - box_px // 2 : y + box_px // 2, x - box_px // 2 : x + box_px // 2]
+        for y, x in zip(ly.ravel(), lx.ravel())
+    ]
+    even = np.array([estimate_background(b[0::2], 1) for b in boxes])
+    sv = np.array([_difference_sigma(b[1::2]) for b in boxes])
     lv = level[ly, lx].ravel()
-    sv = np.array(
-        [
-            _difference_sigma(img[y - box_px // 2 : y + box_px // 2, x - box_px // 2 : x + box_px // 2])
-            for y, x in zip(ly.ravel(), lx.ravel())
-        ]
-    )
+    box_level, clip_sigma = even[:, 0], even[:, 1]
+    level_noise = clip_sigma / np.sqrt([max(b[0::2].size, 1) for b in boxes])
     bx, by = lx.ravel() - (w - 1) / 2, ly.ravel() - (h - 1) / 2
     r2 = (bx**2 + by**2) / ((w / 2) ** 2 + (h / 2) ** 2)  # as skygen's vignetting: 1 at the corner
     A = np.column_stack([np.ones(lv.size), bx, by, r2])
@@ -72,8 +82,10 @@ def background(img: np.ndarray, box_px: int = 64) -> dict:
     return {
         "level_map": level,
         "sigma_map": sigma,
-        "box_level": lv,
+        "box_level": box_level,
         "box_sigma": sv,
+        "box_clip_sigma": clip_sigma,
+        "box_level_noise": level_noise,
         "level_adu": float(np.median(level)),
         "noise_adu": float(np.median(sigma)),
         "centre_adu": float(c[0]),
@@ -93,41 +105,32 @@ def _difference_sigma(box: np.ndarray) -> float:
     return float(keep.std() / 0.98657 / np.sqrt(2)) if keep.size > 10 else float(s / np.sqrt(2))
 
 
-def gain_from_mean_variance(
-    levels: np.ndarray, variances: np.ndarray, read_noise_e: float, fpn_adu: float, bias_start: float
-) -> dict:
-    """Gain (e-/ADU), bias (ADU) and read noise (e-) from ``var = a + level / gain`` (see module doc).
-    ``ok`` False when the levels span too little (< 20 % of their median) or the slope is not positive."""
-    levels, variances = np.asarray(levels, float), np.asarray(variances, float)
-    span = np.percentile(levels, 95) - np.percentile(levels, 5)
-    keep = np.ones(levels.size, bool)
-    for _ in range(3):  # clip boxes whose noise is off the line (a bright star, a satellite trail)
-        A = np.column_stack([np.ones(keep.sum()), levels[keep]])
-        a, b = np.linalg.lstsq(A, variances[keep], rcond=None)[0]
-        r = variances - (a + b * levels)
-        keep = np.abs(r) < 3 * 1.4826 * np.median(np.abs(r[keep])) + 1e-9
-    out = {"intercept_adu2": float(a), "slope": float(b), "boxes": int(keep.sum()), "level_span_adu": float(span)}
-    if span < 0.2 * np.median(levels) or b <= 0:
-        out.update(
-            ok=False,
-            why=(
-                f"background levels span only {span:.1f} ADU"
-                if b > 0
-                else f"noise variance does not grow with level (slope {b:.3g})"
-            ),
-        )
-        return out
-    gain = 1.0 / b
-    # a = read^2 / g^2 + 1/12 + fpn^2 - bias / g
-    bias = (read_noise_e**2 / gain**2 + 1 / 12 + fpn_adu**2 - a) * gain
-    read = read_noise_e
-    note = "read noise kept from the start camera; bias from the intercept"
-    if bias < 0:
-        bias = 0.0
-        read = float(np.sqrt(max((a - 1 / 12 - fpn_adu**2) * gain**2, 0.0)))
-        note = "bias 0 (the intercept leaves no room for one); read noise from the intercept"
-    out.update(ok=True, gain_e_per_adu=float(gain), bias_adu=float(bias), read_noise_e=float(read), note=note)
-    return out
+def fixed_pattern(images: list, levels: list, sigmas: list, prnu_frac: float) -> dict:
+    """{fpn_adu (None from one frame), pairs, covariance_adu2}: the static pattern (module doc)."""
+    covs = []
+    for k in range(len(images) - 1):
+        ra = images[k] - levels[k]
+        rb = images[k + 1] - levels[k + 1]
+        keep = (np.abs(ra) < 3 * sigmas[k]) & (np.abs(rb) < 3 * sigmas[k + 1])
+        a, b = ra[keep].astype(np.float64), rb[keep].astype(np.float64)
+        prnu2 = prnu_frac**2 * float(np.median(levels[k])) * float(np.median(levels[k + 1]))
+        covs.append(float(np.mean((a - a.mean()) * (b - b.mean()))) - prnu2)
+    fpn = _unrounded_sigma(float(np.median(covs))) if covs else None
+    return {"fpn_adu": fpn, "pairs": len(covs), "covariance_adu2": covs}
+
+
+def _unrounded_sigma(var: float) -> float:
+    """The sigma ``s`` whose rounded normal, round(N(0, s)) (skygen's integer FPN), has variance ``var``."""
+    from scipy.optimize import brentq
+    from scipy.special import ndtr
+
+    def rounded_var(s: float) -> float:
+        j = np.arange(-int(8 * s) - 2, int(8 * s) + 3)
+        return float(np.sum(j * j * (ndtr((j + 0.5) / s) - ndtr((j - 0.5) / s))))
+
+    if var <= 1e-6:
+        return 0.0
+    return float(brentq(lambda s: rounded_var(s) - var, 1e-3, np.sqrt(var) + 1.0))
 
 
 def _gauss_img(p, yy, xx, aspect):

@@ -40,6 +40,15 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
         "OUT-report/ beside this file.",
     ]
     head += [f"# note: {n}." for n in record.get("notes", [])]
+    said = record.get("sensor", {}).get("said")
+    if said:
+        head.append(f"# sensor: {said}.")
+    warn = record.get("warnings") or []
+    if warn:
+        head = [
+            "# WARNING: renders of this camera contradict the frames it was fitted on: " + "; ".join(warn) + ".",
+            "# (see the report's warning block; use it knowing which statistic is off)",
+        ] + head
     text = "\n".join(head) + "\n" + yaml.safe_dump(body, sort_keys=False)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
@@ -51,7 +60,7 @@ def _fmt(v, nd=2):
 
 
 def markdown(r: dict) -> str:
-    g, mv, px = r["geometry"], r["mean_variance"], r["pixels"]
+    g, px = r["geometry"], r["pixels"]
     hw = r["hardware"]
     cpu = (
         (
@@ -70,6 +79,7 @@ def markdown(r: dict) -> str:
         f"Frame values divided by {r['value_scale']} (the scale they carry); saturation {r['saturation_adu']:.0f} ADU.",
         "",
     ]
+    lines += warning_block(r)
     if r.get("notes"):
         lines += [f"Note: {n}." for n in r["notes"]] + [""]
     if r["dropped"]:
@@ -123,15 +133,7 @@ def markdown(r: dict) -> str:
         "## Pixels",
         "",
     ]
-    if mv["ok"]:
-        lines.append(
-            f"- mean–variance over {mv['boxes']} background boxes (levels spanning {mv['level_span_adu']:.0f} "
-            f"ADU): var = {mv['intercept_adu2']:.2f} + {mv['slope']:.4f} × level → gain "
-            f"{mv['gain_e_per_adu']:.3f} e-/ADU, bias {mv['bias_adu']:.1f} ADU, read noise "
-            f"{mv['read_noise_e']:.2f} e- ({mv['note']})"
-        )
-    else:
-        lines.append(f"- gain, bias and read noise kept from the start camera: {mv['why']}")
+    lines += sensor_lines(r)
     psf = px["psf"]
     lines += [
         f"- background {px['level_adu']:.1f} ADU (median of box levels); fitted per frame as centre + gradient − "
@@ -160,8 +162,8 @@ def markdown(r: dict) -> str:
         "",
         "## Real against rendered (medians over frames; renders at the fitted attitudes)",
         "",
-        "| quantity | real | start camera | fitted camera | fitted / real |",
-        "|---|---|---|---|---|",
+        "| quantity | real | start camera | fitted camera | fitted / real | tolerance |",
+        "|---|---|---|---|---|---|",
     ]
     lab = {
         "background_adu": "background (ADU)",
@@ -170,15 +172,32 @@ def markdown(r: dict) -> str:
         "star_sigma_px": "star width σ (px)",
         "zero_point_mag": "zero point (mag)",
     }
+    verdict = {c["stat"]: c for c in r.get("checks") or []}
     for k, v in r["compare"].items():
         rel = (
             f"{v['fitted'] - v['real']:+.3f} mag"
             if k == "zero_point_mag"
             else f"{v['fitted'] / v['real']:.3f}"
-            if v["real"]
+            if v["real"] and np.isfinite(v["fitted"] / v["real"])
             else "–"
         )
-        lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} |")
+        c = verdict.get(k)
+        tol = f"±{100 * c['tolerance']:.0f} % {'✓' if c['ok'] else '**✗**'}" if c else ""
+        lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} | {tol} |")
+    corr = r.get("correction")
+    if corr:
+        lines += [
+            "",
+            "The first renders missed: "
+            + "; ".join(c["why"] for c in corr["checks_before"] if not c["ok"])
+            + ". Corrected once: "
+            + "; ".join(corr["changed"])
+            + (
+                ". The table is after the correction."
+                if corr.get("kept", True)
+                else "; its renders missed by more, so the first fit stands (the table is the first fit's)."
+            ),
+        ]
     lines += [
         "",
         "Statistics are measured the same way on both (skygen.real.frame_stats): background and noise by the "
@@ -189,6 +208,58 @@ def markdown(r: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def warning_block(r: dict) -> list[str]:
+    """The report's top block when the renders contradict the frames (each statistic off, by how much)."""
+    warn = r.get("warnings") or []
+    if not warn:
+        return []
+    return (
+        ["> **WARNING: renders of this camera contradict the frames it was fitted on.**", ">"]
+        + [f"> - {w}" for w in warn]
+        + [
+            ">",
+            "> The camera file was written; these statistics of its renders are off by more than issue 35's tolerances "
+            '(background 10 %, σ 15 %, star width 10 %, detections 25 %). See "Real against rendered".',
+            "",
+        ]
+    )
+
+
+def sensor_lines(r: dict) -> list[str]:
+    """The sensor's lines of the Pixels section: the mean-variance line, what was refused and what was used."""
+    mv, sen = r["mean_variance"], r.get("sensor", {})
+    px = r["pixels"]
+    out = []
+    if "slope" in mv:
+        out.append(
+            f"- mean–variance over {mv['boxes']} of {mv['boxes_all']} background boxes (levels spanning "
+            f"{mv['level_span_adu']:.3g} ADU, lever arm {mv['lever_adu']:.3g} ADU rms): var = "
+            f"{mv['intercept_adu2']:.3f} + {mv['slope']:.4f} × level, slope ±{100 * mv['slope_rse']:.1f} %"
+            + (
+                f" → gain {mv['gain_e_per_adu']:.3f} e-/ADU, bias {mv['bias_adu']:.1f} ADU, read noise "
+                f"{mv['read_noise_e']:.2f} e- ({mv['note']})"
+                if "gain_e_per_adu" in mv
+                else ""
+            )
+        )
+    if sen.get("said"):
+        out.append(f"- **{sen['said']}**")
+    out.append(
+        f"- sensor used ({px.get('sensor_method', 'mean-variance')}): gain {px['gain_e_per_adu']:.3f} e-/ADU, "
+        f"bias {px['bias_adu']} ADU, read noise {px['read_noise_e']:.2f} e-, FPN {px.get('fpn_adu', float('nan')):.2f} "
+        f"ADU; background at the centre {px.get('background_e', float('nan')):.4g} e- (the model's level there equals "
+        "the measured one)"
+    )
+    dark = r["config"]["sensor"]["dark_current_e_s"]
+    start_dark = r.get("start", {}).get("dark_current_e_s")
+    if start_dark is not None and dark < start_dark:
+        out.append(
+            f"- dark current lowered from {start_dark:.4g} to {dark:.4g} e-/s: the start camera's dark charge "
+            "alone would have outshone the darkest background"
+        )
+    return out
 
 
 def write_report(folder, record: dict, real_example: list, g) -> None:

@@ -7,9 +7,12 @@ and by ``benchmarks/real_vs_sim.py``. Units: ADU of the frame as given; pixels.
   (:func:`skygen.instrument.detect.estimate_background`; a gradient across the frame raises the noise);
 * detections: skygen's detector with the given settings, all of them counted;
 * star width: :func:`star_width_px`, the intensity-weighted second moment (per axis, 9 x 9 px, local
-  background subtracted) of the 20 brightest unsaturated detections, median;
+  background subtracted) of the 20 brightest unsaturated detections at least 6 px from the edge, median;
 * zero point (with catalogue magnitudes of matched detections): median of ``mag + 2.5 log10(flux_adu)``
   (:func:`skygen.real.fit_pixels.zero_point`).
+
+:func:`check_renders` compares the medians of real and rendered frames with :data:`TOLERANCES` (issue 35's
+targets): what ``skygen fit-camera`` warns about before it writes a camera whose renders miss its frames.
 """
 
 from __future__ import annotations
@@ -17,14 +20,18 @@ from __future__ import annotations
 import numpy as np
 
 
-def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> float:
-    """Median second-moment sigma (px, mean of the two axes' variances) of the ``n`` brightest unsaturated detections.
+def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: int = 20) -> tuple[float, int]:
+    """(median second-moment sigma in px, stars used): the mean of the two axes' variances of the ``n``
+    brightest detections that are unsaturated and at least 6 px from the edge (nan, 0 without one).
 
     The background under each star is the median of the 13 x 13 px box's edge (a gradient across the frame
     would otherwise leave a pedestal that widens every star); ``bg`` only decides saturation."""
-    sig = []
+    sig: list[float] = []
     h, w = img.shape
-    for x, y, peak in zip(det["x_px"][:n], det["y_px"][:n], det["peak_adu"][:n]):
+    yy, xx = np.mgrid[-4:5, -4:5]
+    for x, y, peak in zip(det["x_px"], det["y_px"], det["peak_adu"]):
+        if len(sig) == n:
+            break
         if peak + bg >= 0.9 * saturation:
             continue
         xi, yi = int(round(x)), int(round(y))
@@ -33,29 +40,85 @@ def star_width_px(img: np.ndarray, det: dict, bg: float, saturation: float, n: i
         ring = img[yi - 6 : yi + 7, xi - 6 : xi + 7].astype(np.float64)
         local = np.median(np.concatenate([ring[0], ring[-1], ring[1:-1, 0], ring[1:-1, -1]]))
         st = np.clip(img[yi - 4 : yi + 5, xi - 4 : xi + 5] - local, 0, None)
-        yy, xx = np.mgrid[-4:5, -4:5]
         tot = st.sum()
         if tot <= 0:
             continue
         mx, my = (st * xx).sum() / tot, (st * yy).sum() / tot
-        sig.append(np.sqrt(((st * ((xx - mx) ** 2 + (yy - my) ** 2)).sum() / tot) / 2))
-    return float(np.median(sig)) if sig else float("nan")
+        sig.append(float(np.sqrt(((st * ((xx - mx) ** 2 + (yy - my) ** 2)).sum() / tot) / 2)))
+    return (float(np.median(sig)) if sig else float("nan")), len(sig)
 
 
 def frame_stats(
     img: np.ndarray, threshold_sigma: float, min_area_px: int, background_box_px: int, saturation: float
 ) -> tuple[dict, dict]:
-    """({background_adu, noise_adu, detections, star_sigma_px}, the detections) of one frame."""
+    """({background_adu, noise_adu, detections, star_sigma_px, star_width_stars}, the detections) of one frame."""
     from skygen.instrument.detect import detect, estimate_background
 
     bg, sigma = estimate_background(img)
     det, _, _ = detect(img, threshold_sigma, min_area_px, 100_000, background_box_px)
+    width, n_width = star_width_px(img, det, bg, saturation)
     return (
         {
             "background_adu": bg,
             "noise_adu": sigma,
             "detections": int(len(det["x_px"])),
-            "star_sigma_px": star_width_px(img, det, bg, saturation),
+            "star_sigma_px": width,
+            "star_width_stars": n_width,
         },
         det,
     )
+
+
+#: renders of a fitted camera match its frames when their medians are this close (relative): issue 35
+TOLERANCES = {"background_adu": 0.10, "noise_adu": 0.15, "star_sigma_px": 0.10, "detections": 0.25}
+LABELS = {
+    "background_adu": "background",
+    "noise_adu": "background σ",
+    "star_sigma_px": "star width",
+    "detections": "detections / frame",
+}
+
+
+def median_of(rows: list[dict], key: str) -> float:
+    """Median of ``key`` over the rows' finite values (nan when none, without numpy's all-nan warning)."""
+    v = np.array([r[key] for r in rows], float) if rows else np.zeros(0)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else float("nan")
+
+
+def check_renders(real: list[dict], rendered: list[dict]) -> list[dict]:
+    """One verdict per statistic of :data:`TOLERANCES`: {stat, label, real, rendered, ratio, tolerance, ok,
+    why}. ``why`` says how far off a statistic is, or why it could not be measured (a nan is off)."""
+    out = []
+    for k, tol in TOLERANCES.items():
+        a, b = median_of(real, k), median_of(rendered, k)
+        ratio = b / a if np.isfinite(a) and np.isfinite(b) and a != 0 else float("nan")
+        ok = bool(np.isfinite(ratio) and abs(ratio - 1) <= tol)
+        if ok:
+            why = ""
+        elif np.isfinite(ratio):
+            why = f"{LABELS[k]} {b:.3g} rendered vs {a:.3g} real: {ratio:.2f} x (tolerance {100 * tol:.0f} %)"
+        else:
+            which = "renders" if not np.isfinite(b) else "real frames"
+            rows = rendered if which == "renders" else real
+            reason = (
+                "no detection"
+                if k == "star_sigma_px" and not any(r.get("detections") for r in rows)
+                else "no unsaturated detection at least 6 px from the edge"
+                if k == "star_sigma_px"
+                else "not measurable"
+            )
+            why = f"{LABELS[k]} not measured on the {which} ({reason}): nan"
+        out.append(
+            {
+                "stat": k,
+                "label": LABELS[k],
+                "real": a,
+                "rendered": b,
+                "ratio": ratio,
+                "tolerance": tol,
+                "ok": ok,
+                "why": why,
+            }
+        )
+    return out
