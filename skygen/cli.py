@@ -303,7 +303,8 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="A",
         help="start value of pixel height / width "
-        "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height",
+        "(default: the camera file's, or 1); e.g. 2 for interlaced frames stored at half height. Not given: "
+        "when fewer than half the frames solve, 2 and 0.5 are tried too and the best kept, with a line",
     )
     p.add_argument(
         "--epoch",

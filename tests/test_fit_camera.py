@@ -276,7 +276,6 @@ def _renders_of_another_lens(folder: Path, n: int, focal_mm: float = 25.0) -> li
 def test_a_frame_of_another_lens_is_dropped_by_name_and_the_fit_is_the_others(tmp_path):
     """Three real Blackfly frames (35 mm) and one render at 25 mm of the same sensor: the render is dropped,
     saying why, and the camera is the one the three give alone (about 8 s)."""
-    from skygen.instrument.camera import Camera
     from skygen.real import fit_camera as F
     from skygen.sky.catalog import SkyIndex, load_catalog
 
@@ -286,8 +285,7 @@ def test_a_frame_of_another_lens_is_dropped_by_name_and_the_fit_is_the_others(tm
 
     def geometry(paths):
         fr = F.load_frames(paths, said.append)
-        cam0 = Camera.from_config(load_config(BLACKFLY).camera)
-        solved = F.solve_frames(fr, cam0, None, said.append)
+        solved, _, cam0 = F.solve_frames(fr, load_config(BLACKFLY), None, said.append)
         sky = SkyIndex(load_catalog(), 2019.6, 10.0)
         return fr, solved, F.fit_joint_geometry(solved, cam0, None, sky, fr, said.append)
 
@@ -358,3 +356,24 @@ def test_disagreements_name_each_reason():
     assert bad["wide"].startswith("solved at a 16.10 deg field, the other frames at 11.43 deg (41 % apart)")
     assert "px rms from the fitted camera's projection, over 1.00 px" in bad["off"]
     assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off"]
+
+
+def test_an_unknown_pixel_aspect_is_searched_when_square_pixels_do_not_solve(tmp_path):
+    """Blackfly frames stored at half height (every other row: pixels twice as tall as wide, as an
+    interlaced read-out) solve with no --pixel-aspect: square pixels fail, the search finds 2 and says so."""
+    from skygen.real import fit_camera as F
+
+    paths = []
+    for n in sorted(_listed())[:2]:
+        img = cv2.imread(str(REAL / n), cv2.IMREAD_UNCHANGED)
+        np.save(tmp_path / f"{Path(n).stem}.npy", img[::2].astype(np.float32))
+        paths.append(str(tmp_path / f"{Path(n).stem}.npy"))
+    said = []
+    fr = F.load_frames(paths, said.append)
+    cfg0 = F.start_config(None, (10.0, 13.0), 6.9, None, fr.imgs[0].shape)
+    solved, cfg, cam = F.solve_frames(fr, cfg0, (10.0, 13.0), said.append)
+    assert cam.aspect == 2.0 and cfg.camera.pixel_aspect == 2.0 and len(solved) == 2
+    assert any(line.startswith("pixel aspect searched (frames solved per height/width: 1: 0, 2: 2") for line in said)
+    fr = F.load_frames(paths, said.append)  # told the aspect: no search, and square pixels are kept as given
+    with pytest.raises(F.FitError, match="no frame solved"):
+        F.solve_frames(fr, cfg0, (10.0, 13.0), said.append, search_aspect=False)

@@ -182,11 +182,10 @@ def fit_camera(
     fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
     fr = load_frames(paths, log, channel)
     cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape)
-    cam0 = Camera.from_config(cfg0.camera)
     epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
     table = load_catalog(cfg0.catalog.path)
     sky = SkyIndex(table, epoch, 10.0)
-    solved = solve_frames(fr, cam0, fov_range, log)
+    solved, cfg0, cam0 = solve_frames(fr, cfg0, fov_range, log, search_aspect=pixel_aspect is None)
     t_solve = time.perf_counter() - t0
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
     t_geom = time.perf_counter() - t0
@@ -306,26 +305,47 @@ def load_frames(paths: list[str], log, channel: str = "luminance") -> Frames:
     return fr
 
 
-def solve_frames(fr: Frames, cam0: Camera, fov_range, log) -> list:
-    """Step 2: background statistics and detections of every frame, then a lost-in-space solution
-    (:class:`skygen.real.fit_geometry.FrameSolution`); unsolved frames are dropped with the solver's reason."""
-    from skygen.instrument.detect import detect
-    from skygen.real import fit_geometry as G
-    from skygen.real import fit_pixels as P
-    from skygen.real.platesolve import load_database
+#: pixel aspects (height / width) tried when the start camera's solves fewer than half the frames and
+#: no --pixel-aspect was given: an interlaced read-out stored at half height (2) or doubled rows (0.5)
+ASPECT_SEARCH = (2.0, 0.5)
 
-    if fov_range is None:
-        db = load_database(cam0.fov_deg[0], log=log)
-    else:
-        db = load_database(fov_range[0], log=log, fov_max_deg=fov_range[1])
-    frames = []
-    for n, im in zip(fr.names, fr.imgs):
+
+def solve_frames(fr: Frames, cfg0, fov_range, log, search_aspect: bool = True) -> tuple[list, object, Camera]:
+    """Step 2: background statistics and detections of every frame, then a lost-in-space solution
+    (:class:`skygen.real.fit_geometry.FrameSolution`); unsolved frames are dropped with the solver's reason.
+
+    When the start camera's pixel aspect solves fewer than half the frames and ``search_aspect`` (no
+    --pixel-aspect given), the aspects of :data:`ASPECT_SEARCH` are tried too and the one that solves the
+    most frames is kept, with one line saying so. Returns (solved frames, start config, start camera), the
+    config and camera with the aspect that was kept."""
+    from skygen.instrument.detect import detect
+    from skygen.real import fit_pixels as P
+
+    cam0 = Camera.from_config(cfg0.camera)
+    db = _database(cam0, fov_range, log)
+    dets = []
+    for im in fr.imgs:
         fr.bgs.append(P.background(im, BOX_PX))
-        det, _, _ = detect(im, DETECT["threshold_sigma"], DETECT["min_area_px"], 200, BOX_PX)
-        R, fov, why = G.solve_frame(db, det, cam0, fov_range)
-        frames.append(G.FrameSolution(n, det, R, fov, why))
-        if why:
-            fr.drop(n, why, log)
+        dets.append(detect(im, DETECT["threshold_sigma"], DETECT["min_area_px"], 200, BOX_PX)[0])
+    frames = _solve_all(db, fr.names, dets, cam0, fov_range)
+    n_ok = sum(fs.solved for fs in frames)
+    if search_aspect and 2 * n_ok < len(frames):
+        tried = [f"{cam0.aspect:g}: {n_ok}"]
+        for aspect in ASPECT_SEARCH:
+            cfg = dataclasses.replace(cfg0, camera=dataclasses.replace(cfg0.camera, pixel_aspect=aspect))
+            cam = Camera.from_config(cfg.camera)
+            trial = _solve_all(db, fr.names, dets, cam, fov_range)
+            n = sum(fs.solved for fs in trial)
+            tried.append(f"{aspect:g}: {n}")
+            if n > n_ok:
+                frames, n_ok, cfg0, cam0 = trial, n, cfg, cam
+        log(
+            f"pixel aspect searched (frames solved per height/width: {', '.join(tried)} of {len(frames)}): "
+            f"using {cam0.aspect:g}; give --pixel-aspect to set it"
+        )
+    for fs in frames:
+        if fs.reason:
+            fr.drop(fs.name, fs.reason, log)
     solved = [fs for fs in frames if fs.solved]
     if not solved:
         raise FitError(
@@ -333,7 +353,21 @@ def solve_frames(fr: Frames, cam0: Camera, fov_range, log) -> list:
             + "; ".join(f"{Path(n).name}: {why}" for n, why in fr.dropped[:3])
             + (" ..." if len(fr.dropped) > 3 else "")
         )
-    return solved
+    return solved, cfg0, cam0
+
+
+def _database(cam0: Camera, fov_range, log):
+    from skygen.real.platesolve import load_database
+
+    if fov_range is None:
+        return load_database(cam0.fov_deg[0], log=log)
+    return load_database(fov_range[0], log=log, fov_max_deg=fov_range[1])
+
+
+def _solve_all(db, names: list, dets: list, cam: Camera, fov_range) -> list:
+    from skygen.real import fit_geometry as G
+
+    return [G.FrameSolution(n, det, *G.solve_frame(db, det, cam, fov_range)) for n, det in zip(names, dets)]
 
 
 def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, log) -> tuple:
