@@ -280,6 +280,37 @@ def stop_on_sigterm() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def check_output_file(path: str | Path, option: str, example: str, error=ConfigError) -> None:
+    """Refuse (``error``, a ConfigError by default) an output *file* that cannot be written, before any work:
+    a folder given where a file is due (``example``: a file name to suggest), or a folder that cannot be made
+    or written to. The folder is made (an empty one is left behind when the work fails later)."""
+    path = Path(path)
+    if path.is_dir():
+        raise error(f"{option} {path} is a folder; give a file name such as {path / example}")
+    _probe_folder(path.parent, f"{option} {path}", "give a file in a folder you can write to", error)
+
+
+def check_output_folder(path: str | Path, option: str, error=ConfigError) -> bool:
+    """Make the output *folder* ``path`` and check that files can be written there, before any work; True when
+    it was created here. ``error`` (a ConfigError by default) names ``option`` otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise error(f"{option} {path} exists and is not a folder; give a folder for the output files")
+    created = not path.exists()
+    _probe_folder(path, f"{option} {path}", f"give a folder you can write to with {option} DIR", error)
+    return created
+
+
+def _probe_folder(folder: Path, what: str, advice: str, error) -> None:
+    probe = folder / f".write-test-{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise error(f"{what}: cannot write there ({exc.strerror or exc}); {advice}") from None
+
+
 def describe_os_error(exc: OSError) -> str:
     """One line for a file-system error a command met: what, which file, and what to do for a full disk."""
     import errno as _errno

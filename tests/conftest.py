@@ -36,6 +36,24 @@ def small_dataset(tmp_path_factory) -> Path:
     return out
 
 
+# the default camera's renderer and a tetra3rs solver with its own database: the solver tests
+# (test_solvers.py, test_solver_certificate.py) share one per session
+@pytest.fixture(scope="session")
+def renderer():
+    from skygen.config import load_config
+    from skygen.render.frame import Renderer
+
+    return Renderer(load_config(overrides=["n_frames=20"]))
+
+
+@pytest.fixture(scope="session")
+def tetra(renderer, tmp_path_factory):
+    pytest.importorskip("tetra3rs")
+    from fusion.solve.tetra import Tetra3Solver
+
+    return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
+
+
 def pytest_configure(config):
     # verified shard checksums are remembered under $XDG_CACHE_HOME/skygen: keep the tests' own
     import tempfile

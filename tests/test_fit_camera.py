@@ -377,3 +377,17 @@ def test_an_unknown_pixel_aspect_is_searched_when_square_pixels_do_not_solve(tmp
     fr = F.load_frames(paths, said.append)  # told the aspect: no search, and square pixels are kept as given
     with pytest.raises(F.FitError, match="no frame solved"):
         F.solve_frames(fr, cfg0, (10.0, 13.0), said.append, search_aspect=False)
+
+
+def test_unwritable_outputs_are_refused_before_any_frame_is_solved(tmp_path, capsys):
+    """--out and --report are checked first (the probe waited 72 s of solving for the refusal)."""
+    import time
+
+    frames = [str(p) for p in sorted(REAL.glob("*.tiff"))]
+    for argv in (["--out", "/proc/x.yaml"], ["--out", str(tmp_path / "ok.yaml"), "--report", "/proc/rep"]):
+        t0 = time.perf_counter()
+        assert main(["fit-camera", *frames, "--camera", str(BLACKFLY), *argv]) == 2
+        assert time.perf_counter() - t0 < 5
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "cannot write there" in err[0] and argv[-2] in err[0]
+    assert not (tmp_path / "ok.yaml").exists()

@@ -165,3 +165,18 @@ def test_a_frame_with_detections_but_no_catalog_star(small_overrides):
     f = Renderer(cfg, catalog=one).render(0)
     assert len(f.stars["hip_id"]) == 0 and len(f.detections["hip_id"]) > 0
     assert np.all(f.detections["hip_id"] == -1) and np.all(f.detections["star_index"] == -1)
+
+
+def test_a_config_detecting_few_stars_renders_with_one_warning(tmp_path):
+    """exposure 0.003 s passes the refusal (0.62 stars per field above the limit, more than 0.5) but most
+    frames would hold fewer than 3 detections: skygen render says so once, naming the exposure that gives 3."""
+    from skygen.datasets.build import render_dataset
+
+    sparse = Renderer(load_config(None, ["sensor.exposure_s=0.003"]))
+    assert 0.5 < sparse.detectable_per_field < 3
+    assert Renderer(load_config(None, [])).sparse_warning() is None
+    said = []
+    cfg = load_config(None, ["sensor.exposure_s=0.003", "n_frames=2", "output.shard_size=2"])
+    render_dataset(cfg, tmp_path / "d", workers=1, progress=False, warn=said.append)
+    assert len(said) == 1 and said[0].startswith("warning: only 0.62 catalog stars per field")
+    assert "sensor.exposure_s >= 0.0114 s" in said[0]

@@ -15,23 +15,9 @@ from fusion.solve.base import (
     attitude_covariance,
     rotation_vector_deg,
 )
-from skygen.config import load_config
-from skygen.render.frame import Renderer
 from skygen.sky.attitude import attitude_matrix
 
 pytest.importorskip("tetra3rs")
-
-
-@pytest.fixture(scope="module")
-def renderer():
-    return Renderer(load_config(overrides=["n_frames=20"]))
-
-
-@pytest.fixture(scope="module")
-def tetra(renderer, tmp_path_factory):
-    from fusion.solve.tetra import Tetra3Solver
-
-    return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
 
 
 @pytest.fixture(scope="module")

@@ -22,18 +22,6 @@ from skygen.sky.attitude import attitude_matrix
 tetra3rs = pytest.importorskip("tetra3rs")
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    return Renderer(load_config(overrides=["n_frames=20"]))
-
-
-@pytest.fixture(scope="module")
-def tetra(renderer, tmp_path_factory):
-    from fusion.solve.tetra import Tetra3Solver
-
-    return Tetra3Solver(renderer.camera, db_folder=tmp_path_factory.mktemp("db"))
-
-
 def test_radec_roll_from_matrix_inverts_attitude_matrix():
     rng = np.random.default_rng(0)
     for _ in range(200):

@@ -26,7 +26,6 @@ Markdown say so, and the JSON lists them under ``config_differences``.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -120,20 +119,9 @@ def frame_settings_check(ckpt: Checkpoint, ds, warn) -> dict:
 def prepare_out(out: Path, default: bool) -> bool:
     """Create ``out`` and check that files can be written there, before any work; True when it was created
     here. ConfigError naming the folder (and ``--out``) otherwise."""
-    what = f"{out} (the checkpoint's folder, the default of --out)" if default else f"--out {out}"
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{what} exists and is not a folder; give a folder for the report files")
-    created = not out.exists()
-    probe = out / f".write-test-{os.getpid()}"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe.touch()
-        probe.unlink()
-    except OSError as exc:
-        raise ConfigError(
-            f"{what}: cannot write there ({exc.strerror or exc}); give a folder you can write to with --out DIR"
-        ) from None
-    return created
+    from skygen.runtime import check_output_folder
+
+    return check_output_folder(out, "--out" if not default else "the checkpoint's folder (the default of --out)")
 
 
 def evaluate_checkpoint(

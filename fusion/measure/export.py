@@ -35,7 +35,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import os
 import time
 import warnings
 from pathlib import Path
@@ -225,15 +224,9 @@ def _first_line(exc: BaseException) -> str:
 
 def _check_writable(path: Path, option: str, example: str) -> None:
     """Refuse an output file that cannot be written before the minutes of export and verification."""
-    if path.is_dir():
-        raise ConfigError(f"{option} {path} is a folder; give a file name (such as {path / example})")
-    probe = path.with_name(f".{path.name}.write-test{os.getpid()}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        probe.touch()
-        probe.unlink()
-    except OSError as exc:
-        raise ExportError(f"{option} {path}: cannot write there ({exc.strerror or exc})") from None
+    from skygen.runtime import check_output_file
+
+    check_output_file(path, option, example, error=ExportError)
 
 
 def written_opset(path: str | Path) -> int:

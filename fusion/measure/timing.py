@@ -442,6 +442,22 @@ def spread_warning(name: str, stats: dict, hw: dict) -> str | None:
     )
 
 
+def busy_warning(hw: dict, threads: int) -> str | None:
+    """A one-line WARNING when the machine was busy while timing: the 1-minute load average, before or after
+    the run, less the run's own ``threads``, is more work than the cores the run leaves idle can take
+    (with half a core of slack)."""
+    cores = hw.get("usable_cores") or os.cpu_count() or 1
+    loads = [x for x in (hw.get("load_average_1m"), hw.get("load_average_1m_after")) if x is not None]
+    other = max(loads) - threads if loads else 0.0  # runnable processes besides this run, at most
+    if other <= max(cores - threads, 0) + 0.5:  # other work fits on the idle cores (half a core of slack)
+        return None
+    return (
+        f"WARNING: the machine was busy while timing (load average {max(loads):.1f} on {cores} usable cores, this "
+        f"run's {threads} thread(s) included): the figures are inflated by other work; time again on an idle "
+        "machine"
+    )
+
+
 def run_timing(
     checkpoint: str | Path | None = None,
     config: str | Path | None = None,
@@ -493,8 +509,9 @@ def run_timing(
     report["settings"]["threads_chosen_by"] = threads_note
     report["warnings"] = []
     timed = {"forward": report.get("forward"), "end-to-end": (report.get("end2end") or {}).get("total")}
-    for name, stats in timed.items():
-        line = spread_warning(name, stats, report["hardware"]) if stats else None
+    lines = [spread_warning(name, stats, report["hardware"]) if stats else None for name, stats in timed.items()]
+    lines.append(busy_warning(report["hardware"], n_threads))
+    for line in lines:
         if line:
             report["warnings"].append(line)
             warn(line)
@@ -609,18 +626,10 @@ def summary_text(r: dict) -> str:
 
 def timing(out: str | Path, log=print, **kw) -> dict:
     """:func:`run_timing` and write the report to ``out`` (JSON, atomically)."""
+    from skygen.runtime import check_output_file
+
     out = Path(out)
-    if out.exists() and out.is_dir():
-        raise ConfigError(f"--out {out} is a folder; give a file name such as results/timing/cpu.json")
-    probe = out.with_name(f".{out.name}.write-test{os.getpid()}")
-    try:  # before the run, not after it
-        out.parent.mkdir(parents=True, exist_ok=True)
-        probe.touch()
-        probe.unlink()
-    except OSError as exc:
-        raise ConfigError(
-            f"--out {out}: cannot write there ({exc.strerror or exc}); give a file in a folder you can write to"
-        ) from None
+    check_output_file(out, "--out", "cpu.json")  # before the run, not after it
     report = run_timing(**kw)
     write_json(out, report)
     log(summary_text(report))

@@ -27,6 +27,10 @@ fields of :class:`Checkpoint` plus ``format`` = ``"fusion-checkpoint"`` and
     order), computed by :meth:`Checkpoint.save`; :func:`load_checkpoint` recomputes it and
     refuses a file whose weights changed after it was written (a flipped bit scores
     without a word otherwise). Files written before it existed load, with a one-line note.
+``content_sha256``
+    the sha256 of everything else (:func:`content_sha256`: the configs, the camera's render settings,
+    the training state), checked on load like the weights'; files without it are checked for their
+    weights only.
 ``epoch``, ``history``, ``best``, ``finished``, ``optimizer``, ``scheduler``, ``scaler``, ``rng``
     training state: completed epochs (training resumes at this epoch index), metric rows, the
     best-epoch record, whether the run ended, optimiser/schedule/scaler states and generator
@@ -103,6 +107,7 @@ class Checkpoint:
     scaler: dict | None = None
     rng: dict | None = None
     weights_sha256: str | None = None
+    content_sha256: str | None = None
     source: str = field(default="checkpoint", compare=False)
 
     # ---------------------------------------------------------------- file
@@ -115,6 +120,7 @@ class Checkpoint:
         if self.train_frame_ids is not None:
             d["train_frame_ids"] = torch.from_numpy(np.asarray(self.train_frame_ids).view(np.int64))
         d["weights_sha256"] = weights_sha256(d)  # of what is written, whatever the field held
+        d["content_sha256"] = content_sha256(d)
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **d}
 
     @classmethod
@@ -219,6 +225,7 @@ def migrate(d: dict, source: str = "checkpoint") -> dict:
         d.setdefault(key, None)
     d.setdefault("versions", {})
     d.setdefault("weights_sha256", None)
+    d.setdefault("content_sha256", None)
     return d
 
 
@@ -235,6 +242,40 @@ def weights_sha256(d: dict) -> str:
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
         if t.numel():
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def content_sha256(d: dict) -> str:
+    """sha256 of everything else a checkpoint dict holds (the configs it rebuilds the model and the camera
+    from, the training state a resume continues: optimiser, schedule, scaler, generators, history): every
+    key but the two digests, walked in sorted key order, tensors and arrays as dtype, shape and bytes, plain
+    values by type and repr. A damaged stored focal length or optimiser moment is caught as a weight is."""
+    h = hashlib.sha256()
+
+    def walk(v) -> None:
+        if isinstance(v, torch.Tensor):
+            t = v.detach().cpu().contiguous()
+            h.update(f"T{t.dtype}{tuple(t.shape)}|".encode())
+            if t.numel():
+                h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        elif isinstance(v, np.ndarray):
+            h.update(f"A{v.dtype}{v.shape}|".encode() + np.ascontiguousarray(v).tobytes())
+        elif isinstance(v, dict):
+            h.update(b"{")
+            for k in sorted(v, key=str):
+                h.update(f"{k!r}:".encode())
+                walk(v[k])
+            h.update(b"}")
+        elif isinstance(v, (list, tuple)):
+            h.update(b"[")
+            for x in v:
+                walk(x)
+            h.update(b"]")
+        else:
+            x = v.item() if isinstance(v, np.generic) else v
+            h.update(f"{type(x).__name__}:{x!r};".encode())
+
+    walk({k: v for k, v in d.items() if k not in ("weights_sha256", "content_sha256", "format", "format_version")})
     return h.hexdigest()
 
 
@@ -259,6 +300,13 @@ def verify_weights(d: dict, path: str | Path, note=None) -> None:
             f"{path}: its weights do not match the sha256 stored when it was written (the file "
             "was damaged or edited since); use an intact copy (best.pt or last.pt of the run, a "
             "backup) or train again"
+        )
+    content = d.get("content_sha256")
+    if content is not None and content_sha256(d) != content:
+        raise CheckpointError(
+            f"{path}: its configs or training state do not match the sha256 stored when it was written (the "
+            "file was damaged or edited since: a stored camera or optimiser state would mislead every use); use "
+            "an intact copy (best.pt or last.pt of the run, a backup) or train again"
         )
 
 

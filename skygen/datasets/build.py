@@ -267,9 +267,9 @@ def render_dataset(
 
         resolve_device(cfg.render.device)
     probe_renderer = Renderer(cfg)  # refuses configs it cannot render (ConfigError) before any file is made
-    message = probe_renderer.saturation_warning()
-    if message:
-        warn(f"warning: {message}")
+    for message in (probe_renderer.saturation_warning(), probe_renderer.sparse_warning()):
+        if message:
+            warn(f"warning: {message}")
     extra = {
         "detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
         "mag_limit": round(probe_renderer.mag_limit, 4),

@@ -11,7 +11,7 @@
    frame lost-in-space with tetra3rs (:mod:`skygen.real.platesolve`): from the start camera, or, with
    ``--fov-range`` (default without a camera file: 5-30 deg), searching the horizontal field in that
    range (the first search of a range builds and caches a database: ~35 s for 5-30 deg; a range whose
-   database would pass 500 MB is refused first, naming a narrower one). Unsolved frames are dropped
+   database would pass 200 MB is refused first, naming a narrower one). Unsolved frames are dropped
    with the solver's reason.
 3. Geometry (:mod:`skygen.real.fit_geometry`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted
@@ -176,9 +176,13 @@ def fit_camera(
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
     from skygen.real.fit_render import fit_model_terms
+    from skygen.runtime import check_output_file, check_output_folder
     from skygen.sky.catalog import SkyIndex, load_catalog
 
     t0 = time.perf_counter()
+    check_output_file(out, "--out", "camera.yaml")  # before the minute of solving and fitting, not after it
+    if report_dir is not None:
+        check_output_folder(report_dir, "--report")
     fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
     fr = load_frames(paths, log, channel)
     cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape)

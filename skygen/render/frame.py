@@ -30,6 +30,9 @@ BLUR_STEP_PX = 0.25  # sub-exposure spacing of a motion-blurred star
 #: fewest catalogue stars above the detection limit a field must hold on average: below it most
 #: frames (Poisson P(0) > 60 %) show no star at all, which no solver and no model can use
 MIN_DETECTABLE_PER_FIELD = 0.5
+#: fewer catalogue stars than this above the detection limit per field on average: skygen render warns
+#: (most frames then hold fewer than three detections, too few to localise or solve)
+FEW_DETECTABLE_PER_FIELD = 3.0
 
 
 @dataclass
@@ -176,11 +179,13 @@ class Renderer:
         drown the stars on purpose."""
         field_sr = self._field_sr()
         mags = np.sort(table.mag[np.isfinite(table.mag)]) + self.mag_offset_to_hp
+        self._sorted_hp = mags
         needed = int(np.ceil(MIN_DETECTABLE_PER_FIELD * 4 * np.pi / field_sr))  # stars on the sky for that
         limit = self._detection_limit(extra_read_e=0.0)
+        per_field = np.searchsorted(mags, limit, side="right") * field_sr / (4 * np.pi)
+        self.detectable_per_field = float(per_field)
         if needed > len(mags) or (np.isfinite(limit) and limit >= mags[needed - 1]):
             return
-        per_field = np.searchsorted(mags, limit, side="right") * field_sr / (4 * np.pi)
         need_mag = float(mags[needed - 1])
         s, fx, fy = self.cfg.sensor, *self.camera.fov_deg
         raise ConfigError(
@@ -232,6 +237,23 @@ class Renderer:
         peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
         e_needed = self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e) / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
+
+    def sparse_warning(self) -> str | None:
+        """A sentence when fewer than :data:`FEW_DETECTABLE_PER_FIELD` catalogue stars per field lie above the
+        detection limit on average (the catalogue allowing more): most frames would hold fewer than three
+        detections. None otherwise."""
+        mags = self._sorted_hp
+        needed = int(np.ceil(FEW_DETECTABLE_PER_FIELD * 4 * np.pi / self._field_sr()))
+        if self.detectable_per_field >= FEW_DETECTABLE_PER_FIELD or needed > len(mags):
+            return None
+        need_mag = float(mags[needed - 1])
+        return (
+            f"only {self.detectable_per_field:.2g} catalog stars per field lie above the detection limit (Hp "
+            f"{self._detection_limit(extra_read_e=0.0):.2f}): most frames will hold fewer than 3 detections, too "
+            f"few to localise or solve. {FEW_DETECTABLE_PER_FIELD:g} per field needs Hp {need_mag:.2f}: "
+            f"sensor.exposure_s >= {self._exposure_for_limit(need_mag):.3g} s (now {self.cfg.sensor.exposure_s:g}), "
+            "or a lower detection.threshold_sigma"
+        )
 
     def saturation_warning(self) -> str | None:
         """A sentence when the background alone (dark current + sky) fills the full well or the ADC
