@@ -136,12 +136,16 @@ MAX_HYPOTHESES = 150_000
 REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
 
 
+REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
+TRACKING = -2  # Region.index of a tracking hint's region
+
+
 @dataclass(frozen=True)
 class Region:
     center: np.ndarray  # (3,) ICRS unit vector
     radius_deg: float  # every boresight of the region lies within this angle of the centre
     probability: float
-    index: int  # the prior's region; -1: the rest of the sky (then_whole_sky); -2: a tracking hint's
+    index: int  # the prior's region, or REST_OF_SKY (then_whole_sky) or TRACKING (a tracking hint's)
     x_axis: np.ndarray | None = None  # a tracking hint's camera +x (ICRS): the roll is bounded too
 
 
@@ -155,7 +159,7 @@ def hint_region(hint: np.ndarray, hint_sigma_deg: float) -> Region:
     if m.shape != (3, 3) or not np.allclose(m.T @ m, np.eye(3), atol=1e-6) or np.linalg.det(m) < 0:
         raise ValueError("hint: a 3 x 3 rotation matrix (camera -> ICRS), e.g. the previous Solution.matrix")
     radius = min(180.0, HINT_RADIUS_SIGMAS * float(hint_sigma_deg))
-    return Region(np.ascontiguousarray(m[:, 2]), radius, 1.0, -2, np.ascontiguousarray(m[:, 0]))
+    return Region(np.ascontiguousarray(m[:, 2]), radius, 1.0, TRACKING, np.ascontiguousarray(m[:, 0]))
 
 
 def region_radii_deg(centroids: np.ndarray, n_samples: int = 200_000) -> np.ndarray:
@@ -542,7 +546,7 @@ class CoarseToFineSolver:
         if self.then_whole_sky and probabilities is not None and tracking is None:
             # where the prior's regions refuse (a prior misled by noisy magnitudes, say), the rest of the sky;
             # H keeps counting (the prior's regions are counted again inside it: conservative)
-            regions.append(Region(np.array([0.0, 0.0, 1.0]), 180.0, 0.0, -1))
+            regions.append(Region(np.array([0.0, 0.0, 1.0]), 180.0, 0.0, REST_OF_SKY))
         tables: dict = {}
         q_all = None
         for s in passes:
@@ -705,7 +709,9 @@ class CoarseToFineSolver:
                     extra=extra,
                     false_match_probability=min(1.0, e_false),
                 )  # tetra3rs's attitude and its covariance (from every star it matched)
-            elif conf < (self.tracking_unverified_confidence if region.index == -2 else self.unverified_confidence):
+            elif conf < (
+                self.tracking_unverified_confidence if region.index == TRACKING else self.unverified_confidence
+            ):
                 return Refusal(
                     "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar",
                     self.name,
