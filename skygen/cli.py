@@ -290,7 +290,7 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         metavar=("LO", "HI"),
         help="instead of --camera: the horizontal field of view is searched between LO and HI degrees "
         "(default without --camera: 5 30; the first search of a range builds a cached database, ~35 s for 5-30; "
-        "a range whose database would pass 200 MB is refused, naming a narrower one)",
+        "a range whose database would pass 350 MB is refused, naming a narrower one)",
     )
     p.add_argument(
         "--pixel-pitch",

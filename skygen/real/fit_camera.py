@@ -11,7 +11,7 @@
    frame lost-in-space with tetra3rs (:mod:`skygen.real.platesolve`): from the start camera, or, with
    ``--fov-range`` (default without a camera file: 5-30 deg), searching the horizontal field in that
    range (the first search of a range builds and caches a database: ~35 s for 5-30 deg; a range whose
-   database would pass 200 MB is refused first, naming a narrower one). Unsolved frames are dropped
+   database would pass 350 MB is refused first, naming a narrower one). Unsolved frames are dropped
    with the solver's reason.
 3. Geometry (:mod:`skygen.real.fit_geometry`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted

@@ -47,15 +47,18 @@ DB_PARAMS = {
     "verification_stars_per_fov": 150,
     "epoch_proper_motion_year": 2025.0,
 }
-#: the database-size model (see the module doc): patterns of one 10 deg scale, bytes and build
-#: seconds per pattern, tetra3rs's step between the scales of a range
+#: the database-size model (see the module doc): patterns of one 10 deg scale, bytes per pattern,
+#: tetra3rs's step between the scales of a range
 PATTERNS_AT_10_DEG = 683_832
 BYTES_PER_PATTERN = 26.0
-SECONDS_PER_PATTERN = 7.5e-6
+#: build time grows faster than the size: measured on a loaded 2-core machine, 128 MB (5-30 deg) ~35 s,
+#: 342 MB (3-10 deg) 185 s, 473 MB (2.6-119 deg) 831 s; the model t = 35 s (MB / 128)^1.7 fits the first two
+BUILD_S_AT_128_MB = 35.0
+BUILD_S_EXPONENT = 1.7
 MULTISCALE_STEP = 1.5
 #: a field range whose database would be larger is refused: builds grow faster than their size (473 MB took
-#: 14 min on a loaded 2-core machine where the model said 2.3), 200 MB stays within a few minutes
-MAX_DATABASE_MB = 200.0
+#: 14 min on a loaded 2-core machine); 350 MB keeps a 3-10 deg range (342 MB, ~3 min) for narrow cameras
+MAX_DATABASE_MB = 350.0
 ANNOUNCE_S = 5.0  # builds estimated longer than this are announced before they start
 
 
@@ -100,7 +103,8 @@ def estimate_database(fov_deg: float, fov_max_deg: float | None = None) -> dict:
     ``patterns``, ``mb`` (file size, 10^6 bytes) and ``seconds`` (build time on one loaded core).
     Within about 10 % of tetra3rs 0.14 for fields of 2.5-45 deg (see the module doc)."""
     patterns = sum(PATTERNS_AT_10_DEG * (10.0 / f) ** 2 for f in _scales(fov_deg, fov_max_deg))
-    return {"patterns": patterns, "mb": patterns * BYTES_PER_PATTERN / 1e6, "seconds": patterns * SECONDS_PER_PATTERN}
+    mb = patterns * BYTES_PER_PATTERN / 1e6
+    return {"patterns": patterns, "mb": mb, "seconds": BUILD_S_AT_128_MB * (mb / 128.0) ** BUILD_S_EXPONENT}
 
 
 def check_database_size(fov_deg: float, fov_max_deg: float | None, max_mb: float = MAX_DATABASE_MB) -> dict:
