@@ -150,7 +150,8 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class CorruptionsConfig:
-    """Severity of each registered corruption (see :mod:`skygen.instrument.corruptions`); 0 = off."""
+    """Severity of each registered corruption (see :mod:`skygen.instrument.corruptions`); 0 = off. The
+    ``false_star_*`` keys shape the false stars' brightness and are not corruptions of their own."""
 
     hotpixels: float = param(5e-5, lo=0, hi=0.05, doc="fraction of pixels that are hot (static map from sensor_seed)")
     cosmic_rays: float = param(5.0, lo=0, hi=1e5, doc="particle flux, hits/cm^2/s (tracks)")
@@ -158,6 +159,16 @@ class CorruptionsConfig:
     stray_light: float = param(0.0, lo=0, hi=1e7, doc="stray-light gradient, e-/px/s at the bright edge")
     read_noise: float = param(0.0, lo=0, hi=1000, doc="extra read noise added in quadrature, e- rms")
     false_stars: float = param(0.0, lo=0, hi=100, doc="mean number of spurious point sources per frame (Poisson)")
+    false_star_slope: float = param(
+        0.0,
+        lo=0,
+        hi=2,
+        doc="false stars' magnitude distribution: dex per mag towards the detection limit (0: uniform; field "
+        "stars ~0.4); skygen fit-camera fits it",
+    )
+    false_star_span_mag: float = param(
+        4.0, lo=0.1, hi=15, doc="false stars lie within this many magnitudes above the detection limit"
+    )
     dropout: float = param(0.0, lo=0, hi=1, doc="probability that a detection is lost")
     centroid_noise: float = param(0.0, lo=0, hi=50, doc="Gaussian centroid perturbation, px rms per axis")
     magnitude_noise: float = param(0.0, lo=0, hi=5, doc="Gaussian magnitude perturbation of detected flux, mag rms")

@@ -41,7 +41,12 @@ STORAGE_KEYS = (
 # keys added after datasets and calibrations were made, with the value that reproduces the frames made
 # before them: at that value they are left out of content ids and calibration keys, so older datasets
 # keep their ids and the shipped detector calibration still matches
-NEUTRAL_DEFAULTS = {"camera.pixel_aspect": 1.0, "detection.background_box_px": 0}
+NEUTRAL_DEFAULTS = {
+    "camera.pixel_aspect": 1.0,
+    "detection.background_box_px": 0,
+    "corruptions.false_star_slope": 0.0,
+    "corruptions.false_star_span_mag": 4.0,
+}
 
 
 def drop_neutral(config: dict) -> dict:

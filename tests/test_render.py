@@ -69,7 +69,9 @@ def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
 
 
 def test_registry_matches_config_and_rejects_unknown_names():
-    assert set(corr.REGISTRY) == set(config_dict(load_config())["corruptions"])
+    shape = {"false_star_slope", "false_star_span_mag"}  # the false stars' brightness, not corruptions
+    assert set(corr.REGISTRY) == set(config_dict(load_config())["corruptions"]) - shape
+    assert set(corr.levels_of(load_config())) == set(corr.REGISTRY)
     with pytest.raises(Exception, match="valid names: hotpixels"):
         corr.get("hot_pixels")
     for c in corr.REGISTRY.values():

@@ -18,7 +18,6 @@ random numbers of another.
 
 from __future__ import annotations
 
-import dataclasses
 import zlib
 from dataclasses import dataclass
 
@@ -99,8 +98,10 @@ REGISTRY: dict[str, Corruption] = {
             "scene",
             "sources/frame",
             (0.0, 1.0, 2.0, 4.0, 8.0),
-            "Poisson number of uncatalogued point sources (debris, planets, glints) at random "
-            "positions, brightness uniform in magnitude up to the detection limit",
+            "Poisson number of uncatalogued point sources (stars fainter than the catalogue, debris, "
+            "glints) at random positions, magnitudes in the corruptions.false_star_span_mag above the "
+            "detection limit, uniform or, with corruptions.false_star_slope, rising towards the limit "
+            "as star counts do (see false_star_magnitudes)",
         ),
         Corruption(
             "dropout",
@@ -165,7 +166,26 @@ def stage_rng(seed: int, frame: int | tuple[int, ...], stage: str) -> np.random.
 
 
 def levels_of(cfg) -> dict[str, float]:
-    return {f.name: float(getattr(cfg.corruptions, f.name)) for f in dataclasses.fields(cfg.corruptions)}
+    """Severity of every registered corruption in ``cfg`` (the section's shape parameters, such as
+    ``false_star_slope``, are not severities and are not included)."""
+    return {name: float(getattr(cfg.corruptions, name)) for name in REGISTRY}
+
+
+def false_star_magnitudes(u: np.ndarray, limit_mag: float, slope: float = 0.0, span_mag: float = 4.0) -> np.ndarray:
+    """Magnitudes of false stars from uniform draws ``u`` in [0, 1): inverse-CDF sampling of a density
+    proportional to 10 ** (``slope`` * (m - ``limit_mag``)) on [limit - ``span_mag``, limit].
+
+    ``slope`` is in dex per magnitude: 0 gives magnitudes uniform over the span (what frames made before the
+    slope existed have, bit for bit); the counts of field stars rise by ~0.3-0.5 dex per magnitude at
+    V = 9-12, so most uncatalogued sources sit just above the detection limit and few are bright.
+    ``skygen fit-camera`` fits both from the detections the catalogue does not explain.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    if slope <= 0.0:
+        return (limit_mag - span_mag + span_mag * u).astype(np.float32)
+    k = slope * np.log(10.0)
+    lo = np.exp(-k * span_mag)  # the bright end's density relative to the limit's
+    return (limit_mag + np.log(lo + u * (1.0 - lo)) / k).astype(np.float32)
 
 
 # ---------------------------------------------------------------- detection level

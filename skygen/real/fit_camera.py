@@ -194,7 +194,9 @@ def fit_camera(
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
     t_geom = time.perf_counter() - t0
     px = measure_pixels(fr, solved, g, cfg0, sky, log, camera_file=camera is not None)
-    model = fit_model_terms(cfg0, g, px, solved, fr, table, pixel_pitch_um, with_start=camera is not None, log=log)
+    model = fit_model_terms(
+        cfg0, g, px, solved, fr, table, epoch, pixel_pitch_um, with_start=camera is not None, log=log
+    )
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
     record = _record(
         fr.names,
@@ -644,8 +646,22 @@ def _record(
                 "rms_px": float(np.sqrt(np.mean(np.sum(allr[sel] ** 2, 1)))) if sel.any() else float("nan"),
             }
         )
-    keys = ("background_adu", "noise_adu", "detections", "star_sigma_px", "zero_point_mag")
-    from skygen.real.frame_stats import median_of as med
+    keys = (
+        "background_adu",
+        "noise_adu",
+        "detections",
+        "star_sigma_px",
+        "zero_point_mag",
+        "nonstar_brightest10",
+        "sharp_sources",
+    )
+    from skygen.real.frame_stats import median_of
+
+    def med(rows, k):  # counts of rare sources are mostly 0: their mean tells more
+        if k in ("nonstar_brightest10", "sharp_sources"):
+            vals = [float(r[k]) for r in rows if k in r]
+            return float(np.mean(vals)) if vals else float("nan")
+        return median_of(rows, k)
 
     compare = {
         k: {"real": med(real_stats, k), "fitted": med(after, k), "start": med(before, k) if before else float("nan")}

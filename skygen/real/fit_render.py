@@ -28,17 +28,28 @@ import numpy as np
 from skygen.instrument.camera import Camera
 
 
-def fit_model_terms(cfg0, g, px: dict, solved: list, fr, table, pixel_pitch_um, with_start: bool, log) -> dict:
+def fit_model_terms(
+    cfg0, g, px: dict, solved: list, fr, table, epoch_yr: float, pixel_pitch_um, with_start: bool, log
+) -> dict:
     """Step 6 (module doc). ``px``: :func:`skygen.real.fit_camera.measure_pixels`'s measurements (``meas`` is
     updated in place by a correction). Returns the config, the exposure, the real and rendered statistics
     (start camera, fitted camera), the checks, the correction made (or None) and the warnings."""
     from skygen.real.fit_geometry import radec_roll
     from skygen.real.frame_stats import check_renders, median_of
+    from skygen.sky.catalog import SkyIndex
 
     cam, meas, sat = g.camera, px["meas"], fr.sat
     exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
     attitudes = [radec_roll(R) for R in g.rotations]
-    real_stats = [_measure_real(fr.image_of(fs.name), meas["settings"], sat, fs, g, k) for k, fs in enumerate(solved)]
+    sky = SkyIndex(table, epoch_yr, 99.0)  # every catalogue star: what the catalogue explains
+    real_stats = [
+        _measure_real(fr.image_of(fs.name), meas["settings"], sat, fs, g, k, sky) for k, fs in enumerate(solved)
+    ]
+    # the detections no catalogue star explains, as magnitudes on the frames' zero point: the false stars'
+    # brightness is fitted to them (:func:`fit_false_star_shape`)
+    meas["sharp_per_frame"] = float(np.mean([r["sharp_sources"] for r in real_stats]))
+    flux = np.concatenate([r.pop("_unexplained_flux") for r in real_stats])
+    faint = (px["zp_real"], flux) if np.isfinite(px["zp_real"]) else None
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     render_zp = _render_stats(cfg, attitudes, table, sat)
     zp_sim = median_of(render_zp, "zero_point_mag")
@@ -48,7 +59,9 @@ def fit_model_terms(cfg0, g, px: dict, solved: list, fr, table, pixel_pitch_um, 
     # stars the catalogue lacks (Hipparcos is complete to about V 8; a real frame shows fainter ones): the
     # detections real frames have beyond the renders' become corruptions.false_stars (point sources at
     # random places, magnitudes up to the detection limit)
-    cfg, after = _faint_sources(cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, 0.0)
+    cfg, after = _faint_sources(
+        cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, 0.0, faint
+    )
     checks = check_renders(real_stats, after)
     correction = None
     if any(not c["ok"] for c in checks):
@@ -56,9 +69,9 @@ def fit_model_terms(cfg0, g, px: dict, solved: list, fr, table, pixel_pitch_um, 
         changed, exposure = correct_once(checks, meas, px, exposure, cfg0.sensor, int(round(sat)))
         if changed:
             missed = "; ".join(c["why"] for c in checks if not c["ok"])
-            faint = meas["faint_sources_per_frame"]
+            faint_n = meas["faint_sources_per_frame"]
             cfg, after = _faint_sources(
-                cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, faint
+                cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, faint_n, faint
             )
             correction = {"changed": changed, "checks_before": checks, "kept": True}
             checks = check_renders(real_stats, after)
@@ -96,19 +109,107 @@ def miss(checks: list) -> float:
     return out
 
 
-def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, table, sat, start: float):
-    """(config, renders): ``corruptions.false_stars`` from ``start`` plus the median of the detections real
-    frames have beyond renders with it (never below 0), rendered again when that changed it."""
+def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, table, sat, start: float, faint=None):
+    """(config, renders) with the sources the catalogue lacks as ``corruptions.false_stars``.
+
+    With ``faint`` = (zero point, fluxes of the real detections no catalogue star explains) their brightness
+    is fitted (:func:`fit_false_star_shape`, on the detection limit of renders without false stars) and
+    their number is the one that gives the renders as many uncatalogued sources well above the limit per
+    frame as the frames have, beyond those the renders make themselves (hot pixels, blends): the bright
+    ones are those a few-star solver is given. Otherwise (too few of them, no zero point) the number is
+    ``start`` plus the median of the detections real frames have beyond the renders, in up to three steps
+    each scaled by the detections the last one gained per false star added."""
+    if faint is not None:
+        zp, flux = faint
+        meas["faint_sources_per_frame"] = 0.0
+        cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
+        bare = _render_stats(cfg, attitudes, table, sat)
+        own = np.concatenate([r["_unexplained_flux"] for r in bare])
+        shape = fit_false_star_shape(
+            _mags(zp, flux), bare[0]["_detection_limit_mag"], len(real_stats), rendered_mags=_mags(zp, own)
+        )
+        meas["false_star_shape"] = shape
+        if shape["n"] >= MIN_FALSE_STARS_FITTED:
+            meas["faint_sources_per_frame"] = shape["per_frame"]
+            if shape["per_frame"] == 0:
+                return cfg, bare
+            cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
+            return cfg, _render_stats(cfg, attitudes, table, sat)
     meas["faint_sources_per_frame"] = start
     cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
     rendered = _render_stats(cfg, attitudes, table, sat)
-    deficit = float(np.median([a["detections"] - b["detections"] for a, b in zip(real_stats, rendered)]))
-    more = max(start + deficit, 0.0)
-    if more == start:
-        return cfg, rendered
-    meas["faint_sources_per_frame"] = more
-    cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
-    return cfg, _render_stats(cfg, attitudes, table, sat)
+    count, gain = start, 1.0
+    for _ in range(3):
+        deficit = float(np.median([a["detections"] - b["detections"] for a, b in zip(real_stats, rendered)]))
+        more = float(np.clip(count + deficit / gain, 0.0, 100.0))
+        if abs(deficit) < 1.0 or abs(more - count) < 0.5:
+            break
+        meas["faint_sources_per_frame"] = more
+        cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
+        again = _render_stats(cfg, attitudes, table, sat)
+        gained = float(np.median([b["detections"] - a["detections"] for a, b in zip(rendered, again)]))
+        gain = float(np.clip(gained / (more - count), 0.2, 1.0)) if more != count else 1.0
+        count, rendered = more, again
+    return cfg, rendered
+
+
+def _mags(zp: float, flux: np.ndarray) -> np.ndarray:
+    flux = np.asarray(flux, dtype=np.float64)
+    return zp - 2.5 * np.log10(flux[flux > 0])
+
+
+#: uncatalogued sources this far above the detection limit or more are counted as fully detected
+FALSE_STAR_COMPLETE_MAG = 0.5
+#: fewer uncatalogued detections than this that far above the limit: their brightness is not fitted
+MIN_FALSE_STARS_FITTED = 10
+
+
+def fit_false_star_shape(mags: np.ndarray, limit_mag: float, n_frames: int, rendered_mags=None) -> dict:
+    """The false stars' brightness and number from the magnitudes of real detections no catalogue star
+    explains, over ``n_frames`` frames (``rendered_mags``: those of renders at the same attitudes without
+    false stars, which the false stars need not add).
+
+    Magnitudes are modelled as :func:`skygen.instrument.corruptions.false_star_magnitudes` draws them: a
+    density rising as 10 ** (slope * (m - limit)) up to ``limit_mag``, within ``span`` magnitudes above it.
+    Only the sources at least :data:`FALSE_STAR_COMPLETE_MAG` above the limit are used (fainter ones are not
+    all detected, in the frames or in renders): the span reaches the brightest of them (its maximum-likelihood
+    value, plus 0.05 mag), the slope is their maximum-likelihood one, and ``per_frame`` is the mean number of
+    false stars per frame that puts as many of them that far above the limit as the frames have beyond the
+    renders' own (never below 0). Fewer than
+    :data:`MIN_FALSE_STARS_FITTED`: the neutral shape (uniform over 4 mag) and no number, said in ``note``.
+    Returns {slope, span_mag, per_frame, n, note}.
+    """
+    from scipy.optimize import minimize_scalar
+
+    d = limit_mag - np.asarray(mags, dtype=np.float64)  # magnitudes above the limit
+    d = d[np.isfinite(d)]
+    lo = FALSE_STAR_COMPLETE_MAG
+    use = d[d >= lo]
+    if len(use) < MIN_FALSE_STARS_FITTED:
+        note = f"{len(use)} uncatalogued detections {lo} mag or more above the detection limit: too few to fit"
+        return {"slope": 0.0, "span_mag": 4.0, "per_frame": float("nan"), "n": int(len(use)), "note": note}
+    span = float(min(use.max() + 0.05, 15.0))
+    width = span - lo
+    x = use - lo
+
+    def nll(k: float) -> float:  # density k exp(-k x) / (1 - exp(-k width)) on [0, width]
+        if k < 1e-9:
+            return len(x) * np.log(width)
+        return -(len(x) * np.log(k) - k * x.sum() - len(x) * np.log(-np.expm1(-k * width)))
+
+    k = float(minimize_scalar(nll, bounds=(0.0, 2.0 * np.log(10.0)), method="bounded").x)
+    slope = float(np.clip(k / np.log(10.0), 0.0, 2.0))
+    k = slope * np.log(10.0)
+    # the share of false stars drawn at least `lo` above the limit
+    share = width / span if k < 1e-9 else float(np.expm1(-k * width) / np.expm1(-k * span)) * np.exp(-k * lo)
+    own = 0 if rendered_mags is None else int(np.sum(limit_mag - np.asarray(rendered_mags) >= lo))
+    per_frame = float(min(max(len(use) - own, 0) / max(n_frames, 1) / share, 100.0))
+    note = (
+        f"{len(use)} uncatalogued detections {lo} mag or more above the detection limit (Hp {limit_mag:.2f}) in "
+        f"{n_frames} frames ({own} in renders without false stars), the brightest {use.max():.2f} mag above "
+        f"it: slope {slope:.2f} dex/mag; {per_frame:.1f} false stars per frame put as many there"
+    )
+    return {"slope": slope, "span_mag": span, "per_frame": per_frame, "n": int(len(use)), "note": note}
 
 
 def correct_once(checks: list, meas: dict, px: dict, exposure: float, start_sensor, top: int) -> tuple[list, float]:
@@ -240,6 +341,13 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     if hot["n_static"]:
         d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
     d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), 100.0))
+    if "sharp_per_frame" in meas:  # particle hits: as many sharp sources per frame as the frames show
+        area_cm2 = cfg0.camera.width_px * cfg0.camera.height_px * (pitch * 1e-4) ** 2
+        d["corruptions"]["cosmic_rays"] = float(min(meas["sharp_per_frame"] / (area_cm2 * exposure), 1e5))
+    shape = meas.get("false_star_shape")
+    if shape is not None:
+        d["corruptions"]["false_star_slope"] = shape["slope"]
+        d["corruptions"]["false_star_span_mag"] = shape["span_mag"]
     st = meas["settings"]
     d["detection"].update(
         {
@@ -255,11 +363,15 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     return build_config(d)
 
 
-def _measure_real(img, settings, sat, fs, g, k) -> dict:
+def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     from skygen.real.fit_pixels import zero_point
-    from skygen.real.frame_stats import frame_stats
+    from skygen.real.frame_stats import frame_stats, nonstar_brightest
 
-    st, _ = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
+    st, det = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
+    explained = explained_by(g.camera, g.rotations[k], sky, det["x_px"], det["y_px"])
+    st["nonstar_brightest10"] = nonstar_brightest(det["flux_adu"], ~explained)
+    st["_unexplained_flux"] = np.asarray(det["flux_adu"], dtype=np.float64)[~explained]
+    st["sharp_sources"] = sharp_sources(det, explained, st["background_adu"], sat)
     m = g.keep[k]
     d = fs.det_index[m]
     zp, n = zero_point(
@@ -272,11 +384,40 @@ def _measure_real(img, settings, sat, fs, g, k) -> dict:
     return {**st, "zero_point_mag": zp, "zero_point_stars": n}
 
 
+def sharp_sources(det: dict, explained: np.ndarray, background_adu: float, sat: float) -> int:
+    """Detections no catalogue star explains whose light is far more concentrated than a star's: the
+    peak's share of the flux above both twice the median and the 99th percentile of the catalogue stars'
+    (unsaturated ones only). Particle hits (and pixel defects that come and go) look like this."""
+    flux, peak = np.asarray(det["flux_adu"], dtype=np.float64), np.asarray(det["peak_adu"], dtype=np.float64)
+    ok = (flux > 0) & (peak + background_adu < 0.8 * sat)
+    share = np.where(ok, peak / np.where(flux > 0, flux, 1.0), np.nan)
+    stars = share[ok & explained]
+    if len(stars) < 5:
+        return 0
+    limit = max(2.0 * float(np.median(stars)), float(np.quantile(stars, 0.99)))
+    return int(np.sum(ok & ~explained & (share > limit)))
+
+
+def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_px: float = 2.0) -> np.ndarray:
+    """Flags: a star of ``sky`` (a :class:`skygen.sky.catalog.SkyIndex`) projects within ``radius_px`` of the
+    detection at (``x``, ``y``) through camera ``cam`` at attitude ``R`` (camera -> sky)."""
+    from scipy.spatial import cKDTree
+
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
+    sx, sy, front = cam.project(sky.vectors[idx] @ R)
+    ok = front & cam.inside(sx, sy, margin_px=radius_px)
+    if not ok.any() or not len(x):
+        return np.zeros(len(x), bool)
+    d, _ = cKDTree(np.column_stack([sx[ok], sy[ok]])).query(np.column_stack([x, y]))
+    return d <= radius_px
+
+
 def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
     from skygen.config import build_config, config_dict
     from skygen.real.fit_pixels import zero_point
-    from skygen.real.frame_stats import frame_stats
+    from skygen.real.frame_stats import frame_stats, nonstar_brightest
     from skygen.render.frame import Renderer
 
     d = config_dict(cfg)
@@ -297,6 +438,12 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
 
         sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
         ok = sidx >= 0
+        star = np.zeros(len(sidx), bool)
+        star[ok] = f.stars["hip_id"][sidx[ok]] >= 0  # a false star is no catalogue star
+        extra = {"nonstar_brightest10": nonstar_brightest(det["flux_adu"], ~star)}
+        extra["sharp_sources"] = sharp_sources(det, star, st["background_adu"], sat)
+        extra["_detection_limit_mag"] = r.detection_limit_mag
+        extra["_unexplained_flux"] = np.asarray(det["flux_adu"], dtype=np.float64)[~star]
         zp, n = zero_point(
             det["flux_adu"][ok].astype(float),
             f.stars["mag"][sidx[ok]].astype(float),
@@ -304,7 +451,7 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
             np.full(int(ok.sum()), st["background_adu"]),
             sat,
         )
-        rows.append({**st, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
+        rows.append({**st, **extra, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
     return rows
 
 

@@ -34,8 +34,8 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
         "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
         "and QE; photometry.sky_mag_arcsec2 the measured background, optics.vignetting its fall to the corners, "
         "corruptions.stray_light its gradient;",
-        "# corruptions.false_stars the detections per frame that renders from the catalogue alone lack (fainter "
-        "stars than the catalogue holds).",
+        "# corruptions.false_stars, false_star_slope and false_star_span_mag: the sources the catalogue lacks (stars "
+        "fainter than it holds, ...), their number and brightness fitted to the detections no catalogue star explains.",
         "# Its report (residuals per frame and radial, real vs rendered statistics): --report DIR, by default "
         "OUT-report/ beside this file.",
     ]
@@ -60,7 +60,10 @@ def _fmt(v, nd=2):
 
 
 def markdown(r: dict) -> str:
+    from skygen.real.fit_render import MIN_FALSE_STARS_FITTED
+
     g, px = r["geometry"], r["pixels"]
+    cc = r["config"]["corruptions"]
     hw = r["hardware"]
     cpu = (
         (
@@ -156,9 +159,19 @@ def markdown(r: dict) -> str:
         f"- detector: threshold {r['detector']['threshold_sigma']:g} σ, background box "
         f"{r['detector']['background_box_px']} px ({r['detector']['catalogue_per_frame']:.1f} catalogue stars and "
         f"{r['detector']['other_per_frame']:.1f} other detections per frame)",
-        f"- sources the catalogue lacks: real frames give {px.get('faint_sources_per_frame', 0):.1f} detections per "
-        "frame more than renders from the catalogue alone (median) → corruptions.false_stars "
-        f"{r['config']['corruptions']['false_stars']:.1f} per frame",
+        (
+            f"- sources the catalogue lacks (corruptions.false_stars {cc['false_stars']:.1f} per frame, "
+            f"false_star_slope {cc['false_star_slope']:.2f}, false_star_span_mag {cc['false_star_span_mag']:.2f}): "
+            f"{px['false_star_shape']['note']}"
+            if px.get("false_star_shape", {}).get("n", 0) >= MIN_FALSE_STARS_FITTED
+            else "- sources the catalogue lacks: "
+            + (f"{px['false_star_shape']['note']}; " if px.get("false_star_shape") else "")
+            + f"corruptions.false_stars {r['config']['corruptions']['false_stars']:.1f} per frame, the number that "
+            "gives renders the frames' detections per frame, uniform over 4 mag above the detection limit"
+        ),
+        f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
+        f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
+        "sensor.exposure_s)",
         "",
         "## Real against rendered (medians over frames; renders at the fitted attitudes)",
         "",
@@ -171,12 +184,16 @@ def markdown(r: dict) -> str:
         "detections": "detections / frame",
         "star_sigma_px": "star width σ (px)",
         "zero_point_mag": "zero point (mag)",
+        "nonstar_brightest10": "non-catalogue among the brightest 10 (mean)",
+        "sharp_sources": "sharp uncatalogued sources / frame (mean)",
     }
     verdict = {c["stat"]: c for c in r.get("checks") or []}
     for k, v in r["compare"].items():
         rel = (
             f"{v['fitted'] - v['real']:+.3f} mag"
             if k == "zero_point_mag"
+            else f"{v['fitted'] - v['real']:+.2f}"
+            if k in ("nonstar_brightest10", "sharp_sources")
             else f"{v['fitted'] / v['real']:.3f}"
             if v["real"] and np.isfinite(v["fitted"] / v["real"])
             else "–"

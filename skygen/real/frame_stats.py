@@ -69,6 +69,13 @@ def frame_stats(
     )
 
 
+def nonstar_brightest(flux_adu: np.ndarray, nonstar: np.ndarray, n: int = 10) -> int:
+    """How many of the ``n`` brightest detections are flagged ``nonstar`` (no catalogue star): what a
+    few-star solver is given, so what renders must reproduce for their few-star cells to predict the real."""
+    order = np.argsort(-np.asarray(flux_adu, dtype=np.float64), kind="stable")[:n]
+    return int(np.asarray(nonstar, bool)[order].sum())
+
+
 #: renders of a fitted camera match its frames when their medians are this close (relative): issue 35
 TOLERANCES = {"background_adu": 0.10, "noise_adu": 0.15, "star_sigma_px": 0.10, "detections": 0.25}
 LABELS = {

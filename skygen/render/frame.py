@@ -349,8 +349,11 @@ class Renderer:
         w, h = self.camera.width_px, self.camera.height_px
         x = rng.uniform(-0.5, w - 0.5, n)
         y = rng.uniform(-0.5, h - 0.5, n)
-        lim = self.detection_limit_mag
-        mag = rng.uniform(lim - 4.0, lim, n).astype(np.float32)
+        lim, c = self.detection_limit_mag, self.cfg.corruptions
+        if c.false_star_slope > 0:
+            mag = corr.false_star_magnitudes(rng.random(n), lim, c.false_star_slope, c.false_star_span_mag)
+        else:  # uniform over the span: the draw of frames made before the slope existed, bit for bit
+            mag = rng.uniform(lim - c.false_star_span_mag, lim, n).astype(np.float32)
         bv = np.full(n, np.nan, np.float32)
         e = self.photometry.electrons_per_s(mag, None) * self.cfg.sensor.exposure_s * self.vignetting(x, y)
         return {

@@ -141,13 +141,14 @@ class SceneBuilder:
 
     def _false_stars(self, stars: dict, i: int, n: int) -> dict:
         """Append ``n`` false stars as Renderer._false_stars draws them (uniform position on the
-        sensor, magnitude uniform in the 4 mag above the detection limit, no colour)."""
+        sensor, magnitude from :func:`skygen.instrument.corruptions.false_star_magnitudes`, no colour)."""
         r, cam = self.r, self.r.camera
         d = D_FALSE + 4 * np.arange(n)
         x = -0.5 + cam.width_px * hashrng.uniform(self.key, i, d)
         y = -0.5 + cam.height_px * hashrng.uniform(self.key, i, d + 1)
-        lim = r.detection_limit_mag
-        mag = (lim - 4.0 + 4.0 * hashrng.uniform(self.key, i, d + 2)).astype(np.float32)
+        c = r.cfg.corruptions
+        u = hashrng.uniform(self.key, i, d + 2)
+        mag = corr.false_star_magnitudes(u, r.detection_limit_mag, c.false_star_slope, c.false_star_span_mag)
         e = r.photometry.electrons_per_s(mag, None) * r.cfg.sensor.exposure_s * r.vignetting(x, y)
         fake = {
             "hip_id": np.full(n, -1, np.int64),

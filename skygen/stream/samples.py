@@ -419,8 +419,9 @@ class SampleStream:
             d = (SOURCE_BASE + fid) * emu.DRAWS_PER_SOURCE
             fx = -0.5 + cam.width_px * hashrng.uniform(key, idx[ffr], d + 3)
             fy = -0.5 + cam.height_px * hashrng.uniform(key, idx[ffr], d + 4)
-            lim = r.detection_limit_mag
-            fmag = (lim - 4.0 + 4.0 * hashrng.uniform(key, idx[ffr], d + 5)).astype(np.float32)
+            c = self.cfg.corruptions
+            u = hashrng.uniform(key, idx[ffr], d + 5)
+            fmag = corr.false_star_magnitudes(u, r.detection_limit_mag, c.false_star_slope, c.false_star_span_mag)
             fe = r.photometry.electrons_per_s(fmag, None) * self.cfg.sensor.exposure_s * r.vignetting(fx, fy)
             star = np.concatenate([star, np.full(len(ffr), -1)])
             fr, x, y = np.concatenate([fr, ffr]), np.concatenate([x, fx]), np.concatenate([y, fy])

@@ -1,0 +1,90 @@
+"""False stars with a brightness distribution (corruptions.false_star_slope / _span_mag) and its fit from
+real frames (skygen.real.fit_render.fit_false_star_shape), and the sharp-source count behind the fitted
+cosmic-ray rate: the parts that let renders of a fitted camera put as many uncatalogued sources among the
+brightest detections as the real frames do (issue 35)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skygen.config import config_dict, load_config
+from skygen.identity import content_id
+from skygen.instrument.corruptions import false_star_magnitudes
+from skygen.real.fit_render import fit_false_star_shape, sharp_sources
+from skygen.real.frame_stats import nonstar_brightest
+from skygen.render.frame import Renderer
+
+
+def cdf(m, lim, slope, span):
+    """The model's CDF of magnitude m (density ~ 10 ** (slope (m - lim)) on [lim - span, lim])."""
+    k = slope * np.log(10.0)
+    return (np.exp(k * (m - lim)) - np.exp(-k * span)) / (1 - np.exp(-k * span))
+
+
+def test_slope_zero_is_the_old_uniform_draw_bit_for_bit():
+    u = np.random.default_rng(0).random(1000)
+    lim = 9.3312345
+    assert np.array_equal(false_star_magnitudes(u, lim), (lim - 4.0 + 4.0 * u).astype(np.float32))
+
+
+def test_a_slope_puts_most_false_stars_near_the_limit_with_the_model_distribution():
+    from scipy.stats import kstest
+
+    u = np.random.default_rng(1).random(20000)
+    m = false_star_magnitudes(u, 10.0, 0.4, 3.0).astype(np.float64)
+    assert m.min() >= 7.0 - 1e-5 and m.max() <= 10.0 + 1e-5
+    assert kstest(m, lambda x: cdf(x, 10.0, 0.4, 3.0)).pvalue > 0.01
+    # the brightest magnitude holds 10 ** (0.4 * 2) ~ 6 x fewer than the faintest (uniform: half in each half)
+    assert np.mean(m < 8.5) == pytest.approx(cdf(8.5, 10.0, 0.4, 3.0), abs=0.01)
+    assert np.mean(m < 8.5) < 0.25
+
+
+def test_the_fit_recovers_slope_span_and_number_from_uncatalogued_detections():
+    rng = np.random.default_rng(2)
+    lim, slope, span, per_frame, frames = 9.0, 0.35, 3.2, 30.0, 40
+    m = false_star_magnitudes(rng.random(int(per_frame * frames)), lim, slope, span).astype(np.float64)
+    detected = m[((lim - m) >= 0.5) | (rng.random(len(m)) < 0.5)]  # the faintest are not all detected
+    fit = fit_false_star_shape(detected, lim, frames)
+    assert fit["slope"] == pytest.approx(slope, abs=0.08)
+    assert fit["span_mag"] == pytest.approx(span, abs=0.1)
+    assert fit["per_frame"] == pytest.approx(per_frame, rel=0.12)
+    assert "slope" in fit["note"] and fit["n"] > 100
+
+
+def test_too_few_uncatalogued_detections_keep_the_neutral_shape_and_say_so():
+    fit = fit_false_star_shape(np.array([8.0, 8.2, 9.9]), 9.0, 8)
+    assert (fit["slope"], fit["span_mag"]) == (0.0, 4.0) and np.isnan(fit["per_frame"])
+    assert "too few" in fit["note"]
+
+
+def test_sharp_sources_are_unexplained_detections_much_more_concentrated_than_stars():
+    n = 30
+    flux = np.full(n + 3, 1000.0)
+    peak = np.r_[np.full(n, 100.0), 700.0, 110.0, 3500.0]  # stars share 0.1; a hit 0.7; a faint star; saturated
+    explained = np.r_[np.ones(n, bool), False, False, False]
+    det = {"flux_adu": flux, "peak_adu": peak}
+    assert sharp_sources(det, explained, background_adu=100.0, sat=4000.0) == 1  # the saturated one is left out
+    assert nonstar_brightest(np.r_[flux[:n], 5000.0, 1.0, 1.0], ~explained, n=10) == 1
+
+
+def test_rendered_false_stars_follow_the_configured_brightness(small_overrides):
+    base = small_overrides + ["corruptions.false_stars=60", "corruptions.cosmic_rays=0"]
+    mags = {}
+    for slope in (0.0, 0.5):
+        r = Renderer(load_config(overrides=base + [f"corruptions.false_star_slope={slope}"]))
+        m = np.concatenate([r.render(i).stars["mag"][r.render(i).stars["hip_id"] < 0] for i in range(4)])
+        assert len(m) > 150 and m.max() <= r.detection_limit_mag + 1e-4
+        mags[slope] = r.detection_limit_mag - m  # magnitudes above the limit
+    assert np.median(mags[0.0]) == pytest.approx(2.0, abs=0.3)  # uniform over 4 mag
+    assert np.median(mags[0.5]) < 1.0  # most near the limit
+
+
+def test_the_neutral_shape_keeps_older_datasets_ids():
+    cfg = config_dict(load_config())
+    assert cfg["corruptions"]["false_star_slope"] == 0.0
+    old = {k: dict(v) if isinstance(v, dict) else v for k, v in cfg.items()}
+    del old["corruptions"]["false_star_slope"], old["corruptions"]["false_star_span_mag"]
+    assert content_id(cfg) == content_id(old)
+    cfg["corruptions"]["false_star_slope"] = 0.3
+    assert content_id(cfg) != content_id(old)
