@@ -88,6 +88,33 @@ def test_tetra3rs_refuses_few_or_random_detections(renderer, tetra):
     assert res.to_dict()["status"] == "refused"
 
 
+def test_tetra3rs_refuses_a_match_with_another_field_than_the_camera(renderer, tetra):
+    """tetra3rs's patterns are scale-free: frames of a lens 15 % longer match, with a tiny false-positive
+    probability, at a field of their own. With the camera known that is refused, not returned."""
+    import dataclasses
+
+    from fusion.solve.tetra import FIELD_TOLERANCE
+
+    cam = renderer.camera
+    longer = dataclasses.replace(cam, f_px=cam.f_px * 1.15)
+    refused = solved = own = 0
+    for i in range(6):
+        f = renderer.render(i)
+        det = Detections.from_table(f.detections)
+        # the same stars as the longer lens puts them on the sensor
+        x, y, _ = longer.project(cam.unproject(det.x_px, det.y_px))
+        keep = longer.inside(x, y)
+        other = Detections(x[keep], y[keep], det.flux_adu[keep])
+        res = tetra.solve(other, cam)
+        if isinstance(res, Refusal):
+            refused += res.status == "not_verified" and "another lens" in res.reason
+            assert "field" not in res.reason or abs(res.extra["fov_deg"] / cam.fov_deg[0] - 1) > FIELD_TOLERANCE
+        else:
+            solved += 1
+        own += isinstance(tetra.solve(det, cam), Solution)  # the camera's own frames still solve
+    assert solved == 0 and refused >= 4 and own >= 5
+
+
 # --------------------------------------------------------------------------- coarse-to-fine
 @pytest.fixture(scope="module")
 def regions():

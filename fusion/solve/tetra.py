@@ -44,6 +44,14 @@ from .base import HINT_RADIUS_SIGMAS, Detections, Refusal, Solution, attitude_co
 _tetra3rs = platesolve.tetra3rs
 
 # tetra3rs's SolveFailure.status -> our refusal status (base.REFUSAL_STATUSES); its timeout is its only budget
+#: a lost-in-space match whose fitted field differs from the camera's by more than this (relative) is refused:
+#: tetra3rs's patterns are scale-free, so frames of another lens or camera match with a field of their own and
+#: a false-positive probability that speaks for the identification, not for the camera (the adversarial
+#: calibration, benchmarks/adversarial_calibration.py: 7 wrong attitudes at p < 1e-6 from another camera's
+#: frames, the boresight 1.4 deg off through the other principal point). The coarse-to-fine stage fits the
+#: focal length within +-2 %; clean frames' fitted fields scatter well inside this.
+FIELD_TOLERANCE = 0.03
+
 FAILURE_STATUS = {
     "no_match": "no_pattern",
     "timeout": "budget_exhausted",
@@ -165,6 +173,17 @@ class Tetra3Solver:
             return Refusal(
                 "parity-flipped match (mirror image): not a physical attitude", name, ms, status="not_verified"
             )
+        if self.fov_range is None and "attitude_hint" not in kw:
+            nominal = float(camera.fov_deg[0])
+            if abs(float(res.fov_deg) / nominal - 1.0) > FIELD_TOLERANCE:
+                return Refusal(
+                    f"matched with a field of {float(res.fov_deg):.2f} deg where the camera's is {nominal:.2f} deg "
+                    f"(more than {100 * FIELD_TOLERANCE:.0f} % off): frames of another lens or camera?",
+                    name,
+                    ms,
+                    {"fov_deg": float(res.fov_deg)},
+                    status="not_verified",
+                )
         matched = np.column_stack(
             [np.asarray(res.matched_centroids, np.int64), np.asarray(res.matched_catalog_ids, np.int64)]
         )
