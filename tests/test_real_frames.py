@@ -31,6 +31,30 @@ def test_shipped_real_frames_match_their_checksums_and_table():
     assert "Apache License" in (FOLDER / "LICENSE-Apache-2.0.txt").read_text()
 
 
+@pytest.mark.parametrize("folder", ["tetra3-blackfly", "openstartracker-science-cam", "startrackerpy-dmk41bu02"])
+def test_every_shipped_camera_folder_matches_its_checksums_and_carries_its_licence(folder):
+    here = ROOT / "real-frames" / folder
+    sums = dict(reversed(line.split(None, 1)) for line in (here / "SHA256SUMS").read_text().splitlines())
+    frames = [n for n in sums if not n.startswith("LICENSE")]
+    assert len(frames) >= 5 and list(here.glob("LICENSE*"))
+    for name, digest in sums.items():
+        assert hashlib.sha256((here / name).read_bytes()).hexdigest() == digest, name
+    assert folder in (ROOT / "real-frames" / "README.md").read_text()
+
+
+def test_a_jpeg_frame_is_read_with_one_line_saying_it_is_lossy(tmp_path):
+    rng = np.random.default_rng(3)
+    img = np.clip(rng.normal(20, 3, (48, 64)), 0, 255).astype(np.uint8)
+    img[20:23, 30:33] = 200
+    path = tmp_path / "frame.jpg"
+    cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    said = []
+    out = read_frame(path, log=said.append)
+    assert out.shape == img.shape and out.dtype == np.float32
+    assert np.abs(out - img).max() <= 3  # quality 100: nearly lossless
+    assert len(said) == 1 and "JPEG" in said[0] and "lossy" in said[0]
+
+
 # ------------------------------------------------------------------------------ colour and Bayer frames
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from skygen.errors import ConfigError, DatasetError
 
-FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy")
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy", ".jpg", ".jpeg")
 CHANNELS = ("luminance", "r", "g", "b", "sum")
 LUMINANCE_RGB = (0.2126, 0.7152, 0.0722)  # Rec. 709 (ITU-R BT.709) weights of R, G, B
 #: a monochrome frame is flagged as a raw Bayer mosaic when its four 2 x 2 sub-lattices' background
@@ -64,7 +64,8 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
     Parameters
     ----------
     path : str or Path
-        ``.png``, ``.tif``/``.tiff``, ``.fits``/``.fit``/``.fts`` or ``.npy``: one full-resolution read-out.
+        ``.png``, ``.tif``/``.tiff``, ``.fits``/``.fit``/``.fts``, ``.npy`` or ``.jpg``/``.jpeg`` (lossy, 8 bit:
+        read with one line saying so): one full-resolution read-out.
     channel : {"luminance", "r", "g", "b", "sum"}
         How a colour file becomes one plane (Rec. 709 luminance by default).
     log : callable, optional
@@ -100,6 +101,11 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
             img = _read_fits(path)
         else:
             img, colour = _read_png_tiff(path, suffix, channel, say)
+            if suffix in (".jpg", ".jpeg"):
+                say(
+                    f"{path}: JPEG: 8-bit and lossy; its compression changes faint stars and the background "
+                    "noise (a camera's raw PNG, TIFF or FITS frames are better)"
+                )
     except FrameError:
         raise
     except Exception as exc:  # decoders raise many types for damaged files
