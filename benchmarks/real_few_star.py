@@ -135,6 +135,7 @@ def run(
             m_true = full.matrix
             matched_rows = set(full.matched[:, 0].tolist())
         rec["_det"], rec["_m"], rec["_matched_rows"] = det, m_true, matched_rows
+        rec["truth_radec_roll_deg"] = [float(v) for v in matrix_to_radec_roll(m_true)]
         kept.append(rec)
     log(f"{len(kept)} of {len(frames)} frames kept with a truth attitude; {len(dropped)} left out")
     # untimed warm-up: numba kernels, pair indices (the 3-star bright tier too) and caches are built on first use

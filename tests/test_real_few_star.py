@@ -45,3 +45,36 @@ def test_only_prior_free_solvers_are_accepted():
     assert "learned+fine" not in mod.prior_free_solvers() and "oracle-prior" not in mod.prior_free_solvers()
     with pytest.raises(SystemExit, match="prior-free"):
         mod.run([], CAMERA, solvers=("learned+fine",), log=lambda s: None)
+
+
+def _sim_vs_real():
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("sim_vs_real", ROOT / "benchmarks" / "sim_vs_real.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_sim_vs_real_intervals_and_verdicts():
+    """benchmarks/sim_vs_real.py's scoring: Wilson intervals, points off, within 5 points or intervals overlap."""
+    mod = _sim_vs_real()
+    lo, hi = mod.wilson(8, 8)
+    assert lo == pytest.approx(0.676, abs=0.002) and hi == 1.0  # 8 of 8 says little: 68-100 %
+    lo, hi = mod.wilson(49, 60)
+    assert lo < 49 / 60 < hi and hi - lo < 0.22
+
+    def run(k, n):
+        return {"cells": [{"n": 4, "frames": n, "solvers": {"whole-sky": {"n_correct": k, "n_wrong": 0}}}]}
+
+    rows = mod.compare(run(8, 8), run(40, 40), run(49, 60), ["whole-sky"], [4])
+    at, rnd = rows[0]["at_truth"], rows[0]["random_sky"]
+    assert at["points_off"] == 0 and at["within_target"]
+    assert rnd["points_off"] == pytest.approx(-18.33, abs=0.01) and not rnd["within_target"]
+    assert rnd["intervals_overlap"]  # 70-89 % against 68-100 %
+    far = mod.compare(run(8, 8), run(4, 40), None, ["whole-sky"], [4])[0]["at_truth"]
+    assert not far["within_target"] and not far["intervals_overlap"]
+    md = mod.markdown({"camera": "c.yaml", "real": {"frames_kept": 8, "frames_given": 8}, "per_attitude": 5,
+                       "renders": 60, "seed": 0, "rows": rows})  # fmt: skip
+    assert "| 4 | whole-sky | **100 %** (8/8, 68–100) | **100 %** (40/40, 91–100), +0 pts ✓ |" in md
