@@ -158,7 +158,7 @@ class CorruptionsConfig:
     motion_blur: float = param(0.0, lo=0, hi=90, doc="angular rate magnitude, deg/s (random axis)")
     stray_light: float = param(0.0, lo=0, hi=1e7, doc="stray-light gradient, e-/px/s at the bright edge")
     read_noise: float = param(0.0, lo=0, hi=1000, doc="extra read noise added in quadrature, e- rms")
-    false_stars: float = param(0.0, lo=0, hi=100, doc="mean number of spurious point sources per frame (Poisson)")
+    false_stars: float = param(0.0, lo=0, hi=1000, doc="mean number of spurious point sources per frame (Poisson)")
     false_star_slope: float = param(
         0.0,
         lo=0,

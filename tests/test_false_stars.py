@@ -11,7 +11,7 @@ import pytest
 from skygen.config import config_dict, load_config
 from skygen.identity import content_id
 from skygen.instrument.corruptions import false_star_magnitudes
-from skygen.real.fit_render import fit_false_star_shape, sharp_sources
+from skygen.real.fit_render import detected_share, fit_false_star_shape, sharp_sources
 from skygen.real.frame_stats import nonstar_brightest
 from skygen.render.frame import Renderer
 
@@ -40,22 +40,45 @@ def test_a_slope_puts_most_false_stars_near_the_limit_with_the_model_distributio
     assert np.mean(m < 8.5) < 0.25
 
 
-def test_the_fit_recovers_slope_span_and_number_from_uncatalogued_detections():
+def _detected(m, rng):
+    """Detection with a soft limit: 50 % at Hp 8.6, as a detector's area and background rules make it."""
+    return rng.random(len(m)) < 1.0 / (1.0 + np.exp((m - 8.6) / 0.2))
+
+
+def test_the_fit_recovers_slope_span_and_number_through_the_renders_completeness():
     rng = np.random.default_rng(2)
     lim, slope, span, per_frame, frames = 9.0, 0.35, 3.2, 30.0, 40
     m = false_star_magnitudes(rng.random(int(per_frame * frames)), lim, slope, span).astype(np.float64)
-    detected = m[((lim - m) >= 0.5) | (rng.random(len(m)) < 0.5)]  # the faintest are not all detected
-    fit = fit_false_star_shape(detected, lim, frames)
-    assert fit["slope"] == pytest.approx(slope, abs=0.08)
+    seen = m[_detected(m, rng)]  # the real frames' uncatalogued detections
+    stars = rng.uniform(4.0, 10.0, 20000)  # catalogue stars in renders, found or not
+    fit = fit_false_star_shape(seen, lim, frames, stars, _detected(stars, rng))
+    assert fit["slope"] == pytest.approx(slope, abs=0.1)
     assert fit["span_mag"] == pytest.approx(span, abs=0.1)
-    assert fit["per_frame"] == pytest.approx(per_frame, rel=0.12)
-    assert "slope" in fit["note"] and fit["n"] > 100
+    assert fit["per_frame"] == pytest.approx(per_frame, rel=0.15)
+    assert "slope" in fit["note"] and fit["n"] > 300
+    # what renders make themselves (hot pixels, blends) is not added again
+    own = seen[: len(seen) // 2]
+    less = fit_false_star_shape(seen, lim, frames, stars, _detected(stars, rng), rendered_mags=own)
+    assert less["per_frame"] == pytest.approx(per_frame / 2, rel=0.25)
 
 
 def test_too_few_uncatalogued_detections_keep_the_neutral_shape_and_say_so():
-    fit = fit_false_star_shape(np.array([8.0, 8.2, 9.9]), 9.0, 8)
+    stars = np.linspace(5, 10, 500)
+    fit = fit_false_star_shape(np.array([8.0, 8.2, 8.9]), 9.0, 8, stars, stars < 9.5)
     assert (fit["slope"], fit["span_mag"]) == (0.0, 4.0) and np.isnan(fit["per_frame"])
     assert "too few" in fit["note"]
+    assert "not fitted" in fit_false_star_shape(np.array([9.5]), 9.0, 8, stars, stars < 9.5)["note"]
+
+
+def test_the_detected_share_is_per_bin_and_fills_thin_bins_from_their_neighbours():
+    rng = np.random.default_rng(4)
+    m = rng.uniform(5.0, 10.0, 20000)
+    found = _detected(m, rng)
+    edges = np.arange(4.0, 10.01, 0.2)
+    share = detected_share(m, found, edges)
+    assert share[0] == pytest.approx(share[5], abs=0.02)  # no star brighter than 5: the nearest full bin's
+    assert share[edges[:-1] < 7.5].min() > 0.95 and share[-1] < 0.2
+    assert np.all(np.diff(share[edges[:-1] >= 7.5]) <= 0.05)  # falls through the limit
 
 
 def test_sharp_sources_are_unexplained_detections_much_more_concentrated_than_stars():

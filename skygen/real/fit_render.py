@@ -126,7 +126,12 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
         bare = _render_stats(cfg, attitudes, table, sat)
         own = np.concatenate([r["_unexplained_flux"] for r in bare])
         shape = fit_false_star_shape(
-            _mags(zp, flux), bare[0]["_detection_limit_mag"], len(real_stats), rendered_mags=_mags(zp, own)
+            _mags(zp, flux),
+            bare[0]["_detection_limit_mag"],
+            len(real_stats),
+            np.concatenate([r["_star_mag"] for r in bare]),
+            np.concatenate([r["_star_found"] for r in bare]),
+            rendered_mags=_mags(zp, own),
         )
         meas["false_star_shape"] = shape
         if shape["n"] >= MIN_FALSE_STARS_FITTED:
@@ -141,7 +146,7 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
     count, gain = start, 1.0
     for _ in range(3):
         deficit = float(np.median([a["detections"] - b["detections"] for a, b in zip(real_stats, rendered)]))
-        more = float(np.clip(count + deficit / gain, 0.0, 100.0))
+        more = float(np.clip(count + deficit / gain, 0.0, MAX_FALSE_STARS))
         if abs(deficit) < 1.0 or abs(more - count) < 0.5:
             break
         meas["faint_sources_per_frame"] = more
@@ -158,58 +163,106 @@ def _mags(zp: float, flux: np.ndarray) -> np.ndarray:
     return zp - 2.5 * np.log10(flux[flux > 0])
 
 
-#: uncatalogued sources this far above the detection limit or more are counted as fully detected
-FALSE_STAR_COMPLETE_MAG = 0.5
-#: fewer uncatalogued detections than this that far above the limit: their brightness is not fitted
+#: the most false stars per frame a fit gives (corruptions.false_stars's own bound): most sit near the
+#: detection limit, where few of them are detected
+MAX_FALSE_STARS = 1000.0
+#: magnitude bins (mag) of the false-star fit
+FIT_BIN_MAG = 0.2
+#: bins where renders detect fewer catalogue stars than this share are left out of the false-star fit
+MIN_DETECTED_SHARE = 0.1
+#: fewer uncatalogued detections than this in the bins fitted: their brightness is not fitted
 MIN_FALSE_STARS_FITTED = 10
 
 
-def fit_false_star_shape(mags: np.ndarray, limit_mag: float, n_frames: int, rendered_mags=None) -> dict:
+def detected_share(star_mags: np.ndarray, found: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Per magnitude bin (``edges``), the share of the catalogue stars on the sensor that renders detect
+    (``star_mags`` and their ``found`` flags pooled over frames). Bins of fewer than 5 stars take the nearest
+    bin's share that has 5 (none at all: 1 brighter than every star, 0 fainter)."""
+    m, f = np.asarray(star_mags, dtype=np.float64), np.asarray(found, bool)
+    idx = np.digitize(m, edges) - 1
+    nb = len(edges) - 1
+    share = np.full(nb, np.nan)
+    for b in range(nb):
+        sel = idx == b
+        if sel.sum() >= 5:
+            share[b] = f[sel].mean()
+    good = np.flatnonzero(np.isfinite(share))
+    if not len(good):
+        return np.where(edges[1:] <= (m.min() if len(m) else np.inf), 1.0, 0.0)
+    for b in np.flatnonzero(~np.isfinite(share)):
+        share[b] = share[good[np.argmin(np.abs(good - b))]]
+    return share
+
+
+def fit_false_star_shape(
+    mags: np.ndarray,
+    limit_mag: float,
+    n_frames: int,
+    star_mags: np.ndarray,
+    star_found: np.ndarray,
+    rendered_mags=None,
+) -> dict:
     """The false stars' brightness and number from the magnitudes of real detections no catalogue star
-    explains, over ``n_frames`` frames (``rendered_mags``: those of renders at the same attitudes without
-    false stars, which the false stars need not add).
+    explains, over ``n_frames`` frames: a forward model of what renders detect.
 
-    Magnitudes are modelled as :func:`skygen.instrument.corruptions.false_star_magnitudes` draws them: a
-    density rising as 10 ** (slope * (m - limit)) up to ``limit_mag``, within ``span`` magnitudes above it.
-    Only the sources at least :data:`FALSE_STAR_COMPLETE_MAG` above the limit are used (fainter ones are not
-    all detected, in the frames or in renders): the span reaches the brightest of them (its maximum-likelihood
-    value, plus 0.05 mag), the slope is their maximum-likelihood one, and ``per_frame`` is the mean number of
-    false stars per frame that puts as many of them that far above the limit as the frames have beyond the
-    renders' own (never below 0). Fewer than
-    :data:`MIN_FALSE_STARS_FITTED`: the neutral shape (uniform over 4 mag) and no number, said in ``note``.
-    Returns {slope, span_mag, per_frame, n, note}.
+    False-star magnitudes are drawn as :func:`skygen.instrument.corruptions.false_star_magnitudes` draws
+    them: a density rising as 10 ** (slope * (m - limit)) up to the renderer's ``limit_mag``, within ``span``
+    magnitudes above it. A false star of magnitude m is detected as often as a catalogue star of that
+    magnitude in renders without false stars (:func:`detected_share` of ``star_mags`` / ``star_found``).
+    In :data:`FIT_BIN_MAG` bins, the real count of uncatalogued detections is Poisson about the renders' own
+    (``rendered_mags``: hot pixels, blends) plus ``per_frame`` x frames x (the model's mass in the bin) x (the
+    detected share), over the bins where that share is at least :data:`MIN_DETECTED_SHARE`; slope and number
+    by maximum likelihood, the span reaching the brightest of them (plus 0.05 mag). Fewer than
+    :data:`MIN_FALSE_STARS_FITTED` detections in those bins: the neutral shape (uniform over 4 mag) and no
+    number, said in ``note``. Returns {slope, span_mag, per_frame, n, note}.
     """
-    from scipy.optimize import minimize_scalar
+    from scipy.optimize import minimize
 
-    d = limit_mag - np.asarray(mags, dtype=np.float64)  # magnitudes above the limit
-    d = d[np.isfinite(d)]
-    lo = FALSE_STAR_COMPLETE_MAG
-    use = d[d >= lo]
-    if len(use) < MIN_FALSE_STARS_FITTED:
-        note = f"{len(use)} uncatalogued detections {lo} mag or more above the detection limit: too few to fit"
-        return {"slope": 0.0, "span_mag": 4.0, "per_frame": float("nan"), "n": int(len(use)), "note": note}
-    span = float(min(use.max() + 0.05, 15.0))
-    width = span - lo
-    x = use - lo
+    mags = np.asarray(mags, dtype=np.float64)
+    mags = mags[np.isfinite(mags) & (mags <= limit_mag)]
+    neutral = {"slope": 0.0, "span_mag": 4.0, "per_frame": float("nan")}
+    if not len(mags):
+        return {**neutral, "n": 0, "note": "no uncatalogued detection above the detection limit: not fitted"}
+    bright = float(mags.min())
+    span = float(min(limit_mag - bright + 0.05, 15.0))
+    edges = limit_mag - span + FIT_BIN_MAG * np.arange(int(np.ceil(span / FIT_BIN_MAG)) + 1)
+    edges[-1] = limit_mag
+    share = detected_share(star_mags, star_found, edges)
+    used = share >= MIN_DETECTED_SHARE
+    n_real = np.histogram(mags, edges)[0].astype(np.float64)
+    own = np.zeros_like(n_real)
+    if rendered_mags is not None and len(rendered_mags):
+        own = np.histogram(np.asarray(rendered_mags, dtype=np.float64), edges)[0].astype(np.float64)
+    n_used = int(n_real[used].sum())
+    if n_used < MIN_FALSE_STARS_FITTED:
+        note = f"{n_used} uncatalogued detections where renders detect stars: too few to fit"
+        return {**neutral, "n": n_used, "note": note}
+    d_lo, d_hi = limit_mag - edges[1:], limit_mag - edges[:-1]  # each bin's magnitudes above the limit
 
-    def nll(k: float) -> float:  # density k exp(-k x) / (1 - exp(-k width)) on [0, width]
+    def mass(slope: float) -> np.ndarray:  # the model's probability in each bin
+        k = slope * np.log(10.0)
         if k < 1e-9:
-            return len(x) * np.log(width)
-        return -(len(x) * np.log(k) - k * x.sum() - len(x) * np.log(-np.expm1(-k * width)))
+            return (d_hi - d_lo) / span
+        return (np.exp(-k * d_lo) - np.exp(-k * d_hi)) / -np.expm1(-k * span)
 
-    k = float(minimize_scalar(nll, bounds=(0.0, 2.0 * np.log(10.0)), method="bounded").x)
-    slope = float(np.clip(k / np.log(10.0), 0.0, 2.0))
-    k = slope * np.log(10.0)
-    # the share of false stars drawn at least `lo` above the limit
-    share = width / span if k < 1e-9 else float(np.expm1(-k * width) / np.expm1(-k * span)) * np.exp(-k * lo)
-    own = 0 if rendered_mags is None else int(np.sum(limit_mag - np.asarray(rendered_mags) >= lo))
-    per_frame = float(min(max(len(use) - own, 0) / max(n_frames, 1) / share, 100.0))
+    def nll(p: np.ndarray) -> float:
+        slope, count = p
+        mu = own[used] + count * n_frames * mass(slope)[used] * share[used] + 1e-9
+        return float(np.sum(mu - n_real[used] * np.log(mu)))
+
+    best = None
+    for s0 in (0.0, 0.3, 0.6, 1.0):
+        c0 = max(n_used - own[used].sum(), 1.0) / n_frames / max(float((mass(s0) * share)[used].sum()), 1e-6)
+        r = minimize(nll, [s0, c0], method="L-BFGS-B", bounds=[(0.0, 2.0), (0.0, MAX_FALSE_STARS)])
+        best = r if best is None or r.fun < best.fun else best
+    slope, per_frame = (float(v) for v in best.x)
     note = (
-        f"{len(use)} uncatalogued detections {lo} mag or more above the detection limit (Hp {limit_mag:.2f}) in "
-        f"{n_frames} frames ({own} in renders without false stars), the brightest {use.max():.2f} mag above "
-        f"it: slope {slope:.2f} dex/mag; {per_frame:.1f} false stars per frame put as many there"
+        f"{n_used} uncatalogued detections between Hp {edges[0]:.2f} and {edges[1:][used][-1]:.2f} "
+        f"in {n_frames} frames ({int(own[used].sum())} in renders without false stars); renders detect "
+        f"{100 * share[used].min():.0f}-{100 * share[used].max():.0f} % of stars there: slope {slope:.2f} dex/mag "
+        f"up to the renderer's detection limit Hp {limit_mag:.2f}, {per_frame:.1f} false stars per frame"
     )
-    return {"slope": slope, "span_mag": span, "per_frame": per_frame, "n": int(len(use)), "note": note}
+    return {"slope": slope, "span_mag": span, "per_frame": per_frame, "n": n_used, "note": note}
 
 
 def correct_once(checks: list, meas: dict, px: dict, exposure: float, start_sensor, top: int) -> tuple[list, float]:
@@ -340,7 +393,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     )
     if hot["n_static"]:
         d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
-    d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), 100.0))
+    d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), MAX_FALSE_STARS))
     if "sharp_per_frame" in meas:  # particle hits: as many sharp sources per frame as the frames show
         area_cm2 = cfg0.camera.width_px * cfg0.camera.height_px * (pitch * 1e-4) ** 2
         d["corruptions"]["cosmic_rays"] = float(min(meas["sharp_per_frame"] / (area_cm2 * exposure), 1e5))
@@ -370,7 +423,7 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     st, det = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
     explained = explained_by(g.camera, g.rotations[k], sky, det["x_px"], det["y_px"])
     st["nonstar_brightest10"] = nonstar_brightest(det["flux_adu"], ~explained)
-    st["_unexplained_flux"] = np.asarray(det["flux_adu"], dtype=np.float64)[~explained]
+    st["_unexplained_flux"] = point_source_flux(det, ~explained, st["background_adu"], sat)
     st["sharp_sources"] = sharp_sources(det, explained, st["background_adu"], sat)
     m = g.keep[k]
     d = fs.det_index[m]
@@ -382,6 +435,14 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
         sat,
     )
     return {**st, "zero_point_mag": zp, "zero_point_stars": n}
+
+
+def point_source_flux(det: dict, flags: np.ndarray, background_adu: float, sat: float) -> np.ndarray:
+    """The fluxes (ADU) of the ``flags``-ed detections that are unsaturated (peak below 80 % of ``sat``): a
+    saturated blob (a planet, the Moon, a glint, a bright star's bloom) has no magnitude a false star could
+    be drawn with, and one of them alone would stretch the fitted brightness range by magnitudes."""
+    flux, peak = np.asarray(det["flux_adu"], dtype=np.float64), np.asarray(det["peak_adu"], dtype=np.float64)
+    return flux[np.asarray(flags, bool) & (peak + background_adu < 0.8 * sat)]
 
 
 def sharp_sources(det: dict, explained: np.ndarray, background_adu: float, sat: float) -> int:
@@ -443,7 +504,12 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         extra = {"nonstar_brightest10": nonstar_brightest(det["flux_adu"], ~star)}
         extra["sharp_sources"] = sharp_sources(det, star, st["background_adu"], sat)
         extra["_detection_limit_mag"] = r.detection_limit_mag
-        extra["_unexplained_flux"] = np.asarray(det["flux_adu"], dtype=np.float64)[~star]
+        extra["_unexplained_flux"] = point_source_flux(det, ~star, st["background_adu"], sat)
+        w, h = c.camera.width_px, c.camera.height_px  # the catalogue stars on the sensor, found or not
+        sx, sy = np.asarray(f.stars["x_px"]), np.asarray(f.stars["y_px"])
+        cat = np.flatnonzero((f.stars["hip_id"] >= 0) & (sx >= 3) & (sx <= w - 4) & (sy >= 3) & (sy <= h - 4))
+        extra["_star_mag"] = np.asarray(f.stars["mag"], dtype=np.float64)[cat]
+        extra["_star_found"] = np.isin(cat, sidx[ok])
         zp, n = zero_point(
             det["flux_adu"][ok].astype(float),
             f.stars["mag"][sidx[ok]].astype(float),
