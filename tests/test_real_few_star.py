@@ -14,8 +14,13 @@ FRAMES = sorted((ROOT / "real-frames" / "tetra3-blackfly").glob("*.tiff"))[:2]
 CAMERA = ROOT / "configs" / "cameras" / "blackfly-s-imx265-35mm.yaml"
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("real_few_star", ROOT / "benchmarks" / "real_few_star.py")
+def _script(name: str = "real_few_star"):
+    """A benchmark script as a module (sim_vs_real imports its sibling real_few_star, so benchmarks/ is on the path)."""
+    import sys
+
+    if str(ROOT / "benchmarks") not in sys.path:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -47,19 +52,9 @@ def test_only_prior_free_solvers_are_accepted():
         mod.run([], CAMERA, solvers=("learned+fine",), log=lambda s: None)
 
 
-def _sim_vs_real():
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("sim_vs_real", ROOT / "benchmarks" / "sim_vs_real.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_sim_vs_real_intervals_and_verdicts():
     """benchmarks/sim_vs_real.py's scoring: Wilson intervals, points off, within 5 points or intervals overlap."""
-    mod = _sim_vs_real()
+    mod = _script("sim_vs_real")
     lo, hi = mod.wilson(8, 8)
     assert lo == pytest.approx(0.676, abs=0.002) and hi == 1.0  # 8 of 8 says little: 68-100 %
     lo, hi = mod.wilson(49, 60)
