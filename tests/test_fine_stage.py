@@ -62,9 +62,10 @@ def brute_force_scores(t, i, j, a, b, kf, vec, tol_n):
     return score + int(sum(ang[k] <= tol_n[k] for k in others)), r
 
 
-@pytest.mark.parametrize("s", [0.0, 0.02])
-def test_compiled_scores_equal_brute_force(s):
-    """Every hypothesis of an anchor pair scores as projecting all detections would (j through B)."""
+def _anchor_case(s):
+    """One anchor pair's search: a true attitude's field (6 stars + 2 false detections) of a random catalogue,
+    the pair index and every partner table; (args of anchor_hypotheses up to min_score, t, i, j, vec, tol_n,
+    the true stars' rows, lo, hi)."""
     rng = np.random.default_rng(3)
     vec = random_catalogue(3000, seed=2)
     tol = 2.0 / 2900.0  # 2 px at a 2,900 px focal length
@@ -89,13 +90,13 @@ def test_compiled_scores_equal_brute_force(s):
     d = math.acos(u[i] @ u[j])
     lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
     tol_n = (tol + min(s, 2 * tol / d) * np.hypot(*(t - t[i]).T)) if s else np.full(n, tol)
-    offs = np.zeros((n, len(vec) + 1), np.int64)
+    offs = np.zeros((len(vec) + 1, n), np.int64)
     parts, seps, base = [], [], 0
     for k in range(n):
         if k in (i, j):
             continue
         o, p, q = partner_table(0, len(idx), idx.first, idx.second, idx.sep, len(vec))  # every pair: a superset
-        offs[k] = o + base
+        offs[:, k] = o + base
         parts.append(p)
         seps.append(q)
         base += len(p)
@@ -119,10 +120,31 @@ def test_compiled_scores_equal_brute_force(s):
         -1.0,
         0,
     )
-    free = (np.array([1.0, 0, 0]), -2.0)  # no roll bound
-    tried, A, B, K, S, R = anchor_hypotheses(*args, 1 << 62, *free)
+    return args, t, i, j, vec, tol_n, inside, lo, hi
+
+
+FREE = (np.array([1.0, 0, 0]), -2.0)  # no roll bound
+
+
+def _grid(s, vec, tol_n):
+    """The focal pass's sky grid for these tolerances (s > 0), else none (the partner tables)."""
+    from fusion.solve.fine import NO_GRID, _focal_grid
+
+    return _focal_grid(vec, float(np.max(tol_n))) if s else NO_GRID
+
+
+@pytest.mark.parametrize("s", [0.0, 0.02])
+def test_compiled_scores_equal_brute_force(s):
+    """Every hypothesis of an anchor pair scores as projecting all detections would (j through B)."""
+    args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(s)
+    n, free = len(t), FREE
+    every = (0, np.full(n + 1, np.inf))  # no early rejection: every score is enough at every H
+    from fusion.solve.fine import NO_GRID
+
+    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *free, *every, *NO_GRID)
+    assert best == S.max() and not stopped
     # the work budget: exactly that many hypotheses, the first ones in order (a count, not a clock)
-    cut = anchor_hypotheses(*args, 7, *free)
+    cut = anchor_hypotheses(*args, 7, *free, *every, *NO_GRID)
     assert cut[0] == 7 and cut[1].tolist() == A[:7].tolist() and cut[4].tolist() == S[:7].tolist()
     assert tried == 2 * (hi - lo) == len(A) > 0
     for a, b, kf, score, r in zip(A, B, K, S, R):
@@ -131,3 +153,59 @@ def test_compiled_scores_equal_brute_force(s):
         np.testing.assert_allclose(r, r_want, atol=1e-12)
     truth = np.flatnonzero((A == inside[0]) & (B == inside[1]))
     assert len(truth) == 1 and S[truth[0]] == len(inside)  # the true hypothesis matches every real star
+
+
+def test_the_focal_pass_sky_grid_scores_as_the_partner_tables():
+    """The focal pass's sky grid (each detection put on the sky, the stars filed near it tested) finds exactly
+    the matches the partner tables find: the same hypotheses, scores and rotations; every star is filed on each
+    cube face whose extended square holds it, and a query wider than the grid's margin is an error."""
+    from fusion.solve.fine import NO_GRID
+    from fusion.solve.match import sky_grid
+
+    args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(0.02)
+    n = len(t)
+    every = (0, np.full(n + 1, np.inf))
+    tables = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *NO_GRID)
+    grid = _grid(0.02, vec, tol_n)
+    assert grid[0][-1] >= len(vec) and set(grid[2].tolist()) == set(range(len(vec)))
+    by_grid = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *grid)
+    assert by_grid[0] == tables[0] and by_grid[6] == tables[6] == len(inside)
+    for a, b in zip(by_grid[1:6], tables[1:6]):
+        np.testing.assert_array_equal(a, b)
+    narrow = sky_grid(vec, 1e-4, 1e-4 * 3.1)  # a margin too narrow for these tolerances
+    with pytest.raises(ValueError, match="margin"):
+        anchor_hypotheses(*args, 1 << 62, *FREE, *every, *narrow)
+
+
+@pytest.mark.parametrize("s", [0.0, 0.02])
+def test_early_rejection_drops_only_what_could_never_be_accepted(s):
+    """With the E_false bar as h_limit (the largest H at which each score can be accepted), the search returns
+    exactly the hypotheses of the full search whose score is enough at the H they were tried at, the same
+    best score, and scores none once not even every detection matched could be accepted (``stopped``)."""
+    args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(s)
+    n = len(t)
+    grid = _grid(s, vec, tol_n)
+    full = anchor_hypotheses(*args, 1 << 62, *FREE, 0, np.full(n + 1, np.inf), *grid)
+    h0 = 100  # hypotheses of earlier anchor pairs
+    limit = np.full(n + 1, -1.0)
+    limit[3:] = [h0 + 40, h0 + 400, h0 + 4000, np.inf, np.inf, np.inf]  # 3 matches until H = 140, 4 until 500, ...
+    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, limit, *grid)
+    assert tried == full[0] and not stopped and best == full[6] == len(inside)
+    # the h-th hypothesis needs the least s with limit[s] >= h0 + h: the full search's, filtered by that
+    order = {(a, b): h for h, (a, b) in enumerate(_tried_pairs(args, lo, hi), start=1)}
+    need = [int(np.argmax(limit >= h0 + order[(a, b)])) for a, b in zip(full[1], full[2])]
+    keep = [k for k, (sc, nd) in enumerate(zip(full[4], need)) if sc >= nd]
+    assert 0 < len(keep) < len(full[1])  # the limits do drop some here
+    assert A.tolist() == full[1][keep].tolist() and S.tolist() == full[4][keep].tolist()
+    np.testing.assert_array_equal(R, full[5][keep])
+    # no score can pass beyond H = 150: after 50 of its own hypotheses the rest are counted, none scored
+    low = np.where(limit > 0, h0 + 50.0, -1.0)
+    tried, A, B, *_, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, low, *grid)
+    assert stopped and tried == full[0]
+    assert all(order[(a, b)] <= 50 for a, b in zip(A, B))
+
+
+def _tried_pairs(args, lo, hi):
+    """(A, B) of every hypothesis in the order the search tries them (whole sky: every row, both orders)."""
+    first, second = args[5], args[6]
+    return [(a, b) for q in range(lo, hi) for a, b in ((first[q], second[q]), (second[q], first[q]))]

@@ -83,6 +83,32 @@ def test_the_hypothesis_budget_refuses_deterministically(renderer, tetra):
             CoarseToFineSolver(tetra, None, max_hypotheses=bad)
 
 
+def test_noise_is_refused_where_the_evidence_bar_is_out_of_reach_not_at_the_budget(renderer, tetra, whole_sky):
+    """Four detections at random positions without fluxes (no photometry): a hypothesis needs all four matched,
+    and E_false = H p^2 passes 1 - min_confidence at H of about 18,000; the search stops after the detection pair
+    during which H passes it (weak_evidence, a count: the same on every call), far below the work budget. A
+    clean frame's brightest four still solve."""
+    rng = np.random.default_rng(11)
+    cam = renderer.camera
+    noise = Detections(rng.uniform(0, cam.width_px - 1, 4), rng.uniform(0, cam.height_px - 1, 4), np.zeros(4))
+    a, b = whole_sky.solve(noise, cam), whole_sky.solve(noise, cam)
+    limit = whole_sky._h_limit(whole_sky.tiers[0], np.zeros(4), 4)[4]
+    assert 10_000 < limit < whole_sky.max_hypotheses / 5
+    assert isinstance(a, Refusal) and a.status == "weak_evidence" and "cannot reach" in a.reason
+    assert a.extra["hypotheses"] == b.extra["hypotheses"]
+    assert limit <= a.extra["hypotheses"] < limit + 40_000 < whole_sky.max_hypotheses / 2
+    solved = 0
+    for i in range(4):
+        f = renderer.render(i)
+        res = whole_sky.solve(Detections.from_table(f.detections).brightest(4), cam)
+        if isinstance(res, Solution):
+            solved += 1
+            err = np.abs(rotation_vector_deg(_truth(f), res.matrix)) * 3600  # arcsec
+            assert np.all(err < [360, 360, 3600])  # the truth (0.1 deg across, 1 deg roll)
+            assert res.extra["hypotheses"] <= whole_sky.max_hypotheses
+    assert solved >= 3
+
+
 # --------------------------------------------------------------------------- the certificate
 def test_solutions_carry_a_false_match_probability_and_a_covariance(renderer, tetra, whole_sky):
     solved = 0

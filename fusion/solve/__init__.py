@@ -6,7 +6,9 @@
 * :mod:`~fusion.solve.tetra` — tetra3rs lost-in-space (the classical baseline) and hinted tracking;
 * :mod:`~fusion.solve.priors` — region priors: a fusion checkpoint, an oracle;
 * :mod:`~fusion.solve.fine` — the fine stage: region prior -> region-restricted star identification
-  -> tetra3rs verification;
+  -> tetra3rs verification (:mod:`~fusion.solve.match`, :mod:`~fusion.solve.pairs`: its compiled kernels and
+  catalogue pair index);
+* :mod:`~fusion.solve.track` — tracking: identifications near an attitude hint weighed by a likelihood;
 * :mod:`~fusion.solve.frames`, :mod:`~fusion.solve.predict`, :mod:`~fusion.solve.benchmark` — reading
   frames, ``fusion predict`` and ``fusion benchmark``.
 

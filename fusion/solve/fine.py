@@ -52,7 +52,8 @@ For one region (a cap around a region centroid, :class:`Region`):
    noise, a variable star) leaves the geometric confidence as it was; below ``min_confidence`` or fewer than
    ``min_matches`` matches: next region, or a refusal. H only grows, so once even ``s = n``
    cannot reach ``min_confidence`` the search stops at once with a refusal (three stars over the
-   whole sky: after the first detection pair);
+   whole sky: after the first detection pair), and a hypothesis that can no longer reach the score it
+   would need is dropped while it is scored ("Work budget and latency bound" below);
    Only the brightest ``max_detections`` (24) are scored (each one costs a partner table per anchor
    star: a real 11° frame with 64 detections built ~60 of them per search); tetra3rs verifies with all;
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
@@ -82,46 +83,44 @@ more regions demands stronger evidence. The prior is pluggable: any
 :meth:`CoarseToFineSolver.solve`. Doubtful candidates are :class:`~fusion.solve.base.Refusal`
 values (the reason why, and a status code), never strings.
 
-**Work budget.** At most ``max_hypotheses`` hypotheses per solve, every pass and region together
-(default: :data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of pairs);
-where they run out without an accepted attitude the answer is a refusal with status
-``budget_exhausted``. A count, not a clock: the same frame gets the same answer on every machine.
+**Work budget and latency bound.** At most ``max_hypotheses`` hypotheses per solve, every pass and region
+together (default: :data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of
+pairs); where they run out without an accepted attitude the answer is a refusal with status
+``budget_exhausted``. A count, not a clock: the same frame gets the same answer on every machine. The time
+of a solve is bounded by that count times the cost of one hypothesis (at most one partner scan per other
+detection; ``max_detections`` bounds the detections), and both are cut where no answer can come of them:
+
+* E_false only grows with H, so before each hypothesis the search knows the least score it could still be
+  accepted with (:meth:`CoarseToFineSolver._h_limit`: the E_false bar per score, with the smallest q
+  photometry can give, 1 / :data:`PHOTOMETRIC_SAMPLES`, for subsets and the all-detections q for all);
+  scoring a hypothesis stops at the unmatched detection that puts that score out of reach (with four
+  detections: at its first), and it is never returned. This drops nothing :meth:`CoarseToFineSolver._decide`
+  could accept (the best score and its rivals are all kept), so answers are those of a full scoring;
+* where not even every detection matched could pass, nothing more is scored and the search refuses
+  (``weak_evidence``) after that detection pair: without photometry, four detections over the whole sky
+  stop at about 18,000 hypotheses, not at the budget;
+* the compiled loop (:func:`fusion.solve.match.anchor_hypotheses`) reads one row of the partner tables per
+  hypothesis (star-major) and computes no trigonometry per candidate star; each anchor detection's tables
+  are built once per pass (:meth:`CoarseToFineSolver._partners`); the focal-length pass, whose tolerances
+  are several times wider (many candidates per detection, each a random read), puts each detection on the
+  sky and tests the stars a cube-map grid files near it (:func:`fusion.solve.match.sky_grid`, built once per
+  catalogue cut): the same matches, no partner tables.
+
+Measured (data/tails300, 300 rendered frames, seed 21, whole sky, ``focal_tol`` 0.02, one thread on a shared
+2-core machine, before and after back to back: indicative): p99 per solve, refusals included, 175-285 ->
+43-52 ms in the N = 4-5, false-star and 1 px centroid-noise cells (the frames refused at the budget or the
+evidence bar), 24-62 -> 12-26 ms in the others; medians 6.4-11 -> 4.6-6.2 ms (21 -> 12 at 1 px noise); the
+answers, refusal codes and hypothesis counts identical (and on a second seed, data/tails300b). Pure noise
+(4-12 uniform detections, 200 sets): mean 311 -> 44 ms, p99 750 -> 117 ms; frames at a focal length 8 % off:
+mean 238 -> 32 ms. Still above issue 37's target (p99 <= 20 ms in every cell): a refusal at the budget
+costs its 150,000 hypotheses, ~200 ns each at N = 6 in the strict pass and ~450 ns in the focal one.
 
 **Certificate.** A solution's ``false_match_probability`` is its E_false above (so ``confidence =
 1 - E_false``), its covariance that of :func:`fusion.solve.base.attitude_covariance` from the stars it
 matched (tetra3rs's matches where tetra3rs confirmed it).
 
-**Tracking** (``solve(..., hint=M, hint_sigma_deg=s)``; :meth:`CoarseToFineSolver._track`, scored by
-:func:`fusion.solve.match.track_hypotheses`; two detections suffice). Each detection's direction is
-predicted by the hint; its candidates are the catalogue cut's stars within 3 s of that (a rotation by an angle
-moves no direction farther), plus what the focal tolerance leaves uncertain off-axis (a cone query, no
-whole-sky pair search). Every pair of candidates of two of the brightest four detections is an identification
-(TRIAD at the focal factor its separation implies), the other detections matched where it puts them, and
-each is weighed by a likelihood against "no identification" (each term a density ratio):
-
-* the hint's prior: an isotropic Gaussian (1-sigma s) on the rotation from the hint to the attitude;
-* the separation: the catalogue pair's against the detections' over the focal range 1 +- focal_tol (uniform),
-  blurred by ``TRACK_CENTROID_PX`` of centroid error; each further detection matched: its position density
-  against a uniform one over the field (the chance-star density of the lost-in-space E_false);
-* magnitudes: the catalogue magnitudes against the instrumental ones about a fitted zero point
-  (``TRACK_MAG_SIGMA``), against a coincidental spread of ``TRACK_MAG_SPREAD``; and every bright-tier star
-  the attitude puts on the sensor, more than ``TRACK_MAG_MARGIN`` brighter than its faintest matched star,
-  without a detection, costs a factor ``TRACK_MISS`` (measured: 14 of 105 such stars at the true attitude);
-* each detection is no catalogue star with prior ``TRACK_FALSE_DETECTION`` (hot pixels are 4.5 % of the two
-  brightest detections of rendered frames): the "no identification" hypothesis (at most one star) keeps
-  that mass.
-
-The false-match probability is the posterior mass of everything but the best identification (identifications
-within ``TRACK_SAME_DEG`` of its attitude count with it), the null included; the best one is returned where
-that is at most ``1 - tracking_unverified_confidence`` (1e-3), with its own least-squares attitude (no
-tetra3rs verification: it does not know the hint and rejects most matches of three stars). The constants are
-measured (above) and then rounded towards less confidence. This replaces the earlier rule (an unverified
-E_false below 1e-3 in a 3-sigma region, three stars at least): 85 -> 92 % at N = 3 and 0 -> 78 % at N = 2
-with a 2 deg hint, none wrong (data/track300, 300 frames). The covariance is that of the matched stars
-(:func:`fusion.solve.base.attitude_covariance`, at least ``TRACK_COV_CENTROID_PX`` per axis for three stars
-or fewer): two stars leave the rotation about their mean direction weak, the roll for a pair about the
-centre, and a pair too close to fix the roll to ``TRACK_MAX_ROLL_SIGMA_DEG`` is refused. A hint whose
-3-sigma region misses the truth can only give a refusal or an attitude near the hint.
+**Tracking** (``solve(..., hint=M, hint_sigma_deg=s)``): :mod:`fusion.solve.track` (an identification
+near the hint weighed by a likelihood; two detections can suffice).
 """
 
 from __future__ import annotations
@@ -143,7 +142,7 @@ from .base import (
     rotation_angle_deg,
     solution_from_matrix,
 )
-from .match import anchor_hypotheses, partner_table, track_hypotheses
+from .match import anchor_hypotheses, partner_table, sky_grid
 from .pairs import load_or_build
 
 # the work budget per solve (hypotheses, both passes and every region together). Chosen from measurement:
@@ -157,28 +156,12 @@ from .pairs import load_or_build
 # stars in the cut): x 5.0, 749,000 (its 8 real frames need 6,500-22,000 at N = 4-6).
 MAX_HYPOTHESES = 150_000
 REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
+NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
+PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
 
 
 REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
 TRACKING = -2  # Region.index of a tracking hint's region
-
-# --------------------------------------------------------------------------- tracking (an attitude hint)
-# The model behind CoarseToFineSolver._track (module docstring, "Tracking"); each constant errs on the side of
-# less confidence where it was measured (results on data/track300, 300 rendered test frames, seed 11):
-TRACK_FALSE_DETECTION = 0.1  # prior chance that a detection is no star of the catalogue cut (a hot pixel, a
-#   cosmic ray, a star beyond the cut): 4.5 % of the two brightest detections of the rendered frames are hot pixels
-TRACK_MISS = 0.2  # chance that a catalogue star clearly brighter than a detected one (TRACK_MAG_MARGIN) and inside
-#   the sensor (TRACK_EDGE_PX) has no detection of its own: each such star multiplies a hypothesis by this
-TRACK_MAG_MARGIN = 1.0  # magnitudes: "clearly brighter" (catalogue vs instrumental scatter, colour, variability)
-TRACK_EDGE_PX = 10.0  # a star this close to the sensor's edge may be cut off: never counted as missed
-TRACK_MAG_SIGMA = 0.3  # scatter (mag) of a detection's instrumental magnitude about its star's, after the zero point
-TRACK_MAG_SPREAD = 3.0  # the range (mag) a coincidental star's magnitude difference spreads over: null density 1/3
-TRACK_CENTROID_PX = 0.5  # per-axis centroid error (px) the separation and position likelihoods assume
-TRACK_COV_CENTROID_PX = 0.25  # the per-axis centroid error a covariance of three stars or fewer assumes (they fit too
-#   well to measure it): 0.15 px rms measured (rendered detections against the catalogue at the true attitude)
-TRACK_SAME_DEG = 0.1  # hypotheses within this rotation of the best one identify the same attitude
-TRACK_ANCHORS = 4  # anchor pairs among the brightest this many detections
-TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma)
 
 
 @dataclass(frozen=True)
@@ -232,8 +215,9 @@ def _unit_at(t: np.ndarray, k) -> np.ndarray:
 
 def _angle_at(ti: np.ndarray, tk: np.ndarray, f: float) -> float:
     """Angle between two tangent-plane points seen at focal-length factor ``f``."""
-    a, b = np.append(ti / f, 1.0), np.append(tk / f, 1.0)
-    return math.acos(min(1.0, float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))))
+    ax, ay, bx, by = float(ti[0]) / f, float(ti[1]) / f, float(tk[0]) / f, float(tk[1]) / f
+    c = (ax * bx + ay * by + 1.0) / math.sqrt((ax * ax + ay * ay + 1.0) * (bx * bx + by * by + 1.0))
+    return math.acos(min(1.0, c))
 
 
 def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -255,6 +239,19 @@ class _Tier:
     tree: cKDTree
     pairs: object
     p_chance: float
+    grid: tuple | None = None  # the focal pass's sky grid (fusion.solve.match.sky_grid), None: partner tables
+
+
+def _focal_grid(vec: np.ndarray, tk_max: float) -> tuple | None:
+    """:func:`fusion.solve.match.sky_grid` of ``vec`` for tolerances up to ``tk_max`` (rad): a margin that holds
+    every query (stretch x tolerance), cells of about one query's width; None where no margin up to 0.5 does."""
+    margin = 0.05
+    while (1 + 2 * (1 + margin) ** 2) * tk_max * 1.01 > margin:
+        margin *= 1.5
+        if margin > 0.5:
+            return None
+    cell = max((1 + 2 * (1 + margin) ** 2) * tk_max, (2 + 2 * margin) / 512)
+    return sky_grid(np.ascontiguousarray(vec), margin, cell)
 
 
 def magnitude_scatter(mag: np.ndarray, flux: np.ndarray) -> np.ndarray:
@@ -363,6 +360,11 @@ class CoarseToFineSolver:
                     min(1.0, len(vec) / (4 * math.pi) * math.pi * self.tol_rad**2),
                 )
             )
+        if self.focal_tol > 0:
+            # the focal pass's widest tolerance: tol + focal_tol times the farthest two detections can be apart
+            far = 2.5 * math.tan(self.half_diag_rad)  # (and a margin: distortion, detections off the corners)
+            for tier in self.tiers:
+                tier.grid = _focal_grid(tier.vec, self.tol_rad + self.focal_tol * far)
         row_of = {int(x): r for r, x in enumerate(self.tiers[0].ids)}
         self._bright_rows = np.array([row_of.get(int(x), -1) for x in self.tiers[-1].ids], np.int64)
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
@@ -382,10 +384,14 @@ class CoarseToFineSolver:
         return [Region(np.asarray(centroids[k], np.float64), float(radii[k]), float(probs[k]), int(k)) for k in order]
 
     # ---------------------------------------------------------------- search
-    def _hypotheses(self, tier: _Tier, u: np.ndarray, region: Region, s: float, tables: dict, budget: int):
-        """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried) of the
-        hypotheses in ``region`` with at least 3 matches (:func:`fusion.solve.match.anchor_hypotheses`), at
-        most ``budget`` hypotheses in all (the last pair's are cut short where it runs out)."""
+    def _hypotheses(
+        self, tier: _Tier, u: np.ndarray, region: Region, s: float, tables: dict, budget: int, h0: int, h_limit
+    ):
+        """Per pair of bright detections: (rotations, focal factors, match counts, hypotheses tried, best score,
+        stopped) of the hypotheses in ``region`` with at least 3 matches and the matches they need to be
+        accepted (:func:`fusion.solve.match.anchor_hypotheses`; ``h0``: the solve's hypotheses before these,
+        ``h_limit``: :meth:`_h_limit`, read afresh for every pair), at most ``budget`` hypotheses in all (the
+        last pair's are cut short where it runs out)."""
         idx, tol = tier.pairs, self.tol_rad
         cap = np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol)
         star_ok = (tier.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(tier.vec), bool)
@@ -408,8 +414,12 @@ class CoarseToFineSolver:
                 tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
             else:
                 tol_n = np.full(n, tol)
-            offs, partner, psep = self._partners(tier, i, j, t, s, tables)
-            tried, _, _, ks, scores, rots = anchor_hypotheses(
+            # the focal pass reads the sky grid where its margin holds every tolerance (else the partner tables)
+            grid = tier.grid if s > 0 and tier.grid is not None else None
+            if grid is not None and float(np.max(tol_n)) * grid[3][4] > grid[3][3]:
+                grid = None
+            offs, partner, psep = self._partners(tier, i, j, t, s, tables, grid is None)
+            tried, _, _, ks, scores, rots, best, stopped = anchor_hypotheses(
                 i,
                 j,
                 t,
@@ -431,34 +441,44 @@ class CoarseToFineSolver:
                 budget,
                 region.center if region.x_axis is None else region.x_axis,
                 -2.0 if region.x_axis is None else cos_r,
+                h0,
+                h_limit,
+                *(grid or NO_GRID),
             )
             budget -= tried
-            yield rots, ks, scores, tried
+            h0 += tried
+            yield rots, ks, scores, tried, best, stopped
 
-    def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict):
-        """The partner tables of detection pairs (i, k) for every k but i and j, concatenated (see
-        :func:`fusion.solve.match.partner_table`); each (i, k) table is built once per solve and pass,
-        whatever the number of regions searched (``tables``)."""
-        idx, tol, n, n_stars = tier.pairs, self.tol_rad, len(t), len(tier.vec)
-        offs = np.zeros((n, n_stars + 1), np.int64)
+    def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict, needed: bool = True):
+        """The partner tables of detection pairs (i, k) for every k but i, concatenated (see
+        :func:`fusion.solve.match.partner_table`; :func:`~fusion.solve.match.anchor_hypotheses` skips j's);
+        built once per solve, anchor detection i and pass, whatever the number of regions and of partners j
+        searched (``tables``). ``needed`` False (the focal pass reads the sky grid): empty ones."""
+        n = len(t)
+        if not needed:
+            return np.zeros((1, n), np.int64), np.zeros(0, np.int32), np.zeros(0)
+        key = ("i", i, s)
+        if key in tables:
+            return tables[key]
+        idx, tol, n_stars = tier.pairs, self.tol_rad, len(tier.vec)
+        offs = np.zeros((n_stars + 1, n), np.int64)  # star-major: a hypothesis reads one row
         parts, seps, base = [], [], 0
         for k in range(n):
-            if k in (i, j):
+            if k == i:
                 continue
-            if (i, k, s) not in tables:
-                # the separation of i and k over the focal factors 1 -s .. 1 + s, widened by k's largest tolerance
-                near = [_angle_at(t[i], t[k], f) for f in (1 + s, 1 - s)]
-                tk = tol + s * float(np.hypot(*(t[k] - t[i])))
-                lo, hi = idx.range(min(near) - tk, max(near) + tk)
-                tables[(i, k, s)] = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
-            o, p, q = tables[(i, k, s)]
-            offs[k] = o + base
+            # the separation of i and k over the focal factors 1 -s .. 1 + s, widened by k's largest tolerance
+            near = [_angle_at(t[i], t[k], f) for f in (1 + s, 1 - s)]
+            tk = tol + s * math.hypot(t[k, 0] - t[i, 0], t[k, 1] - t[i, 1])
+            lo, hi = idx.range(min(near) - tk, max(near) + tk)
+            o, p, q = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
+            offs[:, k] = o + base
             parts.append(p)
             seps.append(q)
             base += len(p)
         partner = np.concatenate(parts) if parts else np.zeros(0, np.int32)
         psep = np.concatenate(seps) if seps else np.zeros(0)
-        return offs, partner, psep
+        tables[key] = offs, partner, psep
+        return tables[key]
 
     def _matches(self, tier: _Tier, rot: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dist, idx = tier.tree.query(u @ rot.T, distance_upper_bound=2 * math.sin(self.tol_rad / 2))
@@ -480,8 +500,26 @@ class CoarseToFineSolver:
         """``max(0, 1 - E_false)`` (:meth:`expected_false`)."""
         return float(max(0.0, 1.0 - self.expected_false(n_hypotheses, n_det, score, q, tier)))
 
+    def _h_limit(self, tier: _Tier, flux: np.ndarray, n: int, q_all: float | None = None) -> np.ndarray:
+        """(n + 1,): the largest H at which a hypothesis with s matches can still be accepted
+        (``expected_false(H, n, s, q) <= 1 - min_confidence``), -1 where never (s < 3 or below ``min_matches``).
+        A hypothesis accepted at H was tried at H or before, so one tried later than ``h_limit[s]`` with fewer
+        than s + 1 matches can be dropped: it could never pass :meth:`_decide` (which, H only growing, never
+        revisits a smaller H). Photometry can lower E_false by q, so where it could apply the limit assumes the
+        smallest q :meth:`_photometric_q` can return (:data:`PHOTOMETRIC_SAMPLES` of them: 1 / samples) for a
+        subset of the detections, and ``q_all`` (the value of all n, once computed) for all n: the same bound
+        the search's stop after each detection pair uses."""
+        bar = 1.0 - self.min_confidence
+        phot = self.photometric_mag is not None and n >= 3 and bool(np.all(flux > 0))
+        out = np.full(n + 1, -1.0)
+        for s in range(max(3, self.min_matches), n + 1):
+            q = (q_all if q_all is not None and s == n else 1.0 / PHOTOMETRIC_SAMPLES) if phot else 1.0
+            e1 = self.expected_false(1, n, s, q, tier=tier)  # E_false per hypothesis
+            out[s] = bar / e1 * (1 + 1e-9) if e1 > 0 else math.inf
+        return out
+
     # ---------------------------------------------------------------- photometry
-    def _photometric_q(self, tier: _Tier, flux: np.ndarray, samples: int = 4000) -> float:
+    def _photometric_q(self, tier: _Tier, flux: np.ndarray, samples: int = PHOTOMETRIC_SAMPLES) -> float:
         """Chance that random stars of the tier, one per detection of ``flux``, pass the photometric test
         against these detections: a Monte Carlo over the tier's magnitudes (fixed seed), plus two
         standard errors and 1/samples, so the bound errs on the side of less confidence."""
@@ -596,18 +634,26 @@ class CoarseToFineSolver:
             regions.append(Region(np.array([0.0, 0.0, 1.0]), 180.0, 0.0, REST_OF_SKY))
         tables: dict = {}
         q_all = None
+        # the largest H at which each score can still be accepted: a hypothesis that cannot reach the score it
+        # needs is dropped at its first detection too many unmatched, and the search stops where no score can
+        h_limit = self._h_limit(tier, flux, n)
+        best_seen = 0
         for s in passes:
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
-                for r, k, sc, t in self._hypotheses(tier, u, region, s, tables, self.max_hypotheses - tried):
+                for r, k, sc, t, best, stopped in self._hypotheses(
+                    tier, u, region, s, tables, self.max_hypotheses - tried, tried, h_limit
+                ):
                     tried += t
+                    best_seen = max(best_seen, best)
                     best_possible = self.confidence(tried, n, n, tier=tier)
                     if best_possible < self.min_confidence and self.photometric_mag is not None:
                         if q_all is None:  # photometry's best case: every detection matched and passing
                             q_all = self._photometric_q(tier, flux)
+                            h_limit[n] = min(h_limit[n], self._h_limit(tier, flux, n, q_all)[n])
                         best_possible = self.confidence(tried, n, n, q_all, tier=tier)
-                    if best_possible < self.min_confidence:
+                    if stopped or best_possible < self.min_confidence:
                         # H only grows: not even all n detections matched could pass any more, so stop here
                         return Refusal(
                             f"the evidence cannot reach the confidence bar: after {tried} hypotheses even "
@@ -632,6 +678,14 @@ class CoarseToFineSolver:
                             last, doubtful = sol, True
                         else:
                             last = verdict
+                    elif best_seen >= self.min_matches and last.status == "no_pattern":
+                        # candidates matched, but too few for the confidence bar at this H (dropped early)
+                        last = Refusal(
+                            f"weak evidence: at most {best_seen} of {n} detections matched, fewer than the "
+                            f"confidence bar needs after {tried} hypotheses",
+                            self.name,
+                            status="weak_evidence",
+                        )
                     if tried >= self.max_hypotheses:
                         # the work budget: a count of hypotheses, so the same answer on every machine
                         return Refusal(
@@ -646,167 +700,11 @@ class CoarseToFineSolver:
                         break  # this pass's best is doubtful: go on
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried}, last.status)
 
-    # ---------------------------------------------------------------- tracking
     def _track(self, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float):
-        """Tracking with an attitude hint: every identification of the brightest detections by catalogue stars
-        near their predicted directions, weighed by a likelihood (module docstring, "Tracking"); the best one
-        if the posterior mass of every other (and of "no identification") is at most
-        ``1 - tracking_unverified_confidence``."""
+        """Tracking with an attitude hint: :func:`fusion.solve.track.track`."""
+        from .track import track  # imports this module: here, not at the top
 
-        def refuse(reason: str, status: str, extra: dict | None = None) -> Refusal:
-            return Refusal(reason, self.name, (time.perf_counter() - t0) * 1e3, extra or {}, status)
-
-        tier, bright = self.tiers[0], self.tiers[-1]
-        n = len(detections)
-        u = camera.unproject(detections.x_px, detections.y_px)
-        t = u[:, :2] / u[:, 2:3]
-        s, tol = self.focal_tol, self.tol_rad
-        sig = math.radians(sigma_deg)
-        m_hint = np.asarray(hint, np.float64)
-        sig_c = TRACK_CENTROID_PX / camera.f_px  # centroid error per axis (rad)
-        log_eps, log_1eps = math.log(TRACK_FALSE_DETECTION), math.log1p(-TRACK_FALSE_DETECTION)
-        # the solid angle of the field, the density a detection that is no catalogue star has (uniform over it)
-        omega = self._fov_sr
-        na = min(n, TRACK_ANCHORS)
-        # each detection's catalogue candidates: within 3 sigma of its predicted direction (a rotation by an angle
-        # moves no direction farther), plus what the focal length leaves uncertain at its distance from the centre
-        off = np.arctan(np.hypot(t[:, 0], t[:, 1]))
-        radius = np.minimum(math.pi, HINT_RADIUS_SIGMAS * sig + 2 * tol + s * off)
-        cand = tier.tree.query_ball_point(u @ m_hint.T, 2 * np.sin(radius / 2))
-        cand_offs = np.zeros(n + 1, np.int64)
-        cand_offs[1:] = np.cumsum([len(c) for c in cand])
-        cand_rows = np.concatenate([np.asarray(c, np.int64) for c in cand])
-        # the bright stars around the hint's field: those a hypothesis must explain (TRACK_MISS)
-        reach = self.half_diag_rad * (1 + s) + HINT_RADIUS_SIGMAS * sig
-        near = np.asarray(bright.tree.query_ball_point(m_hint[:, 2], 2 * math.sin(min(math.pi, reach) / 2)), np.int64)
-        flux = np.asarray(detections.flux_adu, np.float64)
-        inst = -2.5 * np.log10(np.maximum(flux, 1e-12))
-        phot = bool(np.all(flux > 0))
-        cam = np.array(
-            [camera.f_px, camera.fy_px, camera.cx_px, camera.cy_px, camera.k1, camera.k2, camera.k3, camera.p1]
-            + [camera.p2, camera.width_px, camera.height_px, TRACK_EDGE_PX],
-            np.float64,
-        )
-        consts = np.array(
-            [
-                log_eps,
-                log_1eps,
-                math.log(TRACK_MISS),
-                math.log1p(-TRACK_MISS),
-                TRACK_MAG_MARGIN,
-                TRACK_MAG_SIGMA,
-                math.log(TRACK_MAG_SPREAD / (TRACK_MAG_SIGMA * math.sqrt(2 * math.pi))),
-            ]
-        )
-        tc = np.ascontiguousarray(t)
-        found = []
-        tried = 0
-        for i in range(na):
-            for j in range(i + 1, na):
-                a_rows, b_rows = cand_rows[cand_offs[i] : cand_offs[i + 1]], cand_rows[cand_offs[j] : cand_offs[j + 1]]
-                if not len(a_rows) or not len(b_rows):
-                    continue
-                logw, rot, k, cats = track_hypotheses(
-                    tc, i, j, a_rows, b_rows, cand_offs, cand_rows, tier.vec, tier.mag, m_hint, sig, s, tol, sig_c,
-                    math.log(omega), bright.vec[near], bright.mag[near], self._bright_rows[near], cam, inst, phot,
-                    consts,
-                )  # fmt: skip
-                tried += len(logw)
-                if len(logw):
-                    found.append((logw, cats, rot, k))
-        # no identification: at most one detection is a catalogue star (one star alone leaves the attitude free)
-        eps = TRACK_FALSE_DETECTION
-        log_null = math.log(eps**n + n * (1 - eps) * eps ** (n - 1))
-        extra = {"hypotheses": tried, "region": TRACKING, "region_probability": 1.0}
-        if not found:
-            return refuse("no catalogue pair near the hint matches the detections", "no_pattern", extra)
-        lw = np.concatenate([x[0] for x in found])
-        cats = np.concatenate([x[1] for x in found])
-        rots = np.concatenate([x[2] for x in found])
-        ks = np.concatenate([x[3] for x in found])
-        # the same identification (the same matched row per detection) from several anchor pairs counts once, at
-        # its best weight; one below e^-30 of the best changes no probability this solver states
-        order = np.argsort(-lw, kind="stable")
-        order = order[lw[order] > lw[order[0]] - 30.0]
-        _, first = np.unique(cats[order], axis=0, return_index=True)
-        keep = order[np.sort(first)]
-        lw, cats, rots, ks = lw[keep], cats[keep], rots[keep], ks[keep]
-        best = 0  # keep is in descending weight
-        top = lw[best]
-        cos_same = math.cos(math.radians(TRACK_SAME_DEG))
-        same = (rots.reshape(-1, 9) @ rots[best].ravel() - 1) / 2 >= cos_same
-        # in logs: a hint far off leaves every weight far below the null's
-        log_total = np.logaddexp(np.logaddexp.reduce(lw), log_null)
-        p_false = float(min(1.0, max(0.0, -np.expm1(np.logaddexp.reduce(lw[same]) - log_total))))
-        w = np.exp(lw - top)
-        conf = 1.0 - p_false
-        if conf < self.tracking_unverified_confidence:
-            runner = np.flatnonzero(~same)
-            why = (
-                f"{len(runner)} other identification(s) near the hint"
-                if len(runner) and math.log(w[runner].max()) + top + math.log(1e3) > log_null
-                else "no identification at all (a detection that is no catalogue star)"
-            )
-            return refuse(
-                f"tracking: the best identification has false-match probability {p_false:.3g} > "
-                f"{1 - self.tracking_unverified_confidence:.3g} (most of the rest: {why})",
-                "weak_evidence" if len(runner) else "not_verified",
-                extra,
-            )
-        rot, k = rots[best], float(ks[best])
-        det_rows = np.flatnonzero(cats[best] >= 0)
-        cat_rows = cats[best][det_rows]
-        # the least-squares rotation of the identified stars and, from three on, the focal factor (Umeyama's scale
-        # of the tangent-plane coordinates, within 1 +- s): two passes, the identification is not revisited
-        for _ in range(2 if len(det_rows) >= 3 and s > 0 else 1):
-            uk = _unit_at(t, k)
-            rot = _kabsch(uk[det_rows], tier.vec[cat_rows])
-            if len(det_rows) >= 3 and s > 0:
-                c = tier.vec[cat_rows] @ rot
-                g = c[:, :2] / c[:, 2:3]
-                gc, tcc = g - g.mean(axis=0), t[det_rows] - t[det_rows].mean(axis=0)
-                sv = np.linalg.svd(gc.T @ tcc, compute_uv=False)
-                flip = np.sign(np.linalg.det(gc.T @ tcc)) or 1.0
-                k = float(np.clip((sv[0] + flip * sv[1]) / np.sum(gc * gc), 1 - s, 1 + s))
-        uk = _unit_at(t, k)
-        resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
-        rms_arcsec = float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600)
-        cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
-        # the covariance assumes at least the model's centroid error where the stars are too few to measure it
-        # (two stars and a free focal length fit exactly)
-        floor = TRACK_COV_CENTROID_PX * cam_k.pixel_scale_arcsec if len(det_rows) <= 3 else 0.0
-        cov = attitude_covariance(uk[det_rows], max(rms_arcsec, floor), cam_k.pixel_scale_arcsec)
-        if math.sqrt(cov[2, 2]) / 3600 > TRACK_MAX_ROLL_SIGMA_DEG:
-            return refuse(
-                f"tracking: the matched stars fix the roll only to {math.sqrt(cov[2, 2]) / 3600:.2f} deg (1 sigma) "
-                f"> {TRACK_MAX_ROLL_SIGMA_DEG} deg: too close together",
-                "weak_evidence",
-                extra,
-            )
-        extra.update(
-            {
-                "refined_by": "own least squares",
-                "focal_factor": k,
-                "fov_deg": list(cam_k.fov_deg),
-                "evidence": "hint prior, geometry and photometry" if phot else "hint prior and geometry",
-                "identifications": len(lw),
-            }
-        )
-        if len(det_rows) >= 2:
-            extra["magnitude_scatter"] = float(
-                magnitude_scatter(tier.mag[cat_rows], np.asarray(detections.flux_adu, np.float64)[det_rows])
-            )
-        return solution_from_matrix(
-            rot,
-            matched=np.column_stack([det_rows, tier.ids[cat_rows]]),
-            residual_arcsec=rms_arcsec,
-            confidence=conf,
-            solver=self.name,
-            time_ms=(time.perf_counter() - t0) * 1e3,
-            extra=extra,
-            false_match_probability=p_false,
-            covariance_matrix_arcsec2=cov,
-        )
+        return track(self, detections, camera, hint, sigma_deg, t0)
 
     def refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
         """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).

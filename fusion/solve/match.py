@@ -12,6 +12,11 @@ without projecting k into the sky first: a star C within ``tol_k`` of where k la
 pair-index range of ``d_ik`` (:func:`partner_table`), and the positional test decides for the few
 that pass both distance tests. The scores are exactly those of projecting every detection and
 searching the nearest star (the earlier implementation), except that j counts only through B.
+
+The caller's E_false bar gives each hypothesis the least score it could still be accepted with; scoring
+stops at the detection that puts it out of reach (:func:`anchor_hypotheses`, "Early rejection"). The
+focal-length pass, whose tolerances are wide, finds C through a cube-map grid of the sky instead
+(:func:`sky_grid`): the same matches.
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ from numba import njit
 
 @njit(cache=True)
 def partner_table(lo: int, hi: int, first, second, sep, n_stars: int):
-    """(offsets (S + 1,), partner, separation) of pair-index rows ``[lo, hi)``, keyed on either star."""
+    """(offsets (S + 1,), partner, separation) of pair-index rows ``[lo, hi)``, keyed on either star; each
+    star's partners in ascending separation (the pair index's order), which :func:`anchor_hypotheses` relies on."""
     offs = np.zeros(n_stars + 1, np.int64)
     for q in range(lo, hi):
         offs[first[q] + 1] += 1
@@ -83,6 +89,116 @@ def _grow(x, cap: int):
     return out
 
 
+@njit(cache=True, inline="always")
+def _triad_into(r, uix, uiy, uiz, ujx, ujy, ujz, ax, ay, az, bx, by, bz):
+    """:func:`triad` written into ``r`` (3, 3) without allocating: the inner loop's rotation."""
+    # camera frame: ui, n1 = ui x uj / |ui x uj|, m1 = ui x n1
+    nx, ny, nz = uiy * ujz - uiz * ujy, uiz * ujx - uix * ujz, uix * ujy - uiy * ujx
+    w = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx * w, ny * w, nz * w
+    mx, my, mz = uiy * nz - uiz * ny, uiz * nx - uix * nz, uix * ny - uiy * nx
+    # sky frame: a, n2 = a x b / |a x b|, m2 = a x n2
+    px, py, pz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    w = 1.0 / math.sqrt(px * px + py * py + pz * pz)
+    px, py, pz = px * w, py * w, pz * w
+    qx, qy, qz = ay * pz - az * py, az * px - ax * pz, ax * py - ay * px
+    # r = [a n2 m2] [ui n1 m1]^T
+    r[0, 0] = ax * uix + px * nx + qx * mx
+    r[0, 1] = ax * uiy + px * ny + qx * my
+    r[0, 2] = ax * uiz + px * nz + qx * mz
+    r[1, 0] = ay * uix + py * nx + qy * mx
+    r[1, 1] = ay * uiy + py * ny + qy * my
+    r[1, 2] = ay * uiz + py * nz + qy * mz
+    r[2, 0] = az * uix + pz * nx + qz * mx
+    r[2, 1] = az * uiy + pz * ny + qz * my
+    r[2, 2] = az * uiz + pz * nz + qz * mz
+
+
+# --------------------------------------------------------------------------- a grid of the sky (focal pass)
+# A cube map: six faces, each a G x G grid of its gnomonic coordinates (u, v) in [-1 - margin, 1 + margin]; a
+# star is filed on every face whose extended square holds it. The gnomonic map stretches angles by at most
+# 1 + 2 (1 + margin)^2 there (1 / cos^2 of the largest angle from the face centre), and maps the great-circle
+# arc between two points to the straight segment between them, so every star within an angle r of a point of
+# a face lies in the (u, v) box of half-width that stretch times r around it, on that face.
+
+
+@njit(cache=True, inline="always")
+def _face_uv(x: float, y: float, z: float, f: int):
+    """(component along face f's axis, u, v); f = 2 axis + (0 for +, 1 for -)."""
+    m = f >> 1
+    sg = 1.0 if (f & 1) == 0 else -1.0
+    if m == 0:
+        c, a, b = sg * x, y, z
+    elif m == 1:
+        c, a, b = sg * y, x, z
+    else:
+        c, a, b = sg * z, x, y
+    if c <= 0.0:
+        return c, 0.0, 0.0
+    return c, a / c, b / c
+
+
+@njit(cache=True)
+def sky_grid(vec, margin: float, cell: float):
+    """(start (6 G^2 + 1,), the filed stars' vectors (M, 3), their rows of ``vec`` (M,), (G, lowest u, cells per
+    unit of u, margin, largest stretch)): every star of ``vec`` filed by cell (see above), cells of about
+    ``cell`` in u and v."""
+    g = max(1, int(math.ceil((2.0 + 2.0 * margin) / cell)))
+    lo = -1.0 - margin
+    inv = g / (2.0 + 2.0 * margin)
+    nc = 6 * g * g
+    cells = np.full((len(vec), 6), -1, np.int64)
+    start = np.zeros(nc + 1, np.int64)
+    for r in range(len(vec)):
+        for f in range(6):
+            c, u, v = _face_uv(vec[r, 0], vec[r, 1], vec[r, 2], f)
+            if c <= 0.0 or abs(u) > 1.0 + margin or abs(v) > 1.0 + margin:
+                continue
+            iu = min(g - 1, max(0, int((u - lo) * inv)))
+            iv = min(g - 1, max(0, int((v - lo) * inv)))
+            cells[r, f] = f * g * g + iu * g + iv
+            start[cells[r, f] + 1] += 1
+    for q in range(nc):
+        start[q + 1] += start[q]
+    fill = start[:-1].copy()
+    gvec = np.empty((start[nc], 3))
+    grow = np.empty(start[nc], np.int32)
+    for r in range(len(vec)):
+        for f in range(6):
+            q = cells[r, f]
+            if q >= 0:
+                gvec[fill[q]] = vec[r]
+                grow[fill[q]] = r
+                fill[q] += 1
+    par = np.array([g, lo, inv, margin, 1.0 + 2.0 * (1.0 + margin) ** 2 + 1e-6])
+    return start, gvec, grow, par
+
+
+@njit(cache=True, inline="always")
+def _grid_near(x0: float, x1: float, x2: float, cos_r: float, r: float, skip: int, start, gvec, grow, par) -> bool:
+    """Is a filed star other than row ``skip`` within angle r (cosine ``cos_r``) of the unit vector x?"""
+    ax, ay, az = abs(x0), abs(x1), abs(x2)
+    if ax >= ay and ax >= az:
+        f = 0 if x0 > 0 else 1
+    elif ay >= az:
+        f = 2 if x1 > 0 else 3
+    else:
+        f = 4 if x2 > 0 else 5
+    _, u, v = _face_uv(x0, x1, x2, f)
+    g, lo, inv, margin, stretch = int(par[0]), par[1], par[2], par[3], par[4]
+    w = stretch * r
+    if w > margin:
+        raise ValueError("sky grid: a tolerance wider than its margin")
+    iu0, iu1 = max(0, int((u - w - lo) * inv)), min(g - 1, int((u + w - lo) * inv))
+    iv0, iv1 = max(0, int((v - w - lo) * inv)), min(g - 1, int((v + w - lo) * inv))
+    for iu in range(iu0, iu1 + 1):
+        row = f * g * g + iu * g
+        for p in range(start[row + iv0], start[row + iv1 + 1]):
+            if grow[p] != skip and x0 * gvec[p, 0] + x1 * gvec[p, 1] + x2 * gvec[p, 2] >= cos_r:
+                return True
+    return False
+
+
 @njit(cache=True)
 def anchor_hypotheses(
     i: int,
@@ -106,19 +222,43 @@ def anchor_hypotheses(
     max_tried: int,
     x_axis,
     cos_x: float,
+    h0: int,
+    h_limit,
+    grid_start,
+    grid_vec,
+    grid_row,
+    grid_par,
 ):
     """Hypotheses of anchor pair (i, j) over pair-index rows ``[lo, hi)``.
 
     ``t`` (n, 2): detections' tangent-plane coordinates at the nominal focal length; ``tol_n`` (n,):
-    each detection's tolerance (rad); ``offs`` (n, S + 1), ``partner``, ``psep``: the partner tables of
-    (i, k) for every k (:func:`partner_table`, concatenated; empty for i and j). Returns (tried,
-    stars A, stars B, focal factors, scores, rotations) of the hypotheses with at least ``min_score``
-    matches whose boresight lies in the cap (``center``, ``cos_r``). ``tried`` counts only hypotheses
-    whose boresight lies in the cap: one outside it is never accepted in this region, so it cannot be
-    a false match of this region (and the caps of neighbouring regions do not count it twice). At most
-    ``max_tried`` hypotheses are tried (the work budget left; ``tried == max_tried`` means it ran out).
-    ``x_axis``, ``cos_x``: a tracking hint also bounds the roll: a hypothesis whose camera +x axis lies
-    farther than ``arccos(cos_x)`` from ``x_axis`` (ICRS) is outside the region too (``cos_x`` < -1: no bound).
+    each detection's tolerance (rad); ``offs`` (S + 1, n), ``partner``, ``psep``: the partner tables of
+    (i, k) for every k (:func:`partner_table`, concatenated, column k; empty for i and j; star-major, so one
+    hypothesis reads one row for every k). Returns (tried,
+    stars A, stars B, focal factors, scores, rotations, best score, stopped) of the hypotheses with at least
+    ``min_score`` matches (and at least the score they need, below) whose boresight lies in the cap
+    (``center``, ``cos_r``). ``tried`` counts only hypotheses whose boresight lies in the cap: one outside
+    it is never accepted in this region, so it cannot be a false match of this region (and the caps of
+    neighbouring regions do not count it twice). At most ``max_tried`` hypotheses are tried (the work budget
+    left; ``tried == max_tried`` means it ran out). ``x_axis``, ``cos_x``: a tracking hint also bounds the
+    roll: a hypothesis whose camera +x axis lies farther than ``arccos(cos_x)`` from ``x_axis`` (ICRS) is
+    outside the region too (``cos_x`` < -1: no bound).
+
+    **Early rejection.** ``h0``: the hypotheses tried before this call (the solve's H so far); ``h_limit``
+    (n + 1,): the largest H at which a hypothesis with s matches can still be accepted (the caller's
+    E_false bar; -1 where never). The h-th hypothesis of the solve can only be accepted with a score s
+    whose ``h_limit[s] >= h``: scoring stops at the first detection after which that score is out of reach
+    (each unmatched detection lowers the reachable score by one), and such a hypothesis is not returned.
+    Where no score up to n is enough any more (``stopped``: True), the rest of the rows are counted, not scored
+    (H only grows: the caller refuses after this pair, having counted what it always counted).
+    ``best score``: the highest score any hypothesis reached (where scoring stopped early: so far).
+
+    **The focal pass** (s > 0) with a grid (``grid_*``: :func:`sky_grid` of ``vec``, a margin wide enough for
+    every tolerance; an empty ``grid_start`` reads the partner tables instead): its tolerances are wide, so A
+    has many partners at the right distance and each would cost a random read; instead each detection k is put
+    on the sky and the grid's few stars near it are tested, the same exact test against every star within
+    ``tol_n[k]`` but A (the partner tables' candidates are a superset of those): the same scores, in a few
+    reads of a compact table. No partner table is needed then.
     """
     n = t.shape[0]
     ax, ay, az = _unit(t[i, 0], t[i, 1], 1.0)
@@ -132,16 +272,37 @@ def anchor_hypotheses(
     out_r = np.empty((cap, 3, 3))
     m = 0
     tried = 0
-    ui = np.empty(3)
-    uj = np.empty(3)
-    uk = np.empty(3)
+    best_seen = 0
+    stopped = False
     r = np.empty((3, 3))
-    u1 = np.empty((n, 3))  # the nominal focal length's unit vectors, and i's separations from them
+    u1 = np.empty((n, 3))  # the nominal focal length's unit vectors, and i's and j's separations from them
     d1 = np.empty(n)
+    dj1 = np.empty(n)
+    cos_t = np.empty(n)  # cosine of each detection's tolerance; and of a hair more, and its sine (the bounds
+    cos_w = np.empty(n)  # below are filters before the exact test: rounding must not make them tighter)
+    sin_w = np.empty(n)
     for k in range(n):
         u1[k, 0], u1[k, 1], u1[k, 2] = _unit(t[k, 0], t[k, 1], 1.0)
+        cos_t[k] = math.cos(tol_n[k])
+        cos_w[k], sin_w[k] = math.cos(tol_n[k] + 1e-12), math.sin(tol_n[k] + 1e-12)
     for k in range(n):
         d1[k] = _angle(u1[i, 0], u1[i, 1], u1[i, 2], u1[k, 0], u1[k, 1], u1[k, 2])
+        dj1[k] = _angle(u1[j, 0], u1[j, 1], u1[j, 2], u1[k, 0], u1[k, 1], u1[k, 2])
+    # strict pass (s = 0): the cosine bounds of sep(B, C) for each k, with the largest |d_ij - sep| of the rows
+    # (a looser bound than each hypothesis's own only lets more candidates reach the exact positional test)
+    delta_max = 0.0
+    if hi > lo:
+        delta_max = max(abs(d_nom - sep[lo]), abs(d_nom - sep[hi - 1]))
+    lo_b1 = np.empty(n)
+    hi_b1 = np.empty(n)
+    for k in range(n):
+        lo_b1[k] = math.cos(min(math.pi, dj1[k] + delta_max + tol_n[k]))
+        hi_b1[k] = math.cos(max(0.0, dj1[k] - delta_max - tol_n[k]))
+    need = 0  # the least score the next hypothesis could be accepted with
+    uix, uiy, uiz = u1[i, 0], u1[i, 1], u1[i, 2]
+    ujx, ujy, ujz = u1[j, 0], u1[j, 1], u1[j, 2]
+    d_ij = d_nom
+    use_grid = s > 0 and grid_start.shape[0] > 1
     for q in range(lo, hi):
         if tried >= max_tried:
             break
@@ -153,55 +314,118 @@ def anchor_hypotheses(
             kf = 1.0
             if s > 0:
                 kf = min(1.0 + s, max(1.0 - s, d_nom / max(sep[q], 1e-12)))
-            ui[0], ui[1], ui[2] = _unit(t[i, 0], t[i, 1], kf)
-            uj[0], uj[1], uj[2] = _unit(t[j, 0], t[j, 1], kf)
+                uix, uiy, uiz = _unit(t[i, 0], t[i, 1], kf)
+                ujx, ujy, ujz = _unit(t[j, 0], t[j, 1], kf)
+                d_ij = _angle(uix, uiy, uiz, ujx, ujy, ujz)
             have_r = cos_r > -1.0  # a region, not the whole sky: place the boresight first
             if have_r:
-                r = triad(ui, uj, vec[a], vec[b])
+                _triad_into(
+                    r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
+                )
                 if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
                     continue  # its boresight lies in another region
                 if r[0, 0] * x_axis[0] + r[1, 0] * x_axis[1] + r[2, 0] * x_axis[2] < cos_x - 1e-12:
                     continue  # its roll lies outside the hint's
             if tried >= max_tried:
                 break  # the budget: a count, so the same answer on every machine
+            while need <= n and h_limit[need] < h0 + tried + 1:
+                need += 1  # H only grows: so does the score a hypothesis needs
             tried += 1
-            delta = abs(_angle(ui[0], ui[1], ui[2], uj[0], uj[1], uj[2]) - sep[q])
+            if need > n:  # not even every detection matched could be accepted any more: counted, not scored
+                stopped = True
+                continue
+            delta = abs(d_ij - sep[q])
             score = 1 + (1 if delta <= tol_n[j] else 0)
+            if s > 0 and not use_grid:
+                c_d, s_d = math.cos(delta + 1e-12), math.sin(delta + 1e-12)
+            reach = n - 2 + score  # the most this hypothesis can still score
+            if reach < need:
+                continue
             for k in range(n):
-                if k == i or k == j or offs[k, a] == offs[k, a + 1]:
-                    continue  # no star at the right distance from A: k cannot match
-                if s > 0:
-                    uk[0], uk[1], uk[2] = _unit(t[k, 0], t[k, 1], kf)
-                    dik = _angle(ui[0], ui[1], ui[2], uk[0], uk[1], uk[2])
-                else:
-                    uk[0], uk[1], uk[2] = u1[k, 0], u1[k, 1], u1[k, 2]
-                    dik = d1[k]
-                tk = tol_n[k]
-                lo_b = hi_b = -2.0  # cosine bounds of sep(B, C), computed on first use
-                for p in range(offs[k, a], offs[k, a + 1]):
-                    if abs(psep[p] - dik) > tk:
-                        continue
-                    if lo_b < -1.5:
-                        djk = _angle(uj[0], uj[1], uj[2], uk[0], uk[1], uk[2])
-                        lo_b = math.cos(min(math.pi, djk + delta + tk))
-                        hi_b = math.cos(max(0.0, djk - delta - tk))
-                    c = partner[p]
-                    cbc = vec[b, 0] * vec[c, 0] + vec[b, 1] * vec[c, 1] + vec[b, 2] * vec[c, 2]
-                    if cbc < lo_b or cbc > hi_b:
-                        continue
-                    if not have_r:  # whole sky: the rotation only when a partner fits
-                        r = triad(ui, uj, vec[a], vec[b])
+                if k == i or k == j:
+                    continue
+                matched = False
+                if use_grid:
+                    if not have_r:
+                        _triad_into(
+                            r, uix, uiy, uiz, ujx, ujy, ujz,
+                            vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2],
+                        )  # fmt: skip
                         have_r = True
-                    x0 = r[0, 0] * uk[0] + r[0, 1] * uk[1] + r[0, 2] * uk[2]
-                    x1 = r[1, 0] * uk[0] + r[1, 1] * uk[1] + r[1, 2] * uk[2]
-                    x2 = r[2, 0] * uk[0] + r[2, 1] * uk[1] + r[2, 2] * uk[2]
-                    if _angle(x0, x1, x2, vec[c, 0], vec[c, 1], vec[c, 2]) <= tk:
-                        score += 1
-                        break
-            if score < min_score:
+                    ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
+                    x0 = r[0, 0] * ukx + r[0, 1] * uky + r[0, 2] * ukz
+                    x1 = r[1, 0] * ukx + r[1, 1] * uky + r[1, 2] * ukz
+                    x2 = r[2, 0] * ukx + r[2, 1] * uky + r[2, 2] * ukz
+                    matched = _grid_near(x0, x1, x2, cos_t[k], tol_n[k], a, grid_start, grid_vec, grid_row, grid_par)
+                    p0 = p1 = 0
+                else:
+                    p0, p1 = offs[a, k], offs[a + 1, k]
+                if p0 != p1:  # else no star at the right distance from A: k cannot match
+                    if s > 0:
+                        ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
+                        dik = _angle(uix, uiy, uiz, ukx, uky, ukz)
+                    else:
+                        ukx, uky, ukz = u1[k, 0], u1[k, 1], u1[k, 2]
+                        dik = d1[k]
+                    tk = tol_n[k]
+                    lo_b, hi_b = (-2.0, -2.0) if s > 0 else (lo_b1[k], hi_b1[k])  # cosine bounds of sep(B, C)
+                    if p1 - p0 > 8:  # a long list (the focal pass's wide windows, a dense field): skip to dik - tk
+                        lo_p, hi_p = p0, p1
+                        while lo_p < hi_p:
+                            mid = (lo_p + hi_p) >> 1
+                            if psep[mid] < dik - tk:
+                                lo_p = mid + 1
+                            else:
+                                hi_p = mid
+                        p0 = lo_p
+                    for p in range(p0, p1):  # A's partners, by separation (the pair index's order)
+                        if psep[p] < dik - tk:
+                            continue
+                        if psep[p] > dik + tk:
+                            break
+                        if lo_b < -1.5:  # the focal pass: cos(d_jk -+ (delta + tk)) on first use, no trigonometry
+                            c_jk = min(1.0, ujx * ukx + ujy * uky + ujz * ukz)
+                            c_w = c_d * cos_w[k] - s_d * sin_w[k]
+                            s_w = s_d * cos_w[k] + c_d * sin_w[k]
+                            if c_jk > 0.0 and c_w > 0.0:  # d_jk and delta + tk both below 90 deg: sum formulas
+                                s_jk = math.sqrt(max(0.0, 1.0 - c_jk * c_jk))
+                                lo_b = c_jk * c_w - s_jk * s_w
+                                hi_b = 1.0 if c_jk >= c_w else c_jk * c_w + s_jk * s_w
+                            else:
+                                djk = _angle(ujx, ujy, ujz, ukx, uky, ukz)
+                                lo_b = math.cos(min(math.pi, djk + delta + tk))
+                                hi_b = math.cos(max(0.0, djk - delta - tk))
+                        c = partner[p]
+                        cx, cy, cz = vec[c, 0], vec[c, 1], vec[c, 2]
+                        cbc = vec[b, 0] * cx + vec[b, 1] * cy + vec[b, 2] * cz
+                        if cbc < lo_b or cbc > hi_b:
+                            continue
+                        if not have_r:  # whole sky: the rotation only when a partner fits
+                            _triad_into(
+                                r, uix, uiy, uiz, ujx, ujy, ujz,
+                                vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2],
+                            )  # fmt: skip
+                            have_r = True
+                        x0 = r[0, 0] * ukx + r[0, 1] * uky + r[0, 2] * ukz
+                        x1 = r[1, 0] * ukx + r[1, 1] * uky + r[1, 2] * ukz
+                        x2 = r[2, 0] * ukx + r[2, 1] * uky + r[2, 2] * ukz
+                        if x0 * cx + x1 * cy + x2 * cz >= cos_t[k]:  # within tk of C
+                            matched = True
+                            break
+                if matched:
+                    score += 1
+                else:
+                    reach -= 1
+                    if reach < need:
+                        break  # early rejection: the score it needs is out of reach
+            if score > best_seen:
+                best_seen = score
+            if score < min_score or score < need:
                 continue
             if not have_r:
-                r = triad(ui, uj, vec[a], vec[b])
+                _triad_into(
+                    r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
+                )
             if m == cap:  # grow the outputs (rarely: few hypotheses score)
                 cap *= 2
                 out_a, out_b, out_k = _grow(out_a, cap), _grow(out_b, cap), _grow(out_k, cap)
@@ -209,7 +433,7 @@ def anchor_hypotheses(
             out_a[m], out_b[m], out_k[m], out_s[m] = a, b, kf, score
             out_r[m] = r
             m += 1
-    return tried, out_a[:m], out_b[:m], out_k[:m], out_s[:m], out_r[:m]
+    return tried, out_a[:m], out_b[:m], out_k[:m], out_s[:m], out_r[:m], best_seen, stopped
 
 
 @njit(cache=True, inline="always")
@@ -243,7 +467,7 @@ def track_hypotheses(
     consts,
 ):
     """Tracking: every hypothesis "detection i is star a, j is star b" (a of ``a_rows``, b of ``b_rows``, rows of the
-    catalogue cut ``vec``/``mag``) and its log weight (:meth:`fusion.solve.fine.CoarseToFineSolver._track`).
+    catalogue cut ``vec``/``mag``) and its log weight (:func:`fusion.solve.track.track`).
 
     ``t`` (n, 2): tangent-plane coordinates at the nominal focal length; ``cand_offs``/``cand_rows``: each
     detection's catalogue candidates (its cone around the hint's prediction); ``m_hint``: the hint (camera ->
