@@ -37,7 +37,7 @@ def write_frames(camera: str, folder: Path, n: int, seed: int = 5) -> list[Path]
     paths = [folder / f"frame{i:04d}.png" for i in range(n)]
     if all(p.is_file() for p in paths):
         return paths
-    r = Renderer(load_config(camera, overrides=[f"n_frames={n}", f"seed={seed}"]))
+    r = Renderer(load_config(camera, overrides=[f"n_frames={n}", f"seed={seed}", "output.full_res=true"]))
     for i, p in enumerate(paths):
         if not p.is_file():
             img = np.clip(r.render(i).image_full, 0, 65535).astype(np.uint16)

@@ -165,6 +165,23 @@ def _residuals(theta, names, fixed_vals, base, frames, masks):
     return np.concatenate(out)
 
 
+def _sparsity(n_terms: int, masks: list):
+    """Which parameters each residual depends on: a frame's star residuals on the camera's ``n_terms`` and its
+    own three attitude parameters only. With it the finite-difference Jacobian costs n_terms + 3 residual
+    evaluations, not n_terms + 3 x frames (100 frames: ~9 instead of ~306 per step)."""
+    from scipy.sparse import lil_matrix
+
+    rows = 2 * sum(int(m.sum()) for m in masks)
+    out = lil_matrix((rows, n_terms + 3 * len(masks)), dtype=np.int8)
+    out[:, :n_terms] = 1
+    r = 0
+    for i, m in enumerate(masks):
+        k = 2 * int(m.sum())
+        out[r : r + k, n_terms + 3 * i : n_terms + 3 * i + 3] = 1
+        r += k
+    return out
+
+
 def _corner_effect(term: str, cam: Camera) -> float:
     """Pixels a corner star moves per unit change of ``term`` (to turn a sigma into a visible size)."""
     r2 = ((cam.width_px / 2) ** 2 + (cam.height_px * cam.aspect / 2) ** 2) / cam.f_px**2
@@ -234,7 +251,8 @@ def fit_geometry(
                 theta,
                 args=(names, vals, start, frames, masks),
                 x_scale="jac",
-                method="lm" if sum(m.sum() for m in masks) * 2 > len(theta) else "trf",
+                method="trf",
+                jac_sparsity=_sparsity(len(names), masks),
             )
             theta = res.x
             r = res.fun.reshape(-1, 2)
@@ -253,7 +271,7 @@ def fit_geometry(
         p = dict(vals)
         p.update(zip(names, theta[: len(names)]))
         # uncertainties from the Jacobian (residual variance from the fit)
-        J = res.jac
+        J = res.jac.toarray() if hasattr(res.jac, "toarray") else res.jac
         dof = max(len(res.fun) - len(theta), 1)
         s2 = float(res.fun @ res.fun) / dof
         try:

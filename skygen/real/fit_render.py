@@ -40,10 +40,13 @@ def fit_model_terms(
 
     cam, meas, sat = g.camera, px["meas"], fr.sat
     exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
-    attitudes = [radec_roll(R) for R in g.rotations]
+    # the renders are compared with at most CHECK_FRAMES frames, spread evenly over the solved ones: medians and
+    # counts per frame need no more, and renders at every attitude of 100 frames took most of a fit's time
+    picked = np.unique(np.linspace(0, len(solved) - 1, min(len(solved), CHECK_FRAMES)).round().astype(int))
+    attitudes = [radec_roll(g.rotations[k]) for k in picked]
     sky = SkyIndex(table, epoch_yr, 99.0)  # every catalogue star: what the catalogue explains
     real_stats = [
-        _measure_real(fr.image_of(fs.name), meas["settings"], sat, fs, g, k, sky) for k, fs in enumerate(solved)
+        _measure_real(fr.image_of(solved[k].name), meas["settings"], sat, solved[k], g, int(k), sky) for k in picked
     ]
     # the detections no catalogue star explains, as magnitudes on the frames' zero point: the false stars'
     # brightness is fitted to them (:func:`fit_false_star_shape`)
@@ -107,6 +110,10 @@ def miss(checks: list) -> float:
         r = c["ratio"]
         out += max(abs(np.log(r)) - np.log1p(c["tolerance"]), 0.0) if np.isfinite(r) and r > 0 else np.inf
     return out
+
+
+#: the most frames whose statistics the renders are checked against (and rendered at)
+CHECK_FRAMES = 16
 
 
 def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, table, sat, start: float, faint=None):

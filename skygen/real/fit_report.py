@@ -175,6 +175,8 @@ def markdown(r: dict) -> str:
         "",
         "## Real against rendered (medians over frames; renders at the fitted attitudes)",
         "",
+        f"{len(r['real_stats'])} frames compared (at most 16, spread evenly over the solved ones).",
+        "",
         "| quantity | real | start camera | fitted camera | fitted / real | tolerance |",
         "|---|---|---|---|---|---|",
     ]
