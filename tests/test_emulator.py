@@ -2,7 +2,7 @@
 
 Fresh frames are rendered in their own random stream (tag ``@emulator-test``, never used
 for calibration); the shipped calibration emulates detections of the *same* true stars,
-and the statistics the model will see are compared. Tolerances (also in the README):
+and the statistics the model will see are compared. Tolerances (also in docs/stream.md):
 
 * completeness per 0.5-mag bin with >= 40 stars: within 0.08 absolute;
 * centroid error of matched detections (radial): median within 25 %, p90 within 25 %;

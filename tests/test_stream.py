@@ -54,7 +54,7 @@ def test_worker_and_rank_splits_cover_the_stream_once(det_stream):
 def test_detection_sets_look_like_the_default_camera(det_stream):
     b = det_stream.batch(np.arange(400))
     n = np.diff(b.offsets)
-    assert 20 <= np.median(n) <= 40  # real detector: median 30 (README)
+    assert 20 <= np.median(n) <= 40  # real detector: median 30 (docs/skygen.md)
     assert n.max() <= 64  # detection.max_detections
     # brightest first within every sample
     f = b.detections["flux_adu"]
