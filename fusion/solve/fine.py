@@ -160,6 +160,9 @@ NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.ze
 PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
 
 
+#: a refined focal factor this close to the edge of +-focal_tol (as a share of it) is refused: the camera's scale
+#: would have to leave the range searched to fit the detections
+FOCAL_EDGE = 0.98
 REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
 TRACKING = -2  # Region.index of a tracking hint's region
 
@@ -750,6 +753,17 @@ class CoarseToFineSolver:
         # the focal factor is fitted within +-focal_tol whichever pass found the hypothesis: a strict-pass
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
         rot, k, det_rows, cat_rows, uk = self.refine(tier, rot, k, u, self.focal_tol)
+        if self.focal_tol > 0 and abs(k - 1.0) >= FOCAL_EDGE * self.focal_tol:
+            # the scale wants to leave the range searched: the camera does not fit these detections (another lens
+            # or camera; the adversarial calibration's 'focal' family: 3 wrong attitudes in 100,000 attempts, all
+            # at this edge, one reported at p = 2e-8). Clean frames fit within 0.2 % of their camera.
+            return Refusal(
+                f"the focal length fits only at the edge of the +-{100 * self.focal_tol:.0f} % searched "
+                f"(factor {k:.4f}): frames of another lens or camera?",
+                self.name,
+                {"focal_factor": k},
+                status="not_verified",
+            )
         score = len(det_rows)
         e_false = self.expected_false(tried, len(u), score, tier=tier)
         conf = max(0.0, 1.0 - e_false)
