@@ -82,6 +82,7 @@ def run(
 ) -> dict:
     """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``."""
     from fusion.solve.base import Solution, boresight_error_deg, roll_error_deg
+    from fusion.solve.benchmark import coverage
     from fusion.solve.predict import Predictor
     from fusion.solve.registry import SOLVERS, build_solver, make_context
     from skygen.sky.attitude import matrix_to_radec_roll, quaternion_to_matrix
@@ -159,6 +160,7 @@ def run(
             ok = wrong = refused = 0
             ms = []
             errs = []
+            good, good_truth = [], []  # correct answers and their truth: the covariance's coverage
             for r in usable:
                 d = r["_det"].brightest(n)
                 roll_true = matrix_to_radec_roll(r["_m"])[2]
@@ -172,6 +174,8 @@ def run(
                 errs.append((b, o))
                 if b <= correct_deg and o <= correct_roll_deg:
                     ok += 1
+                    good.append(res)
+                    good_truth.append((r["_m"], roll_true))
                 else:
                     wrong += 1
                     log(f"WRONG {sname} N={n} {r['frame']}: boresight {b:.3f} deg, roll {o:.3f} deg off")
@@ -185,6 +189,7 @@ def run(
                 "n_refused": refused,
                 "median_ms": float(np.median(ms)) if ms else None,
                 "p95_ms": float(np.percentile(ms, 95)) if ms else None,
+                "coverage": coverage(good, good_truth),
             }
         cells.append(row)
         log(
@@ -250,9 +255,36 @@ def markdown(res: dict, title: str | None = None) -> str:
         lines.append(
             f"| {c['n']} | {c['frames']} | " + " | ".join(cells) + f" | {_pct(c['share_non_catalogue_in_brightest'])} |"
         )
+    lines += _coverage_lines(res)
     if res["dropped"]:
         lines += ["", "Left out: " + "; ".join(f"{Path(d['frame']).name}: {d['reason']}" for d in res["dropped"])]
     return "\n".join(lines) + "\n"
+
+
+def _coverage_lines(res: dict) -> list[str]:
+    """Each solver's attitude covariance against the truth, pooled over the N cells (few frames per cell): the
+    share of correct answers whose error lies within 1 / 2 sigma (68 / 95 % if calibrated). The truth is itself
+    an estimate (the all-detection solve, arcsec-level), so this bounds the covariance's calibration from above."""
+    rows = []
+    for s in res["solvers"]:
+        cov = [c["solvers"][s].get("coverage") for c in res["cells"]]
+        cov = [c for c in cov if c]
+        n = sum(c["frames"] for c in cov)
+        if not n:
+            continue
+        pooled = {
+            k: sum(c[k] * c["frames"] for c in cov) / n
+            for k in ("cross_1sigma", "cross_2sigma", "roll_1sigma", "roll_2sigma")
+        }
+        rows.append(
+            f"| {s} | {n} | {100 * pooled['cross_1sigma']:.0f} / {100 * pooled['cross_2sigma']:.0f} % | "
+            f"{100 * pooled['roll_1sigma']:.0f} / {100 * pooled['roll_2sigma']:.0f} % |"
+        )
+    if not rows:
+        return []
+    return ["", "Covariance against the truth, correct answers of every N pooled (within 1σ / 2σ; 68 / 95 % if "
+            "calibrated; the truth is the all-detection solve, itself good to a few arcsec):", "",
+            "| solver | answers | cross-boresight | roll |", "|---|---|---|---|", *rows]  # fmt: skip
 
 
 def main(argv=None) -> int:
