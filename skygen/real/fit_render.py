@@ -148,8 +148,11 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
             cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
             return cfg, _render_stats(cfg, attitudes, table, sat)
     meas["faint_sources_per_frame"] = start
-    cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
-    rendered = _render_stats(cfg, attitudes, table, sat)
+    if faint is not None and start == 0:  # the renders without false stars are these: not rendered again
+        rendered = bare
+    else:
+        cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
+        rendered = _render_stats(cfg, attitudes, table, sat)
     count, gain = start, 1.0
     for _ in range(3):
         deficit = float(np.median([a["detections"] - b["detections"] for a, b in zip(real_stats, rendered)]))
