@@ -132,9 +132,10 @@ class CanonicalConfig:
 
     mode: str = param(
         "none",
-        choices=("none", "brightest", "multi"),
-        doc="rotate the detections about the centre so a reference star lies on +x: none (raw rows), brightest, or "
-        "multi (n_refs references, probabilities averaged)",
+        choices=("none", "brightest", "nearest", "multi"),
+        doc="rotate the detections about the centre so a reference star lies on +x: none (raw rows), brightest, "
+        "nearest (the detection nearest the centre beyond min_radius: not moved by magnitude noise), or multi "
+        "(n_refs references, probabilities averaged)",
     )
     n_refs: int = param(3, lo=1, hi=64, doc="mode=multi: number of candidate reference stars (brightest first)")
     min_radius: float = param(
@@ -161,7 +162,9 @@ class ModelConfig:
     name: str = param("star_fusion", doc="registered model (fusion.models.MODELS): star_fusion, swinv2_tiny, resnet50")
     image_backbone: Optional[str] = param(
         None,
-        doc="image backbone override: a timm model name, 'tiny_cnn', 'grid_cnn' or 'peak_set' (None: the model's own)",
+        doc="image backbone override: a timm model name, 'tiny_cnn', 'grid_cnn', 'peak_set' or 'peak_rows' (the "
+        "image's peaks as a second set of rows through the coordinate branch and head: no parameters of its own, "
+        "trainable on the detections stream) (None: the model's own)",
     )
     in_chans: Optional[int] = param(
         None, choices=(None, 1, 3), doc="image channels (None: 1 from scratch, 3 replicated with ImageNet weights)"
@@ -200,6 +203,14 @@ class ModelConfig:
         doc="training only, with an image branch and a detection branch: the share of samples whose detection branches "
         "(heatmap, coordinates) are zeroed in the fused feature, so that the image must classify them alone (a "
         "warm-started geometry branch otherwise leaves the pixels unused: results/image/README.md)",
+    )
+    flux_dropout: float = param(
+        0.0,
+        lo=0,
+        hi=1,
+        hi_open=True,
+        doc="training only: the share of samples whose flux column is set to 0, so that the detection branches also "
+        "read flux-free rows (the tied image view's, model.image_backbone=peak_rows)",
     )
     relative_flux: bool = param(
         False,
@@ -403,7 +414,12 @@ def check_consistency(cfg: FusionConfig) -> None:
         lo, hi = getattr(cfg.stream, name)
         if hi < lo:
             raise ConfigError(f"stream.{name}: {[lo, hi]} must be [lo, hi] with lo <= hi")
-    if cfg.stream.kind == "detections" and cfg.model.branches.image and cfg.model.name == "star_fusion":
+    if (
+        cfg.stream.kind == "detections"
+        and cfg.model.branches.image
+        and cfg.model.name == "star_fusion"
+        and cfg.model.image_backbone != "peak_rows"
+    ):
         raise ConfigError(
             "stream.kind=detections makes no images, but model.branches.image is on; use "
             "--stream frames, or switch the image branch off (model.branches.image=false)"

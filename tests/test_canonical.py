@@ -38,6 +38,30 @@ def test_reference_skips_the_centre_and_padding():
     np.testing.assert_allclose(cv[0, 1, :2].numpy(), [math.sqrt(0.5), 0.0], atol=1e-6)  # reference on +x
 
 
+def test_nearest_reference_ignores_photometry():
+    """mode=nearest: the reference is the detection nearest the centre beyond min_radius, so a new
+    brightness order (magnitude noise reordering the rows) leaves the canonical frame where it was,
+    while mode=brightest turns it to the new brightest star."""
+    coords, mask = _inputs(b=5)
+    cv, _, theta, views = canonical_views(coords, mask, "nearest", 3, 0.1, training=True)
+    assert views == 1
+    r = torch.linalg.vector_norm(coords[..., :2], dim=-1).masked_fill(~mask | (coords[..., :2].norm(dim=-1) < 0.1), 9)
+    ref = r.argmin(dim=1)
+    for b in range(4):  # samples with an eligible detection: their reference lands on +x at its own radius
+        np.testing.assert_allclose(cv[b, ref[b], :2].numpy(), [r[b, ref[b]].item(), 0.0], atol=1e-5)
+    # reorder the rows (a new brightness order, brightest first as the loaders give them): same stars, same frame
+    g = torch.Generator().manual_seed(3)
+    perm = torch.randperm(coords.shape[1], generator=g)
+    shuffled = coords[:, perm].clone()
+    shuffled[..., 2] = torch.sort(torch.rand(shuffled.shape[:2], generator=g), dim=1, descending=True).values
+    smask = mask[:, perm]
+    _, _, theta2, _ = canonical_views(shuffled, smask, "nearest", 3, 0.1, training=False)
+    np.testing.assert_allclose(theta2[:4].numpy(), theta[:4].numpy(), atol=1e-6)
+    _, _, tb1, _ = canonical_views(coords, mask, "brightest", 1, 0.1, training=False)
+    _, _, tb2, _ = canonical_views(shuffled, smask, "brightest", 1, 0.1, training=False)
+    assert not torch.allclose(tb1[:3], tb2[:3])  # the brightest reference moved with the order
+
+
 def test_rotate_rows_and_image_agree():
     theta = torch.tensor([0.7])
     img = torch.zeros(1, 1, 65, 65)
@@ -53,7 +77,7 @@ def test_rotate_rows_and_image_agree():
 
 
 @pytest.mark.parametrize("encoder", ["mlp", "set", "transformer"])
-@pytest.mark.parametrize("mode", ["brightest", "multi"])
+@pytest.mark.parametrize("mode", ["brightest", "nearest", "multi"])
 def test_canonical_models_are_rotation_invariant(encoder, mode):
     cfg = build_config(
         {

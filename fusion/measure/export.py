@@ -311,7 +311,8 @@ def export_onnx(
         )
     if model.image is not None and model.image.rotates_tokens:
         raise ExportError(
-            f"{checkpoint}: its image branch is the peak set (model.image_backbone=peak_set), whose "
+            f"{checkpoint}: its image branch reads the image's peaks (model.image_backbone="
+            f"{cfg.model.image_backbone}), whose "
             "per-frame median, clipped noise and top-k peak selection have no ONNX export here; "
             "run it in PyTorch (fusion predict, fusion time) or export a model with a CNN image "
             "branch or none. No file was written."

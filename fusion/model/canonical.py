@@ -12,6 +12,15 @@ Choice of reference (``model.canonical.mode``)
     ``none``       raw sensor-frame rows (the paper's input; kept for the ablation);
     ``brightest``  the brightest detection at least ``min_radius`` from the centre (a star
                    at the centre defines no direction);
+    ``nearest``    the detection nearest the centre at least ``min_radius`` from it: a
+                   reference that photometry cannot move. Magnitude noise of a few tenths
+                   reorders the brightest stars of most frames (the brightest two of a
+                   frame are often within 0.3 mag), and each reorder turns the
+                   ``brightest`` frame by the angle between them; the detection nearest the
+                   centre changes only when it is itself lost (dropout, the few-star cut) or
+                   a false star lands nearer. Centroid noise turns it more (a 1 px error at
+                   radius r turns the frame by 1 / r rad), so its ``min_radius`` should be
+                   larger than ``brightest``'s (``configs/cpu-few-mag.yaml``: 0.15);
     ``multi``      each of the ``n_refs`` brightest such detections in turn: the model is
                    evaluated once per reference and the class probabilities are averaged.
                    In training one of them is drawn per sample, so the network learns to
@@ -34,7 +43,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-MODES = ("none", "brightest", "multi")
+MODES = ("none", "brightest", "nearest", "multi")
 
 
 def reference_rows(
@@ -60,6 +69,15 @@ def reference_rows(
     first = rows[:, :1].expand_as(rows)
     rows = torch.where(valid, rows, first)
     return rows, valid
+
+
+def nearest_row(coords: torch.Tensor, mask: torch.Tensor, min_radius: float) -> torch.Tensor:
+    """Row index (B, 1) of the detection nearest the centre at least ``min_radius`` from it; row 0
+    where no detection qualifies (the padding row of an empty sample, or a star at the centre)."""
+    r = torch.linalg.vector_norm(coords[..., :2], dim=-1)
+    ok = mask & (r >= min_radius)
+    key = torch.where(ok, r, torch.full_like(r, 1e9))  # finite: ArgMin of +inf rows is not portable in ONNX
+    return torch.argmin(key, dim=1, keepdim=True)
 
 
 def angles_of(coords: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -104,14 +122,17 @@ def canonical_views(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
     """The canonical inputs: ``(coords_v, mask_v, theta_v, views)``.
 
-    ``views`` = 1 for ``brightest`` and for ``multi`` while training (one reference drawn
+    ``views`` = 1 for ``brightest``, ``nearest`` and for ``multi`` while training (one reference drawn
     per sample with torch's global generator), ``n_refs`` for ``multi`` in evaluation;
     the returned tensors are (B * views, ...), view-major within each sample, and
     ``valid`` views are signalled by ``mask_v`` (an invalid view repeats the first).
     """
-    if mode == "brightest":
-        n_refs, training = 1, True
-    rows, valid = reference_rows(coords, mask, n_refs, min_radius)
+    if mode == "nearest":
+        rows, training = nearest_row(coords, mask, min_radius), False
+    else:
+        if mode == "brightest":
+            n_refs, training = 1, True
+        rows, valid = reference_rows(coords, mask, n_refs, min_radius)
     if training:
         n_valid = valid.sum(dim=1).clamp(min=1)
         pick = (torch.rand(coords.shape[0], device=coords.device) * n_valid).long().clamp(max=n_refs - 1)

@@ -94,7 +94,7 @@ def resolve_model_config(cfg: ModelConfig) -> ModelConfig:
     if spec.image_only:
         branches = replace(branches, image=True, heatmap=False, coords=False)
     in_chans = cfg.in_chans or (3 if cfg.pretrained else 1)
-    if cfg.pretrained and (backbone in BACKBONES or backbone == "peak_set"):
+    if cfg.pretrained and (backbone in BACKBONES or backbone in ("peak_set", "peak_rows")):
         raise ConfigError(
             f"model.pretrained: the '{backbone}' backbone has no ImageNet weights; "
             "use a timm backbone (model.image_backbone) or drop --pretrained"
@@ -264,7 +264,19 @@ class ImageBranch(nn.Module):
     def rotates_tokens(self) -> bool:
         """A :class:`PeakSet` backbone is rotated into the canonical frame as tokens, not as pixels:
         its peaks come from the image as stored (no resampling blur) and are rotated like detections."""
-        return isinstance(self.backbone, PeakSet)
+        return isinstance(self.backbone, ImagePeaks)
+
+    @property
+    def tied(self) -> bool:
+        """A :class:`PeakRows` backbone: the image is a second view through the coordinate branch."""
+        return isinstance(self.backbone, PeakRows)
+
+    def rows(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The tied view's coordinate rows and mask (:meth:`PeakRows.rows`) of the (binned) image."""
+        if self.bin > 1:
+            image = F.avg_pool2d(image, self.bin)
+        assert isinstance(self.backbone, PeakRows)
+        return self.backbone.rows(image)
 
     def forward(self, image: torch.Tensor, theta: torch.Tensor | None = None) -> torch.Tensor:
         if self.bin > 1:
@@ -378,43 +390,13 @@ class TransformerSetEncoder(nn.Module):
         return self.proj(torch.cat([h[:, 0], mean], dim=-1))
 
 
-class PeakSet(nn.Module):
-    """An image backbone that reads the stars off the pixels: the frame's brightest local maxima
-    above ``threshold`` noise sigmas, as a set, through a transformer (:class:`TransformerSetEncoder`).
+class ImagePeaks(nn.Module):
+    """The frame's strongest peaks as tokens (no parameters); :class:`PeakSet` encodes them,
+    :class:`PeakRows` hands them to the coordinate branch."""
 
-    Not learned up to the set: the frame's background is its median, its noise the rms of the
-    90 % of pixels nearest it, scaled to a Gaussian's sigma (a per-frame estimate, so the
-    stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the
-    maximum of its 3 x 3 neighbourhood and its
-    z = (x - median) / noise exceeds ``threshold``. Each of the ``max_peaks`` strongest peaks (by
-    the 3 x 3 sum of positive z) becomes a token ``[x, y, log10(sum z) - 1, peak z / sum z]``:
-    position at the 3 x 3 centroid, in the coordinate branch's convention (the pixel edges of
-    the image map to -1 and +1 in x, the centre to 0, y on the same scale), so a star in the
-    image and the same star's detection get the same (x, y); the last feature tells a one-pixel
-    defect (hot pixel) from a star spread by the PSF. A blank image gives an empty set.
-
-    The difference from the detections: no detector threshold, area or shape cuts, and all the
-    frame's stars, not ``data.max_stars`` — the stars below the detector's threshold that a
-    few-star frame still shows are here.
-    """
-
-    N_FEATURES = 4
-
-    def __init__(
-        self,
-        max_peaks: int = 48,
-        threshold: float = 5.0,
-        max_sharpness: float = 0.9,
-        dim: int = 64,
-        layers: int = 2,
-        heads: int = 4,
-        out_dim: int = 256,
-    ):
+    def __init__(self, max_peaks: int = 48, threshold: float = 5.0, max_sharpness: float = 0.9):
         super().__init__()
         self.max_peaks, self.threshold, self.max_sharpness = int(max_peaks), float(threshold), float(max_sharpness)
-        self.encoder = TransformerSetEncoder(
-            self.N_FEATURES, dim=dim, layers=layers, heads=heads, ff_mult=2, out_dim=out_dim
-        )
         self.register_buffer(
             "offsets",
             torch.tensor(
@@ -423,7 +405,6 @@ class PeakSet(nn.Module):
             ),
             persistent=False,
         )
-        self.num_features = out_dim
 
     def peaks(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Tokens (B, max_peaks, 4) and mask (B, max_peaks) of images (B, C, H, W) (first channel)."""
@@ -482,12 +463,73 @@ class PeakSet(nn.Module):
             mask = F.pad(mask, (0, self.max_peaks - k))
         return rows, mask
 
+
+class PeakSet(ImagePeaks):
+    """An image backbone that reads the stars off the pixels: the frame's brightest local maxima
+    above ``threshold`` noise sigmas, as a set, through a transformer (:class:`TransformerSetEncoder`).
+
+    Not learned up to the set: the frame's background is its median, its noise the rms of the
+    90 % of pixels nearest it, scaled to a Gaussian's sigma (a per-frame estimate, so the
+    stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the
+    maximum of its 3 x 3 neighbourhood and its
+    z = (x - median) / noise exceeds ``threshold``. Each of the ``max_peaks`` strongest peaks (by
+    the 3 x 3 sum of positive z) becomes a token ``[x, y, log10(sum z) - 1, peak z / sum z]``:
+    position at the 3 x 3 centroid, in the coordinate branch's convention (the pixel edges of
+    the image map to -1 and +1 in x, the centre to 0, y on the same scale), so a star in the
+    image and the same star's detection get the same (x, y); the last feature tells a one-pixel
+    defect (hot pixel) from a star spread by the PSF. A blank image gives an empty set.
+
+    The difference from the detections: no detector threshold, area or shape cuts, and all the
+    frame's stars, not ``data.max_stars`` — the stars below the detector's threshold that a
+    few-star frame still shows are here.
+    """
+
+    N_FEATURES = 4
+
+    def __init__(
+        self,
+        max_peaks: int = 48,
+        threshold: float = 5.0,
+        max_sharpness: float = 0.9,
+        dim: int = 64,
+        layers: int = 2,
+        heads: int = 4,
+        out_dim: int = 256,
+    ):
+        super().__init__(max_peaks, threshold, max_sharpness)
+        self.encoder = TransformerSetEncoder(
+            self.N_FEATURES, dim=dim, layers=layers, heads=heads, ff_mult=2, out_dim=out_dim
+        )
+        self.num_features = out_dim
+
     def forward(self, x: torch.Tensor, theta: torch.Tensor | None = None) -> torch.Tensor:
         """Features (B, out_dim); ``theta`` (B,) rotates the tokens into the canonical frame."""
         rows, mask = self.peaks(x)
         if theta is not None:
             rows = rotate_rows(rows, theta.to(rows.dtype))
         return self.encoder(rows.to(x.dtype), mask)
+
+
+class PeakRows(ImagePeaks):
+    """The image view of a weight-tied model (``model.image_backbone=peak_rows``): the frame's
+    ``max_peaks`` strongest peaks (:class:`ImagePeaks`) as coordinate rows ``[x, y, 0]``, read by the
+    model's own coordinate branch and head (:class:`StarFusion`), not by an encoder of their own.
+
+    Why: at a 256-px store the pixels' information about the sky is a point set, the stars'
+    positions, and the peaks find it (on the demo renders 97-100 % of each frame's ten brightest
+    detections within 4 px, 0.2 px median apart: ``tests/test_peak_rows.py`` checks a render). An
+    encoder of its own must learn the sky again from rendered frames, ~10x dearer than detection
+    sets (configs/cpu-fusion.yaml); tied to the coordinate branch, it knows what the detections
+    taught. The flux column is 0: a peak's strength in the log-stretched image is not the
+    detector's flux, so the coordinate branch learns flux-free rows too (``model.flux_dropout``).
+    No parameters."""
+
+    num_features = 0
+
+    def rows(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows (B, max_peaks, 3), strongest first, and their mask."""
+        rows, mask = self.peaks(x)
+        return torch.cat([rows[..., :2], torch.zeros_like(rows[..., :1])], dim=-1), mask
 
 
 # --------------------------------------------------------------------------- the fused model
@@ -505,6 +547,7 @@ class StarFusion(nn.Module):
         fine_classes: int | None = None,
         relative_flux: bool = False,
         detections_dropout: float = 0.0,
+        flux_dropout: float = 0.0,
     ):
         super().__init__()
         self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
@@ -519,6 +562,13 @@ class StarFusion(nn.Module):
                 "branch and a heatmap or coords branch (set it to 0)"
             )
         self.detections_dropout = float(detections_dropout)
+        self.tied_view = image is not None and getattr(image, "tied", False)
+        if self.tied_view and (detections_dropout or (heatmap is None and coords is None)):
+            raise ConfigError(
+                "model.image_backbone=peak_rows reads the image's peaks with the detection branches (heatmap, "
+                "coordinates): switch one of them on, and leave model.detections_dropout at 0"
+            )
+        self.flux_dropout = float(flux_dropout)
         dim = sum(b.out_dim for b in (image, heatmap, coords) if b is not None)
         self.num_classes, self.num_features = num_classes, dim
         self.norm = nn.LayerNorm(dim)
@@ -542,7 +592,7 @@ class StarFusion(nn.Module):
         theta: torch.Tensor | None = None,
     ) -> torch.Tensor:
         parts = []
-        if self.image is not None:
+        if self.image is not None and not self.tied_view:
             parts.append(self.image(image, theta))
         if self.heatmap is not None:
             parts.append(self.heatmap(coords, mask))
@@ -581,7 +631,38 @@ class StarFusion(nn.Module):
     ) -> torch.Tensor:
         """Logits (B, K). With a canonical orientation (:mod:`fusion.canonical`) the inputs are
         rotated first; with several reference views the output is the log of the mean of the
-        views' class probabilities (a valid logit vector: softmax gives that mean back)."""
+        views' class probabilities (a valid logit vector: softmax gives that mean back).
+
+        With the tied image view (``model.image_backbone=peak_rows``) the image's peaks are a second
+        set of rows through the same branches and head, and the output is the two views' mean
+        log-probability, renormalised (a product of experts: the sharper view leads; a view with
+        no detection or no peak is left out). Without an image (the detections stream) the
+        detections alone."""
+        if self.training and self.flux_dropout > 0 and coords is not None:
+            # these samples' flux column is 0, as the tied image view's rows are: the branches learn both
+            drop = torch.rand(coords.shape[0], 1, 1, device=coords.device) < self.flux_dropout
+            coords = torch.cat([coords[..., :2], coords[..., 2:3].masked_fill(drop, 0.0), coords[..., 3:]], dim=-1)
+        if not self.tied_view:
+            return self._logits(image, coords, mask, fine)
+        out = self._logits(None, coords, mask, fine)
+        if image is None:
+            return out
+        assert self.image is not None and mask is not None
+        rows, pmask = self.image.rows(image)
+        img = self._logits(None, rows.to(out.dtype), pmask, fine)
+        w = torch.stack([mask.any(dim=1), pmask.any(dim=1)], dim=1).to(out.dtype)  # (B, 2)
+        w[:, 0] = torch.where(w.sum(dim=1) == 0, torch.ones_like(w[:, 0]), w[:, 0])
+        logp = torch.stack([torch.log_softmax(out.float(), -1), torch.log_softmax(img.float(), -1)], dim=1)
+        mean = (logp * (w / w.sum(dim=1, keepdim=True))[..., None].float()).sum(dim=1)
+        return torch.log_softmax(mean, dim=-1).to(out.dtype)
+
+    def _logits(
+        self,
+        image: torch.Tensor | None,
+        coords: torch.Tensor | None,
+        mask: torch.Tensor | None,
+        fine: bool,
+    ) -> torch.Tensor:
         if self.relative_flux and coords is not None and mask is not None:
             coords = relative_log_flux(coords, mask)
         c = self.canonical
@@ -651,6 +732,8 @@ def create_model(
         if cfg.image_backbone == "peak_set":
             p = cfg.peaks
             backbone = PeakSet(p.max_peaks, p.threshold_sigma, p.max_sharpness, p.dim, p.layers, p.heads, p.out_dim)
+        elif cfg.image_backbone == "peak_rows":  # as many rows as the detections have (data.max_stars)
+            backbone = PeakRows(max_stars, cfg.peaks.threshold_sigma, cfg.peaks.max_sharpness)
         else:
             backbone = create_backbone(
                 cfg.image_backbone, cfg.in_chans, image_size // binning, cfg.pretrained if load_pretrained else None
@@ -684,6 +767,7 @@ def create_model(
         fine_classes,
         relative_flux=cfg.relative_flux,
         detections_dropout=cfg.detections_dropout,
+        flux_dropout=cfg.flux_dropout,
     )
 
 

@@ -143,7 +143,7 @@ def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> Star
     if (
         cfg.model.branches.image
         and data.ds.image_shape[0] != data.ds.image_shape[1]
-        and cfg.model.image_backbone not in ("tiny_cnn", "grid_cnn", "peak_set")
+        and cfg.model.image_backbone not in ("tiny_cnn", "grid_cnn", "peak_set", "peak_rows")
     ):
         raise ConfigError(
             f"model.image_backbone={cfg.model.image_backbone} takes square images, but this dataset "

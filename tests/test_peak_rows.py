@@ -1,0 +1,125 @@
+"""The tied image view (model.image_backbone=peak_rows): the image's peaks as a second set of rows
+through the coordinate branch and head, fused with the detections as a product of experts."""
+
+import numpy as np
+import pytest
+import torch
+
+from fusion.config import build_config, load_config
+from fusion.errors import ConfigError
+from fusion.model.networks import PeakRows, create_model, parameter_counts
+
+
+def _tied(mode="nearest", **model):
+    cfg = build_config(
+        {
+            "model": {
+                "image_backbone": "peak_rows",
+                "branches": {"image": True, "heatmap": False, "coords": True},
+                "coord_encoder": "transformer",
+                "canonical": {"mode": mode, "min_radius": 0.1},
+                **model,
+            }
+        }
+    )
+    torch.manual_seed(0)
+    return create_model("star_fusion", 15, cfg.model, image_size=64, max_stars=8)
+
+
+def _frame(stars, size=64, noise=2.0, seed=0):
+    """Stored image (1, 1, size, size) with Gaussian stars at stored pixels (u, v), and their rows."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size].astype(np.float64)
+    img = 100 + rng.normal(0, noise, (size, size))
+    for u, v, snr in stars:
+        img += snr * noise * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / 2.0)
+    half = size / 2
+    rows = [[(u + 0.5) / half - 1, (v + 0.5 - half) / half, 1.0 - 0.1 * i] for i, (u, v, _) in enumerate(stars)]
+    return torch.from_numpy(img.astype(np.float32))[None, None], torch.tensor([rows], dtype=torch.float32)
+
+
+STARS = ((20.3, 30.7, 80.0), (45.6, 12.2, 60.0), (9.8, 50.1, 40.0), (50.2, 48.9, 30.0), (33.1, 8.4, 25.0))
+
+
+def test_the_image_view_has_no_parameters_and_reads_the_peaks_as_flux_free_rows():
+    model = _tied()
+    assert parameter_counts(model)["image"] == 0 and isinstance(model.image.backbone, PeakRows)
+    img, rows = _frame(STARS)
+    prow, pmask = model.image.rows(img)
+    assert prow.shape == (1, 8, 3) and int(pmask.sum()) == len(STARS)
+    assert torch.all(prow[0, pmask[0], 2] == 0)  # no flux: the stretched pixels are not the detector's flux
+    for x, y, _ in rows[0]:  # every star has its row within a quarter stored pixel
+        d = torch.hypot(prow[0, pmask[0], 0] - x, prow[0, pmask[0], 1] - y).min()
+        assert d < 0.25 * 2 / 64
+
+
+def test_fused_output_is_the_views_mean_log_probability():
+    """With an image: log_softmax of the mean of the two views' log-probabilities; without one (the
+    detections stream), or with no peak, the detections alone; with no detection, the image alone."""
+    model = _tied().eval()
+    img, rows = _frame(STARS)
+    few = rows[:, :3]
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    with torch.no_grad():
+        fused = model(img, few, mask)
+        det = model(None, few, mask)
+        prow, pmask = model.image.rows(img)
+        view = model(None, prow, pmask)
+        want = torch.log_softmax((torch.log_softmax(det, -1) + torch.log_softmax(view, -1)) / 2, -1)
+        torch.testing.assert_close(fused, want, atol=1e-5, rtol=0)
+        assert not torch.allclose(fused, torch.log_softmax(det, -1), atol=1e-3)  # the image changes the answer
+        blank = torch.full_like(img, 100.0)
+        torch.testing.assert_close(model(blank, few, mask), torch.log_softmax(det, -1), atol=1e-5, rtol=0)
+        none = torch.zeros(1, 3, dtype=torch.bool)
+        torch.testing.assert_close(model(img, few, none), torch.log_softmax(view, -1), atol=1e-5, rtol=0)
+        fine = _tied(mode="brightest")
+        assert fine(img, few, mask).shape == (1, 15)
+
+
+def test_tied_model_is_roll_invariant():
+    """A quarter turn of the image (exact: no resampling) and of the detections gives the same output."""
+    model = _tied().eval()
+    img, rows = _frame(STARS)
+    mask = torch.ones(1, len(STARS), dtype=torch.bool)
+    turned = torch.rot90(img, 1, dims=(2, 3))  # (u, v) -> (v, 63 - u): x' = y, y' = -x in normalised units
+    trows = torch.stack([rows[..., 1], -rows[..., 0], rows[..., 2]], dim=-1)
+    with torch.no_grad():
+        torch.testing.assert_close(model(img, rows, mask), model(turned, trows, mask), atol=2e-4, rtol=0)
+
+
+def test_flux_dropout_zeroes_whole_samples_in_training_only():
+    model = _tied(flux_dropout=0.5)
+    seen = []
+    model.coords.register_forward_hook(lambda mod, args, out: seen.append(args[0].detach().clone()))
+    g = torch.Generator().manual_seed(1)
+    coords = torch.rand(64, 8, 3, generator=g) + 0.5  # every flux > 0
+    mask = torch.ones(64, 8, dtype=torch.bool)
+    model.train()
+    model(None, coords, mask)
+    flux = seen[-1][..., 2]
+    dropped = (flux == 0).all(dim=1)
+    assert 10 < int(dropped.sum()) < 54 and bool(((flux == 0).any(dim=1) == dropped).all())  # whole samples
+    model.eval()
+    model(None, coords, mask)
+    assert bool((seen[-1][..., 2] > 0).all())
+
+
+def test_tied_view_config_rules():
+    """The detections stream may train a tied model (its image view has nothing of its own to learn);
+    it needs a detection branch, and modality dropout would defeat it."""
+    cfg = load_config(
+        None,
+        [
+            "stream.kind=detections",
+            "model.branches.image=true",
+            "model.image_backbone=peak_rows",
+            "model.flux_dropout=0.3",
+        ],
+    )
+    assert cfg.model.image_backbone == "peak_rows"
+    with pytest.raises(ConfigError, match="stream.kind=detections makes no images"):
+        load_config(None, ["stream.kind=detections", "model.branches.image=true", "model.image_backbone=peak_set"])
+    with pytest.raises(ConfigError, match="peak_rows"):
+        _tied(detections_dropout=0.3)
+    with pytest.raises(ConfigError, match="flux_dropout"):
+        load_config(None, ["model.flux_dropout=1.0"])
