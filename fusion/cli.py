@@ -420,7 +420,8 @@ def _add_experiment(p: argparse.ArgumentParser) -> None:
         required=True,
         help="experiment preset: cpu, gpu, smoke, or a YAML path. Measured: "
         "cpu (63 trainings, 3 seeds) ~100 min with --jobs 2 on a 2-core CPU; cpu30 (the 30-min presets, "
-        "15 trainings) ~6.5 h; smoke 55 s; gpu: days of GPU time (run --sections one at a time)",
+        "18 trainings: the first 15 took ~6.5 h); smoke 55 s; gpu: days of GPU time (run --sections one at "
+        "a time)",
     )
     p.add_argument("--out", help="output folder (default results/<preset>)")
     p.add_argument(

@@ -414,3 +414,42 @@ def test_frames_batches_send_stored_adu_for_a_gpu(smoke, tmp_path):
         log=quiet,
     )
     assert summary["epochs_run"] == 1
+
+
+def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(smoke, tmp_path):
+    """model.image_backbone=peak_rows on the detections stream (no images in training; validation scores
+    the fused output on the dataset's frames), and benchmarks/tied_views.py's fused column is exactly what
+    `fusion evaluate` scores, whole and with three detections."""
+    import importlib.util
+
+    from fusion.measure.evaluate import evaluate_checkpoint
+
+    run = tmp_path / "tied"
+    train(
+        _cfg(
+            smoke,
+            "model.branches.image=true",
+            "model.image_backbone=peak_rows",
+            "model.canonical.mode=brightest",
+            "model.flux_dropout=0.3",
+            "train.epochs=2",
+        ),
+        run,
+        log=quiet,
+    )
+    assert load_checkpoint(run / "best.pt").build_model().tied_view
+    spec = importlib.util.spec_from_file_location("tied_views", ROOT / "benchmarks" / "tied_views.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "views.md"
+    assert mod.main(["--checkpoint", str(run / "best.pt"), "--data", str(smoke[0]), "--out", str(out)]) == 0
+    table = {
+        line.split("|")[1].strip(): [float(x) for x in line.split("|")[2:-1]]
+        for line in out.read_text().splitlines()
+        if line.startswith("| whole") or line.startswith("| brightest 3 |")
+    }
+    whole = evaluate_checkpoint(run / "best.pt", smoke[0], "test", tmp_path / "e", log=quiet)
+    three = evaluate_checkpoint(run / "best.pt", smoke[0], "test", tmp_path / "e3", log=quiet, keep_brightest=3)
+    assert table["whole frame"][0] == pytest.approx(100 * whole["top1"], abs=0.051)  # the table has 0.1 %
+    assert table["brightest 3"][0] == pytest.approx(100 * three["top1"], abs=0.051)
+    assert table["whole frame"][2] == table["brightest 3"][2]  # the image view sees the whole frame in both

@@ -57,6 +57,18 @@ def test_peaks_are_the_stars_at_subpixel_positions_and_hot_pixels_are_dropped():
     assert mask[0].sum() == 4 and rows[0, mask[0], 3].max() > 0.9
 
 
+def test_a_saturated_star_is_one_peak():
+    """A star clipped at the ADC's top has a flat plateau whose pixels are all local maxima; it is one
+    token, at the plateau's centre, and the faint star beside it (6 px away) is still its own."""
+    img = _star_field(stars=((30.0, 30.0, 2000.0), (36.0, 30.0, 40.0), (10.3, 50.2, 30.0)), hot=())
+    img = img.clamp(max=float(img.quantile(0.9995)))  # ~2 x 2 to 3 x 3 px flat top
+    rows, mask = PeakSet(16, threshold=5.0).peaks(img)
+    got = rows[0, mask[0], :2]
+    assert len(got) == 3
+    ex, ey = _norm(30.0, 30.0, 64)
+    assert abs(got[0, 0] - ex) < 0.75 * 2 / 64 and abs(got[0, 1] - ey) < 0.75 * 2 / 64
+
+
 def test_peak_noise_estimate_works_on_quantised_and_scaled_frames():
     """A stored frame whose noise is below one ADU has a MAD of zero; the peaks must not depend on the
     stretch: the log stretch the model sees and the raw ADU give the same stars."""

@@ -441,6 +441,15 @@ class ImagePeaks(nn.Module):
         v = iy.to(z.dtype) + (patch * offs[1]).sum(-1) / total
         sharp = cand.clamp(min=0) / total
         keep = torch.isfinite(cand) & (sharp <= self.max_sharpness)  # not a one-pixel spike
+        # one peak per star: a saturated (flat) top or a bright core with noise has several local maxima;
+        # a candidate within 2 px (both axes) of a stronger one (3 x 3 sum; ties: the earlier) is dropped
+        score = torch.where(keep, total, torch.full_like(total, float("-inf")))
+        near = ((ix[:, :, None] - ix[:, None, :]).abs() <= 2) & ((iy[:, :, None] - iy[:, None, :]).abs() <= 2)
+        order = torch.arange(score.shape[1], device=score.device)
+        stronger = (score[:, None, :] > score[:, :, None]) | (
+            (score[:, None, :] == score[:, :, None]) & (order[None, None, :] < order[None, :, None])
+        )  # [b, i, j]: candidate j is stronger than candidate i
+        keep = keep & ~(near & stronger & keep[:, None, :]).any(dim=2)
         k = min(self.max_peaks, cand.shape[1])
         val, j = torch.where(keep, total, torch.full_like(total, float("-inf"))).topk(k, dim=1)
         mask = torch.isfinite(val)
@@ -472,7 +481,8 @@ class PeakSet(ImagePeaks):
     90 % of pixels nearest it, scaled to a Gaussian's sigma (a per-frame estimate, so the
     stretch, exposure and sky level do not matter, and robust to quantised frames); a pixel is a peak when it is the
     maximum of its 3 x 3 neighbourhood and its
-    z = (x - median) / noise exceeds ``threshold``. Each of the ``max_peaks`` strongest peaks (by
+    z = (x - median) / noise exceeds ``threshold``, and no stronger peak lies within 2 px (a saturated
+    star's flat top is one peak). Each of the ``max_peaks`` strongest peaks (by
     the 3 x 3 sum of positive z) becomes a token ``[x, y, log10(sum z) - 1, peak z / sum z]``:
     position at the 3 x 3 centroid, in the coordinate branch's convention (the pixel edges of
     the image map to -1 and +1 in x, the centre to 0, y on the same scale), so a star in the

@@ -1,0 +1,186 @@
+"""What each view of a tied model knows: region top-1 of the fused output, the detections alone and the
+image's peaks alone, on whole frames, few-star frames and frames with noisy photometry.
+
+A model with the tied image view (``model.image_backbone=peak_rows``, configs/cpu-views.yaml) reads the
+frame twice through one network: its detections, and the strongest peaks of its stored pixels as
+flux-free rows; its output is the two views' mean log-probability. This script scores, on the same
+test frames:
+
+- ``fused``: what ``fusion evaluate`` scores (both views);
+- ``detections``: the model without its image (``model(None, coords, mask)``);
+- ``image``: the peaks alone (``model(None, *model.image.rows(image))``; the same in every cell);
+- ``detections, no flux``: the detections with every flux feature 0 (the rows ``model.flux_dropout``
+  trains on; a model without it has never seen them);
+- ``image, pixel flux`` and ``fused, pixel flux``: a probe, not the model's own view: the same peaks
+  given a flux measured from the pixels (the log stretch inverted with the preprocessor's constants,
+  the 5 x 5 stored-pixel sum above the frame's median, times the binning factor squared: the detector's
+  ADU scale), so that the image view reads rows like the detections' instead of flux-free ones; and its
+  fusion with the detections as the model fuses its views.
+
+Cells: whole frames, the brightest 3 / 4 / 6 detections (the image untouched, as ``fusion evaluate
+--brightest N``), and the brightest 6 after magnitude noise (each detection's flux scaled by
+10^(-0.4 m), m ~ N(0, sigma), then re-ranked, as a detector ranks by measured flux; the pixels are left
+as rendered). Prints a Markdown table; ``--out`` also writes it with the command and hardware::
+
+    python benchmarks/tied_views.py --checkpoint runs/views/best.pt --data data/experiment-cpu30 \
+        --out results/cpu30/views/tied-views.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fusion.model.checkpoint import load_checkpoint
+from fusion.model.shards import FrameDataset, boresight_vectors, split_positions
+from skygen.datasets.shards import open_dataset
+from skygen.runtime import hardware_line
+
+
+def cells(noise: list[float]) -> list[tuple[str, int | None, float]]:
+    """(label, brightest N or None, magnitude noise rms)."""
+    out: list[tuple[str, int | None, float]] = [("whole frame", None, 0.0)]
+    out += [(f"brightest {n}", n, 0.0) for n in (3, 4, 6)]
+    out += [(f"brightest 6, {s:g} mag noise", 6, s) for s in noise]
+    return out
+
+
+def batch(fd: FrameDataset, js, n: int | None, sigma: float, seed: int) -> tuple[torch.Tensor, ...]:
+    """Images, rows, masks and labels of frames ``js`` for one cell."""
+    items = []
+    for j in js:
+        s = fd.sample(int(j))
+        if sigma > 0:
+            rng = np.random.default_rng([seed, int(fd.positions[j])])
+            s = replace(s, flux_adu=s.flux_adu * 10 ** (-0.4 * rng.normal(0.0, sigma, s.n))).sorted()
+        item = fd.pre.item(s)
+        if n is not None:
+            item["mask"][n:] = False
+            item["coords"][n:] = 0.0
+        items.append(item)
+    image = torch.stack([torch.as_tensor(it["image"]) for it in items])
+    coords = torch.stack([torch.as_tensor(it["coords"]) for it in items])
+    mask = torch.stack([torch.as_tensor(it["mask"]) for it in items])
+    return image, coords, mask, torch.as_tensor(fd.labels[np.asarray(js)])
+
+
+def pixel_flux_rows(model, pre, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tied view's peaks with a flux measured from the pixels, brightest first (see the docstring)."""
+    rows, mask = model.image.rows(image)
+    bias, scale, top = pre.stretch()
+    adu = scale * torch.expm1(image[:, 0].double() * top)  # stored ADU above bias
+    b, h, w = adu.shape
+    sky = adu.reshape(b, -1).median(dim=1).values
+    f = pre.geo.factor
+    u = ((rows[..., 0].double() + 1) * (w / 2) - 0.5).round().long().clamp(2, w - 3)
+    v = (rows[..., 1].double() * (w / 2) + h / 2 - 0.5).round().long().clamp(2, h - 3)
+    flux = torch.zeros(rows.shape[:2], dtype=torch.float64)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            flux += torch.gather(adu.reshape(b, -1), 1, (v + dy) * w + u + dx) - sky[:, None]
+    flux = (flux.clamp(min=0) * f * f).masked_fill(~mask, 0)
+    feat = torch.log10(1 + flux) - pre.log_flux_offset
+    out = torch.cat([rows[..., :2], feat[..., None].to(rows.dtype)], dim=-1)
+    order = torch.argsort(flux.masked_fill(~mask, -1), dim=1, descending=True)
+    out = torch.gather(out, 1, order[..., None].expand_as(out))
+    return out * mask.gather(1, order)[..., None], mask.gather(1, order)
+
+
+def non_star_bright_peaks(ds, fd, rows: torch.Tensor, mask: torch.Tensor, js, top: int = 3) -> int:
+    """How many of frames ``js`` have, among their ``top`` brightest peaks (``rows``, pixel flux order),
+    one with no catalogue star (the dataset's true stars) within 2 full-resolution px."""
+    n = 0
+    for b, j in enumerate(js):
+        ts = ds.true_stars(int(fd.positions[j]))
+        tx, ty = fd.geo.normalised(ts["x_px"], ts["y_px"])
+        for row in rows[b, mask[b]][:top]:
+            d = np.hypot(tx - float(row[0]), ty - float(row[1]))
+            if not len(d) or d.min() > 2 * 2 / fd.geo.sensor_px:
+                n += 1
+                break
+    return n
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", required=True, help="a fusion checkpoint (best.pt)")
+    ap.add_argument("--data", required=True, help="a skygen dataset of the checkpoint's camera")
+    ap.add_argument("--split", default="test", help="split to score (default test)")
+    ap.add_argument("--frames", type=int, help="first N frames of the split (default all)")
+    ap.add_argument("--noise", type=float, nargs="*", default=[0.25, 0.5], help="magnitude noise cells, mag rms")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the magnitude noise")
+    ap.add_argument("--out", type=Path, help="also write the table (Markdown) here")
+    a = ap.parse_args(argv)
+    ckpt = load_checkpoint(a.checkpoint)
+    model, cfg = ckpt.build_model().eval(), ckpt.fusion_config
+    tied = bool(getattr(model, "tied_view", False))
+    ds = open_dataset(a.data)
+    pos = split_positions(ds, a.split, a.frames)
+    labels = ckpt.regions.assign(boresight_vectors(ds, pos))
+    fd = FrameDataset(
+        ds,
+        pos,
+        labels,
+        max_stars=ckpt.max_stars,
+        norm_scale_adu=cfg.data.norm_scale_adu,
+        log_flux_offset=cfg.data.log_flux_offset,
+    )
+    views = ["detections", "detections, no flux"]
+    if tied:
+        views = ["fused", "detections", "image", "detections, no flux", "image, pixel flux", "fused, pixel flux"]
+    rows = []
+    non_star = 0
+    with torch.no_grad():
+        for label, n, sigma in cells(a.noise):
+            hits: dict[str, list] = {v: [] for v in views}
+            for start in range(0, len(pos), 64):
+                image, coords, mask, y = batch(fd, range(start, min(start + 64, len(pos))), n, sigma, a.seed)
+                flat = torch.cat([coords[..., :2], torch.zeros_like(coords[..., 2:3]), coords[..., 3:]], dim=-1)
+                out = {"detections": model(None, coords, mask), "detections, no flux": model(None, flat, mask)}
+                if tied:
+                    out["fused"] = model(image, coords, mask)
+                    out["image"] = model(None, *model.image.rows(image))
+                    prow, pmask = pixel_flux_rows(model, fd.pre, image)
+                    out["image, pixel flux"] = model(None, prow, pmask)
+                    if n is None and sigma == 0:
+                        js = range(start, min(start + 64, len(pos)))
+                        non_star += non_star_bright_peaks(ds, fd, prow, pmask, js)
+                    lp = torch.log_softmax(out["detections"], -1) + torch.log_softmax(out["image, pixel flux"], -1)
+                    out["fused, pixel flux"] = lp
+                for v in views:
+                    hits[v].append((out[v].argmax(dim=1) == y).numpy())
+            rows.append((label, {v: 100 * float(np.concatenate(h).mean()) for v, h in hits.items()}))
+    lines = [
+        f"Region top-1 (%) of `{a.checkpoint}` (K = {ckpt.num_classes}) on the {len(pos)} {a.split} frames of "
+        f"`{a.data}`:",
+        "",
+        "| cell | " + " | ".join(views) + " |",
+        "|---|" + "---|" * len(views),
+    ]
+    lines += [f"| {lab} | " + " | ".join(f"{r[v]:.1f}" for v in views) + " |" for lab, r in rows]
+    if tied:
+        lines += [
+            "",
+            f"Frames with a peak among their three brightest (pixel flux) that no catalogue star explains "
+            f"(none within 2 px): {non_star} of {len(pos)}.",
+        ]
+    lines += [
+        "",
+        "command: `python benchmarks/tied_views.py " + " ".join(argv or sys.argv[1:]) + "`",
+        f"hardware: {hardware_line()} (top-1 does not depend on it)",
+    ]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
