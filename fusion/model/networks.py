@@ -526,13 +526,14 @@ class PeakRows(ImagePeaks):
     model's own coordinate branch and head (:class:`StarFusion`), not by an encoder of their own.
 
     Why: at a 256-px store the pixels' information about the sky is a point set, the stars'
-    positions, and the peaks find it (on the demo renders 97-100 % of each frame's ten brightest
-    detections within 4 px, 0.2 px median apart: ``tests/test_peak_rows.py`` checks a render). An
+    positions, and the peaks find it (``tests/test_peak_set.py`` checks a rendered frame). An
     encoder of its own must learn the sky again from rendered frames, ~10x dearer than detection
     sets (configs/cpu-fusion.yaml); tied to the coordinate branch, it knows what the detections
     taught. The flux column is 0: a peak's strength in the log-stretched image is not the
     detector's flux, so the coordinate branch learns flux-free rows too (``model.flux_dropout``).
-    No parameters."""
+    No parameters. Measured (results/cpu30/views.md): at the cpu-views budget the network barely
+    reads flux-free rows, so this view alone is weak (~20 % top-1); giving the peaks a flux measured
+    from the pixels is the probe there."""
 
     num_features = 0
 
