@@ -71,10 +71,11 @@ def batch(fd: FrameDataset, js, n: int | None, sigma: float, seed: int) -> tuple
     return image, coords, mask, torch.as_tensor(fd.labels[np.asarray(js)])
 
 
-def pixel_flux_rows(model, pre, image: torch.Tensor, sharp_max: float = 0.8) -> tuple[torch.Tensor, torch.Tensor]:
-    """The tied view's peaks with a flux measured from the pixels, brightest first (see the docstring);
+def pixel_flux_rows(
+    rows: torch.Tensor, mask: torch.Tensor, pre, image: torch.Tensor, sharp_max: float = 0.8
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tied view's peaks (``model.image.rows(image)``) with a flux measured from the pixels, brightest first;
     a peak whose brightest pixel holds more than ``sharp_max`` of the 5 x 5 sum above the median is dropped."""
-    rows, mask = model.image.rows(image)
     bias, scale, top = pre.stretch()
     adu = scale * torch.expm1(image[:, 0].double() * top)  # stored ADU above bias
     b, h, w = adu.shape
@@ -154,8 +155,9 @@ def main(argv=None) -> int:
                 out = {"detections": model(None, coords, mask), "detections, no flux": model(None, flat, mask)}
                 if tied:
                     out["fused"] = model(image, coords, mask)
-                    out["image"] = model(None, *model.image.rows(image))
-                    prow, pmask = pixel_flux_rows(model, fd.pre, image)
+                    rows0, mask0 = model.image.rows(image)  # the tied view's peaks, read once per batch
+                    out["image"] = model(None, rows0, mask0)
+                    prow, pmask = pixel_flux_rows(rows0, mask0, fd.pre, image)
                     out["image, pixel flux"] = model(None, prow, pmask)
                     if n is None and sigma == 0:
                         js = range(start, min(start + 64, len(pos)))
