@@ -11,13 +11,16 @@ test frames:
 - ``image``: the peaks alone (``model(None, *model.image.rows(image))``; the same in every cell);
 - ``detections, no flux``: the detections with every flux feature 0 (the rows ``model.flux_dropout``
   trains on; a model without it has never seen them);
-- ``image, pixel flux`` and ``fused, pixel flux``: a probe, not the model's own view: the same peaks
-  given a flux measured from the pixels (the log stretch inverted with the preprocessor's constants,
-  the 5 x 5 stored-pixel sum above the frame's median, times the binning factor squared: the detector's
-  ADU scale; peaks whose brightest pixel holds more than 80 % of that sum dropped, as hot pixels and
-  cosmic-ray hits, which the log stretch hides from the peaks' own sharpness cut), so that the image view
-  reads rows like the detections' instead of flux-free ones; and its fusion with the detections as the
-  model fuses its views.
+- ``image, pixel flux`` and ``fused, pixel flux`` (a model whose image view has no flux only): a probe,
+  the same peaks given a flux measured from the pixels by the model's own code for
+  ``model.peaks.pixel_flux`` (:meth:`fusion.model.networks.PeakRows.measure`: the log stretch inverted with
+  the preprocessor's constants, the 5 x 5 stored-pixel sum above the frame's median, times the binning
+  factor squared: the detector's ADU scale; peaks whose brightest pixel holds more than
+  ``--max-peak-share`` of that sum dropped as hot pixels and cosmic-ray hits), and its fusion with the
+  detections as the model fuses its views. A model trained with ``pixel_flux`` scores this in its own
+  ``image`` and ``fused`` columns;
+- ``image weight A`` (``--image-weight A ...``): the views fused with weights 1 - A and A instead of the
+  model's equal weights (the image view as in ``fused``, or the probe's).
 
 Cells: whole frames, the brightest 3 / 4 / 6 detections (the image untouched, as ``fusion evaluate
 --brightest N``), and the brightest 6 after magnitude noise (each detection's flux scaled by
@@ -39,6 +42,7 @@ import numpy as np
 import torch
 
 from fusion.model.checkpoint import load_checkpoint
+from fusion.model.networks import PeakRows
 from fusion.model.shards import FrameDataset, boresight_vectors, split_positions
 from skygen.datasets.shards import open_dataset
 from skygen.runtime import hardware_line
@@ -71,35 +75,19 @@ def batch(fd: FrameDataset, js, n: int | None, sigma: float, seed: int) -> tuple
     return image, coords, mask, torch.as_tensor(fd.labels[np.asarray(js)])
 
 
-def pixel_flux_rows(
-    rows: torch.Tensor, mask: torch.Tensor, pre, image: torch.Tensor, sharp_max: float = 0.8
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The tied view's peaks (``model.image.rows(image)``) with a flux measured from the pixels, brightest first;
-    a peak whose brightest pixel holds more than ``sharp_max`` of the 5 x 5 sum above the median is dropped."""
-    bias, scale, top = pre.stretch()
-    adu = scale * torch.expm1(image[:, 0].double() * top)  # stored ADU above bias
-    b, h, w = adu.shape
-    sky = adu.reshape(b, -1).median(dim=1).values
-    f = pre.geo.factor
-    u = ((rows[..., 0].double() + 1) * (w / 2) - 0.5).round().long().clamp(2, w - 3)
-    v = (rows[..., 1].double() * (w / 2) + h / 2 - 0.5).round().long().clamp(2, h - 3)
-    flux = torch.zeros(rows.shape[:2], dtype=torch.float64)
-    top_px = torch.zeros_like(flux)
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            px = torch.gather(adu.reshape(b, -1), 1, (v + dy) * w + u + dx) - sky[:, None]
-            flux += px
-            top_px = torch.maximum(top_px, px)
-    # in linear ADU a star spreads over the 5 x 5 box and a hot pixel or cosmic-ray hit mostly does not; the
-    # log stretch hides that from the peaks' own sharpness cut (0.8: chosen from an ad-hoc look at 128 cpu30
-    # test frames, where 95 % of the stars' brightest pixels held less than 0.79 of the sum)
-    mask = mask & (top_px <= sharp_max * flux.clamp(min=1e-9))
-    flux = (flux.clamp(min=0) * f * f).masked_fill(~mask, 0)
-    feat = torch.log10(1 + flux) - pre.log_flux_offset
-    out = torch.cat([rows[..., :2], feat[..., None].to(rows.dtype)], dim=-1)
-    order = torch.argsort(flux.masked_fill(~mask, -1), dim=1, descending=True)
-    out = torch.gather(out, 1, order[..., None].expand_as(out))
-    return out * mask.gather(1, order)[..., None], mask.gather(1, order)
+def pixel_flux_view(model, pre, share: float) -> PeakRows:
+    """The tied view of ``model`` with ``model.peaks.pixel_flux`` switched on (the model's own code,
+    :meth:`PeakRows.measure`): the probe's peaks measured from the pixels, defects above ``share`` dropped."""
+    p = model.image.backbone
+    return PeakRows(
+        p.max_peaks,
+        p.threshold,
+        p.max_sharpness,
+        stretch=pre.stretch(),
+        area=float(pre.geo.factor) ** 2,
+        log_flux_offset=pre.log_flux_offset,
+        max_peak_share=share,
+    )
 
 
 def non_star_bright_peaks(ds, fd, rows: torch.Tensor, mask: torch.Tensor, js, top: int = 3) -> int:
@@ -125,6 +113,21 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, help="first N frames of the split (default all)")
     ap.add_argument("--noise", type=float, nargs="*", default=[0.25, 0.5], help="magnitude noise cells, mag rms")
     ap.add_argument("--seed", type=int, default=0, help="seed of the magnitude noise")
+    ap.add_argument(
+        "--image-weight",
+        type=float,
+        nargs="*",
+        default=[],
+        metavar="A",
+        help="also score (1 - A) x the detections' log-probability + A x the image view's (the model fuses with "
+        "A = 0.5; the image view: the model's own, or the probe's when it has no pixel flux)",
+    )
+    ap.add_argument(
+        "--max-peak-share",
+        type=float,
+        default=0.9,
+        help="the probe's defect cut (model.peaks.max_peak_share; default 0.9)",
+    )
     ap.add_argument("--out", type=Path, help="also write the table (Markdown) here")
     a = ap.parse_args(argv)
     ckpt = load_checkpoint(a.checkpoint)
@@ -142,8 +145,14 @@ def main(argv=None) -> int:
         log_flux_offset=cfg.data.log_flux_offset,
     )
     views = ["detections", "detections, no flux"]
-    if tied:
+    probe = None
+    if tied and not model.image.backbone.pixel_flux:
+        probe = pixel_flux_view(model, fd.pre, a.max_peak_share)
         views = ["fused", "detections", "image", "detections, no flux", "image, pixel flux", "fused, pixel flux"]
+    elif tied:  # the model's own image view measures pixel fluxes: no probe
+        views = ["fused", "detections", "image", "detections, no flux"]
+    if tied:
+        views += [f"image weight {w:g}" for w in a.image_weight]
     rows = []
     non_star = 0
     with torch.no_grad():
@@ -157,13 +166,17 @@ def main(argv=None) -> int:
                     out["fused"] = model(image, coords, mask)
                     rows0, mask0 = model.image.rows(image)  # the tied view's peaks, read once per batch
                     out["image"] = model(None, rows0, mask0)
-                    prow, pmask = pixel_flux_rows(rows0, mask0, fd.pre, image)
-                    out["image, pixel flux"] = model(None, prow, pmask)
-                    if n is None and sigma == 0:
+                    prow, pmask = (rows0, mask0) if probe is None else probe.measure(image, rows0, mask0)
+                    if probe is not None:
+                        out["image, pixel flux"] = model(None, prow, pmask)
+                        lp = torch.log_softmax(out["detections"], -1) + torch.log_softmax(out["image, pixel flux"], -1)
+                        out["fused, pixel flux"] = lp
+                    img = torch.log_softmax(out["image" if probe is None else "image, pixel flux"], -1)
+                    for w in a.image_weight:
+                        out[f"image weight {w:g}"] = (1 - w) * torch.log_softmax(out["detections"], -1) + w * img
+                    if n is None and sigma == 0 and (probe is not None or model.image.backbone.pixel_flux):
                         js = range(start, min(start + 64, len(pos)))
                         non_star += non_star_bright_peaks(ds, fd, prow, pmask, js)
-                    lp = torch.log_softmax(out["detections"], -1) + torch.log_softmax(out["image, pixel flux"], -1)
-                    out["fused, pixel flux"] = lp
                 for v in views:
                     hits[v].append((out[v].argmax(dim=1) == y).numpy())
             rows.append((label, {v: 100 * float(np.concatenate(h).mean()) for v, h in hits.items()}))
@@ -175,7 +188,7 @@ def main(argv=None) -> int:
         "|---|" + "---|" * len(views),
     ]
     lines += [f"| {lab} | " + " | ".join(f"{r[v]:.1f}" for v in views) + " |" for lab, r in rows]
-    if tied:
+    if tied and (probe is not None or model.image.backbone.pixel_flux):
         lines += [
             "",
             f"Frames with a peak among their three brightest (pixel flux) that no catalogue star explains "

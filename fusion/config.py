@@ -102,7 +102,7 @@ class HeatmapConfig:
 
 @dataclass(frozen=True)
 class PeaksConfig:
-    """The ``peak_set`` image backbone (:class:`fusion.model.networks.PeakSet`)."""
+    """The ``peak_set`` and ``peak_rows`` image backbones (:class:`fusion.model.networks.PeakSet`, ``PeakRows``)."""
 
     max_peaks: int = param(48, lo=1, hi=4096, doc="brightest local maxima of the image kept as tokens")
     max_sharpness: float = param(
@@ -119,6 +119,21 @@ class PeaksConfig:
         hi=1000,
         doc="a local maximum is kept when it stands this many noise sigmas above the frame's median (noise: the "
         "clipped rms of the frame, see PeakSet)",
+    )
+    pixel_flux: bool = param(
+        False,
+        doc="peak_rows only: give the image's peaks a flux measured from the pixels (the stored stretch inverted, the "
+        "5 x 5 sum above the frame's median, in full-resolution ADU like a detection's flux) instead of 0, brightest "
+        "first, and drop the defects of max_peak_share; needs the training data's render config (checkpoints carry it)",
+    )
+    max_peak_share: float = param(
+        0.9,
+        lo=0,
+        lo_open=True,
+        hi=1,
+        doc="with pixel_flux: a peak whose brightest stored pixel holds more than this share of its 5 x 5 sum (linear "
+        "ADU) is a hot pixel or cosmic-ray hit, not a star spread by the PSF, and is dropped (1: keep all; 0.9 was "
+        "the best of 0.7-1.0 on the cpu30 validation frames, results/cpu30/views.md)",
     )
     dim: int = param(64, lo=8, hi=4096, doc="token width of the peaks' transformer")
     layers: int = param(2, lo=1, hi=64, doc="encoder layers of the peaks' transformer")
@@ -423,6 +438,12 @@ def check_consistency(cfg: FusionConfig) -> None:
         raise ConfigError(
             "stream.kind=detections makes no images, but model.branches.image is on; use "
             "--stream frames, or switch the image branch off (model.branches.image=false)"
+        )
+    if cfg.model.peaks.pixel_flux and (cfg.model.image_backbone != "peak_rows" or not cfg.model.branches.image):
+        raise ConfigError(
+            "model.peaks.pixel_flux measures the fluxes of the tied image view's peaks: it needs "
+            f"model.image_backbone=peak_rows and model.branches.image=true (not {cfg.model.image_backbone}, "
+            f"image={cfg.model.branches.image}); set it to false"
         )
     if cfg.labels.fine_k is not None and cfg.labels.fine_k <= cfg.labels.k:
         raise ConfigError(f"labels.fine_k ({cfg.labels.fine_k}) must exceed labels.k ({cfg.labels.k})")

@@ -126,12 +126,14 @@ def test_cpu30_rows_train_from_their_own_presets_and_sections_are_the_presets_ow
     p = load_preset("cpu30")
     assert p.sections == ("table1", "few_star") and p.few_star == [3, 4, 5, 6, 10]
     runs = plan(p)
-    assert len(runs["table1"]) == 6 * 3 and runs["few_star"] == runs["table1"] and not runs["ablation"]
+    assert len(runs["table1"]) == 7 * 3 and runs["few_star"] == runs["table1"] and not runs["ablation"]
     by_name = {r.name: r for r in runs["table1"] if r.seed == 0}
     assert load_run_config(p, by_name["image_only"].overrides).model.image_backbone == "peak_set"
     assert load_run_config(p, by_name["geometry_only"].overrides).train.epochs == 53
     tied = load_run_config(p, by_name["star_fusion, tied views"].overrides)
     assert (tied.model.image_backbone, tied.stream.kind) == ("peak_rows", "detections")
+    flux = load_run_config(p, by_name["star_fusion, tied views, pixel flux"].overrides)
+    assert flux.model.peaks.pixel_flux and not tied.model.peaks.pixel_flux and flux.model.flux_dropout == 0
     two = by_name["star_fusion, two stages"]
     assert first_stage(p, two).overrides == by_name["geometry_only, 42 epochs (the first stage)"].overrides
     assert (

@@ -416,13 +416,16 @@ def test_frames_batches_send_stored_adu_for_a_gpu(smoke, tmp_path):
     assert summary["epochs_run"] == 1
 
 
-def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(smoke, tmp_path):
+@pytest.mark.parametrize("pixel_flux", [False, True])
+def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(smoke, tmp_path, pixel_flux):
     """model.image_backbone=peak_rows on the detections stream (no images in training; validation scores
     the fused output on the dataset's frames), and benchmarks/tied_views.py's fused column is exactly what
-    `fusion evaluate` scores, whole and with three detections."""
+    `fusion evaluate` scores, whole and with three detections; with model.peaks.pixel_flux the checkpoint
+    rebuilds its view with the training data's stretch (from the render config it carries)."""
     import importlib.util
 
     from fusion.measure.evaluate import evaluate_checkpoint
+    from fusion.model.inputs import Preprocessor
 
     run = tmp_path / "tied"
     train(
@@ -431,13 +434,20 @@ def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(s
             "model.branches.image=true",
             "model.image_backbone=peak_rows",
             "model.canonical.mode=brightest",
-            "model.flux_dropout=0.3",
+            f"model.flux_dropout={0.0 if pixel_flux else 0.3}",
+            f"model.peaks.pixel_flux={str(pixel_flux).lower()}",
             "train.epochs=2",
         ),
         run,
         log=quiet,
     )
-    assert load_checkpoint(run / "best.pt").build_model().tied_view
+    ckpt = load_checkpoint(run / "best.pt")
+    view = ckpt.build_model().image.backbone
+    assert ckpt.build_model().tied_view and view.pixel_flux == pixel_flux
+    if pixel_flux:
+        with open_dataset(smoke[0]) as d:
+            pre = Preprocessor.from_configs(d.config, ckpt.fusion_config.data)
+        assert (view.scale, view.top) == pre.stretch()[1:] and view.area == pre.geo.factor**2
     spec = importlib.util.spec_from_file_location("tied_views", ROOT / "benchmarks" / "tied_views.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

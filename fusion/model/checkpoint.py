@@ -194,9 +194,12 @@ class Checkpoint:
 
     def build_model(self):
         """The model, rebuilt from this checkpoint's own config, with its weights, on the CPU, in eval mode."""
+        from .inputs import Preprocessor
         from .networks import create_model
 
         cfg = self.fusion_config
+        rc = self.render_config
+        pre = None if rc is None else Preprocessor.from_configs(rc, cfg.data, self.max_stars)
         model = create_model(
             cfg.model.name,
             self.num_classes,
@@ -205,6 +208,7 @@ class Checkpoint:
             fine_classes=cfg.labels.fine_k,
             max_stars=self.max_stars,
             load_pretrained=False,
+            pre=pre,
         )
         load_model_state(model, self)
         return model.eval()

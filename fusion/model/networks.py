@@ -36,7 +36,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import nn
@@ -47,6 +47,9 @@ from ..errors import CheckpointError, ConfigError
 from . import pretrained as pretrained_mod
 from .canonical import canonical_views, rotate_image, rotate_rows, view_weights
 from .heatmap import HeatmapRasteriser
+
+if TYPE_CHECKING:
+    from .inputs import Preprocessor
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -532,15 +535,70 @@ class PeakRows(ImagePeaks):
     taught. The flux column is 0: a peak's strength in the log-stretched image is not the
     detector's flux, so the coordinate branch learns flux-free rows too (``model.flux_dropout``).
     No parameters. Measured (results/cpu30/views.md): at the cpu-views budget the network barely
-    reads flux-free rows, so this view alone is weak (~20 % top-1); giving the peaks a flux measured
-    from the pixels is the probe there."""
+    reads flux-free rows, so this view alone is weak (~20 % top-1).
+
+    ``pixel_flux`` (``model.peaks.pixel_flux``) gives each peak a flux measured from the pixels, in
+    the detections' units, so the view's rows read like detections: the stored log stretch is
+    inverted with the training data's constants (``stretch``: bias, scale and top of
+    :meth:`fusion.model.inputs.Preprocessor.stretch`), the frame's median is the sky, and the flux
+    is the 5 x 5 sum above it times the binning factor squared (``area``: a stored pixel is the mean
+    of f x f sensor pixels), then ``log10(1 + flux) - log_flux_offset`` as
+    :func:`~fusion.model.inputs.encode_detections` does. Rows go brightest first. A peak whose
+    brightest stored pixel holds more than ``max_peak_share`` of that sum is dropped: in linear ADU a
+    star spreads over the box and a hot pixel or cosmic-ray hit does not, which the log stretch hides
+    from the peaks' own 3 x 3 sharpness cut (``tests/test_peak_rows.py`` checks both on renders)."""
 
     num_features = 0
 
+    def __init__(
+        self,
+        max_peaks: int = 48,
+        threshold: float = 5.0,
+        max_sharpness: float = 0.9,
+        stretch: tuple[float, float, float] | None = None,
+        area: float = 1.0,
+        log_flux_offset: float = 3.0,
+        max_peak_share: float = 0.9,
+    ):
+        super().__init__(max_peaks, threshold, max_sharpness)
+        self.pixel_flux = stretch is not None
+        _, self.scale, self.top = stretch if stretch is not None else (0.0, 1.0, 1.0)
+        self.area, self.log_flux_offset = float(area), float(log_flux_offset)
+        self.max_peak_share = float(max_peak_share)
+        self.register_buffer(
+            "box",
+            torch.tensor([[dy, dx] for dy in range(-2, 3) for dx in range(-2, 3)], dtype=torch.int64),
+            persistent=False,
+        )
+
     def rows(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rows (B, max_peaks, 3), strongest first, and their mask."""
+        """Rows (B, max_peaks, 3), strongest (or, with ``pixel_flux``, brightest) first, and their mask."""
         rows, mask = self.peaks(x)
-        return torch.cat([rows[..., :2], torch.zeros_like(rows[..., :1])], dim=-1), mask
+        if not self.pixel_flux:
+            return torch.cat([rows[..., :2], torch.zeros_like(rows[..., :1])], dim=-1), mask
+        return self.measure(x, rows, mask)
+
+    def measure(self, x: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The peaks ``rows`` / ``mask`` of images ``x`` with their pixel flux, defects dropped, brightest first."""
+        adu = self.scale * torch.expm1(x[:, 0].float() * self.top)  # stored ADU above the bias
+        b, h, w = adu.shape
+        flat = adu.reshape(b, -1)
+        sky = flat.median(dim=1).values
+        u = ((rows[..., 0].float() + 1) * (w / 2) - 0.5).round().long().clamp(2, w - 3)
+        v = (rows[..., 1].float() * (w / 2) + h / 2 - 0.5).round().long().clamp(2, h - 3)
+        at = (v * w + u)[..., None] + (self.box[:, 0] * w + self.box[:, 1])  # (B, P, 25)
+        px = torch.gather(flat, 1, at.reshape(b, -1)).reshape(at.shape) - sky[:, None, None]
+        flux = px.sum(dim=-1)
+        keep = mask
+        if self.max_peak_share < 1:  # 1: no cut (noise can put a faint peak's box sum below its top pixel)
+            keep = mask & (px.max(dim=-1).values.clamp(min=0) <= self.max_peak_share * flux.clamp(min=1e-9))
+        flux = flux.clamp(min=0) * self.area
+        feat = torch.log10(1 + flux) - self.log_flux_offset
+        out = torch.cat([rows[..., :2].float(), feat[..., None]], dim=-1)
+        order = torch.sort(flux.masked_fill(~keep, -1.0), dim=1, descending=True, stable=True).indices
+        out = torch.gather(out, 1, order[..., None].expand_as(out))
+        keep = torch.gather(keep, 1, order)
+        return (out * keep[..., None]).to(rows.dtype), keep
 
 
 # --------------------------------------------------------------------------- the fused model
@@ -729,8 +787,12 @@ def create_model(
     max_stars: int = 6,
     load_pretrained: bool = True,
     fine_classes: int | None = None,
+    pre: Preprocessor | None = None,
 ) -> StarFusion:
     """Build registered model ``name`` with K = ``num_classes`` outputs from a :class:`ModelConfig`.
+
+    ``pre``: the training data's :class:`~fusion.model.inputs.Preprocessor`, whose stretch and
+    binning ``model.peaks.pixel_flux`` inverts (the tied image view); other models ignore it.
 
     ``load_pretrained=False`` builds the architecture of a pretrained model (3 channels,
     ImageNet input statistics) without fetching the weights, e.g. to load a checkpoint.
@@ -744,7 +806,26 @@ def create_model(
             p = cfg.peaks
             backbone = PeakSet(p.max_peaks, p.threshold_sigma, p.max_sharpness, p.dim, p.layers, p.heads, p.out_dim)
         elif cfg.image_backbone == "peak_rows":  # as many rows as the detections have (data.max_stars)
-            backbone = PeakRows(max_stars, cfg.peaks.threshold_sigma, cfg.peaks.max_sharpness)
+            p = cfg.peaks
+            if p.pixel_flux and pre is None:
+                raise ConfigError(
+                    "model.peaks.pixel_flux inverts the training data's stretch, but no render config was given "
+                    "(a checkpoint from before render_config was stored); re-train it, or set pixel_flux=false"
+                )
+            if p.pixel_flux and binning != 1:
+                raise ConfigError(
+                    "model.peaks.pixel_flux measures the stored pixels; leave model.image_px unset "
+                    f"(not {cfg.image_px})"
+                )
+            photometry = {}
+            if p.pixel_flux and pre is not None:
+                photometry = dict(
+                    stretch=pre.stretch(),
+                    area=float(pre.geo.factor) ** 2,
+                    log_flux_offset=pre.log_flux_offset,
+                    max_peak_share=p.max_peak_share,
+                )
+            backbone = PeakRows(max_stars, p.threshold_sigma, p.max_sharpness, **photometry)
         else:
             backbone = create_backbone(
                 cfg.image_backbone, cfg.in_chans, image_size // binning, cfg.pretrained if load_pretrained else None

@@ -159,6 +159,7 @@ def build_model(cfg: FusionConfig, data: PreparedData, fresh: bool, say) -> Star
         image_size=data.ds.image_shape[0],
         max_stars=cfg.data.max_stars,
         fine_classes=cfg.labels.fine_k,
+        pre=data.val.pre,
     )
     if data.regions.fine is not None and model.fine_classes:
         model.fine_groups.copy_(torch.from_numpy(data.regions.groups))
