@@ -532,7 +532,7 @@ class PeakRows(ImagePeaks):
     positions, and the peaks find it (``tests/test_peak_set.py`` checks a rendered frame). An
     encoder of its own must learn the sky again from rendered frames, ~10x dearer than detection
     sets (configs/cpu-fusion.yaml); tied to the coordinate branch, it knows what the detections
-    taught. The flux column is 0: a peak's strength in the log-stretched image is not the
+    taught. By default the flux column is 0: a peak's strength in the log-stretched image is not the
     detector's flux, so the coordinate branch learns flux-free rows too (``model.flux_dropout``).
     No parameters. Measured (results/cpu30/views.md): at the cpu-views budget the network barely
     reads flux-free rows, so this view alone is weak (~20 % top-1).
@@ -546,7 +546,8 @@ class PeakRows(ImagePeaks):
     :func:`~fusion.model.inputs.encode_detections` does. Rows go brightest first. A peak whose
     brightest stored pixel holds more than ``max_peak_share`` of that sum is dropped: in linear ADU a
     star spreads over the box and a hot pixel or cosmic-ray hit does not, which the log stretch hides
-    from the peaks' own 3 x 3 sharpness cut (``tests/test_peak_rows.py`` checks both on renders)."""
+    from the peaks' own 3 x 3 sharpness cut (``tests/test_peak_rows.py``: the flux and the cut on a
+    synthetic frame, the flux against the detector's on skygen renders)."""
 
     num_features = 0
 
