@@ -198,8 +198,10 @@ class Checkpoint:
         from .networks import create_model
 
         cfg = self.fusion_config
-        rc = self.render_config
-        pre = None if rc is None else Preprocessor.from_configs(rc, cfg.data, self.max_stars)
+        rc = self.render_config  # only the pixel-flux view needs the training data's stretch
+        pre = None
+        if rc is not None and cfg.model.peaks.pixel_flux:
+            pre = Preprocessor.from_configs(rc, cfg.data, self.max_stars)
         model = create_model(
             cfg.model.name,
             self.num_classes,
