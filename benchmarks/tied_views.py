@@ -20,7 +20,14 @@ test frames:
   detections as the model fuses its views. A model trained with ``pixel_flux`` scores this in its own
   ``image`` and ``fused`` columns;
 - ``image weight A`` (``--image-weight A ...``): the views fused with weights 1 - A and A instead of the
-  model's equal weights (the image view as in ``fused``, or the probe's).
+  model's own (the image view as in ``fused``, or the probe's).
+
+``--choose-weight`` (a model trained with ``model.peaks.pixel_flux``; run it on the validation split)
+also searches ``model.peaks.image_weight`` and ``image_weight_stars`` (the image view's weight at few
+and at many detections, linear in the count between) on a grid, by the mean top-1 over the clean cells
+(whole frames, the brightest 3 / 4 / 6, and the whole frames of each ``--extra-data`` dataset, e.g.
+corrupted frames), with the model's own code (``StarFusion.view_weight``), and prints the best settings
+beside the model's own. Several checkpoints pool their frames (e.g. three seeds of one preset).
 
 Cells: whole frames, the brightest 3 / 4 / 6 detections (the image untouched, as ``fusion evaluate
 --brightest N``), and the brightest 6 after magnitude noise (each detection's flux scaled by
@@ -42,7 +49,7 @@ import numpy as np
 import torch
 
 from fusion.model.checkpoint import load_checkpoint
-from fusion.model.networks import PeakRows
+from fusion.model.networks import PeakRows, StarFusion
 from fusion.model.shards import FrameDataset, boresight_vectors, split_positions
 from skygen.datasets.shards import open_dataset
 from skygen.runtime import hardware_line
@@ -105,9 +112,138 @@ def non_star_bright_peaks(ds, fd, rows: torch.Tensor, mask: torch.Tensor, js, to
     return n
 
 
+def weight_grid(model, kept: dict[str, list], show: int = 8) -> list[str]:
+    """Markdown lines: the best ``show`` (image_weight, image_weight_stars) settings on the kept cells by
+    their mean top-1, and the model's own, each fused by the model's ``view_weight``."""
+    cells = {lab: [torch.cat(parts) for parts in zip(*batches)] for lab, batches in kept.items()}
+    own = (model.image_weight, model.image_weight_stars)
+
+    def score(weight, stars) -> list[float]:
+        model.image_weight, model.image_weight_stars = weight, stars
+        out = []
+        for det, img, mask, pmask, y in cells.values():
+            w = model.view_weight(mask, pmask)[:, None]
+            out.append(100 * float((((1 - w) * det + w * img).argmax(dim=1) == y).float().mean()))
+        return out
+
+    grid = []
+    for few in (0.3, 0.4, 0.5, 0.6, 0.7):
+        for many in (0.0, 0.05, 0.1, 0.2, 0.3, 0.5):
+            for n_few in (3, 4, 5, 6):
+                for n_many in (4, 6, 8, 10, 12, 16, 20):
+                    if n_many >= n_few:
+                        grid.append(((few, many), (n_few, n_many), score((few, many), (n_few, n_many))))
+    own_row = (*own, score(*own))
+    model.image_weight, model.image_weight_stars = own
+    grid.sort(key=lambda g: -float(np.mean(g[2])))
+    labels = list(cells)
+    lines = [
+        "Image-view weight searched (`--choose-weight`): top-1 (%) per cell, best "
+        f"{show} of {len(grid)} settings by their mean, and the model's own:",
+        "",
+        "| image_weight | image_weight_stars | " + " | ".join(labels) + " | mean |",
+        "|---|---|" + "---|" * (len(labels) + 1),
+    ]
+    for (few, many), (n_few, n_many), sc in [*grid[:show], own_row]:
+        lines.append(
+            f"| [{few:g}, {many:g}] | [{n_few}, {n_many}] | "
+            + " | ".join(f"{v:.1f}" for v in sc)
+            + f" | {np.mean(sc):.2f} |"
+        )
+    return lines
+
+
+def score(path: str, a: argparse.Namespace) -> tuple[list[str], StarFusion, dict[str, list]]:
+    """The table's lines for one checkpoint, its model, and (``--choose-weight``) its clean cells'
+    per-frame view log-probabilities."""
+    ckpt = load_checkpoint(path)
+    model, cfg = ckpt.build_model().eval(), ckpt.fusion_config
+    tied = bool(getattr(model, "tied_view", False))
+
+    def frames(data: str) -> FrameDataset:
+        ds = open_dataset(data)
+        pos = split_positions(ds, a.split, a.frames)
+        return FrameDataset(
+            ds,
+            pos,
+            ckpt.regions.assign(boresight_vectors(ds, pos)),
+            max_stars=ckpt.max_stars,
+            norm_scale_adu=cfg.data.norm_scale_adu,
+            log_flux_offset=cfg.data.log_flux_offset,
+        )
+
+    fd = frames(a.data)
+    ds, pos = fd.ds, fd.positions
+    todo = [(label, fd, n, sigma) for label, n, sigma in cells(a.noise)]
+    todo += [(f"whole frame, {Path(d).name}", frames(d), None, 0.0) for d in a.extra_data]
+    views = ["detections", "detections, no flux"]
+    probe = None
+    if tied and not model.image.backbone.pixel_flux:
+        probe = pixel_flux_view(model, fd.pre, a.max_peak_share)
+        views = ["fused", "detections", "image", "detections, no flux", "image, pixel flux", "fused, pixel flux"]
+    elif tied:  # the model's own image view measures pixel fluxes: no probe
+        views = ["fused", "detections", "image", "detections, no flux"]
+    if tied:
+        views += [f"image weight {w:g}" for w in a.image_weight]
+    if a.choose_weight and not (tied and model.image.backbone.pixel_flux):
+        raise SystemExit(
+            "--choose-weight: the checkpoint's image view must measure pixel fluxes (model.peaks.pixel_flux)"
+        )
+    rows = []
+    kept: dict[str, list] = {}  # clean cells, for --choose-weight: (det log-p, image log-p, mask, peak mask, y)
+    non_star = 0
+    with torch.no_grad():
+        for label, fd, n, sigma in todo:
+            hits: dict[str, list] = {v: [] for v in views}
+            for start in range(0, len(fd), 64):
+                image, coords, mask, y = batch(fd, range(start, min(start + 64, len(fd))), n, sigma, a.seed)
+                flat = torch.cat([coords[..., :2], torch.zeros_like(coords[..., 2:3]), coords[..., 3:]], dim=-1)
+                out = {"detections": model(None, coords, mask), "detections, no flux": model(None, flat, mask)}
+                if tied:
+                    out["fused"] = model(image, coords, mask)
+                    rows0, mask0 = model.image.rows(image)  # the tied view's peaks, read once per batch
+                    out["image"] = model(None, rows0, mask0)
+                    prow, pmask = (rows0, mask0) if probe is None else probe.measure(image, rows0, mask0)
+                    if probe is not None:
+                        out["image, pixel flux"] = model(None, prow, pmask)
+                        lp = torch.log_softmax(out["detections"], -1) + torch.log_softmax(out["image, pixel flux"], -1)
+                        out["fused, pixel flux"] = lp
+                    img = torch.log_softmax(out["image" if probe is None else "image, pixel flux"], -1)
+                    for w in a.image_weight:
+                        out[f"image weight {w:g}"] = (1 - w) * torch.log_softmax(out["detections"], -1) + w * img
+                    if a.choose_weight and sigma == 0:
+                        det = torch.log_softmax(out["detections"], -1)
+                        kept.setdefault(label, []).append((det, img, mask, pmask, y))
+                    if label == "whole frame" and (probe is not None or model.image.backbone.pixel_flux):
+                        js = range(start, min(start + 64, len(pos)))
+                        non_star += non_star_bright_peaks(ds, fd, prow, pmask, js)
+                for v in views:
+                    hits[v].append((out[v].argmax(dim=1) == y).numpy())
+            rows.append((label, {v: 100 * float(np.concatenate(h).mean()) for v, h in hits.items()}))
+    lines = [
+        f"Region top-1 (%) of `{path}` (K = {ckpt.num_classes}) on the {len(pos)} {a.split} frames of `{a.data}`:",
+        "",
+        "| cell | " + " | ".join(views) + " |",
+        "|---|" + "---|" * len(views),
+    ]
+    lines += [f"| {lab} | " + " | ".join(f"{r[v]:.1f}" for v in views) + " |" for lab, r in rows]
+    if tied and (probe is not None or model.image.backbone.pixel_flux):
+        lines += [
+            "",
+            f"Frames with a peak among their three brightest (pixel flux) that no catalogue star explains "
+            f"(none within 2 px): {non_star} of {len(pos)}.",
+        ]
+    return lines + [""], model, kept
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", required=True, help="a fusion checkpoint (best.pt)")
+    ap.add_argument(
+        "--checkpoint",
+        required=True,
+        nargs="+",
+        help="fusion checkpoints (best.pt), each scored in its own table; --choose-weight pools their frames",
+    )
     ap.add_argument("--data", required=True, help="a skygen dataset of the checkpoint's camera")
     ap.add_argument("--split", default="test", help="split to score (default test)")
     ap.add_argument("--frames", type=int, help="first N frames of the split (default all)")
@@ -128,74 +264,31 @@ def main(argv=None) -> int:
         default=0.9,
         help="the probe's defect cut (model.peaks.max_peak_share; default 0.9)",
     )
+    ap.add_argument(
+        "--choose-weight",
+        action="store_true",
+        help="also grid-search model.peaks.image_weight / image_weight_stars by the mean top-1 of the clean cells "
+        "(a pixel-flux model; use --split val)",
+    )
+    ap.add_argument(
+        "--extra-data",
+        nargs="*",
+        default=[],
+        metavar="DIR",
+        help="more datasets of the checkpoint's camera (e.g. corrupted frames), whose whole frames of the same "
+        "split are one more cell each (and count in --choose-weight)",
+    )
     ap.add_argument("--out", type=Path, help="also write the table (Markdown) here")
     a = ap.parse_args(argv)
-    ckpt = load_checkpoint(a.checkpoint)
-    model, cfg = ckpt.build_model().eval(), ckpt.fusion_config
-    tied = bool(getattr(model, "tied_view", False))
-    ds = open_dataset(a.data)
-    pos = split_positions(ds, a.split, a.frames)
-    labels = ckpt.regions.assign(boresight_vectors(ds, pos))
-    fd = FrameDataset(
-        ds,
-        pos,
-        labels,
-        max_stars=ckpt.max_stars,
-        norm_scale_adu=cfg.data.norm_scale_adu,
-        log_flux_offset=cfg.data.log_flux_offset,
-    )
-    views = ["detections", "detections, no flux"]
-    probe = None
-    if tied and not model.image.backbone.pixel_flux:
-        probe = pixel_flux_view(model, fd.pre, a.max_peak_share)
-        views = ["fused", "detections", "image", "detections, no flux", "image, pixel flux", "fused, pixel flux"]
-    elif tied:  # the model's own image view measures pixel fluxes: no probe
-        views = ["fused", "detections", "image", "detections, no flux"]
-    if tied:
-        views += [f"image weight {w:g}" for w in a.image_weight]
-    rows = []
-    non_star = 0
-    with torch.no_grad():
-        for label, n, sigma in cells(a.noise):
-            hits: dict[str, list] = {v: [] for v in views}
-            for start in range(0, len(pos), 64):
-                image, coords, mask, y = batch(fd, range(start, min(start + 64, len(pos))), n, sigma, a.seed)
-                flat = torch.cat([coords[..., :2], torch.zeros_like(coords[..., 2:3]), coords[..., 3:]], dim=-1)
-                out = {"detections": model(None, coords, mask), "detections, no flux": model(None, flat, mask)}
-                if tied:
-                    out["fused"] = model(image, coords, mask)
-                    rows0, mask0 = model.image.rows(image)  # the tied view's peaks, read once per batch
-                    out["image"] = model(None, rows0, mask0)
-                    prow, pmask = (rows0, mask0) if probe is None else probe.measure(image, rows0, mask0)
-                    if probe is not None:
-                        out["image, pixel flux"] = model(None, prow, pmask)
-                        lp = torch.log_softmax(out["detections"], -1) + torch.log_softmax(out["image, pixel flux"], -1)
-                        out["fused, pixel flux"] = lp
-                    img = torch.log_softmax(out["image" if probe is None else "image, pixel flux"], -1)
-                    for w in a.image_weight:
-                        out[f"image weight {w:g}"] = (1 - w) * torch.log_softmax(out["detections"], -1) + w * img
-                    if n is None and sigma == 0 and (probe is not None or model.image.backbone.pixel_flux):
-                        js = range(start, min(start + 64, len(pos)))
-                        non_star += non_star_bright_peaks(ds, fd, prow, pmask, js)
-                for v in views:
-                    hits[v].append((out[v].argmax(dim=1) == y).numpy())
-            rows.append((label, {v: 100 * float(np.concatenate(h).mean()) for v, h in hits.items()}))
-    lines = [
-        f"Region top-1 (%) of `{a.checkpoint}` (K = {ckpt.num_classes}) on the {len(pos)} {a.split} frames of "
-        f"`{a.data}`:",
-        "",
-        "| cell | " + " | ".join(views) + " |",
-        "|---|" + "---|" * len(views),
-    ]
-    lines += [f"| {lab} | " + " | ".join(f"{r[v]:.1f}" for v in views) + " |" for lab, r in rows]
-    if tied and (probe is not None or model.image.backbone.pixel_flux):
-        lines += [
-            "",
-            f"Frames with a peak among their three brightest (pixel flux) that no catalogue star explains "
-            f"(none within 2 px): {non_star} of {len(pos)}.",
-        ]
+    lines, kept, model = [], {}, None
+    for path in a.checkpoint:
+        text, model, cells_kept = score(path, a)
+        lines += text
+        for label, batches in cells_kept.items():  # pooled over checkpoints: the same frames once per model
+            kept.setdefault(label, []).extend(batches)
+    if a.choose_weight:
+        lines += weight_grid(model, kept) + [""]
     lines += [
-        "",
         "command: `python benchmarks/tied_views.py " + " ".join(argv or sys.argv[1:]) + "`",
         f"hardware: {hardware_line()} (top-1 does not depend on it)",
     ]

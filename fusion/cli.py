@@ -214,6 +214,15 @@ def _add_evaluate(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="score frames the checkpoint was trained on (refused by default) with a loud warning",
     )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change a config key no trained weight depends on before scoring (repeatable; only "
+        "model.peaks.image_weight, model.peaks.image_weight_stars and model.peaks.max_peak_share: how a tied "
+        "model weighs and cuts its image view), e.g. --set 'model.peaks.image_weight=[0.5,0]'",
+    )
 
 
 def _run_evaluate(args: argparse.Namespace) -> int:
@@ -230,6 +239,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         allow_overlap=args.allow_overlap,
         keep_brightest=args.brightest,
+        overrides=args.set,
     )
     return 0
 

@@ -135,6 +135,22 @@ class PeaksConfig:
         "ADU) is a hot pixel or cosmic-ray hit, not a star spread by the PSF, and is dropped (1: keep all; 0.9 was "
         "the best of 0.7-1.0 on the cpu30 validation frames, results/cpu30/views.md)",
     )
+    image_weight: tuple[float, float] = param(
+        (0.5, 0.5),
+        lo=0,
+        hi=1,
+        doc="peak_rows only: the image view's weight in the fused log-probability at few detections and at many "
+        "(linear in the frame's detection count between image_weight_stars; the detections' view gets 1 minus it). "
+        "(0.5, 0.5) is the views' plain mean; inference only (no parameter depends on it), so `fusion evaluate "
+        "--set` may change it on a trained checkpoint",
+    )
+    image_weight_stars: tuple[int, int] = param(
+        (3, 8),
+        lo=1,
+        hi=4096,
+        doc="the detection counts at which image_weight's first and second values apply (at most the first: the "
+        "first value; at least the second: the second)",
+    )
     dim: int = param(64, lo=8, hi=4096, doc="token width of the peaks' transformer")
     layers: int = param(2, lo=1, hi=64, doc="encoder layers of the peaks' transformer")
     heads: int = param(4, lo=1, hi=64, doc="attention heads of the peaks' transformer")
@@ -170,6 +186,13 @@ class TransformerConfig:
     layers: int = param(3, lo=1, hi=48, doc="encoder layers")
     heads: int = param(4, lo=1, hi=64, doc="attention heads (must divide dim)")
     ff_mult: int = param(2, lo=1, hi=16, doc="feed-forward width = ff_mult x dim")
+    pair_features: bool = param(
+        False,
+        doc="give the encoder the detections' mutual distances, which neither roll nor brightness changes: each "
+        "token gains its distances to its pair_neighbours nearest detections, and every attention layer a "
+        "learned bias per head from each pair's distance (a pattern the network can match without fluxes)",
+    )
+    pair_neighbours: int = param(4, lo=1, hi=64, doc="pair_features: nearest-neighbour distances per token")
 
 
 @dataclass(frozen=True)
@@ -438,6 +461,12 @@ def check_consistency(cfg: FusionConfig) -> None:
         raise ConfigError(
             "stream.kind=detections makes no images, but model.branches.image is on; use "
             "--stream frames, or switch the image branch off (model.branches.image=false)"
+        )
+    lo, hi = cfg.model.peaks.image_weight_stars
+    if lo > hi:
+        raise ConfigError(
+            f"model.peaks.image_weight_stars={[lo, hi]}: the first count (few detections) must not exceed the "
+            f"second (many), e.g. [{hi}, {lo}]"
         )
     if cfg.model.peaks.pixel_flux and (cfg.model.image_backbone != "peak_rows" or not cfg.model.branches.image):
         raise ConfigError(

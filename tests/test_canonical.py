@@ -206,3 +206,53 @@ def test_rotate_image_is_affine_grid_written_out():
         atol=1e-5,
         rtol=0,
     )
+
+
+def test_pair_distances_are_the_patterns_own_and_ignore_padding():
+    """Each detection's nearest-neighbour distances, nearest first; PAIR_FAR where fewer detections exist;
+    padding rows 0 and never anyone's neighbour."""
+    from fusion.model.networks import PAIR_FAR, pair_distances
+
+    xy = torch.tensor([[[0.0, 0.0], [0.3, 0.4], [0.0, -0.2], [9.0, 9.0]]])
+    mask = torch.tensor([[True, True, True, False]])
+    d, pair, near = pair_distances(xy, mask, 3)
+    assert d[0, 0, 1] == pytest.approx(0.5) and not pair[0, 0, 0] and not pair[0, 0, 3]
+    torch.testing.assert_close(near[0, 0], torch.tensor([0.2, 0.5, PAIR_FAR]))
+    torch.testing.assert_close(near[0, 1], torch.tensor([0.5, math.hypot(0.3, 0.6), PAIR_FAR]))
+    assert near[0, 3].eq(0).all()
+    _, _, ang = pair_distances(_rotate(torch.cat([xy, torch.zeros(1, 4, 1)], -1), 1.1)[..., :2], mask, 3)
+    torch.testing.assert_close(ang, near)  # roll does not move them
+
+
+@pytest.mark.parametrize("mode", ["none", "brightest", "nearest"])
+def test_pair_features_keep_the_model_invariant_and_change_its_output(mode):
+    """model.transformer.pair_features: a canonical model stays exactly roll-invariant, padding content
+    is ignored, and the pattern's distances reach the output (a model without them differs)."""
+    cfg = {
+        "coord_encoder": "transformer",
+        "branches": {"image": False, "heatmap": False},
+        "canonical": {"mode": mode},
+        "transformer": {"dim": 32, "layers": 2, "heads": 4, "pair_features": True},
+    }
+    torch.manual_seed(0)
+    model = create_model("star_fusion", 15, build_config({"model": cfg}).model, max_stars=20).eval()
+    coords, mask = _inputs()
+    with torch.no_grad():
+        ref = model(None, coords, mask)
+        assert torch.isfinite(ref).all()
+        junk = coords.clone()
+        junk[~mask] = 7.0
+        torch.testing.assert_close(model(None, junk, mask), ref, atol=1e-5, rtol=0)
+        if mode != "none":
+            ok = mask.sum(1) >= 1
+            out = model(None, _rotate(coords, 2.2) * mask[..., None], mask)
+            torch.testing.assert_close(out[ok], ref[ok], atol=3e-5, rtol=1e-5)
+    # the same output in training mode (with gradients) as at inference: torch's fast inference path
+    # mishandles a per-head float attention mask, which the pair bias must not take
+    torch.testing.assert_close(model.train()(None, coords, mask), ref, atol=1e-5, rtol=0)
+    model.eval()
+    with torch.no_grad():
+        enc = model.coords
+        enc.pair_bias[-1].weight.data.zero_()
+        enc.pair_bias[-1].bias.data.zero_()
+        assert (model(None, coords, mask) - ref)[mask.sum(1) >= 2].abs().max() > 1e-4  # the bias mattered

@@ -463,3 +463,25 @@ def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(s
     assert table["whole frame"][0] == pytest.approx(100 * whole["top1"], abs=0.051)  # the table has 0.1 %
     assert table["brightest 3"][0] == pytest.approx(100 * three["top1"], abs=0.051)
     assert table["whole frame"][2] == table["brightest 3"][2]  # the image view sees the whole frame in both
+    if not pixel_flux:
+        return
+    # the views' weights are inference keys: `fusion evaluate --set` changes them on the trained model
+    # (image weight 0: the detections view alone), other keys are refused
+    alone = evaluate_checkpoint(
+        run / "best.pt",
+        smoke[0],
+        "test",
+        tmp_path / "w",
+        log=quiet,
+        overrides=["model.peaks.image_weight=[0,0]"],
+    )
+    assert alone["top1"] == pytest.approx(table["whole frame"][1] / 100, abs=0.00051)
+    assert alone["overrides"] == ["model.peaks.image_weight=[0,0]"]
+    assert "model.peaks.image_weight=[0,0]" in (tmp_path / "w" / "eval-test.md").read_text()
+    with pytest.raises(ConfigError, match="cannot change on a trained model"):
+        evaluate_checkpoint(run / "best.pt", smoke[0], "test", tmp_path / "x", log=quiet, overrides=["labels.k=3"])
+    # --choose-weight scores the model's own setting as `fusion evaluate` does
+    grid = tmp_path / "grid.md"
+    mod.main(["--checkpoint", str(run / "best.pt"), "--data", str(smoke[0]), "--noise", "--choose-weight", "--out", str(grid)])
+    own = [line for line in grid.read_text().splitlines() if line.startswith("| [0.5, 0.5] | [3, 8] |")]
+    assert float(own[-1].split("|")[3]) == pytest.approx(100 * whole["top1"], abs=0.051)

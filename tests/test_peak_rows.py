@@ -76,6 +76,30 @@ def test_fused_output_is_the_views_mean_log_probability():
         assert fine(img, few, mask).shape == (1, 15)
 
 
+def test_the_image_views_weight_falls_with_the_detection_count():
+    """model.peaks.image_weight (few, many) is linear in the detection count between image_weight_stars:
+    at 3 detections the fused output is log_softmax(0.4 det + 0.6 image), at 5 0.35, at 7 or more 0.1."""
+    model = _tied(peaks={"image_weight": [0.6, 0.1], "image_weight_stars": [3, 7]}).eval()
+    img, rows = _frame(STARS)
+    prow, pmask = model.image.rows(img)
+    with torch.no_grad():
+        view = torch.log_softmax(model(None, prow, pmask), -1)
+        for n, a in ((3, 0.6), (5, 0.35)):
+            few, mask = rows[:, :n], torch.ones(1, n, dtype=torch.bool)
+            det = torch.log_softmax(model(None, few, mask), -1)
+            want = torch.log_softmax((1 - a) * det + a * view, -1)
+            torch.testing.assert_close(model(img, few, mask), want, atol=1e-5, rtol=0)
+    counts = torch.arange(12)[:, None] > torch.arange(12)[None]  # row i: i detections
+    a = model.view_weight(counts, torch.ones(12, 4, dtype=torch.bool))
+    torch.testing.assert_close(a[1:], torch.tensor([0.6, 0.6, 0.6, 0.475, 0.35, 0.225, 0.1, 0.1, 0.1, 0.1, 0.1]))
+    assert a[0] == 1  # no detection: the image alone
+    assert model.view_weight(counts, torch.zeros(12, 4, dtype=torch.bool)).eq(0).all()  # no peak: detections
+    with pytest.raises(ConfigError, match="image_weight_stars"):
+        load_config(None, ["model.peaks.image_weight_stars=[8,4]"])
+    with pytest.raises(ConfigError, match="image_weight"):
+        load_config(None, ["model.peaks.image_weight=[0.5,1.5]"])
+
+
 def test_tied_model_is_roll_invariant():
     """A quarter turn of the image (exact: no resampling) and of the detections gives the same output."""
     model = _tied().eval()

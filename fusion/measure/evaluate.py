@@ -136,6 +136,7 @@ def evaluate_checkpoint(
     max_frames: int | None = None,
     allow_overlap: bool = False,
     keep_brightest: int | None = None,
+    overrides: Sequence[str] = (),
     log=print,
     warn=None,
 ) -> dict:
@@ -147,7 +148,9 @@ def evaluate_checkpoint(
     Refuses (DatasetError) frames a checkpoint was trained on unless ``allow_overlap``;
     ``warn`` (default: print to stderr) receives the warnings. ``keep_brightest`` = N scores
     few-star frames: each frame keeps its brightest N detections (the image is untouched), and
-    the files are named ``eval-<split>-brightest<N>.*``.
+    the files are named ``eval-<split>-brightest<N>.*``. ``overrides`` (``key=value``) change config keys
+    no trained weight depends on (:data:`fusion.model.checkpoint.INFERENCE_KEYS`) in every checkpoint
+    before it is scored; the report records them.
     """
     import sys
 
@@ -182,6 +185,7 @@ def evaluate_checkpoint(
             max_frames=max_frames,
             allow_overlap=allow_overlap,
             keep_brightest=keep_brightest,
+            overrides=list(overrides),
             log=log,
             warn=warn,
         )
@@ -219,11 +223,12 @@ def _evaluate(
     max_frames: int | None,
     allow_overlap: bool,
     keep_brightest: int | None,
+    overrides: list[str],
     log,
     warn,
 ) -> dict:
     """The report of :func:`evaluate_checkpoint` (everything but writing it)."""
-    ckpts = [load_checkpoint(p) for p in paths]
+    ckpts = [load_checkpoint(p).with_inference_overrides(overrides) for p in paths]
     centroids = ckpts[0].centroids
     for p, c in zip(paths[1:], ckpts[1:]):
         if c.centroids.shape != centroids.shape or not np.allclose(c.centroids, centroids, atol=1e-9):
@@ -280,6 +285,7 @@ def _evaluate(
             "device": str(dev),
             "hardware": hardware(dev),
             "keep_brightest": keep_brightest,
+            "overrides": overrides,
         }
     )
     if not one:
@@ -371,6 +377,13 @@ def markdown_report(r: dict) -> str:
         ),
         "",
     ]
+    if r.get("overrides"):
+        lines += [
+            "Scored with inference keys changed from the trained config: "
+            + ", ".join(f"`{o}`" for o in r["overrides"])
+            + ".",
+            "",
+        ]
     if _all_differences(r):
         lines += [
             f"**Warning:** the data was rendered with other frame settings than the training data "

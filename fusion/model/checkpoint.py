@@ -48,7 +48,7 @@ import hashlib
 import io
 import platform
 import sys
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +78,12 @@ def versions() -> dict:
         "numpy": str(np.__version__),
         "python": platform.python_version(),
     }
+
+
+#: config keys that no trained weight depends on, so that ``fusion evaluate --set`` may change them on a
+#: trained model: the tied views' weighing and the image view's defect cut (the tied image view has no
+#: parameters, and the model trains on detections only)
+INFERENCE_KEYS = ("model.peaks.image_weight", "model.peaks.image_weight_stars", "model.peaks.max_peak_share")
 
 
 @dataclass
@@ -191,6 +197,25 @@ class Checkpoint:
                 "training dataset) to take the camera and detector from there"
             )
         return rc
+
+    def with_inference_overrides(self, overrides: list[str] | tuple[str, ...]) -> "Checkpoint":
+        """A copy whose config has ``key=value`` ``overrides`` applied, for keys no trained weight depends on
+        (:data:`INFERENCE_KEYS`, e.g. how the tied views are weighed); any other key is refused, since the
+        weights were trained for its old value."""
+        from skygen.configlib import merge_overrides, parse_override
+
+        from ..config import build_config
+
+        for text in overrides:
+            key = ".".join(parse_override(text)[0])
+            if key not in INFERENCE_KEYS:
+                raise ConfigError(
+                    f"--set {text}: {key} cannot change on a trained model (its weights were trained with the old "
+                    f"value); only {', '.join(INFERENCE_KEYS)} may. Train with it instead: fusion train --set {text}"
+                )
+        config = merge_overrides(self.config, list(overrides))
+        build_config(config)  # the new values checked (range, type, consistency) before any work
+        return replace(self, config=config)
 
     def build_model(self):
         """The model, rebuilt from this checkpoint's own config, with its weights, on the CPU, in eval mode."""

@@ -355,11 +355,37 @@ class SetEncoder(nn.Module):
         return self.rho(torch.cat([mean, mx], dim=-1))
 
 
+#: the distance given for a missing neighbour (normalised units; two detections on the sensor are at most
+#: 2 sqrt(2) ~ 2.83 apart)
+PAIR_FAR = 3.0
+
+
+def pair_distances(xy: torch.Tensor, mask: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Distances between the detections ``xy`` (B, M, 2) (float32, (B, M, M)), which pairs are two distinct
+    detections (B, M, M), and each detection's distances to its ``k`` nearest others, nearest first
+    (B, M, k; :data:`PAIR_FAR` where it has fewer, 0 on padding rows)."""
+    b, m = mask.shape
+    xy = xy.float()
+    d = torch.linalg.vector_norm(xy[:, :, None] - xy[:, None], dim=-1)
+    pair = mask[:, :, None] & mask[:, None] & ~torch.eye(m, dtype=torch.bool, device=mask.device)
+    far = d.masked_fill(~pair, PAIR_FAR)
+    kk = min(k, max(m - 1, 1))
+    near = far.topk(kk, dim=-1, largest=False).values
+    if kk < k:
+        near = torch.cat([near, near.new_full((b, m, k - kk), PAIR_FAR)], dim=-1)
+    return d, pair, near.masked_fill(~mask[..., None], 0.0)
+
+
 class TransformerSetEncoder(nn.Module):
     """Transformer over the detections: per-star tokens ``[x, y, log_flux, r]`` (r = distance
     from the centre, derived), a learned summary token, pre-norm encoder layers with the
     padding masked out, output = the summary token concatenated with the masked mean,
     projected to ``out_dim``. Permutation-invariant; an empty set gives the summary token alone.
+
+    ``pair_neighbours`` = k > 0 (``model.transformer.pair_features``): the star pattern itself, which
+    neither roll nor brightness changes: each token also carries its distances to its k nearest
+    detections (:data:`PAIR_FAR` where it has fewer), and every attention layer adds a learned bias
+    per head, a small MLP of the pair's distance, to the attention scores of that pair.
     """
 
     def __init__(
@@ -370,9 +396,16 @@ class TransformerSetEncoder(nn.Module):
         heads: int = 4,
         ff_mult: int = 2,
         out_dim: int = 256,
+        pair_neighbours: int = 0,
     ):
         super().__init__()
-        self.embed = nn.Sequential(nn.Linear(n_features + 1, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.heads, self.pair_neighbours = heads, int(pair_neighbours)
+        self.pair_bias = (
+            nn.Sequential(nn.Linear(1, 32), nn.GELU(), nn.Linear(32, heads)) if self.pair_neighbours else None
+        )
+        self.embed = nn.Sequential(
+            nn.Linear(n_features + 1 + self.pair_neighbours, dim), nn.GELU(), nn.Linear(dim, dim)
+        )
         self.summary = nn.Parameter(torch.zeros(1, 1, dim))
         layer = nn.TransformerEncoderLayer(
             dim, heads, ff_mult * dim, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
@@ -384,13 +417,36 @@ class TransformerSetEncoder(nn.Module):
 
     def forward(self, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         r = torch.linalg.vector_norm(coords[..., :2], dim=-1, keepdim=True)
-        tok = self.embed(torch.cat([coords, r], dim=-1))  # (B, M, D)
-        tok = torch.cat([self.summary.expand(tok.shape[0], -1, -1), tok], dim=1)
         pad = torch.cat([torch.zeros_like(mask[:, :1]), ~mask], dim=1)  # True = ignore
-        h = self.norm(self.encoder(tok, src_key_padding_mask=pad))
+        if not self.pair_neighbours:
+            tok = self.embed(torch.cat([coords, r], dim=-1))  # (B, M, D)
+            tok = torch.cat([self.summary.expand(tok.shape[0], -1, -1), tok], dim=1)
+            h = self.norm(self.encoder(tok, src_key_padding_mask=pad))
+        else:
+            h = self.norm(self._pair_encode(coords, mask, r, pad))
         m = mask[..., None].to(h.dtype)
         mean = (h[:, 1:] * m).sum(dim=1) / m.sum(dim=1).clamp(min=1)
         return self.proj(torch.cat([h[:, 0], mean], dim=-1))
+
+    def _pair_encode(self, coords, mask, r, pad) -> torch.Tensor:
+        """The encoder's output with the pair features (see the class docstring)."""
+        b, m = mask.shape
+        d, pair, near = pair_distances(coords[..., :2], mask, self.pair_neighbours)
+        tok = self.embed(torch.cat([coords, r, near.to(coords.dtype)], dim=-1))
+        tok = torch.cat([self.summary.expand(b, -1, -1), tok], dim=1)
+        bias = self.pair_bias(d[..., None]).masked_fill(~pair[..., None], 0.0)  # (B, M, M, heads)
+        full = bias.new_zeros(b, self.heads, m + 1, m + 1)
+        full[:, :, 1:, 1:] = bias.permute(0, 3, 1, 2)
+        full = full.masked_fill(pad[:, None, None, :], float("-inf"))  # padding as -inf, one float mask
+        full = full.reshape(b * self.heads, m + 1, m + 1).to(tok.dtype)
+        # the encoder's layers, pre-norm, called block by block: nn.TransformerEncoder's inference fast path
+        # (eval mode without gradients) mishandles a per-head float mask (torch 2.x: its output differs
+        # from training mode's); MultiheadAttention itself takes the exact path for a float mask
+        x = tok
+        for layer in self.encoder.layers:
+            x = x + layer._sa_block(layer.norm1(x), full, None)
+            x = x + layer._ff_block(layer.norm2(x))
+        return x
 
 
 class ImagePeaks(nn.Module):
@@ -618,8 +674,12 @@ class StarFusion(nn.Module):
         relative_flux: bool = False,
         detections_dropout: float = 0.0,
         flux_dropout: float = 0.0,
+        image_weight: tuple[float, float] = (0.5, 0.5),
+        image_weight_stars: tuple[int, int] = (3, 8),
     ):
         super().__init__()
+        self.image_weight = (float(image_weight[0]), float(image_weight[1]))
+        self.image_weight_stars = (int(image_weight_stars[0]), int(image_weight_stars[1]))
         self.canonical = canonical if canonical is not None and canonical.mode != "none" else None
         self.relative_flux = relative_flux
         if image is None and heatmap is None and coords is None:
@@ -706,8 +766,8 @@ class StarFusion(nn.Module):
         With the tied image view (``model.image_backbone=peak_rows``) the image's peaks are a second
         set of rows through the same branches and head, and the output is the two views' mean
         log-probability, renormalised (a product of experts: the sharper view leads; a view with
-        no detection or no peak is left out). Without an image (the detections stream) the
-        detections alone."""
+        no detection or no peak is left out), weighted by :meth:`view_weight` (equal by default).
+        Without an image (the detections stream) the detections alone."""
         if self.training and self.flux_dropout > 0 and coords is not None:
             # these samples' flux column is 0, as the tied image view's rows are: the branches learn both
             drop = torch.rand(coords.shape[0], 1, 1, device=coords.device) < self.flux_dropout
@@ -720,11 +780,21 @@ class StarFusion(nn.Module):
         assert self.image is not None and mask is not None
         rows, pmask = self.image.rows(image)
         img = self._logits(None, rows.to(out.dtype), pmask, fine)
-        w = torch.stack([mask.any(dim=1), pmask.any(dim=1)], dim=1).to(out.dtype)  # (B, 2)
-        w[:, 0] = torch.where(w.sum(dim=1) == 0, torch.ones_like(w[:, 0]), w[:, 0])
-        logp = torch.stack([torch.log_softmax(out.float(), -1), torch.log_softmax(img.float(), -1)], dim=1)
-        mean = (logp * (w / w.sum(dim=1, keepdim=True))[..., None].float()).sum(dim=1)
+        a = self.view_weight(mask, pmask)[:, None]
+        mean = (1 - a) * torch.log_softmax(out.float(), -1) + a * torch.log_softmax(img.float(), -1)
         return torch.log_softmax(mean, dim=-1).to(out.dtype)
+
+    def view_weight(self, mask: torch.Tensor, pmask: torch.Tensor) -> torch.Tensor:
+        """The image view's weight per frame (B,), float32: ``model.peaks.image_weight`` linear in the
+        detection count between ``image_weight_stars`` (the geometry view gains trust with every
+        detection; the image's peaks do not depend on the detector); 1 with no detection, 0 with no
+        peak (or neither)."""
+        n = mask.sum(dim=1).float()
+        (w_few, w_many), (n_few, n_many) = self.image_weight, self.image_weight_stars
+        t = ((n - n_few) / (n_many - n_few)).clamp(0, 1) if n_many > n_few else (n >= n_many).float()
+        a = w_few + (w_many - w_few) * t
+        a = torch.where(mask.any(dim=1), a, torch.ones_like(a))
+        return torch.where(pmask.any(dim=1), a, torch.zeros_like(a))
 
     def _logits(
         self,
@@ -848,7 +918,12 @@ def create_model(
         else:
             t = cfg.transformer
             coords = TransformerSetEncoder(
-                dim=t.dim, layers=t.layers, heads=t.heads, ff_mult=t.ff_mult, out_dim=cfg.coord_hidden
+                dim=t.dim,
+                layers=t.layers,
+                heads=t.heads,
+                ff_mult=t.ff_mult,
+                out_dim=cfg.coord_hidden,
+                pair_neighbours=t.pair_neighbours if t.pair_features else 0,
             )
     return StarFusion(
         num_classes,
@@ -861,6 +936,8 @@ def create_model(
         relative_flux=cfg.relative_flux,
         detections_dropout=cfg.detections_dropout,
         flux_dropout=cfg.flux_dropout,
+        image_weight=cfg.peaks.image_weight,
+        image_weight_stars=cfg.peaks.image_weight_stars,
     )
 
 
