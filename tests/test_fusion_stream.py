@@ -482,6 +482,7 @@ def test_a_tied_model_trains_on_the_detections_stream_and_its_views_are_scored(s
         evaluate_checkpoint(run / "best.pt", smoke[0], "test", tmp_path / "x", log=quiet, overrides=["labels.k=3"])
     # --choose-weight scores the model's own setting as `fusion evaluate` does
     grid = tmp_path / "grid.md"
-    mod.main(["--checkpoint", str(run / "best.pt"), "--data", str(smoke[0]), "--noise", "--choose-weight", "--out", str(grid)])
+    args = ["--checkpoint", str(run / "best.pt"), "--data", str(smoke[0]), "--noise", "--choose-weight"]
+    mod.main([*args, "--out", str(grid)])
     own = [line for line in grid.read_text().splitlines() if line.startswith("| [0.5, 0.5] | [3, 8] |")]
     assert float(own[-1].split("|")[3]) == pytest.approx(100 * whole["top1"], abs=0.051)

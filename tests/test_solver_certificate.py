@@ -162,12 +162,51 @@ def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
     empirical = np.cov(np.array(vecs).T)
     # the formula from each draw's own residuals, averaged (the fit leaves 2n - 3 degrees of freedom)
     tiny_pixel = 1e-6  # keep the centroid floor out of the way
-    formula = np.mean([attitude_covariance(u, r, tiny_pixel) for r in rms], axis=0)
+    formula = np.mean([attitude_covariance(u, r, tiny_pixel, student=False) for r in rms], axis=0)
     np.testing.assert_allclose(np.sqrt(np.diag(formula)), np.sqrt(np.diag(empirical)), rtol=0.1)
     assert np.sqrt(formula[2, 2]) > 3 * np.sqrt(formula[0, 0])  # roll is the weak axis of a small field
     # and with the true sigma: the formula exactly (no residual noise)
-    exact = attitude_covariance(u, np.degrees(sigma) * 3600 * np.sqrt((2 * n - 3) * 2 / (2 * n)), tiny_pixel)
+    exact = attitude_covariance(
+        u, np.degrees(sigma) * 3600 * np.sqrt((2 * n - 3) * 2 / (2 * n)), tiny_pixel, student=False
+    )
     np.testing.assert_allclose(np.sqrt(np.diag(exact)), np.sqrt(np.diag(empirical)), rtol=0.1)
+
+
+@pytest.mark.parametrize("n", [3, 4, 8])
+def test_covariance_sigma_covers_68_and_95_percent_with_few_stars(n):
+    """Each draw's own 1 and 2 sigma (estimated from its own n residuals) hold ~68 and ~95 % of its true
+    error per axis: the Student scale of 2n - 3 degrees of freedom; the plain estimate holds visibly less
+    (for three stars, t with 3 degrees of freedom: 61 / 86 %). The fit's own error, not a formula's."""
+    from scipy.stats import t
+
+    from fusion.solve.base import student_scale
+    from fusion.solve.fine import _kabsch
+
+    rng = np.random.default_rng(11 + n)
+    sigma = 2e-5
+    xy = rng.uniform(-0.17, 0.17, (n, 2))
+    u = np.column_stack([xy, np.ones(n)])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rot_true = attitude_matrix(40.0, 10.0, 30.0)
+    sky = u @ rot_true.T
+    z, z_plain = [], []
+    for _ in range(3000):
+        e = rng.normal(0, sigma, (n, 3))
+        e -= np.sum(e * u, axis=1, keepdims=True) * u
+        un = (u + e) / np.linalg.norm(u + e, axis=1, keepdims=True)
+        r = _kabsch(un, sky)
+        err = np.abs(rotation_vector_deg(rot_true, r) * 3600)
+        ang = np.arccos(np.clip(np.sum((un @ r.T) * sky, axis=1), -1, 1))
+        rms = np.degrees(np.sqrt(np.mean(ang**2))) * 3600
+        z.append(err / np.sqrt(np.diag(attitude_covariance(u, rms, 1e-6))))
+        z_plain.append(err / np.sqrt(np.diag(attitude_covariance(u, rms, 1e-6, student=False))))
+    z, z_plain = np.array(z), np.array(z_plain)
+    k, dof = student_scale(2 * n - 3), 2 * n - 3
+    assert abs(np.mean(z <= 1) - 0.683) < 0.025
+    # 2 sigma holds what the t does at 2k (90 / 92 / 95 % for 3 / 4 / 8 stars): its tails stay heavier
+    assert abs(np.mean(z <= 2) - (2 * t.cdf(2 * k, dof) - 1)) < 0.02
+    if n == 3:
+        assert np.mean(z_plain <= 1) < 0.64 and np.mean(z_plain <= 2) < 0.90
 
 
 def test_benchmark_summary_reports_tails_statuses_and_coverage():
