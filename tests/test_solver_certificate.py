@@ -138,20 +138,20 @@ def test_solutions_carry_a_false_match_probability_and_a_covariance(renderer, te
     assert solved >= 4
 
 
-def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
-    """Stars in a 20 deg field with Gaussian centroid errors, a least-squares rotation fitted to them: the
-    spread of the fitted rotation over many draws equals attitude_covariance's (to ~10 %, 2,000 draws)."""
+def _fitted_rotations(n: int, sigma: float, draws: int, seed: int):
+    """n stars in a 20 deg field with Gaussian centroid errors of ``sigma`` radians per axis, a least-squares
+    rotation fitted to them ``draws`` times: the stars' unit vectors (camera frame), each fit's error as a
+    rotation vector (arcsec, per axis) and each fit's rms residual angle (arcsec)."""
     from fusion.solve.fine import _kabsch
 
-    rng = np.random.default_rng(7)
-    n, sigma = 6, 2e-5  # radians per axis (~4 arcsec)
+    rng = np.random.default_rng(seed)
     xy = rng.uniform(-0.17, 0.17, (n, 2))
     u = np.column_stack([xy, np.ones(n)])
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     rot_true = attitude_matrix(40.0, 10.0, 30.0)
     sky = u @ rot_true.T
     vecs, rms = [], []
-    for _ in range(2000):
+    for _ in range(draws):
         e = rng.normal(0, sigma, (n, 3))
         e -= np.sum(e * u, axis=1, keepdims=True) * u  # perpendicular: two components per star
         un = (u + e) / np.linalg.norm(u + e, axis=1, keepdims=True)
@@ -159,7 +159,15 @@ def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
         vecs.append(rotation_vector_deg(rot_true, r) * 3600)
         ang = np.arccos(np.clip(np.sum((un @ r.T) * sky, axis=1), -1, 1))
         rms.append(np.degrees(np.sqrt(np.mean(ang**2))) * 3600)
-    empirical = np.cov(np.array(vecs).T)
+    return u, np.array(vecs), np.array(rms)
+
+
+def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
+    """Stars in a 20 deg field with Gaussian centroid errors, a least-squares rotation fitted to them: the
+    spread of the fitted rotation over many draws equals attitude_covariance's (to ~10 %, 2,000 draws)."""
+    n, sigma = 6, 2e-5  # radians per axis (~4 arcsec)
+    u, vecs, rms = _fitted_rotations(n, sigma, 2000, 7)
+    empirical = np.cov(vecs.T)
     # the formula from each draw's own residuals, averaged (the fit leaves 2n - 3 degrees of freedom)
     tiny_pixel = 1e-6  # keep the centroid floor out of the way
     formula = np.mean([attitude_covariance(u, r, tiny_pixel, student=False) for r in rms], axis=0)
@@ -180,27 +188,11 @@ def test_covariance_sigma_covers_68_and_95_percent_with_few_stars(n):
     from scipy.stats import t
 
     from fusion.solve.base import student_scale
-    from fusion.solve.fine import _kabsch
 
-    rng = np.random.default_rng(11 + n)
-    sigma = 2e-5
-    xy = rng.uniform(-0.17, 0.17, (n, 2))
-    u = np.column_stack([xy, np.ones(n)])
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    rot_true = attitude_matrix(40.0, 10.0, 30.0)
-    sky = u @ rot_true.T
-    z, z_plain = [], []
-    for _ in range(3000):
-        e = rng.normal(0, sigma, (n, 3))
-        e -= np.sum(e * u, axis=1, keepdims=True) * u
-        un = (u + e) / np.linalg.norm(u + e, axis=1, keepdims=True)
-        r = _kabsch(un, sky)
-        err = np.abs(rotation_vector_deg(rot_true, r) * 3600)
-        ang = np.arccos(np.clip(np.sum((un @ r.T) * sky, axis=1), -1, 1))
-        rms = np.degrees(np.sqrt(np.mean(ang**2))) * 3600
-        z.append(err / np.sqrt(np.diag(attitude_covariance(u, rms, 1e-6))))
-        z_plain.append(err / np.sqrt(np.diag(attitude_covariance(u, rms, 1e-6, student=False))))
-    z, z_plain = np.array(z), np.array(z_plain)
+    u, vecs, rms = _fitted_rotations(n, 2e-5, 3000, 11 + n)
+    err = np.abs(vecs)
+    z = np.array([e / np.sqrt(np.diag(attitude_covariance(u, r, 1e-6))) for e, r in zip(err, rms)])
+    z_plain = np.array([e / np.sqrt(np.diag(attitude_covariance(u, r, 1e-6, student=False))) for e, r in zip(err, rms)])
     k, dof = student_scale(2 * n - 3), 2 * n - 3
     assert abs(np.mean(z <= 1) - 0.683) < 0.025
     # 2 sigma holds what the t does at 2k (90 / 92 / 95 % for 3 / 4 / 8 stars): its tails stay heavier
