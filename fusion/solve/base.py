@@ -72,6 +72,7 @@ Refusal status codes (:data:`REFUSAL_STATUSES`)
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar, Protocol, runtime_checkable
 
@@ -249,9 +250,9 @@ def solution_from_matrix(m: np.ndarray, **kw) -> Solution:
 def student_scale(dof: int) -> float:
     """k with P(|t_dof| <= k) = P(|z| <= 1) = 68.27 % (Student's t with ``dof`` degrees of freedom): the
     factor that makes a sigma estimated from ``dof`` residual degrees of freedom a calibrated 1 sigma."""
-    from scipy.stats import norm, t
+    from scipy.special import stdtrit  # the t quantile; scipy.special is loaded by the solvers already
 
-    return float(t.ppf(norm.cdf(1.0), max(int(dof), 1)))
+    return float(stdtrit(max(int(dof), 1), 0.5 * (1.0 + math.erf(1.0 / math.sqrt(2.0)))))
 
 
 def attitude_covariance(
