@@ -209,6 +209,44 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
     assert solved >= 3
 
 
+def test_the_learned_chain_searches_the_whole_sky_at_once_from_whole_sky_from_detections(renderer, tetra, regions):
+    """learned+fine>whole-sky with whole_sky_from: six detections or more go straight to the whole sky (the prior
+    is not asked, region -1) and get the whole-sky solver's answer; fewer are searched in the prior's regions
+    first. whole_sky_from needs then_whole_sky and at least three detections."""
+    from fusion.solve.fine import WHOLE_SKY_FROM, CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior, RegionPrior
+
+    class Counting(RegionPrior):
+        def __init__(self, oracle, v, i):
+            self.centroids, self.oracle, self.v, self.i, self.calls = oracle.centroids, oracle, v, i, 0
+
+        def probabilities(self, detections, image=None):
+            self.calls += 1
+            return self.oracle.probabilities_for(self.v, self.i)
+
+    assert WHOLE_SKY_FROM == 6
+    whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02)
+    for i in range(3):
+        f = renderer.render(i)
+        prior = Counting(OraclePrior(regions), f.unit_vector, i)
+        chain = CoarseToFineSolver(tetra, prior, top_k=2, focal_tol=0.02, then_whole_sky=True, whole_sky_from=6)
+        det = Detections.from_table(f.detections)
+        six = chain.solve(det.brightest(6), renderer.camera)
+        assert prior.calls == 0
+        ref = whole.solve(det.brightest(6), renderer.camera)
+        assert type(six) is type(ref)
+        if isinstance(six, Solution):
+            assert six.extra["region"] == -1 and np.allclose(six.matrix, ref.matrix)
+        four = chain.solve(det.brightest(4), renderer.camera)
+        assert prior.calls == 1
+        if isinstance(four, Solution):
+            assert four.extra["region"] != -1  # the oracle's first region holds the truth
+    with pytest.raises(ValueError, match="whole_sky_from"):
+        CoarseToFineSolver(tetra, None, whole_sky_from=6)
+    with pytest.raises(ValueError, match="whole_sky_from"):
+        CoarseToFineSolver(tetra, None, then_whole_sky=True, whole_sky_from=2)
+
+
 def test_only_the_brightest_detections_are_scored_and_all_are_verified(renderer, tetra, regions):
     """A frame with many detections: the search scores the brightest max_detections (fewer partner tables)
     and tetra3rs's verification re-matches every detection, so the answer is the same attitude."""
