@@ -403,6 +403,40 @@ def test_tracking_a_hint_in_the_wrong_place_is_refused_not_answered(renderer, wh
             assert isinstance(res, Refusal), (n, k)
 
 
+def test_tracking_weighs_a_hint_that_missed_the_stars(renderer, whole_sky, monkeypatch):
+    """Six detections of one attitude given with the hint of another (2 deg claimed): an answer is wrong unless the
+    two attitudes lie close enough for the hint's region to hold the detections' own stars. The
+    "no identification" mass includes the chance that the hint missed the stars (TRACK_HINT_MISS); without it
+    chance matches of six real stars near the wrong hint are answered far more often
+    (benchmarks/tracking_calibration.py). The same frames with their own hints still solve."""
+    from fusion.solve import track
+    from fusion.solve.benchmark import track_hint
+
+    frames = _generated_frames(whole_sky, renderer.camera, 400, 6, seed=12)
+
+    def foreign_answers():  # the reported p of each wrong answer
+        got = []
+        for k, (det, m) in enumerate(frames):
+            m_other = frames[(k + 1) % len(frames)][1]
+            res = whole_sky.solve(det, renderer.camera, hint=track_hint(m_other, 2.0, 6, k), hint_sigma_deg=2.0)
+            if isinstance(res, Solution) and not np.all(np.abs(rotation_vector_deg(m, res.matrix)) < [0.1, 0.1, 1.0]):
+                got.append(res.false_match_probability)
+        return got
+
+    assert track.TRACK_HINT_MISS == pytest.approx(0.1)
+    with_term = foreign_answers()
+    monkeypatch.setattr(track, "TRACK_HINT_MISS", 0.0)
+    without = foreign_answers()
+    monkeypatch.undo()
+    # 400 foreign attempts: 8 wrong answers without the term (the lowest at p = 3e-6), none with it
+    assert len(without) >= 4 and len(with_term) <= 1 and all(p > 1e-6 for p in with_term)
+    own = [
+        whole_sky.solve(det, renderer.camera, hint=track_hint(m, 2.0, 6, k), hint_sigma_deg=2.0)
+        for k, (det, m) in enumerate(frames[:30])
+    ]
+    assert sum(isinstance(r, Solution) for r in own) >= 27
+
+
 def test_tracking_two_star_covariance_is_weak_about_the_pair(renderer, whole_sky):
     """Two stars fix the rotation about their own mean direction only through their separation: the covariance's
     weakest axis is that direction, and where it lies near the boresight (a pair about the centre) the roll

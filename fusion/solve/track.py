@@ -21,7 +21,10 @@ each is weighed by a likelihood against "no identification" (each term a density
   without a detection, costs a factor ``TRACK_MISS`` (measured: 14 of 105 such stars at the true attitude);
 * each detection is no catalogue star with prior ``TRACK_FALSE_DETECTION`` (hot pixels are 4.5 % of the two
   brightest detections of rendered frames): the "no identification" hypothesis (at most one star) keeps
-  that mass.
+  that mass; and the hint may have missed the stars altogether (prior ``TRACK_HINT_MISS``: a slew, a lost
+  track), which leaves the detections as uniform over the hint's field as no identification does, so that
+  mass joins it. Measured with ``benchmarks/tracking_calibration.py`` (detections of another frame with
+  this frame's hint: every answer wrong).
 
 The false-match probability is the posterior mass of everything but the best identification (identifications
 within ``TRACK_SAME_DEG`` of its attitude count with it), the null included; the best one is returned where
@@ -63,6 +66,12 @@ TRACK_CENTROID_PX = 0.5  # per-axis centroid error (px) the separation and posit
 TRACK_COV_CENTROID_PX = 0.25  # the per-axis centroid error a covariance of three stars or fewer assumes (they fit too
 #   well to measure it): 0.15 px rms measured (rendered detections against the catalogue at the true attitude)
 TRACK_SAME_DEG = 0.1  # hypotheses within this rotation of the best one identify the same attitude
+TRACK_HINT_MISS = 0.1  # prior chance that the hint missed the stars (a slew, a lost track): the detections are then
+#   stars elsewhere, as uniform over the hint's field as no identification. Chosen on data/track300
+#   (benchmarks/tracking_calibration.py --foreign-pairs 30, results/calibration/tracking): detections of another
+#   frame with this frame's 2-deg hint, wrong answers at p <= 1e-3 in 9,000 attempts without -> with it: N = 6
+#   172 -> 5 (4 -> 0 at p <= 1e-6), N = 4 159 -> 22, N = 3 122 -> 47, N = 2 83 -> 68 (two detections' "at most
+#   one star" mass is already 0.19); the clean frames lose 0-1 point. Still overconfident there (see the results)
 TRACK_ANCHORS = 4  # anchor pairs among the brightest this many detections
 TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma)
 
@@ -135,9 +144,10 @@ def track(solver, detections: Detections, camera, hint: np.ndarray, sigma_deg: f
             tried += len(logw)
             if len(logw):
                 found.append((logw, cats, rot, k))
-    # no identification: at most one detection is a catalogue star (one star alone leaves the attitude free)
-    eps = TRACK_FALSE_DETECTION
-    log_null = math.log(eps**n + n * (1 - eps) * eps ** (n - 1))
+    # no identification: the hint missed the stars (TRACK_HINT_MISS), or at most one detection is a catalogue star
+    # (one star alone leaves the attitude free); either way the detections are uniform over the hint's field
+    eps, q = TRACK_FALSE_DETECTION, TRACK_HINT_MISS
+    log_null = math.log(q + (1 - q) * (eps**n + n * (1 - eps) * eps ** (n - 1)))
     extra = {"hypotheses": tried, "region": TRACKING, "region_probability": 1.0}
     if not found:
         return refuse("no catalogue pair near the hint matches the detections", "no_pattern", extra)
@@ -161,6 +171,7 @@ def track(solver, detections: Detections, camera, hint: np.ndarray, sigma_deg: f
     p_false = float(min(1.0, max(0.0, -np.expm1(np.logaddexp.reduce(lw[same]) - log_total))))
     w = np.exp(lw - top)
     conf = 1.0 - p_false
+    extra["log_evidence"] = float(top - log_null)  # the best identification against "no identification" (log)
     if conf < solver.tracking_unverified_confidence:
         runner = np.flatnonzero(~same)
         why = (
