@@ -493,6 +493,14 @@ def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k")
         help="fine stage: relative focal-length uncertainty it fits within (default 0.02; "
         "0 = the camera's nominal focal length exactly)",
     )
+    p.add_argument(
+        "--max-hypotheses",
+        type=int,
+        metavar="H",
+        help="fine stage: its work budget, hypotheses per solve, every region and pass together; a frame that "
+        "runs out is refused (budget_exhausted). Default 150,000 for the 20 deg camera, scaled up for denser "
+        "catalogue cuts; a count, not a clock, so the same answer on every machine",
+    )
 
 
 def _add_predict(p: argparse.ArgumentParser) -> None:
@@ -601,6 +609,7 @@ def _run_predict(args: argparse.Namespace) -> int:
         solver=args.solver,
         fov_range=tuple(args.fov_range) if args.fov_range else None,
         track_deg=args.track,
+        max_hypotheses=args.max_hypotheses,
     )
     return 1 if failed else 0
 
@@ -700,6 +709,7 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         focal_tol=args.focal_tol,
         track_hint_deg=tuple(args.track_hint_deg),
         track_n=tuple(args.track_n),
+        max_hypotheses=args.max_hypotheses,
     )
     return 0
 

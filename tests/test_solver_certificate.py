@@ -83,6 +83,38 @@ def test_the_hypothesis_budget_refuses_deterministically(renderer, tetra):
             CoarseToFineSolver(tetra, None, max_hypotheses=bad)
 
 
+def test_the_budget_reaches_every_fine_stage_solver_from_the_command_line(small_dataset, tmp_path, monkeypatch):
+    """--max-hypotheses (fusion benchmark and predict): every registered fine-stage solver gets it, the report
+    records it, and a budget below one hypothesis is refused with one line naming the option."""
+    import json
+
+    from fusion.cli import main
+    from fusion.solve.registry import SOLVERS, make_context
+    from fusion.solve.tetra import Tetra3Solver
+    from skygen.errors import ConfigError
+
+    monkeypatch.setenv("FUSION_CACHE", str(tmp_path / "cache"))
+    from fusion.solve.benchmark import load_frames
+
+    cam = load_frames(small_dataset, "train", 1, False).camera
+    ctx = make_context(cam, tetra=Tetra3Solver(cam), max_hypotheses=1234, search_centroids=np.eye(3))
+    for name, spec in SOLVERS.items():
+        if spec.prior == "learned" or name == "tetra3rs":
+            continue
+        solver = spec.build(ctx)
+        inner = getattr(solver, "second", solver)  # a chain: its fine stage
+        assert inner.max_hypotheses == 1234, name
+    with pytest.raises(ConfigError, match="--max-hypotheses"):
+        make_context(cam, tetra=ctx.tetra, max_hypotheses=0)
+    out = tmp_path / "bench"
+    args = ["benchmark", "--data", str(small_dataset), "--out", str(out), "--split", "train", "--frames", "2"]
+    args += ["--n", "5", "--corruptions", "none", "--solvers", "whole-sky", "--max-hypotheses", "50"]
+    assert main(args) == 0
+    r = json.loads((out / "benchmark.json").read_text())
+    assert r["search"]["max_hypotheses"] == 50
+    assert r["cells"][0]["solvers"]["whole-sky"]["refusals_by_status"] == {"budget_exhausted": 2}
+
+
 def test_noise_is_refused_where_the_evidence_bar_is_out_of_reach_not_at_the_budget(renderer, tetra, whole_sky):
     """Four detections at random positions without fluxes (no photometry): a hypothesis needs all four matched,
     and E_false = H p^2 passes 1 - min_confidence at H of about 18,000; the search stops after the detection pair

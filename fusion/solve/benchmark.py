@@ -300,6 +300,7 @@ def run_benchmark(
     focal_tol: float = 0.02,
     track_hint_deg=(),
     track_n=TRACK_N,
+    max_hypotheses: int | None = None,
     log=print,
     warn=None,
 ) -> dict:
@@ -314,7 +315,7 @@ def run_benchmark(
     from .registry import check_search_options
 
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
-    check_search_options(focal_tol, top_k, "--top-k")
+    check_search_options(focal_tol, top_k, "--top-k", max_hypotheses)
     check_grid(frames, n_values, corruption_n, correct_deg, correct_roll_deg)
     bad = [d for d in track_hint_deg if not 0 < d <= 20]
     if bad:
@@ -344,6 +345,7 @@ def run_benchmark(
         "focal_tol": focal_tol,
         "track_hint_deg": tuple(track_hint_deg),
         "track_n": tuple(track_n),
+        "max_hypotheses": max_hypotheses,
     }
     with FolderLock(out, what="fusion benchmark"):
         return _run_benchmark(data, out, checkpoint, list(solvers), settings, log, warn)
@@ -531,6 +533,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
         tetra=tetra,
         search_centroids=None if prior is not None else centroids,
         k_flag="--top-k",
+        max_hypotheses=st.get("max_hypotheses"),
     )
     level = getattr(ctx.prior, "level", "coarse")
     built, composite = build_solvers(ctx, solvers)
@@ -567,6 +570,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
             "regions": int(len(ctx.search_centroids)),
             "top_k": ctx.top_k,
             "focal_tol": st["focal_tol"],
+            "max_hypotheses": st.get("max_hypotheses"),  # None: the fine stage's default budget
         },
         "top_k": ctx.top_k,
         "notes": notes,

@@ -120,6 +120,7 @@ class Predictor:
         solver: str | None = None,
         log=None,
         fov_range: tuple[float, float] | None = None,
+        max_hypotheses: int | None = None,
     ):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
@@ -182,7 +183,7 @@ class Predictor:
                 f"--background-box {background_box}: 0 (one background per frame) or a box of at least 8 px, e.g. 64"
             )
         self.background_box = int(background_box)
-        check_search_options(focal_tol, search_k)
+        check_search_options(focal_tol, search_k, max_hypotheses=max_hypotheses)
         self.solver, self.search_level = None, None
         if solve:
             # the default chains: with a model, its prior and the fine stage; without one, the best prior-free
@@ -209,6 +210,7 @@ class Predictor:
                     tetra=Tetra3Solver(self.camera, log=log, fov_range=fov_range),
                     focal_tol=focal_tol,
                     search_k=search_k,
+                    max_hypotheses=max_hypotheses,
                 )
             self.solver = build_solver(
                 name,
@@ -219,6 +221,7 @@ class Predictor:
                 focal_tol=focal_tol,
                 log=log,
                 context=context,
+                max_hypotheses=max_hypotheses,
             )
 
     def check_frame_settings(self, config: dict, what: str, warn=None) -> dict:
@@ -419,6 +422,7 @@ def predict(
     fov_range=None,
     channel="luminance",
     track_deg=None,
+    max_hypotheses=None,
 ) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
     become one plane (``channel``: luminance, r, g, b or sum). ``track_deg`` (with ``solve``): the frames are
@@ -454,6 +458,7 @@ def predict(
         solver=solver,
         log=lambda m: err(m),
         fov_range=fov_range,
+        max_hypotheses=max_hypotheses,
     )
     if overlay_dir:
         Path(overlay_dir).mkdir(parents=True, exist_ok=True)

@@ -51,6 +51,7 @@ class SolverContext:
     search_centroids: np.ndarray | None = None  # regions the oracle priors rank (benchmark)
     top_k: int = 20  # regions the fine stage searches, most probable first
     focal_tol: float = 0.02  # relative focal-length uncertainty the fine stage fits within
+    max_hypotheses: int | None = None  # the fine stage's work budget per solve (None: its default, MAX_HYPOTHESES)
     built: dict = field(default_factory=dict)  # solvers already built for this context, by name
 
 
@@ -93,7 +94,9 @@ def _tetra3rs(ctx: SolverContext):
 def _whole_sky(ctx: SolverContext):
     from .fine import CoarseToFineSolver
 
-    return CoarseToFineSolver(ctx.tetra, None, name="whole-sky", focal_tol=ctx.focal_tol)
+    return CoarseToFineSolver(
+        ctx.tetra, None, name="whole-sky", focal_tol=ctx.focal_tol, max_hypotheses=ctx.max_hypotheses
+    )
 
 
 @register_solver("tetra3rs>whole-sky", doc="tetra3rs, and the whole-sky fine stage where it refuses")
@@ -107,7 +110,14 @@ def _tetra3rs_whole_sky(ctx: SolverContext):
 def _learned_fine(ctx: SolverContext):
     from .fine import CoarseToFineSolver
 
-    return CoarseToFineSolver(ctx.tetra, ctx.prior, name="learned+fine", top_k=ctx.top_k, focal_tol=ctx.focal_tol)
+    return CoarseToFineSolver(
+        ctx.tetra,
+        ctx.prior,
+        name="learned+fine",
+        top_k=ctx.top_k,
+        focal_tol=ctx.focal_tol,
+        max_hypotheses=ctx.max_hypotheses,
+    )
 
 
 @register_solver(
@@ -125,6 +135,7 @@ def _learned_fine_whole_sky(ctx: SolverContext):
         name="learned+fine>whole-sky",
         top_k=ctx.top_k,
         focal_tol=ctx.focal_tol,
+        max_hypotheses=ctx.max_hypotheses,
         then_whole_sky=True,
         whole_sky_from=WHOLE_SKY_FROM,
     )
@@ -167,6 +178,7 @@ def _oracle(ctx: SolverContext):
         name="oracle-prior",
         top_k=ctx.top_k,
         focal_tol=ctx.focal_tol,
+        max_hypotheses=ctx.max_hypotheses,
     )
 
 
@@ -181,6 +193,7 @@ def _sim85(ctx: SolverContext):
         name="sim85-prior",
         top_k=ctx.top_k,
         focal_tol=ctx.focal_tol,
+        max_hypotheses=ctx.max_hypotheses,
     )
 
 
@@ -189,13 +202,17 @@ def default_search_k(level: str) -> int:
     return 20 if level == "fine" else 3
 
 
-def check_search_options(focal_tol: float, search_k: int | None, k_flag: str = "--search-k") -> None:
+def check_search_options(
+    focal_tol: float, search_k: int | None, k_flag: str = "--search-k", max_hypotheses: int | None = None
+) -> None:
     from ..errors import ConfigError
 
     if not 0.0 <= focal_tol < 0.2:
         raise ConfigError(f"--focal-tol {focal_tol}: a relative focal-length uncertainty in [0, 0.2), e.g. 0.02")
     if search_k is not None and search_k < 1:
         raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
+    if max_hypotheses is not None and max_hypotheses < 1:
+        raise ConfigError(f"--max-hypotheses {max_hypotheses}: a positive number of hypotheses per solve, e.g. 150000")
 
 
 def make_context(
@@ -209,10 +226,12 @@ def make_context(
     tetra=None,
     log=None,
     k_flag: str = "--search-k",
+    max_hypotheses: int | None = None,
 ) -> SolverContext:
     """A :class:`SolverContext` for ``camera``: the prior at its ``search`` level (its fine regions when it has
-    them), the regions searched (``search_k``, default :func:`default_search_k`) and a tetra3rs solver."""
-    check_search_options(focal_tol, search_k, k_flag)
+    them), the regions searched (``search_k``, default :func:`default_search_k`), the fine stage's work budget
+    (``max_hypotheses``, default its own) and a tetra3rs solver."""
+    check_search_options(focal_tol, search_k, k_flag, max_hypotheses)
     if prior is not None:
         prior = prior.at_level(search)
     level = getattr(prior, "level", "coarse")
@@ -222,7 +241,9 @@ def make_context(
         tetra = Tetra3Solver(camera, log=log)
     if search_centroids is None and prior is not None:
         search_centroids = prior.centroids
-    return SolverContext(camera, tetra, prior, search_centroids, search_k or default_search_k(level), focal_tol)
+    return SolverContext(
+        camera, tetra, prior, search_centroids, search_k or default_search_k(level), focal_tol, max_hypotheses
+    )
 
 
 def build_solver(
@@ -235,6 +256,7 @@ def build_solver(
     focal_tol: float = 0.02,
     log=None,
     context: SolverContext | None = None,
+    max_hypotheses: int | None = None,
 ):
     """The registered solver ``name`` for ``camera`` (a :class:`skygen.instrument.camera.Camera`).
 
@@ -259,6 +281,9 @@ def build_solver(
         Receives one line when a database or index is built.
     context : SolverContext, optional
         Shares one tetra3rs database and already-built solvers between calls.
+    max_hypotheses : int, optional
+        The fine stage's work budget per solve (default: :data:`fusion.solve.fine.MAX_HYPOTHESES`, scaled with
+        the catalogue's density of pairs); ignored when ``context`` is given (the context's own).
 
     Returns
     -------
@@ -275,7 +300,15 @@ def build_solver(
     if name not in SOLVERS:
         raise ConfigError(f"--solver {name!r}: unknown; choose from {', '.join(SOLVERS)}")
     spec = SOLVERS[name]
-    ctx = context or make_context(camera, prior=prior, search=search, search_k=search_k, focal_tol=focal_tol, log=log)
+    ctx = context or make_context(
+        camera,
+        prior=prior,
+        search=search,
+        search_k=search_k,
+        focal_tol=focal_tol,
+        log=log,
+        max_hypotheses=max_hypotheses,
+    )
     if spec.prior == "learned" and ctx.prior is None:
         raise ConfigError(f"solver {name} needs a learned prior: pass --checkpoint CK (a trained model)")
     if spec.prior == "oracle" and ctx.search_centroids is None:

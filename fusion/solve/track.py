@@ -28,7 +28,8 @@ each is weighed by a likelihood against "no identification" (each term a density
 
 The false-match probability is the posterior mass of everything but the best identification (identifications
 within ``TRACK_SAME_DEG`` of its attitude count with it), the null included; the best one is returned where
-that is at most ``1 - tracking_unverified_confidence`` (1e-3), with its own least-squares attitude (no
+that is at most ``1 - tracking_unverified_confidence`` (1e-3; ``extra["log_evidence"]``: the best identification's
+log weight against "no identification"), with its own least-squares attitude (no
 tetra3rs verification: it does not know the hint and rejects most matches of three stars). The constants are
 measured (above) and then rounded towards less confidence. This replaces the earlier rule (an unverified
 E_false below 1e-3 in a 3-sigma region, three stars at least): 85 -> 92 % at N = 3 and 0 -> 78 % at N = 2
