@@ -209,10 +209,11 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
     assert solved >= 3
 
 
-def test_the_learned_chain_searches_the_whole_sky_at_once_from_whole_sky_from_detections(renderer, tetra, regions):
-    """learned+fine>whole-sky with whole_sky_from: six detections or more go straight to the whole sky (the prior
-    is not asked, region -1) and get the whole-sky solver's answer; fewer are searched in the prior's regions
-    first. whole_sky_from needs then_whole_sky and at least three detections."""
+def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_from_detections(renderer, tetra, regions):
+    """learned+fine>whole-sky with whole_sky_from: six detections or more go to tetra3rs lost in space first and,
+    where it refuses, straight to the whole sky (the prior is not asked; region -1), so the answer is tetra3rs's
+    or the whole-sky solver's; fewer are searched in the prior's regions first. whole_sky_from needs
+    then_whole_sky and at least three detections."""
     from fusion.solve.fine import WHOLE_SKY_FROM, CoarseToFineSolver
     from fusion.solve.priors import OraclePrior, RegionPrior
 
@@ -226,21 +227,30 @@ def test_the_learned_chain_searches_the_whole_sky_at_once_from_whole_sky_from_de
 
     assert WHOLE_SKY_FROM == 6
     whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02)
-    for i in range(3):
+    by = {"tetra": 0, "sky": 0}
+    for i in range(6):
         f = renderer.render(i)
         prior = Counting(OraclePrior(regions), f.unit_vector, i)
         chain = CoarseToFineSolver(tetra, prior, top_k=2, focal_tol=0.02, then_whole_sky=True, whole_sky_from=6)
         det = Detections.from_table(f.detections)
-        six = chain.solve(det.brightest(6), renderer.camera)
-        assert prior.calls == 0
-        ref = whole.solve(det.brightest(6), renderer.camera)
-        assert type(six) is type(ref)
-        if isinstance(six, Solution):
-            assert six.extra["region"] == -1 and np.allclose(six.matrix, ref.matrix)
+        for n in (6, 7):
+            got = chain.solve(det.brightest(n), renderer.camera)
+            lis = tetra.solve(det.brightest(n), renderer.camera)
+            ref = lis if isinstance(lis, Solution) else whole.solve(det.brightest(n), renderer.camera)
+            assert type(got) is type(ref) and prior.calls == 0
+            if isinstance(got, Solution):
+                assert np.allclose(got.matrix, ref.matrix)
+                assert got.solver == (tetra.name if ref.solver == tetra.name else chain.name)
+                if got.solver == tetra.name:
+                    by["tetra"] += 1
+                else:
+                    assert got.extra["region"] == -1
+                    by["sky"] += 1
         four = chain.solve(det.brightest(4), renderer.camera)
         assert prior.calls == 1
         if isinstance(four, Solution):
             assert four.extra["region"] != -1  # the oracle's first region holds the truth
+    assert by["tetra"] >= 1  # seven stars: tetra3rs solves most
     with pytest.raises(ValueError, match="whole_sky_from"):
         CoarseToFineSolver(tetra, None, whole_sky_from=6)
     with pytest.raises(ValueError, match="whole_sky_from"):

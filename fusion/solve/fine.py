@@ -76,7 +76,8 @@ Regions are tried in order of prior probability (``top_k`` at most; ``few_top_k_
 for three detections), and with ``then_whole_sky`` the whole sky after them (region index -1; the
 hypotheses of the prior's regions are counted again there, which only costs confidence); with
 ``whole_sky_from`` (the registered ``learned+fine>whole-sky``: :data:`WHOLE_SKY_FROM`), frames of that many
-detections or more search the whole sky at once, the prior not consulted (region index -1) — the prior's coarse
+detections or more go to tetra3rs lost in space first and, where it refuses, to the whole sky at once, the prior
+not consulted (region index -1) — the prior's coarse
 regions, or, for a checkpoint trained with fine regions, its fine regions (a few degrees
 across, :meth:`fusion.solve.priors.CheckpointPrior.at_level`), which narrow the search
 about ten times more per region searched; the hypothesis count H accumulates, so searching
@@ -166,10 +167,11 @@ PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFi
 #: would have to leave the range searched to fit the detections
 FOCAL_EDGE = 0.98
 REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
-# the learned chain (learned+fine>whole-sky) searches the whole sky at once from this many detections: there the
-# whole-sky search was as often right as the prior's regions first and 1.5-8 times faster in median (data/bench500,
-# 150 frames, cpu-few prior: N = 5: 95 % against 96 %, 2.4 against 4.0 ms quiet; N = 6: 99 % both, 2.7 against
-# 4.0 ms; with 0.5 mag of magnitude noise at N = 5 the regions first took 50 against 6 ms; docs/real-frames.md)
+# the learned chain (learned+fine>whole-sky) from this many detections: tetra3rs lost in space, then the whole sky at
+# once, the prior not asked. There the whole sky alone was as often right as the prior's regions first (data/bench500,
+# 150 frames, cpu-few prior: N = 5 95 % both here, 95 against 96 % in session 9; N = 6 99 % both), and tetra3rs
+# first made the chain's median at N = 6 0.6 ms clean, 2.3 ms at 0.5 mag of magnitude noise (before: 8.8, 31.2 ms;
+# results/benchmark/whole-sky-from). Below six the prior adds points (N = 4: 87 against 83 %)
 WHOLE_SKY_FROM = 6
 TRACKING = -2  # Region.index of a tracking hint's region
 
@@ -623,6 +625,11 @@ class CoarseToFineSolver:
         # answer there: the prior's regions first only cost time, and magnitude noise misleads them)
         sky_first = self.whole_sky_from is not None and len(detections) >= self.whole_sky_from
         if sky_first:
+            # cheapest first: tetra3rs lost in space (~0.1-0.2 ms, never wrong in our benchmarks; it solves 70 % of
+            # six-star frames and 95 % from seven), then the whole sky where it refuses
+            first = self.tetra.solve(every, camera)
+            if isinstance(first, Solution):
+                return first
             probabilities = None
         elif probabilities is None and self.prior is not None:
             probabilities = self.prior.probabilities(detections, image)

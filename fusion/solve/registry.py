@@ -11,7 +11,8 @@ A solver is anything with ``name`` and ``solve(detections, camera, image=None, *
 ``learned+fine>whole-sky`` learned + fine, and the rest of the sky where the prior's regions refuse
                            (one search: its hypothesis count H, and so its false-match budget, spans
                            both; ``fusion predict --solve`` with a checkpoint); from
-                           ``fine.WHOLE_SKY_FROM`` (6) detections the whole sky at once, no prior
+                           ``fine.WHOLE_SKY_FROM`` (6) detections tetra3rs, then the whole sky
+                           at once, no prior
 ``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses
 ``tetra3rs>learned+fine>whole-sky``  tetra3rs, then learned + fine > whole-sky (``fusion predict --lis-first``)
 ``oracle-prior``           benchmark only: the fine stage with the true region ranked first
@@ -124,7 +125,7 @@ def _learned_fine(ctx: SolverContext):
     "learned+fine>whole-sky",
     prior="learned",
     doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget); from 6 "
-    "detections the whole sky at once",
+    "detections tetra3rs, then the whole sky at once",
 )
 def _learned_fine_whole_sky(ctx: SolverContext):
     from .fine import WHOLE_SKY_FROM, CoarseToFineSolver
