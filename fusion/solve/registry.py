@@ -86,6 +86,21 @@ def get(ctx: SolverContext, name: str):
     return ctx.built[name]
 
 
+def _fine_stage(ctx: SolverContext, prior, name: str, **kw):
+    """A fine stage (:class:`fusion.solve.fine.CoarseToFineSolver`) with the context's search settings."""
+    from .fine import CoarseToFineSolver
+
+    return CoarseToFineSolver(
+        ctx.tetra,
+        prior,
+        name=name,
+        top_k=ctx.top_k,
+        focal_tol=ctx.focal_tol,
+        max_hypotheses=ctx.max_hypotheses,
+        **kw,
+    )
+
+
 @register_solver("tetra3rs", doc="tetra3rs lost-in-space (the classical baseline)")
 def _tetra3rs(ctx: SolverContext):
     return ctx.tetra
@@ -93,11 +108,7 @@ def _tetra3rs(ctx: SolverContext):
 
 @register_solver("whole-sky", doc="the fine stage over the whole sky, no prior")
 def _whole_sky(ctx: SolverContext):
-    from .fine import CoarseToFineSolver
-
-    return CoarseToFineSolver(
-        ctx.tetra, None, name="whole-sky", focal_tol=ctx.focal_tol, max_hypotheses=ctx.max_hypotheses
-    )
+    return _fine_stage(ctx, None, "whole-sky")
 
 
 @register_solver("tetra3rs>whole-sky", doc="tetra3rs, and the whole-sky fine stage where it refuses")
@@ -109,16 +120,7 @@ def _tetra3rs_whole_sky(ctx: SolverContext):
 
 @register_solver("learned+fine", prior="learned", doc="the fine stage searching the learned prior's regions")
 def _learned_fine(ctx: SolverContext):
-    from .fine import CoarseToFineSolver
-
-    return CoarseToFineSolver(
-        ctx.tetra,
-        ctx.prior,
-        name="learned+fine",
-        top_k=ctx.top_k,
-        focal_tol=ctx.focal_tol,
-        max_hypotheses=ctx.max_hypotheses,
-    )
+    return _fine_stage(ctx, ctx.prior, "learned+fine")
 
 
 @register_solver(
@@ -128,18 +130,9 @@ def _learned_fine(ctx: SolverContext):
     "detections tetra3rs, then the whole sky at once",
 )
 def _learned_fine_whole_sky(ctx: SolverContext):
-    from .fine import WHOLE_SKY_FROM, CoarseToFineSolver
+    from .fine import WHOLE_SKY_FROM
 
-    return CoarseToFineSolver(
-        ctx.tetra,
-        ctx.prior,
-        name="learned+fine>whole-sky",
-        top_k=ctx.top_k,
-        focal_tol=ctx.focal_tol,
-        max_hypotheses=ctx.max_hypotheses,
-        then_whole_sky=True,
-        whole_sky_from=WHOLE_SKY_FROM,
-    )
+    return _fine_stage(ctx, ctx.prior, "learned+fine>whole-sky", then_whole_sky=True, whole_sky_from=WHOLE_SKY_FROM)
 
 
 @register_solver(
@@ -170,32 +163,16 @@ def _oracle_centroids(ctx: SolverContext) -> np.ndarray:
 
 @register_solver("oracle-prior", prior="oracle", doc="benchmark only: the true region ranked first")
 def _oracle(ctx: SolverContext):
-    from .fine import CoarseToFineSolver
     from .priors import OraclePrior
 
-    return CoarseToFineSolver(
-        ctx.tetra,
-        OraclePrior(_oracle_centroids(ctx), 1.0),
-        name="oracle-prior",
-        top_k=ctx.top_k,
-        focal_tol=ctx.focal_tol,
-        max_hypotheses=ctx.max_hypotheses,
-    )
+    return _fine_stage(ctx, OraclePrior(_oracle_centroids(ctx), 1.0), "oracle-prior")
 
 
 @register_solver("sim85-prior", prior="oracle", doc="benchmark only: the true region first in 85 % of frames")
 def _sim85(ctx: SolverContext):
-    from .fine import CoarseToFineSolver
     from .priors import OraclePrior
 
-    return CoarseToFineSolver(
-        ctx.tetra,
-        OraclePrior(_oracle_centroids(ctx), 0.85, seed=1),
-        name="sim85-prior",
-        top_k=ctx.top_k,
-        focal_tol=ctx.focal_tol,
-        max_hypotheses=ctx.max_hypotheses,
-    )
+    return _fine_stage(ctx, OraclePrior(_oracle_centroids(ctx), 0.85, seed=1), "sim85-prior")
 
 
 def default_search_k(level: str) -> int:
