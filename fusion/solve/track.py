@@ -23,8 +23,8 @@ each is weighed by a likelihood against "no identification" (each term a density
   brightest detections of rendered frames): the "no identification" hypothesis (at most one star) keeps
   that mass; and the hint may have missed the stars altogether (prior ``TRACK_HINT_MISS``: a slew, a lost
   track), which leaves the detections as uniform over the hint's field as no identification does, so that
-  mass joins it. Measured with ``benchmarks/tracking_calibration.py`` (detections of another frame with
-  this frame's hint: every answer wrong).
+  mass joins it. Measured with ``benchmarks/tracking_calibration.py`` (the detections of another frame given
+  with this frame's hint).
 
 The false-match probability is the posterior mass of everything but the best identification (identifications
 within ``TRACK_SAME_DEG`` of its attitude count with it), the null included; the best one is returned where
