@@ -2,6 +2,7 @@
 
     python benchmarks/real_few_star.py FRAMES... --camera CAMERA.yaml [--n 3 4 5 6 8]
                                        [--solvers tetra3rs whole-sky tetra3rs>whole-sky] --out DIR
+    python benchmarks/real_few_star.py FRAMES... --checkpoint CK [--solvers ... learned+fine>whole-sky] --out DIR
 
 For every frame: detect with skygen's detector and the camera's detection settings (exactly what
 ``fusion predict --camera CAMERA.yaml`` does: :meth:`fusion.solve.predict.Predictor.detect`, the camera's
@@ -14,6 +15,11 @@ Then, for each N, only the brightest N detections go to each registered prior-fr
 the truth, **wrong** = any other returned attitude, **refused** = none; median and p95 wall-clock ms per solve
 (one process, one call at a time). Also the share of frames where one of the brightest N detections is not
 among the detections the truth solution matched (hot pixels, stars beyond the catalogue, blends).
+
+With ``--checkpoint CK`` (a model trained on renders of the frames' camera, e.g. ``configs/blackfly.yaml`` on a
+fitted camera's dataset) the camera is the checkpoint's own and the learned solvers (``learned+fine>whole-sky``,
+...) may be listed beside the prior-free ones: the brightest N detections go to the model exactly as
+``fusion predict --solve`` gives them (model forward included in the milliseconds).
 
 A skygen dataset folder (``skygen render --full-res``) may be given instead of frame files: its full-resolution
 frames are detected the same way and their truth is the rendered attitude (``--max-frames`` caps them), so the
@@ -69,7 +75,7 @@ def load_frames(paths: list[str], max_frames: int | None = None, channel: str = 
 
 def run(
     frames: list,
-    camera: str | Path,
+    camera: str | Path | None,
     n_values=(3, 4, 5, 6, 8),
     solvers=PRIOR_FREE_DEFAULT,
     *,
@@ -78,24 +84,32 @@ def run(
     correct_deg: float = 0.1,
     correct_roll_deg: float = 1.0,
     background_box: int | None = None,
+    checkpoint: str | Path | None = None,
+    search_k: int | None = None,
     log=print,
 ) -> dict:
-    """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``."""
+    """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``, or for the camera of
+    ``checkpoint`` (whose prior the learned solvers then use; ``search_k``: regions they search)."""
     from fusion.solve.base import Solution, boresight_error_deg, roll_error_deg
     from fusion.solve.benchmark import coverage
     from fusion.solve.predict import Predictor
     from fusion.solve.registry import SOLVERS, build_solver, make_context
     from skygen.sky.attitude import matrix_to_radec_roll, quaternion_to_matrix
 
+    allowed = (None, "learned") if checkpoint is not None else (None,)
     for name in solvers:
-        if name not in SOLVERS or SOLVERS[name].prior is not None:
+        if name not in SOLVERS or SOLVERS[name].prior not in allowed:
+            learned = [n for n, spec in SOLVERS.items() if spec.prior == "learned"]
             raise SystemExit(
                 f"--solvers {name}: not a prior-free registered solver ({', '.join(prior_free_solvers())})"
+                + ("" if checkpoint is not None else f"; the learned ones ({', '.join(learned)}) need --checkpoint")
             )
-    pred = Predictor(camera=camera, background_box=background_box)
+    if (camera is None) == (checkpoint is None):
+        raise SystemExit("give --camera CAMERA.yaml or --checkpoint CK (a model: its own camera), exactly one")
+    pred = Predictor(checkpoint, camera=camera, background_box=background_box)
     cam = pred.camera
     t0 = time.perf_counter()
-    ctx = make_context(cam)
+    ctx = make_context(cam, prior=pred.prior, search_k=search_k)
     built = {name: build_solver(name, cam, context=ctx) for name in solvers}
     setup_s = time.perf_counter() - t0
     truth_solver = ctx.tetra
@@ -199,7 +213,8 @@ def run(
         )
     frames_out = [{k: v for k, v in r.items() if not k.startswith("_")} for r in kept]
     return {
-        "camera": str(camera),
+        "camera": str(camera) if camera is not None else f"the camera of {checkpoint}",
+        "checkpoint": None if checkpoint is None else str(checkpoint),
         "camera_fov_deg": [float(v) for v in cam.fov_deg],
         "sensor_px": [int(cam.width_px), int(cam.height_px)],
         "detection": {
@@ -290,9 +305,20 @@ def _coverage_lines(res: dict) -> list[str]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("frames", nargs="+", help="frame files, folders of them, or a skygen dataset folder (--full-res)")
-    p.add_argument("--camera", required=True, help="camera YAML (configs/cameras/*.yaml or skygen fit-camera's)")
+    p.add_argument("--camera", default=None, help="camera YAML (configs/cameras/*.yaml or skygen fit-camera's)")
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        help="a model trained for this camera (instead of --camera): the learned solvers may then be listed",
+    )
+    p.add_argument("--search-k", type=int, default=None, help="regions the learned solvers search (their default)")
     p.add_argument("--n", type=int, nargs="+", default=[3, 4, 5, 6, 8], help="brightest-N cells")
-    p.add_argument("--solvers", nargs="+", default=list(PRIOR_FREE_DEFAULT), help="prior-free registered solvers")
+    p.add_argument(
+        "--solvers",
+        nargs="+",
+        default=list(PRIOR_FREE_DEFAULT),
+        help="registered solvers: prior-free ones, and the learned ones with --checkpoint",
+    )
     p.add_argument("--channel", default="luminance", help="colour frames: luminance, r, g, b or sum")
     p.add_argument("--max-frames", type=int, default=None, help="first N frames of each folder or dataset")
     p.add_argument("--truth-max-fpp", type=float, default=1e-20)
@@ -309,6 +335,8 @@ def main(argv=None) -> int:
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="folder for real_few_star.json and real_few_star.md")
     a = p.parse_args(argv)
+    if (a.camera is None) == (a.checkpoint is None):
+        p.error("give --camera CAMERA.yaml or --checkpoint CK (a model trained for the camera), exactly one")
     frames = load_frames(a.frames, a.max_frames, a.channel)
     res = run(
         frames,
@@ -320,6 +348,8 @@ def main(argv=None) -> int:
         correct_deg=a.correct_deg,
         correct_roll_deg=a.correct_roll_deg,
         background_box=a.background_box,
+        checkpoint=a.checkpoint,
+        search_k=a.search_k,
         log=lambda s: print(s, file=sys.stderr),
     )
     res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])

@@ -129,3 +129,33 @@ def test_box_backgrounds_at_once_equal_the_per_box_estimates(shape, box):
     np.testing.assert_allclose(level, ref[..., 0], rtol=1e-6)
     np.testing.assert_allclose(sigma, ref[..., 1], rtol=1e-5)
     assert np.all(np.abs(sigma - 3) < 1.0)  # the star is clipped: the noise stays the sky's
+
+
+@pytest.mark.parametrize("box", [0, 64])
+def test_detect_with_its_background_given_finds_the_same_stars(box):
+    """detect(background=...) skips the estimate (fit-camera tries five thresholds per frame): given the very
+    estimate it would make, the detections and the returned level and noise are the same; maps of another
+    shape are refused."""
+    from skygen.instrument.detect import background_map, detect, estimate_background
+
+    rng = np.random.default_rng(7)
+    img = rng.normal(300, 6, (256, 320))
+    for y, x in rng.uniform(10, 240, (12, 2)):
+        img[int(y) - 1 : int(y) + 2, int(x) - 1 : int(x) + 2] += rng.uniform(200, 2000)
+    img = np.round(img)
+    if box:
+        lv, sg = background_map(img, box)
+        given = (lv, sg, float(np.median(lv)), float(np.median(sg)))
+    else:
+        given = estimate_background(img)
+    for thr in (3.0, 5.0):
+        ref, bg, sigma = detect(img, thr, 3, 100, box)
+        got, bg2, sigma2 = detect(img, thr, 3, 100, box, background=given)
+        assert (bg2, sigma2) == (bg, sigma) and len(ref["x_px"]) >= 10
+        for k in ref:
+            np.testing.assert_array_equal(got[k], ref[k])
+    if box:
+        got, _, _ = detect(img, 5.0, 3, 100, box, background=given[:2])  # the medians are optional
+        np.testing.assert_array_equal(got["x_px"], detect(img, 5.0, 3, 100, box)[0]["x_px"])
+        with pytest.raises(ValueError, match="shape"):
+            detect(img, 5.0, 3, 100, box, background=(lv[:-1], sg[:-1]))

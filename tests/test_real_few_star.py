@@ -73,3 +73,42 @@ def test_sim_vs_real_intervals_and_verdicts():
     md = mod.markdown({"camera": "c.yaml", "real": {"frames_kept": 8, "frames_given": 8}, "per_attitude": 5,
                        "renders": 60, "seed": 0, "rows": rows})  # fmt: skip
     assert "| 4 | whole-sky | **100 %** (8/8, 68–100) | **100 %** (40/40, 91–100), +0 pts ✓ |" in md
+
+
+def test_learned_solvers_run_beside_the_prior_free_ones_with_a_checkpoint(tmp_path):
+    """--checkpoint: the camera is the model's own, the learned chain is scored in the same cells as the
+    prior-free solvers (here on full-resolution renders of the smoke camera, truth their rendered attitude),
+    and a learned solver without a checkpoint, or a camera given as well, is refused. (At five detections this
+    one-epoch model of 4 regions, 3 searched, makes the chain refuse frames whole-sky solves: the region
+    searches spend the chain's one hypothesis count.)"""
+    from fusion.config import load_config
+    from fusion.testing import KINDS, render_small, small_dataset
+    from fusion.train.run import train
+
+    mod = _script()
+    run_dir = tmp_path / "run"
+    train(
+        load_config("configs/smoke.yaml", [f"data.path={small_dataset('smoke')}", "train.epochs=1"]),
+        run_dir,
+        log=lambda *a, **k: None,
+    )
+    data = render_small(
+        tmp_path / "frames",
+        [*KINDS["smoke"], "n_frames=4", "output.shard_size=4", "output.full_res=true", "seed=9",
+         "output.split_fractions=[0.0, 0.0, 1.0]"],
+    )  # fmt: skip
+    frames = mod.load_frames([str(data)])
+    solvers = ("whole-sky", "learned+fine>whole-sky")
+    res = mod.run(frames, None, n_values=(5, 8), solvers=solvers, checkpoint=run_dir / "best.pt", log=lambda s: None)
+    assert res["checkpoint"].endswith("best.pt") and res["frames_kept"] == 4
+    for cell in res["cells"]:
+        for s in solvers:
+            v = cell["solvers"][s]
+            assert v["n_correct"] + v["n_wrong"] + v["n_refused"] == cell["frames"] == 4 and v["n_wrong"] == 0
+    # from eight detections both solve (the chain: tetra3rs first, then the whole sky at once)
+    assert [v["n_correct"] for v in res["cells"][1]["solvers"].values()] == [4, 4]
+    assert "learned+fine>whole-sky" in mod.markdown(res)
+    with pytest.raises(SystemExit, match="exactly one"):
+        mod.run(frames, CAMERA, solvers=("whole-sky",), checkpoint=run_dir / "best.pt", log=lambda s: None)
+    with pytest.raises(SystemExit, match="need --checkpoint"):
+        mod.run(frames, CAMERA, solvers=("learned+fine>whole-sky",), log=lambda s: None)

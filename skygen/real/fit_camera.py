@@ -332,7 +332,9 @@ def solve_frames(fr: Frames, cfg0, fov_range, log, search_aspect: bool = True) -
     dets = []
     for im in fr.imgs:
         fr.bgs.append(P.background(im, BOX_PX))
-        dets.append(detect(im, DETECT["threshold_sigma"], DETECT["min_area_px"], 200, BOX_PX)[0])
+        dets.append(
+            detect(im, DETECT["threshold_sigma"], DETECT["min_area_px"], 200, BOX_PX, background=_maps(fr.bgs[-1]))[0]
+        )
     frames = _solve_all(db, fr.names, dets, cam0, fov_range)
     n_ok = sum(fs.solved for fs in frames)
     if search_aspect and 2 * n_ok < len(frames):
@@ -360,6 +362,12 @@ def solve_frames(fr: Frames, cfg0, fov_range, log, search_aspect: bool = True) -
             + (" ..." if len(fr.dropped) > 3 else "")
         )
     return solved, cfg0, cam0
+
+
+def _maps(bg: dict) -> tuple:
+    """A frame's :func:`skygen.real.fit_pixels.background` (its ``BOX_PX`` maps and their medians) as
+    :func:`skygen.instrument.detect.detect`'s ``background``: the detector need not estimate it again."""
+    return bg["level_map"], bg["sigma_map"], bg["level_adu"], bg["noise_adu"]
 
 
 def _database(cam0: Camera, fov_range, log):
@@ -505,7 +513,7 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
     psf = P.psf_fit(s_imgs, [b["level_map"] for b in s_bgs], [fs.det for fs in solved], matched, cam.aspect, fr.sat)
     hot = P.hot_pixels([fr.image_of(n) for n in own], [b["level_map"] for b in bgs], [b["sigma_map"] for b in bgs])
     zp_real, stars = _zero_point_real(solved, g, s_bgs, fr.sat)
-    settings = choose_detector(solved, s_imgs, cam, g.rotations, sky)
+    settings = choose_detector(solved, s_imgs, cam, g.rotations, sky, [_maps(b) for b in s_bgs])
     meas = {
         **sensor.terms(float(np.median([b["centre_adu"] for b in bgs])), int(round(fr.sat))),
         "level_adu": float(np.median([b["level_adu"] for b in bgs])),
@@ -552,39 +560,48 @@ def _zero_point_real(solved, g, bgs, sat):
     return zp, {"flux_adu": flux[ok], "mag": mag[ok], "bv": bv[ok], "n": n}
 
 
-def choose_detector(solved, imgs, cam, rotations, sky) -> dict:
-    """Threshold and background box that maximise (catalogue stars found) - (other detections)."""
+def choose_detector(solved, imgs, cam, rotations, sky, box_maps: list | None = None) -> dict:
+    """Threshold and background box that maximise (catalogue stars found) - (other detections).
+
+    ``box_maps``: each image's ``BOX_PX`` background (:func:`_maps`), when already estimated; each frame's
+    backgrounds are estimated once and shared by every threshold."""
     from scipy.spatial import cKDTree
 
-    from skygen.instrument.detect import detect
+    from skygen.instrument.detect import background_map, detect, estimate_background
 
-    trees = []
-    for fs, R in zip(solved, rotations):
+    found = {(box, thr): 0 for box in BOXES for thr in THRESHOLDS}
+    other = dict(found)
+    for k, (im, R) in enumerate(zip(imgs, rotations)):
         idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
         x, y, front = cam.project(sky.vectors[idx] @ R)
         ok = front & cam.inside(x, y)
-        trees.append(cKDTree(np.column_stack([x[ok], y[ok]])) if ok.any() else None)
-    rows = []
-    for box in BOXES:
-        for thr in THRESHOLDS:
-            found = other = 0
-            for im, tree in zip(imgs, trees):
-                det, _, _ = detect(im, thr, DETECT["min_area_px"], 100_000, box)
+        tree = cKDTree(np.column_stack([x[ok], y[ok]])) if ok.any() else None
+        for box in BOXES:
+            if box == 0:
+                bg = estimate_background(im)
+            elif box == BOX_PX and box_maps is not None:
+                bg = box_maps[k]
+            else:
+                bg = background_map(im, box)
+            for thr in THRESHOLDS:
+                det, _, _ = detect(im, thr, DETECT["min_area_px"], 100_000, box, background=bg)
                 if tree is None or not len(det["x_px"]):
-                    other += len(det["x_px"])
+                    other[box, thr] += len(det["x_px"])
                     continue
                 d, _ = tree.query(np.column_stack([det["x_px"], det["y_px"]]))
-                found += int(np.sum(d <= 2.0))
-                other += int(np.sum(d > 2.0))
-            rows.append(
-                {
-                    "threshold_sigma": thr,
-                    "background_box_px": box,
-                    "catalogue_per_frame": found / len(imgs),
-                    "other_per_frame": other / len(imgs),
-                    "score": (found - other) / len(imgs),
-                }
-            )
+                found[box, thr] += int(np.sum(d <= 2.0))
+                other[box, thr] += int(np.sum(d > 2.0))
+    rows = [
+        {
+            "threshold_sigma": thr,
+            "background_box_px": box,
+            "catalogue_per_frame": found[box, thr] / len(imgs),
+            "other_per_frame": other[box, thr] / len(imgs),
+            "score": (found[box, thr] - other[box, thr]) / len(imgs),
+        }
+        for box in BOXES
+        for thr in THRESHOLDS
+    ]
     best = max(rows, key=lambda r: (r["score"], r["threshold_sigma"]))
     return {**best, "min_area_px": DETECT["min_area_px"], "grid": rows}
 
