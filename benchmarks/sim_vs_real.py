@@ -3,6 +3,7 @@
     python benchmarks/sim_vs_real.py FRAMES... --camera FITTED.yaml --out DIR
                                      [--renders 60] [--per-attitude 5] [--n 3 4 5 6 8]
                                      [--solvers whole-sky tetra3rs>whole-sky] [--seed 0] [--work DIR]
+                                     [--checkpoint CK --solvers whole-sky learned+fine>whole-sky]
 
 Three columns for every N and solver, each the share of frames solved correctly from the brightest N detections
 (``benchmarks/real_few_star.py``'s cells and scoring, the camera's own detection settings):
@@ -13,6 +14,9 @@ Three columns for every N and solver, each the share of frames solved correctly 
   noise realisations each: the sensor model alone, the sky held as the frames saw it;
 * **renders, random sky**: ``--renders`` frames of the camera at uniformly drawn attitudes: what a user of this
   camera should expect over the sky (the real frames may point at richer or poorer fields than average).
+
+With ``--checkpoint CK`` (a model trained on renders of this camera) the learned solvers may be listed too; all
+three columns then detect and solve with the model's own camera (real_few_star's ``--checkpoint``).
 
 Each rate comes with its 95 % Wilson interval. The issue's target is renders within 5 points of the real; with a
 handful of real frames the real rate itself is uncertain by tens of points, so the table also says whether the
@@ -143,7 +147,10 @@ def main(argv=None) -> int:
     p.add_argument("frames", nargs="+", help="real frame files or folders of them")
     p.add_argument("--camera", required=True, help="the camera YAML fitted to these frames (skygen fit-camera)")
     p.add_argument("--n", type=int, nargs="+", default=[3, 4, 5, 6, 8], help="brightest-N cells")
-    p.add_argument("--solvers", nargs="+", default=list(DEFAULT_SOLVERS), help="prior-free registered solvers")
+    p.add_argument(
+        "--solvers", nargs="+", default=list(DEFAULT_SOLVERS), help="registered solvers (learned: with --checkpoint)"
+    )
+    p.add_argument("--checkpoint", default=None, help="a model trained on renders of this camera: its learned solvers")
     p.add_argument("--renders", type=int, default=60, help="renders at random attitudes (0: none)")
     p.add_argument("--per-attitude", type=int, default=5, help="renders at each real truth attitude (0: none)")
     p.add_argument("--seed", type=int, default=0, help="the renders' seed")
@@ -156,20 +163,23 @@ def main(argv=None) -> int:
     work = Path(a.work) if a.work else out / "renders"
     log = lambda s: print(s, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
-    real = run(load_frames(a.frames, None, a.channel), a.camera, a.n, a.solvers, log=log)
+    # with a model, its own camera detects and solves (the camera file still renders the frames)
+    cam, kw = (None, {"checkpoint": a.checkpoint}) if a.checkpoint else (a.camera, {})
+    real = run(load_frames(a.frames, None, a.channel), cam, a.n, a.solvers, log=log, **kw)
     if not real["frames_kept"]:
         raise SystemExit("sim_vs_real: no real frame has a certain truth attitude: nothing to predict")
     at_truth = random_sky = None
     if a.per_attitude > 0:
         atts = [f["truth_radec_roll_deg"] for f in real["frames"] for _ in range(a.per_attitude)]
         folder = render(a.camera, work / "at-truth", 0, a.seed, atts)
-        at_truth = run(load_frames([str(folder)]), a.camera, a.n, a.solvers, log=log)
+        at_truth = run(load_frames([str(folder)]), cam, a.n, a.solvers, log=log, **kw)
     if a.renders > 0:
         folder = render(a.camera, work / "random-sky", a.renders, a.seed)
-        random_sky = run(load_frames([str(folder)]), a.camera, a.n, a.solvers, log=log)
+        random_sky = run(load_frames([str(folder)]), cam, a.n, a.solvers, log=log, **kw)
     res = {
         "command": "python benchmarks/sim_vs_real.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "camera": a.camera,
+        "checkpoint": a.checkpoint,
         "renders": a.renders,
         "per_attitude": a.per_attitude,
         "seed": a.seed,
