@@ -31,7 +31,9 @@ def test_shipped_real_frames_match_their_checksums_and_table():
     assert "Apache License" in (FOLDER / "LICENSE-Apache-2.0.txt").read_text()
 
 
-@pytest.mark.parametrize("folder", ["tetra3-blackfly", "openstartracker-science-cam", "startrackerpy-dmk41bu02"])
+@pytest.mark.parametrize(
+    "folder", ["tetra3-blackfly", "openstartracker-science-cam", "startrackerpy-dmk41bu02", "creusot-16mm"]
+)
 def test_every_shipped_camera_folder_matches_its_checksums_and_carries_its_licence(folder):
     here = ROOT / "real-frames" / folder
     sums = dict(reversed(line.split(None, 1)) for line in (here / "SHA256SUMS").read_text().splitlines())
