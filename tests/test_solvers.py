@@ -210,9 +210,9 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
 
 
 def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_from_detections(renderer, tetra, regions):
-    """learned+fine>whole-sky with whole_sky_from: six detections or more go to tetra3rs lost in space first and,
-    where it refuses, straight to the whole sky (the prior is not asked; region -1), so the answer is tetra3rs's
-    or the whole-sky solver's; fewer are searched in the prior's regions first. whole_sky_from needs
+    """learned+fine>whole-sky with whole_sky_from (6 here): six detections or more go to tetra3rs lost in space
+    first and, where it refuses, straight to the whole sky (the prior is not asked; region -1), so the answer is
+    tetra3rs's or the whole-sky solver's; fewer are searched in the prior's regions first. whole_sky_from needs
     then_whole_sky and at least three detections."""
     from fusion.solve.fine import WHOLE_SKY_FROM, CoarseToFineSolver
     from fusion.solve.priors import OraclePrior, RegionPrior
@@ -225,7 +225,7 @@ def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_fro
             self.calls += 1
             return self.oracle.probabilities_for(self.v, self.i)
 
-    assert WHOLE_SKY_FROM == 6
+    assert WHOLE_SKY_FROM == 5
     whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02)
     by = {"tetra": 0, "sky": 0}
     for i in range(6):

@@ -169,10 +169,11 @@ FOCAL_EDGE = 0.98
 REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
 # the learned chain (learned+fine>whole-sky) from this many detections: tetra3rs lost in space, then the whole sky at
 # once, the prior not asked. There the whole sky alone was as often right as the prior's regions first (data/bench500,
-# 150 frames, cpu-few prior: N = 5 95 % both here, 95 against 96 % in session 9; N = 6 99 % both), and tetra3rs
-# first made the chain's median at N = 6 0.6 ms clean, 2.3 ms at 0.5 mag of magnitude noise (before: 8.8, 31.2 ms;
-# results/benchmark/whole-sky-from). Below six the prior adds points (N = 4: 87 against 83 %)
-WHOLE_SKY_FROM = 6
+# 150 frames, cpu-few prior; results/benchmark/whole-sky-from): N = 6 99 % both, and tetra3rs first made the chain's
+# median 0.6 ms clean, 2.3 ms at 0.5 mag of magnitude noise (before: 8.8, 31.2 ms); N = 5 (since 2026-11-27) the same
+# % clean and at 0.25 mag, 2 points fewer at 0.1 and 0.5 mag (3 of 150 frames), 8 more at 1 mag, and the chain's p99
+# 4-5 times shorter (refused regions no longer precede the sky). At N = 4 the prior adds points (87 against 83 %)
+WHOLE_SKY_FROM = 5
 TRACKING = -2  # Region.index of a tracking hint's region
 
 

@@ -11,7 +11,7 @@ A solver is anything with ``name`` and ``solve(detections, camera, image=None, *
 ``learned+fine>whole-sky`` learned + fine, and the rest of the sky where the prior's regions refuse
                            (one search: its hypothesis count H, and so its false-match budget, spans
                            both; ``fusion predict --solve`` with a checkpoint); from
-                           ``fine.WHOLE_SKY_FROM`` (6) detections tetra3rs, then the whole sky
+                           ``fine.WHOLE_SKY_FROM`` (5) detections tetra3rs, then the whole sky
                            at once, no prior
 ``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses
 ``tetra3rs>learned+fine>whole-sky``  tetra3rs, then learned + fine > whole-sky (``fusion predict --lis-first``)
@@ -126,7 +126,7 @@ def _learned_fine(ctx: SolverContext):
 @register_solver(
     "learned+fine>whole-sky",
     prior="learned",
-    doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget); from 6 "
+    doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget); from 5 "
     "detections tetra3rs, then the whole sky at once",
 )
 def _learned_fine_whole_sky(ctx: SolverContext):
