@@ -483,8 +483,8 @@ def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k")
         dest="search_k",
         type=int,
         metavar="K",
-        help="fine stage: regions searched, most probable first (default 20 fine regions or "
-        "3 coarse ones; four times as many for three detections)",
+        help="fine stage: regions searched, most probable first (default 20 fine regions or 3 coarse ones, four "
+        "times as many for three detections; learned+fine>whole-sky: 5 fine regions from four detections)",
     )
     p.add_argument(
         "--focal-tol",

@@ -158,7 +158,9 @@ def test_benchmark_scores_a_checkpoint_as_learned_and_learned_plus_fine(tmp_path
     cell = r["cells"][0]["solvers"]
     assert 0 <= cell["learned"]["top1"] <= cell["learned"]["top3"] <= 1
     # a checkpoint without fine regions: the search falls back to its K regions, top 2 as asked
-    assert r["search"] == {"level": "coarse", "regions": 4, "top_k": 2, "focal_tol": 0.02, "max_hypotheses": None}
+    assert r["search"] == {
+        "level": "coarse", "regions": 4, "top_k": 2, "chain_top_k": 2, "focal_tol": 0.02, "max_hypotheses": None
+    }  # fmt: skip
     lf = cell["learned+fine"]
     assert lf["wrong"] == 0 and lf["correct"] + lf["refused"] == pytest.approx(1.0)
     # lost-in-space first, the learned path where it refuses: composed from the two columns' answers

@@ -257,6 +257,30 @@ def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_fro
         CoarseToFineSolver(tetra, None, then_whole_sky=True, whole_sky_from=2)
 
 
+def test_the_learned_chain_searches_fewer_fine_regions_before_the_sky(renderer, tetra, regions):
+    """With a fine-level prior the chain searches 5 regions before the sky (80 for three detections, as many as
+    learned+fine's 20 x 4), learned+fine alone 20; --search-k K sets K for both (x 4 for three detections)."""
+    from fusion.solve.fine import FEW_TOP_K_FACTOR
+    from fusion.solve.registry import build_solver, make_context
+
+    class Fine:
+        level, centroids = "fine", regions
+
+        def at_level(self, level):
+            return self
+
+    def searched(name, ctx):
+        s = build_solver(name, renderer.camera, context=ctx)
+        return s.top_k, s.top_k * s.few_top_k_factor
+
+    ctx = make_context(renderer.camera, prior=Fine(), tetra=tetra)
+    assert (ctx.top_k, ctx.chain_top_k) == (20, 5)
+    assert searched("learned+fine", ctx) == (20, 20 * FEW_TOP_K_FACTOR)
+    assert searched("learned+fine>whole-sky", ctx) == (5, 20 * FEW_TOP_K_FACTOR)
+    ctx = make_context(renderer.camera, prior=Fine(), tetra=tetra, search_k=7)
+    assert searched("learned+fine", ctx) == searched("learned+fine>whole-sky", ctx) == (7, 7 * FEW_TOP_K_FACTOR)
+
+
 def test_only_the_brightest_detections_are_scored_and_all_are_verified(renderer, tetra, regions):
     """A frame with many detections: the search scores the brightest max_detections (fewer partner tables)
     and tetra3rs's verification re-matches every detection, so the answer is the same attitude."""

@@ -43,7 +43,8 @@ settings (sensor, optics, ...: :func:`fusion.model.checkpoint.frame_config_diffe
 is scored with a one-line WARNING, and the report lists the keys under ``config_differences``.
 
 The coarse-to-fine solvers run as ``fusion predict --solve`` does: ``--search fine`` (the
-20 most probable fine regions) and ``--focal-tol 0.02`` by default, so the benchmark scores
+20 most probable fine regions; 5 from four detections in ``learned+fine>whole-sky``) and ``--focal-tol 0.02`` by
+default, so the benchmark scores
 what a user gets; the frames are rendered at the nominal focal length, so the tolerance
 only costs here (``--focal-tol 0`` shows how much).
 
@@ -569,6 +570,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
             "level": level,
             "regions": int(len(ctx.search_centroids)),
             "top_k": ctx.top_k,
+            "chain_top_k": ctx.chain_top_k,  # what learned+fine>whole-sky searches before the sky
             "focal_tol": st["focal_tol"],
             "max_hypotheses": st.get("max_hypotheses"),  # None: the fine stage's default budget
         },

@@ -175,6 +175,7 @@ REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_wh
 # 4-5 times shorter (refused regions no longer precede the sky). At N = 4 the prior adds points (87 against 83 %)
 WHOLE_SKY_FROM = 5
 TRACKING = -2  # Region.index of a tracking hint's region
+FEW_TOP_K_FACTOR = 4  # three detections: this many times top_k regions (see solve)
 
 
 @dataclass(frozen=True)
@@ -308,7 +309,7 @@ class CoarseToFineSolver:
         bright_max_detections: int = 3,
         photometric_mag: float | None = 0.5,
         max_residual_px: float = 1.5,
-        few_top_k_factor: int = 4,
+        few_top_k_factor: int = FEW_TOP_K_FACTOR,
         then_whole_sky: bool = False,
         whole_sky_from: int | None = None,
         max_detections: int | None = 24,
