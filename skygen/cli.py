@@ -203,11 +203,17 @@ def _add_catalog(p: argparse.ArgumentParser) -> None:
     p.add_argument("--catalog", default="hipparcos-v", help="fetch: hipparcos-v (I/239) or tycho2 (I/259)")
     p.add_argument("--mag-limit", type=float, default=9.0, help="fetch: faintest V magnitude")
     p.add_argument("--out", help="fetch: output .npz (default catalogs/NAME.npz)")
-    p.add_argument("--path", help="info: catalog file (default: bundled Hipparcos-2)")
+    p.add_argument(
+        "--source",
+        choices=("hipparcos", "gaia"),
+        default="hipparcos",
+        help="info: hipparcos (Hipparcos-2) or gaia (Gaia DR3 to G = 10 merged with it), as catalog.source",
+    )
+    p.add_argument("--path", help="info: catalog file (default: the source's bundled one)")
 
 
 def _run_catalog(args: argparse.Namespace) -> int:
-    from skygen.sky.catalog import load_catalog
+    from skygen.sky.catalog import open_catalog
 
     if args.action == "fetch":
         from skygen.sky.vizier import fetch
@@ -217,11 +223,11 @@ def _run_catalog(args: argparse.Namespace) -> int:
         stars = fetch(args.catalog, out, args.mag_limit)
         print(f"saved {len(stars)} stars to {out}; use it with --set catalog.path={out}")
         return 0
-    table = load_catalog(args.path)
+    table = open_catalog(args.source, args.path)
     import numpy as np
 
     print(f"source: {table.source}\nstars: {len(table)}\nepoch: J{table.epoch_yr}\nband: {table.band}")
-    for m in (3, 4, 5, 6, 7, 8, 9):
+    for m in (3, 4, 5, 6, 7, 8, 9, 10):
         print(f"  {table.band} <= {m}: {int(np.sum(table.mag <= m))}")
     return 0
 
@@ -313,6 +319,13 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         help="when the frames were taken, Julian year (catalogue proper motions; default the camera file's epoch_yr)",
     )
     p.add_argument(
+        "--catalog",
+        choices=("hipparcos", "gaia"),
+        help="the catalogue renders of this camera will use (written as catalog.source; default: the camera "
+        "file's, or hipparcos): the false stars fitted are the detections it does not explain. gaia: Gaia DR3 to "
+        "G = 10 merged with Hipparcos, for cameras that see fainter than Hipparcos is complete (Hp ~ 8-9)",
+    )
+    p.add_argument(
         "--report",
         metavar="DIR",
         help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png (default: beside --out, OUT-report/)",
@@ -335,6 +348,7 @@ def _run_fit_camera(args: argparse.Namespace) -> int:
         pixel_aspect=args.pixel_aspect,
         epoch_yr=args.epoch,
         channel=args.channel,
+        catalog=args.catalog,
         report_dir=report,
         command=command,
         log=lambda m: print(m, file=sys.stderr),

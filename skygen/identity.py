@@ -46,6 +46,7 @@ NEUTRAL_DEFAULTS = {
     "detection.background_box_px": 0,
     "corruptions.false_star_slope": 0.0,
     "corruptions.false_star_span_mag": 4.0,
+    "catalog.source": "hipparcos",
 }
 
 

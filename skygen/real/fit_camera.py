@@ -157,6 +157,20 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
     return build_config(data)
 
 
+#: the geometry fit and the detector choice match detections to at most this many of the catalogue's
+#: brightest stars (Hipparcos-2 holds 117,955: all of them, to Hp 10): a deeper catalogue to Hp 10 (Gaia, 490 k)
+#: puts a chance star within 3 px of ~12 % of a 27 deg camera's detections, which pulled the geometry to
+#: 0.8 px rms and made the detector choice reward noise (results/real-frames/gaia.md)
+MATCH_STARS = 120_000
+
+
+def match_limit(table) -> float:
+    """The magnitude to which ``table``'s stars are matched in the geometry fit and the detector choice: Hp 10,
+    or brighter where that would pass :data:`MATCH_STARS` stars."""
+    mags = np.sort(table.mag[np.isfinite(table.mag)])
+    return float(min(10.0, mags[min(MATCH_STARS, len(mags)) - 1]))
+
+
 # ----------------------------------------------------------------------------------- the fit
 def fit_camera(
     paths: list[str],
@@ -171,13 +185,14 @@ def fit_camera(
     command: str = "",
     log=print,
     channel: str = "luminance",
+    catalog: str | None = None,
 ) -> dict:
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
     from skygen.real.fit_render import fit_model_terms
     from skygen.runtime import check_output_file, check_output_folder
-    from skygen.sky.catalog import SkyIndex, load_catalog
+    from skygen.sky.catalog import SkyIndex, open_catalog
 
     t0 = time.perf_counter()
     check_output_file(out, "--out", "camera.yaml")  # before the minute of solving and fitting, not after it
@@ -186,9 +201,11 @@ def fit_camera(
     fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
     fr = load_frames(paths, log, channel)
     cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape)
+    if catalog is not None:  # the catalogue the renders will use: the false stars fitted are what it lacks
+        cfg0 = dataclasses.replace(cfg0, catalog=dataclasses.replace(cfg0.catalog, source=catalog))
     epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
-    table = load_catalog(cfg0.catalog.path)
-    sky = SkyIndex(table, epoch, 10.0)
+    table = open_catalog(cfg0.catalog.source, cfg0.catalog.path)
+    sky = SkyIndex(table, epoch, match_limit(table))
     solved, cfg0, cam0 = solve_frames(fr, cfg0, fov_range, log, search_aspect=pixel_aspect is None)
     t_solve = time.perf_counter() - t0
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)

