@@ -111,3 +111,38 @@ def test_the_neutral_shape_keeps_older_datasets_ids():
     assert content_id(cfg) == content_id(old)
     cfg["corruptions"]["false_star_slope"] = 0.3
     assert content_id(cfg) != content_id(old)
+
+
+def test_the_bright_tail_is_capped_to_what_the_frames_brightest_ten_show():
+    """cap_bright_tail: the share of false stars it expects above each frame's tenth-brightest star is the
+    renderer's own draw (false_star_magnitudes); it shortens the span until the renders' false-star part matches
+    the frames' excess, keeps the density below the cap, and leaves a shape the frames do not contradict."""
+    from skygen.real.fit_render import cap_bright_tail
+
+    lim, rng = 8.04, np.random.default_rng(5)
+    shape = {"slope": 0.22, "span_mag": 3.55, "per_frame": 87.6, "n": 400, "note": "fitted"}
+    tenth = rng.uniform(4.5, 4.8, 9)  # nine frames' tenth-brightest catalogue stars (mag): a wide field's
+
+    def drawn(s: dict) -> float:  # the renderer's draw: false stars above each frame's tenth, summed over frames
+        m = false_star_magnitudes(rng.random((4000, int(round(s["per_frame"])))), lim, s["slope"], s["span_mag"])
+        return float(np.mean((m[:, None, :] < tenth[None, :, None]).sum(axis=(1, 2))))
+
+    before = drawn(shape)
+    assert 4 < before < 20
+    own, rendered = 0.5, 0.5 + before  # renders counting every false star above the tenth (the scale cancels)
+    capped = cap_bright_tail(shape, lim, tenth, real_count=2, own=own, rendered=rendered)
+    assert capped["span_mag"] < shape["span_mag"] and "bright end capped" in capped["note"]
+    assert drawn(capped) + own == pytest.approx(2.0, abs=0.15)  # the frames' 2
+    # the density of the faint ones is kept: per magnitude at the limit, before and after
+    k = 0.22 * np.log(10)
+    density = [s["per_frame"] * k / -np.expm1(-k * s["span_mag"]) for s in (shape, capped)]
+    assert density[1] == pytest.approx(density[0], rel=1e-9)
+    # renders that see a constant share of what the scene holds (saturation) are scaled, not taken literally
+    half = cap_bright_tail(shape, lim, tenth, real_count=1, own=own, rendered=own + before / 2)
+    assert drawn(half) == pytest.approx(2 * (1 - own), abs=0.15)  # twice the frames' excess in the scene
+    # not contradicted (80 % of what renders show; or more): the same shape
+    assert cap_bright_tail(shape, lim, tenth, int(0.8 * rendered), own, rendered) is shape
+    assert cap_bright_tail(shape, lim, tenth, 20, own, rendered) is shape
+    # the frames' own sources account for all they show: no false star above any frame's tenth
+    none = cap_bright_tail(shape, lim, tenth, real_count=0, own=0.0, rendered=before)
+    assert lim - none["span_mag"] >= tenth.max() - 1e-6 and drawn(none) == 0.0

@@ -29,7 +29,9 @@
 5. Detector settings: the threshold and background box that find the most catalogue stars net of
    other detections on these frames. Real frames show stars fainter than the catalogue's
    completeness; the detections they have beyond renders of the fitted camera (median per frame)
-   become ``corruptions.false_stars`` (point sources at random places up to the detection limit).
+   become ``corruptions.false_stars`` (point sources at random places up to the detection limit; their bright
+   end capped where renders put more of them among the ten brightest detections than the frames have:
+   :func:`skygen.real.fit_render.cap_bright_tail`).
 6. The model's own terms (:mod:`skygen.real.fit_render`): electrons from the gain; the zero point becomes
    ``sensor.exposure_s`` (exposure x throughput: the start camera's aperture, transmission and QE are kept,
    so the fitted exposure absorbs the atmosphere and any other loss); the background becomes

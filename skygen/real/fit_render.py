@@ -146,6 +146,20 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
             if shape["per_frame"] == 0:
                 return cfg, bare
             cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
+            rendered = _render_stats(cfg, attitudes, table, sat)
+            capped = cap_bright_tail(
+                shape,
+                bare[0]["_detection_limit_mag"],
+                np.array([r["_tenth_mag"] for r in bare]),
+                int(sum(r["nonstar_brightest10"] for r in real_stats)),
+                own=float(sum(r["nonstar_brightest10"] for r in bare)),
+                rendered=float(sum(r["nonstar_brightest10"] for r in rendered)),
+            )
+            if capped is shape:
+                return cfg, rendered
+            meas["false_star_shape"] = capped
+            meas["faint_sources_per_frame"] = capped["per_frame"]
+            cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
             return cfg, _render_stats(cfg, attitudes, table, sat)
     meas["faint_sources_per_frame"] = start
     if faint is not None and start == 0:  # the renders without false stars are these: not rendered again
@@ -166,6 +180,72 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
         gain = float(np.clip(gained / (more - count), 0.2, 1.0)) if more != count else 1.0
         count, rendered = more, again
     return cfg, rendered
+
+
+#: the renders' bright false stars contradict the frames when the frames show this unlikely few non-catalogue
+#: sources among their brightest ten (Poisson, lower tail) for what the renders would put there
+BRIGHT_TAIL_P = 0.05
+
+
+def cap_bright_tail(
+    shape: dict, limit_mag: float, tenth_mags: np.ndarray, real_count: int, own: float, rendered: float
+) -> dict:
+    """The false stars' bright end, checked against what a few-star solver is given: the non-catalogue sources
+    among each frame's ten brightest detections.
+
+    The magnitude fit (:func:`fit_false_star_shape`) takes its span from the single brightest uncatalogued
+    detection and its slope mostly from the faint bins, so it can put more false stars among a frame's ten
+    brightest detections than the frames show there (the DMK 41BU02: 0.78 per frame in renders, 0.22 real).
+    Counts summed over the frames compared: ``real_count`` (the frames'), ``rendered`` (renders at their
+    attitudes with ``shape``), ``own`` (the same renders without false stars: hot pixels, blends). Where the
+    frames' count is improbably low for the renders' (Poisson lower tail below :data:`BRIGHT_TAIL_P`), the span
+    is shortened, the density below the cap kept (fewer false stars, none of the faint ones lost), until the
+    false stars' part, ``rendered - own`` scaled by the model's share of false stars brighter than each frame's
+    tenth-brightest catalogue star (``tenth_mags``, true magnitudes: saturation ranks false and real bright
+    stars alike, so renders measure a constant share of it), equals the frames' excess over ``own`` (or no
+    false star is brighter than any frame's tenth). Otherwise ``shape`` itself is returned. Renders showing
+    *fewer* than the frames are left alone: the span already reaches the brightest uncatalogued detection."""
+    from scipy.stats import poisson
+
+    slope, span, n = float(shape["slope"]), float(shape["span_mag"]), float(shape["per_frame"])
+    tenth = np.asarray(tenth_mags, dtype=np.float64)
+    tenth = np.minimum(tenth[np.isfinite(tenth)], limit_mag)
+    if not len(tenth) or not span > 0 or rendered <= own or rendered <= real_count:
+        return shape
+    if poisson.cdf(real_count, rendered) >= BRIGHT_TAIL_P:
+        return shape
+
+    def above(lo: float, hi: np.ndarray) -> np.ndarray:  # the unnormalised model mass between magnitudes lo and hi
+        hi = np.maximum(hi, lo)
+        if slope <= 0:
+            return hi - lo
+        k = slope * np.log(10.0)
+        return (np.exp(k * (hi - limit_mag)) - np.exp(k * (lo - limit_mag))) / k
+
+    def share(s: float) -> float:  # false stars brighter than the frames' tenth, relative to the fitted shape's
+        return float(np.sum(above(limit_mag - s, tenth)))
+
+    full = share(span)
+    if full <= 0:  # no false star brighter than any tenth: what renders show there is not the false stars'
+        return shape
+    target = max(float(real_count) - own, 0.0) / (rendered - own) * full
+    lo, hi = max(limit_mag - float(np.max(tenth)), 0.0), span  # share(lo) = 0
+    for _ in range(60 if target > 0 else 0):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if share(mid) < target else (lo, mid)
+    new_span = max(hi if target > 0 else lo, 0.05)
+    new_n = (
+        n
+        * float(above(limit_mag - new_span, np.array(limit_mag)))
+        / float(above(limit_mag - span, np.array(limit_mag)))
+    )
+    note = (
+        f"; bright end capped at Hp {limit_mag - new_span:.2f} (span {span:.2f} -> {new_span:.2f} mag, "
+        f"{n:.1f} -> {new_n:.1f} per frame): its renders put {rendered:g} non-catalogue sources among the ten "
+        f"brightest detections of {len(tenth)} frames ({own:g} without false stars) where the frames show "
+        f"{real_count} (Poisson p {poisson.cdf(real_count, rendered):.2g})"
+    )
+    return {**shape, "span_mag": new_span, "per_frame": new_n, "note": shape.get("note", "") + note}
 
 
 def _mags(zp: float, flux: np.ndarray) -> np.ndarray:
@@ -540,6 +620,8 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
             np.full(int(ok.sum()), st["background_adu"]),
             sat,
         )
+        mags = np.sort(extra["_star_mag"])  # the tenth-brightest catalogue star on the sensor: cap_bright_tail
+        extra["_tenth_mag"] = float(mags[9]) if len(mags) >= 10 else float("nan")
         rows.append({**st, **extra, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
     return rows
 
