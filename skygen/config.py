@@ -94,6 +94,13 @@ class OpticsConfig:
     vignetting: float = param(
         0.0, lo=0, hi=0.9, doc="relative illumination loss at the sensor corner (cos^4-like), 0: off"
     )
+    sky_vignetting: Optional[float] = param(
+        None,
+        lo=0,
+        hi=0.9,
+        doc="the diffuse background's loss at the corner where it differs from the stars' (sensor shading, a sky "
+        "that is not flat: skygen fit-camera measures both); None: optics.vignetting",
+    )
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,14 @@ class PhotometryConfig:
     default_bv: float = param(0.65, lo=-0.5, hi=3, doc="B-V used when a star has none (solar)")
     sky_mag_arcsec2: float = param(
         22.5, lo=10, hi=30, doc="diffuse sky (zodiacal light) surface brightness, V mag/arcsec^2"
+    )
+    star_scatter_mag: float = param(
+        0.0,
+        lo=0,
+        hi=2,
+        doc="rms (mag) of each star's fixed offset from its catalogue-predicted brightness on this sensor (band "
+        "mismatch, catalogue errors, variability): drawn once per star from sensor.sensor_seed, the same in every "
+        "frame; skygen fit-camera fits it to the frames' photometric residuals",
     )
 
 

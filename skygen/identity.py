@@ -47,6 +47,8 @@ NEUTRAL_DEFAULTS = {
     "corruptions.false_star_slope": 0.0,
     "corruptions.false_star_span_mag": 4.0,
     "catalog.source": "hipparcos",
+    "photometry.star_scatter_mag": 0.0,
+    "optics.sky_vignetting": None,
 }
 
 

@@ -155,6 +155,20 @@ def _bandwidth_of_bv(bv: np.ndarray) -> np.ndarray:
     return np.interp(bv, _BV_GRID, _W_GRID)
 
 
+def star_gains(ids: np.ndarray, scatter_mag: float, sensor_seed: int) -> np.ndarray:
+    """Each star's fixed brightness factor on this sensor, 10 ** (-0.4 dm) with dm ~ N(0, ``scatter_mag``) drawn
+    from the star's catalogue id and the sensor's seed (``photometry.star_scatter_mag``): what the catalogue's
+    magnitude and colour do not predict of a real sensor's flux (its band, catalogue errors, variable stars). The
+    same star has the same offset in every frame, on every renderer; ones where ``scatter_mag`` is 0."""
+    ids = np.asarray(ids, np.int64)
+    if scatter_mag <= 0:
+        return np.ones(ids.shape)
+    from skygen import hashrng
+
+    dm = scatter_mag * hashrng.normal(hashrng.stream_key(int(sensor_seed), "star_scatter"), ids, 0)
+    return 10 ** (-0.4 * dm)
+
+
 def dark_current_e_s(sensor) -> float:
     """Mean dark current (e-/s/pixel) at the sensor temperature: doubles every dark_doubling_c."""
     return sensor.dark_current_e_s * 2.0 ** ((sensor.temperature_c - sensor.dark_reference_c) / sensor.dark_doubling_c)

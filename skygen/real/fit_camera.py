@@ -37,7 +37,10 @@
    so the fitted exposure absorbs the atmosphere and any other loss); the background becomes
    ``photometry.sky_mag_arcsec2`` (after the start camera's dark current, lowered when it alone would
    outshine the darkest corner), its fall towards the corners ``optics.vignetting``, the gradient
-   ``corruptions.stray_light`` (a ramp of the same size, random direction). Frames are then rendered at the
+   ``corruptions.stray_light`` (a ramp of the same size, random direction). Where the matched stars span the
+   field, their own photometric residuals give the stars' vignetting (:func:`skygen.real.fit_render.star_vignetting`)
+   and the background's fall is kept apart as ``optics.sky_vignetting``; the stars' photometric scatter beyond
+   the renders' own becomes ``photometry.star_scatter_mag`` (a fixed offset per star). Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
    the real one (the detector's flux is not a star's whole flux). The renders' background, its noise, the
    star width and the detections per frame are checked against the frames
@@ -563,9 +566,13 @@ def _zero_point_real(solved, g, bgs, sat):
     """Zero point of the real frames and the matched unsaturated stars (flux ADU, Hp, B-V)."""
     from skygen.real.fit_pixels import zero_point
 
-    flux, mag, bv, peak, lev = [], [], [], [], []
-    for fs, m, b in zip(solved, g.keep, bgs):
+    flux, mag, bv, peak, lev, frame, r2 = [], [], [], [], [], [], []
+    cam = g.camera
+    for k, (fs, m, b) in enumerate(zip(solved, g.keep, bgs)):
         d = fs.det_index[m]
+        frame.append(np.full(len(d), k))
+        dx, dy = fs.det["x_px"][d] - cam.cx_px, fs.det["y_px"][d] - cam.cy_px
+        r2.append((dx**2 + dy**2) / ((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2))  # as Renderer.vignetting
         flux.append(fs.det["flux_adu"][d])
         peak.append(fs.det["peak_adu"][d])
         xi = np.clip(np.round(fs.det["x_px"][d]).astype(int), 0, b["level_map"].shape[1] - 1)
@@ -573,10 +580,19 @@ def _zero_point_real(solved, g, bgs, sat):
         lev.append(b["level_map"][yi, xi])
         mag.append(fs.star_mag[m])
         bv.append(fs.star_bv[m])
-    flux, mag, bv, peak, lev = (np.concatenate(a).astype(float) for a in (flux, mag, bv, peak, lev))
+    flux, mag, bv, peak, lev, frame, r2 = (
+        np.concatenate(a).astype(float) for a in (flux, mag, bv, peak, lev, frame, r2)
+    )
     zp, n = zero_point(flux, mag, peak, lev, sat)
     ok = (flux > 0) & (peak + lev < 0.8 * sat)
-    return zp, {"flux_adu": flux[ok], "mag": mag[ok], "bv": bv[ok], "n": n}
+    return zp, {
+        "flux_adu": flux[ok],
+        "mag": mag[ok],
+        "bv": bv[ok],
+        "frame": frame[ok].astype(int),
+        "r2": r2[ok],
+        "n": n,
+    }
 
 
 def choose_detector(solved, imgs, cam, rotations, sky, box_maps: list | None = None) -> dict:

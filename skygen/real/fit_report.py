@@ -172,6 +172,15 @@ def markdown(r: dict) -> str:
         f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
         f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
         "sensor.exposure_s)",
+        f"- optics.vignetting {r['config']['optics']['vignetting']:.3f} for the stars: "
+        f"{px.get('star_vignetting', {}).get('note', 'not measured')}"
+        + (
+            f"; the background's own fall to the corners kept as optics.sky_vignetting "
+            f"{r['config']['optics']['sky_vignetting']:.3f}"
+            if r["config"]["optics"].get("sky_vignetting") is not None
+            else ""
+        ),
+        f"- {px.get('star_scatter', {}).get('note', 'photometric scatter: not measured')}",
         "",
         "## Real against rendered (medians over frames; renders at the fitted attitudes)",
         "",

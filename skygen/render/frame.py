@@ -19,7 +19,7 @@ from skygen.identity import frame_ids, frame_key, legacy_frame_ids, split_bounds
 from skygen.instrument import corruptions as corr
 from skygen.instrument.camera import Camera
 from skygen.instrument.detect import detect, match
-from skygen.instrument.photometry import Photometry, dark_current_e_s
+from skygen.instrument.photometry import Photometry, dark_current_e_s, star_gains
 from skygen.instrument.psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
 from skygen.instrument.sensor import Exposure, read_out, sensor_maps
 from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
@@ -133,6 +133,8 @@ class Renderer:
         self.mag_offset_to_hp = cfg.photometry.hp_minus_v if table.band == "V" else 0.0
         self._check_detectable_per_field(table)
         self.sky = SkyIndex(table, cfg.epoch_yr, self.mag_limit - self.mag_offset_to_hp)
+        # each indexed star's fixed brightness factor on this sensor (photometry.star_scatter_mag; ones by default)
+        self.star_gain = star_gains(self.sky.table.hip, cfg.photometry.star_scatter_mag, cfg.sensor.sensor_seed)
         if cfg.catalog.mag_limit is not None:
             self._check_stars_per_field(table)
         self.maps = sensor_maps(
@@ -301,13 +303,20 @@ class Renderer:
         j = i - (0, *self.split_bounds)[split]
         return split, j, (i if self.legacy_streams else frame_key(split, j))
 
-    def vignetting(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        v = self.cfg.optics.vignetting
+    def vignetting(self, x: np.ndarray, y: np.ndarray, v: float | None = None) -> np.ndarray:
+        """Relative illumination at (x, y): 1 - v r^2, r = 1 at the corner (``v``: optics.vignetting)."""
+        v = self.cfg.optics.vignetting if v is None else v
         if v == 0:
             return np.ones_like(np.asarray(x, dtype=np.float64))
         cam = self.camera
         r2 = ((x - cam.cx_px) ** 2 + (y - cam.cy_px) ** 2) / ((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2)
         return 1.0 - v * r2
+
+    @property
+    def sky_vignetting(self) -> float:
+        """The background's corner loss: optics.sky_vignetting, or optics.vignetting when it is None."""
+        o = self.cfg.optics
+        return o.vignetting if o.sky_vignetting is None else o.sky_vignetting
 
     # ------------------------------------------------------------------ stages
     def motion_path(self, rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray]:
@@ -349,6 +358,7 @@ class Renderer:
         e = (
             self.photometry.electrons_per_s(table.mag[idx] + self.mag_offset_to_hp, table.bv[idx])
             * cfg.sensor.exposure_s
+            * self.star_gain[idx]
         )
         e = e * self.vignetting(x, y)
         return {
@@ -455,11 +465,11 @@ class Renderer:
     def background_map(self, scene: "Scene") -> np.ndarray | None:
         """Expected dark + sky (+ stray light) charge per pixel, e-, float32 (H, W); None when uniform."""
         cfg = self.cfg
-        if self.levels["stray_light"] == 0 and cfg.optics.vignetting == 0:
+        if self.levels["stray_light"] == 0 and self.sky_vignetting == 0:
             return None
         sh = (cfg.camera.height_px, cfg.camera.width_px)
         yy, xx = np.mgrid[0 : sh[0], 0 : sh[1]]
-        bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy)).astype(np.float32)
+        bg_map = (self.dark_e + self.sky_e * self.vignetting(xx, yy, self.sky_vignetting)).astype(np.float32)
         if scene.stray_light_rad is not None:
             bg_map += corr.stray_light_ramp(
                 sh, self.levels["stray_light"], cfg.sensor.exposure_s, scene.stray_light_rad

@@ -44,7 +44,9 @@ class SceneBuilder:
         cfg, cam = r.cfg, r.camera
         sky = r.sky
         self.e_star = (
-            r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv) * cfg.sensor.exposure_s
+            r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
+            * cfg.sensor.exposure_s
+            * r.star_gain
         )
         radius = r._corner + (r.psf_radius + 2) / cam.f_px  # as Renderer.visible_stars, no blur
         self.chord = 2.0 * np.sin(min(radius, np.pi) / 2.0)

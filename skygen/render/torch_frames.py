@@ -155,9 +155,11 @@ class TorchRenderer:
         )  # conservative: the brightest PRNU pixel
         self._lut: dict = {}
         h, w = self.shape
-        if cfg.optics.vignetting > 0:
+        if self.base.sky_vignetting > 0:
             yy, xx = np.mgrid[0:h, 0:w]
-            bg = (self.base.dark_e + self.base.sky_e * self.base.vignetting(xx, yy)).astype(np.float32)
+            bg = (self.base.dark_e + self.base.sky_e * self.base.vignetting(xx, yy, self.base.sky_vignetting)).astype(
+                np.float32
+            )
             self.background = torch.as_tensor(bg.ravel(), device=dev)
         else:
             self.background = torch.tensor(float(self.base.background_e), dtype=torch.float32, device=dev)

@@ -188,7 +188,9 @@ class SampleStream:
             r = self.renderer
             sky = r.sky
             e_star = (
-                r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv) * cfg.sensor.exposure_s
+                r.photometry.electrons_per_s(sky.table.mag + r.mag_offset_to_hp, sky.table.bv)
+                * cfg.sensor.exposure_s
+                * r.star_gain
             )
             # only stars the emulator can detect (p > 0 somewhere on the sensor) take part;
             # fainter ones never change a detection set, and skipping them halves the cost
