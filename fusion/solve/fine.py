@@ -410,32 +410,12 @@ class CoarseToFineSolver:
         accepted (:func:`fusion.solve.match.anchor_hypotheses`; ``h0``: the solve's hypotheses before these,
         ``h_limit``: :meth:`_h_limit`, read afresh for every pair), at most ``budget`` hypotheses in all (the
         last pair's are cut short where it runs out)."""
-        idx, tol = tier.pairs, self.tol_rad
+        idx = tier.pairs
         cap = np.radians(region.radius_deg) + (self.half_diag_rad + self.tol_rad) * (1 + self.focal_tol)
         star_ok = (tier.vec @ region.center >= math.cos(cap)) if cap < math.pi else np.ones(len(tier.vec), bool)
         cos_r = math.cos(math.radians(region.radius_deg))
-        n = len(u)
-        m = min(n, self.max_pair_detections)
-        t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])  # tangent-plane coordinates at the nominal focal length
-        anchors = []
-        for i in range(m):
-            for j in range(i + 1, m):
-                d = math.acos(min(1.0, float(u[i] @ u[j])))
-                lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
-                anchors.append((hi - lo, i, j, d, lo, hi))
-        if self.anchor_order == "fewest":
-            anchors.sort()
-        for _, i, j, d, lo, hi in anchors:
-            if hi <= lo:
-                continue
-            if s > 0:  # what the pair leaves uncertain of the scale, times the distance from detection i
-                tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
-            else:
-                tol_n = np.full(n, tol)
-            # the focal pass reads the sky grid where its margin holds every tolerance (else the partner tables)
-            grid = tier.grid if s > 0 and tier.grid is not None else None
-            if grid is not None and float(np.max(tol_n)) * grid[3][4] > grid[3][3]:
-                grid = None
+        t, anchors = self._anchors(tier, u, s, tables)
+        for i, j, lo, hi, tol_n, grid in anchors:
             offs, partner, psep = self._partners(tier, i, j, t, s, tables, grid is None)
             tried, _, _, ks, scores, rots, best, stopped = anchor_hypotheses(
                 i,
@@ -466,6 +446,42 @@ class CoarseToFineSolver:
             budget -= tried
             h0 += tried
             yield rots, ks, scores, tried, best, stopped
+
+    def _anchors(self, tier: _Tier, u: np.ndarray, s: float, tables: dict) -> tuple[np.ndarray, list]:
+        """(tangent-plane coordinates of the detections at the nominal focal length, the anchor pairs to search in
+        order: (i, j, catalogue pair range lo, hi, each detection's tolerance, the sky grid or None)) of one pass:
+        they depend on the detections and the pass, not on the region, so they are built once per solve
+        (``tables``; a learned prior's 80 regions at N = 3 had rebuilt them 80 times)."""
+        key = ("anchors", s)
+        if key in tables:
+            return tables[key]
+        idx, tol = tier.pairs, self.tol_rad
+        n = len(u)
+        m = min(n, self.max_pair_detections)
+        t = np.ascontiguousarray(u[:, :2] / u[:, 2:3])
+        pairs = []
+        for i in range(m):
+            for j in range(i + 1, m):
+                d = math.acos(min(1.0, float(u[i] @ u[j])))
+                lo, hi = idx.range(d / (1 + s) - 2 * tol, d / (1 - s) + 2 * tol)
+                pairs.append((hi - lo, i, j, d, lo, hi))
+        if self.anchor_order == "fewest":
+            pairs.sort()
+        anchors = []
+        for _, i, j, d, lo, hi in pairs:
+            if hi <= lo:
+                continue
+            if s > 0:  # what the pair leaves uncertain of the scale, times the distance from detection i
+                tol_n = tol + min(s, 2 * tol / max(d, 1e-12)) * np.hypot(*(t - t[i]).T)
+            else:
+                tol_n = np.full(n, tol)
+            # the focal pass reads the sky grid where its margin holds every tolerance (else the partner tables)
+            grid = tier.grid if s > 0 and tier.grid is not None else None
+            if grid is not None and float(np.max(tol_n)) * grid[3][4] > grid[3][3]:
+                grid = None
+            anchors.append((i, j, lo, hi, tol_n, grid))
+        tables[key] = t, anchors
+        return tables[key]
 
     def _partners(self, tier: _Tier, i: int, j: int, t: np.ndarray, s: float, tables: dict, needed: bool = True):
         """The partner tables of detection pairs (i, k) for every k but i, concatenated (see
