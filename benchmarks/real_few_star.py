@@ -170,6 +170,8 @@ def run(
         with_truth_rows = [r for r in usable if r["_matched_rows"] is not None]
         non_cat = sum(any(i not in r["_matched_rows"] for i in range(n)) for r in with_truth_rows)
         row["share_non_catalogue_in_brightest"] = non_cat / len(with_truth_rows) if with_truth_rows else None
+        for r in with_truth_rows:  # per frame: how many of its brightest n no all-detection solve matched
+            r.setdefault("non_catalogue_in_brightest", {})[str(n)] = sum(i not in r["_matched_rows"] for i in range(n))
         for sname, solver in built.items():
             ok = wrong = refused = 0
             ms = []
@@ -181,17 +183,21 @@ def run(
                 t = time.perf_counter()
                 res = solver.solve(d, cam)
                 ms.append((time.perf_counter() - t) * 1e3)
+                outcome = r.setdefault("outcomes", {}).setdefault(sname, {})  # per frame: what each cell gave
                 if not isinstance(res, Solution):
                     refused += 1
+                    outcome[str(n)] = res.status or "refused"
                     continue
                 b, o = boresight_error_deg(r["_m"], res.matrix), roll_error_deg(res.roll_deg, roll_true)
                 errs.append((b, o))
                 if b <= correct_deg and o <= correct_roll_deg:
                     ok += 1
+                    outcome[str(n)] = "correct"
                     good.append(res)
                     good_truth.append((r["_m"], roll_true))
                 else:
                     wrong += 1
+                    outcome[str(n)] = "wrong"
                     log(f"WRONG {sname} N={n} {r['frame']}: boresight {b:.3f} deg, roll {o:.3f} deg off")
             k = max(len(usable), 1)
             row["solvers"][sname] = {

@@ -120,6 +120,32 @@ def _cell(c: dict | None, real: bool = False) -> str:
     return txt
 
 
+def per_frame(real: dict, at_truth: dict | None, per_attitude: int, solver: str, n_values) -> list[dict]:
+    """Per real frame, for ``solver``: its outcome in each N cell beside how many of its renders (the
+    ``per_attitude`` renders at its truth attitude, in order) were correct, and how many of its brightest N its
+    all-detection solve did not match: which frames the renders get wrong, and whether non-star detections are
+    why."""
+    rendered: dict[int, list] = {}
+    if at_truth is not None and per_attitude > 0:
+        for f in at_truth["frames"]:
+            k = int(str(f["frame"]).rsplit("#", 1)[-1]) // per_attitude
+            rendered.setdefault(k, []).append(f.get("outcomes", {}).get(solver, {}))
+    rows = []
+    for k, f in enumerate(real["frames"]):
+        cells = {}
+        for n in n_values:
+            got = f.get("outcomes", {}).get(solver, {}).get(str(n))
+            renders = [o.get(str(n)) for o in rendered.get(k, [])]
+            cells[str(n)] = {
+                "real": got,
+                "renders_correct": sum(o == "correct" for o in renders),
+                "renders": len(renders),
+                "non_catalogue_in_brightest": f.get("non_catalogue_in_brightest", {}).get(str(n)),
+            }
+        rows.append({"frame": Path(str(f["frame"])).name, "cells": cells})
+    return rows
+
+
 def markdown(res: dict) -> str:
     lines = [
         f"Camera `{res['camera']}`; real frames: {res['real']['frames_kept']} of {res['real']['frames_given']} with a "
@@ -136,6 +162,25 @@ def markdown(res: dict) -> str:
             f"| {r['n']} | {r['solver']} | {_cell(r['real'], True)} | {_cell(r.get('at_truth'))} | "
             f"{_cell(r.get('random_sky'))} |"
         )
+    if res.get("per_frame"):
+        n_values = list(res["per_frame"][0]["cells"])
+        lines += [
+            "",
+            f"Per real frame ({res['per_frame_solver']}): ✓ solved, or why not; then how many of its renders at its "
+            "attitude were solved, and in brackets how many of its brightest N detections its all-detection solve "
+            "did not match (non-stars) where any:",
+            "",
+            "| frame | " + " | ".join(f"N = {n}" for n in n_values) + " |",
+            "|---|" + "---|" * len(n_values),
+        ]
+        for r in res["per_frame"]:
+            out = []
+            for n in n_values:
+                c = r["cells"][n]
+                real = "–" if c["real"] is None else ("✓" if c["real"] == "correct" else c["real"])
+                txt = f"{real} · {c['renders_correct']}/{c['renders']}" if c["renders"] else real
+                out.append(txt + (f" ({c['non_catalogue_in_brightest']})" if c["non_catalogue_in_brightest"] else ""))
+            lines.append(f"| {r['frame']} | " + " | ".join(out) + " |")
     if res["real"].get("dropped"):
         lines += ["", "Real frames left out: " + "; ".join(
             f"{Path(d['frame']).name}: {d['reason']}" for d in res["real"]["dropped"])]  # fmt: skip
@@ -184,6 +229,10 @@ def main(argv=None) -> int:
         "per_attitude": a.per_attitude,
         "seed": a.seed,
         "rows": compare(real, at_truth, random_sky, a.solvers, a.n),
+        "per_frame_solver": "whole-sky" if "whole-sky" in a.solvers else a.solvers[0],
+        "per_frame": per_frame(
+            real, at_truth, a.per_attitude, "whole-sky" if "whole-sky" in a.solvers else a.solvers[0], a.n
+        ),
         "real": {k: v for k, v in real.items() if k != "cells"},
         "wall_s": time.perf_counter() - t0,
         "runs": {"real": real, "at_truth": at_truth, "random_sky": random_sky},

@@ -75,6 +75,27 @@ def test_sim_vs_real_intervals_and_verdicts():
     assert "| 4 | whole-sky | **100 %** (8/8, 68–100) | **100 %** (40/40, 91–100), +0 pts ✓ |" in md
 
 
+def test_sim_vs_real_per_frame_pairs_each_real_frame_with_its_own_renders():
+    """per_frame: render j belongs to real frame j // per_attitude; outcomes and non-catalogue counts per N."""
+    mod = _script("sim_vs_real")
+    real = {"frames": [
+        {"frame": "a.png", "outcomes": {"whole-sky": {"4": "correct"}}, "non_catalogue_in_brightest": {"4": 0}},
+        {"frame": "b.png", "outcomes": {"whole-sky": {"4": "weak_evidence"}}, "non_catalogue_in_brightest": {"4": 2}},
+    ]}  # fmt: skip
+    outcomes = ["weak_evidence", "weak_evidence", "correct", "correct", "correct", "weak_evidence"]
+    at = {
+        "frames": [{"frame": f"/r/at-truth#{j}", "outcomes": {"whole-sky": {"4": o}}} for j, o in enumerate(outcomes)]
+    }
+    rows = mod.per_frame(real, at, 3, "whole-sky", [4])
+    assert [r["frame"] for r in rows] == ["a.png", "b.png"]
+    a, b = rows[0]["cells"]["4"], rows[1]["cells"]["4"]
+    assert (a["real"], a["renders_correct"], a["renders"]) == ("correct", 1, 3)
+    assert (b["real"], b["renders_correct"], b["non_catalogue_in_brightest"]) == ("weak_evidence", 2, 2)
+    res = {"camera": "c.yaml", "real": {"frames_kept": 2, "frames_given": 2}, "per_attitude": 3, "renders": 0}
+    md = mod.markdown({**res, "seed": 0, "rows": [], "per_frame": rows, "per_frame_solver": "whole-sky"})
+    assert "| a.png | ✓ · 1/3 |" in md and "| b.png | weak_evidence · 2/3 (2) |" in md
+
+
 def test_learned_solvers_run_beside_the_prior_free_ones_with_a_checkpoint(tmp_path):
     """--checkpoint: the camera is the model's own, the learned chain is scored in the same cells as the
     prior-free solvers (here on full-resolution renders of the smoke camera, truth their rendered attitude),
