@@ -146,6 +146,19 @@ def per_frame(real: dict, at_truth: dict | None, per_attitude: int, solver: str,
     return rows
 
 
+def agreement(rows: list[dict]) -> tuple[int, int]:
+    """(frame x N cells where most of the frame's own renders end as the frame did — both solved or both not —,
+    cells with renders): a paired measure, free of the spread between fields that the cells' rates carry."""
+    agree = total = 0
+    for r in rows:
+        for c in r["cells"].values():
+            if not c["renders"] or c["real"] is None:
+                continue
+            total += 1
+            agree += (c["real"] == "correct") == (2 * c["renders_correct"] > c["renders"])
+    return agree, total
+
+
 def markdown(res: dict) -> str:
     lines = [
         f"Camera `{res['camera']}`; real frames: {res['real']['frames_kept']} of {res['real']['frames_given']} with a "
@@ -164,7 +177,11 @@ def markdown(res: dict) -> str:
         )
     if res.get("per_frame"):
         n_values = list(res["per_frame"][0]["cells"])
+        agree, total = agreement(res["per_frame"])
         lines += [
+            "",
+            f"**Frame by frame**: in {agree} of {total} (frame, N) cells most of the frame's own renders end as the "
+            "frame did (both solved, or both not).",
             "",
             f"Per real frame ({res['per_frame_solver']}): ✓ solved, or why not; then how many of its renders at its "
             "attitude were solved, and in brackets how many of its brightest N detections its all-detection solve "

@@ -94,6 +94,7 @@ def test_sim_vs_real_per_frame_pairs_each_real_frame_with_its_own_renders():
     res = {"camera": "c.yaml", "real": {"frames_kept": 2, "frames_given": 2}, "per_attitude": 3, "renders": 0}
     md = mod.markdown({**res, "seed": 0, "rows": [], "per_frame": rows, "per_frame_solver": "whole-sky"})
     assert "| a.png | ✓ · 1/3 |" in md and "| b.png | weak_evidence · 2/3 (2) |" in md
+    assert mod.agreement(rows) == (0, 2) and "in 0 of 2 (frame, N) cells" in md  # a: 1 of 3 solved; b: 2 of 3
 
 
 def test_learned_solvers_run_beside_the_prior_free_ones_with_a_checkpoint(tmp_path):
