@@ -130,6 +130,12 @@ class Camera:
         v = np.stack([x, y, np.ones_like(x)], axis=-1)
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
+    def corner_r2(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Squared distance of (x, y) from the principal point over the half-diagonal's: 0 there, 1 at a corner of
+        a centred sensor (the radius ``optics.vignetting`` is defined on)."""
+        dx, dy = np.asarray(x, dtype=np.float64) - self.cx_px, np.asarray(y, dtype=np.float64) - self.cy_px
+        return (dx * dx + dy * dy) / ((self.width_px / 2) ** 2 + (self.height_px / 2) ** 2)
+
     def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         return (
             (x >= -0.5 - margin_px)

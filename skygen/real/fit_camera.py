@@ -571,8 +571,7 @@ def _zero_point_real(solved, g, bgs, sat):
     for k, (fs, m, b) in enumerate(zip(solved, g.keep, bgs)):
         d = fs.det_index[m]
         frame.append(np.full(len(d), k))
-        dx, dy = fs.det["x_px"][d] - cam.cx_px, fs.det["y_px"][d] - cam.cy_px
-        r2.append((dx**2 + dy**2) / ((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2))  # as Renderer.vignetting
+        r2.append(cam.corner_r2(fs.det["x_px"][d], fs.det["y_px"][d]))
         flux.append(fs.det["flux_adu"][d])
         peak.append(fs.det["peak_adu"][d])
         xi = np.clip(np.round(fs.det["x_px"][d]).astype(int), 0, b["level_map"].shape[1] - 1)

@@ -711,11 +711,8 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
             sat,
         )
         unsat = star & (det["peak_adu"] + st["background_adu"] < 0.8 * sat)  # photometric scatter: _star_scatter
-        rr = ((det["x_px"] - r.camera.cx_px) ** 2 + (det["y_px"] - r.camera.cy_px) ** 2) / (
-            (c.camera.width_px / 2) ** 2 + (c.camera.height_px / 2) ** 2
-        )
         extra["_phot"] = {
-            "r2": np.asarray(rr, dtype=np.float64)[unsat],
+            "r2": r.camera.corner_r2(det["x_px"], det["y_px"])[unsat],
             "flux_adu": np.asarray(det["flux_adu"], dtype=np.float64)[unsat],
             "mag": np.asarray(f.stars["mag"], dtype=np.float64)[sidx[unsat]],
             "bv": np.asarray(f.stars["bv"], dtype=np.float64)[sidx[unsat]],

@@ -308,9 +308,7 @@ class Renderer:
         v = self.cfg.optics.vignetting if v is None else v
         if v == 0:
             return np.ones_like(np.asarray(x, dtype=np.float64))
-        cam = self.camera
-        r2 = ((x - cam.cx_px) ** 2 + (y - cam.cy_px) ** 2) / ((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2)
-        return 1.0 - v * r2
+        return 1.0 - v * self.camera.corner_r2(x, y)
 
     @property
     def sky_vignetting(self) -> float:
