@@ -555,6 +555,11 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
         help="--solve over a sequence of frames: each solved attitude is the next frame's hint, DEG its 1-sigma "
         "error (default 1); lost in space where tracking refuses",
     )
+    p.add_argument(
+        "--defects",
+        metavar="FILE.json",
+        help="--solve without the detections at these defect pixels (static hot pixels; written by fusion defects)",
+    )
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
@@ -586,6 +591,29 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_defects(p: argparse.ArgumentParser) -> None:
+    from .solve.defects import DEFECT_MIN_FRAMES, DEFECT_RADIUS_PX
+
+    p.add_argument("predictions", nargs="+", metavar="PREDICTIONS.jsonl", help="output of fusion predict --solve")
+    p.add_argument("--out", required=True, metavar="FILE.json", help="the defect map (fusion predict --defects FILE)")
+    p.add_argument(
+        "--min-frames",
+        type=int,
+        default=DEFECT_MIN_FRAMES,
+        help=f"pointings an unmatched detection must recur at to be a defect (default {DEFECT_MIN_FRAMES})",
+    )
+    p.add_argument(
+        "--radius-px", type=float, default=DEFECT_RADIUS_PX, help=f"match radius (default {DEFECT_RADIUS_PX:g} px)"
+    )
+
+
+def _run_defects(args: argparse.Namespace) -> int:
+    from .solve.defects import learn_command
+
+    print(learn_command(args.predictions, args.out, args.min_frames, args.radius_px))
+    return 0
+
+
 def _run_predict(args: argparse.Namespace) -> int:
     from .solve.predict import predict
 
@@ -610,6 +638,7 @@ def _run_predict(args: argparse.Namespace) -> int:
         fov_range=tuple(args.fov_range) if args.fov_range else None,
         track_deg=args.track,
         max_hypotheses=args.max_hypotheses,
+        defects=args.defects,
     )
     return 1 if failed else 0
 
@@ -681,6 +710,12 @@ def _add_benchmark(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--track-n", type=int, nargs="+", default=[2, 3], metavar="N", help="N of the tracking cells (default 2 3)"
     )
+    p.add_argument(
+        "--known-defects",
+        action="store_true",
+        help="drop the detections at the sensor's defect pixels before solving (each frame's map learned from "
+        "the other frames' non-star detections that recur at one pixel: static hot pixels)",
+    )
 
 
 def _run_benchmark(args: argparse.Namespace) -> int:
@@ -710,6 +745,7 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         track_hint_deg=tuple(args.track_hint_deg),
         track_n=tuple(args.track_n),
         max_hypotheses=args.max_hypotheses,
+        known_defects=args.known_defects,
     )
     return 0
 
@@ -737,6 +773,11 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
         "detections, the model's top-k regions and (--solve) a full attitude for PNG/TIFF/FITS/.npy frames",
         _add_predict,
         _run_predict,
+    ),
+    "defects": (
+        "learn a sensor's defect pixels (static hot pixels) from fusion predict --solve output",
+        _add_defects,
+        _run_defects,
     ),
     "benchmark": (
         "score attitude solvers (tetra3rs lost-in-space, learned prior + fine stage, ...) on the same "

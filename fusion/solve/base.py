@@ -218,7 +218,7 @@ class FallbackSolver:
         return getattr(self.second, "prior", None)
 
     def solve(self, detections: Detections, camera, image: np.ndarray | None = None, **kw) -> Solution | Refusal:
-        track = {k: kw[k] for k in ("hint", "hint_sigma_deg") if kw.get(k) is not None}
+        track = {k: kw[k] for k in ("hint", "hint_sigma_deg", "hint_zero_point") if kw.get(k) is not None}
         a = self.first.solve(detections, camera, image, **track)  # a tracking hint goes to both
         if isinstance(a, Solution):
             return a
@@ -244,6 +244,16 @@ def solution_from_matrix(m: np.ndarray, **kw) -> Solution:
     """A :class:`Solution` from a camera -> ICRS rotation matrix and the remaining fields."""
     ra, dec, roll = radec_roll_from_matrix(m)
     return Solution(matrix_to_quaternion(m), ra, dec, roll, **kw)
+
+
+def photometric_zero_point(cat_mag: np.ndarray, flux_adu: np.ndarray) -> float | None:
+    """The mean of catalogue magnitude minus instrumental magnitude (-2.5 log10 flux) over matched stars with a
+    positive flux (``Solution.extra["zero_point"]``: what tracking's ``hint_zero_point`` takes), or None."""
+    mag, flux = np.asarray(cat_mag, np.float64), np.asarray(flux_adu, np.float64)
+    ok = (flux > 0) & np.isfinite(mag)
+    if not ok.any():
+        return None
+    return float(np.mean(mag[ok] + 2.5 * np.log10(flux[ok])))
 
 
 @functools.lru_cache(maxsize=256)

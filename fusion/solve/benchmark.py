@@ -67,7 +67,15 @@ Tracking cells (``--track-hint-deg 0.5 2 5``, at each N of ``--track-n``, defaul
 detections, and every solver is given a hint, the true attitude turned by that angle about a random
 axis (one draw per frame, :func:`track_hint`), with that angle as the hint's 1-sigma error
 (``solve(..., hint=, hint_sigma_deg=)``: the fine stage searches the attitudes within 3 sigma, tetra3rs
-tracks with ``hint_uncertainty_deg`` = 3 sigma, strict).
+tracks with ``hint_uncertainty_deg`` = 3 sigma, strict), and the camera's photometric zero point as
+``hint_zero_point`` (:func:`tracking_zero_point`: the median over the frames of the zero point measured at
+the true attitude, what a tracker knows from the frames it solved before; report key ``tracking_zero_point``).
+
+``--known-defects``: before solving, each cell's detections lose those at the sensor's defect pixels
+(:mod:`fusion.solve.defects`), each frame's map learned from the *other* frames' detections that are no
+rendered star (``hip_id`` = -1) and recur at one pixel in three frames or more: a static hot pixel. The cell
+keeps the brightest N first and then drops the flagged ones, so a solver may get fewer than N
+(``defects_removed`` per cell).
 A region is correct when it is the max-cosine region of the true
 boresight (as ``fusion evaluate`` labels frames).
 
@@ -302,6 +310,7 @@ def run_benchmark(
     track_hint_deg=(),
     track_n=TRACK_N,
     max_hypotheses: int | None = None,
+    known_defects: bool = False,
     log=print,
     warn=None,
 ) -> dict:
@@ -347,6 +356,7 @@ def run_benchmark(
         "track_hint_deg": tuple(track_hint_deg),
         "track_n": tuple(track_n),
         "max_hypotheses": max_hypotheses,
+        "known_defects": bool(known_defects),
     }
     with FolderLock(out, what="fusion benchmark"):
         return _run_benchmark(data, out, checkpoint, list(solvers), settings, log, warn)
@@ -365,6 +375,8 @@ class BenchmarkFrames:
     truth: list  # (true rotation matrix, true roll_deg) per frame
     seed: int  # the dataset's seed: every corruption draw derives from it
     info: dict  # path, dataset_id, split, frames (for the report)
+    defects: list | None = None  # --known-defects: each frame's defect map, learned from the other frames
+    zero_point: float | None = None  # tracking cells' hint_zero_point (tracking_zero_point)
 
 
 def load_frames(data, split: str, frames: int, with_images: bool) -> BenchmarkFrames:
@@ -445,6 +457,18 @@ def track_hint(m_true: np.ndarray, angle_deg: float, seed: int, frame_index: int
     return np.asarray(m_true) @ Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix()
 
 
+def tracking_zero_point(solver, fr: BenchmarkFrames) -> float | None:
+    """The photometric zero point tracking cells give as ``hint_zero_point``: the median over the frames of the
+    zero point ``solver`` (the fine stage) measures on all of a frame's detections at its true attitude (a 0.05 deg
+    hint) -- what a tracker that has solved earlier frames of this camera knows; None if no frame gives one."""
+    zps = []
+    for j, t in enumerate(fr.tables):
+        r = solver.solve(Detections.from_table(t), fr.camera, None, hint=fr.truth[j][0], hint_sigma_deg=0.05)
+        if isinstance(r, Solution) and r.extra.get("zero_point") is not None:
+            zps.append(r.extra["zero_point"])
+    return float(np.median(zps)) if zps else None
+
+
 def solve_all(solver, dets: list, fr: BenchmarkFrames, hint_deg: float = 0.0) -> tuple[list, list]:
     """(answers, seconds) of ``solver`` on each frame's detections; the benchmark's truth-ranked priors
     receive each frame's probabilities; ``hint_deg`` > 0: tracking, each frame's :func:`track_hint` with a
@@ -458,6 +482,8 @@ def solve_all(solver, dets: list, fr: BenchmarkFrames, hint_deg: float = 0.0) ->
         kw = {"probabilities": oracle.probabilities_for(fr.v_true[j], int(fr.index[j]))} if oracle is not None else {}
         if hint_deg > 0:
             kw = {"hint": track_hint(fr.truth[j][0], hint_deg, fr.seed, int(fr.index[j])), "hint_sigma_deg": hint_deg}
+            if fr.zero_point is not None:
+                kw["hint_zero_point"] = fr.zero_point
         t0 = time.perf_counter()
         results.append(solver.solve(d, fr.camera, fr.images[j], **kw))
         secs.append(time.perf_counter() - t0)
@@ -483,7 +509,13 @@ def score_cell(cell: dict, fr: BenchmarkFrames, built: dict, composite: dict, le
         )
         for t, i in zip(fr.tables, fr.index)
     ]
+    removed = 0
+    if fr.defects is not None:  # the brightest N, then the sensor's known defects dropped (as a tracker's map does)
+        dets, counts = zip(*(m.remove(d) for m, d in zip(fr.defects, dets)))
+        dets, removed = list(dets), int(sum(counts))
     row = {**cell, "mean_detections": float(np.mean([len(d) for d in dets])), "solvers": {}}
+    if fr.defects is not None:
+        row["defects_removed"] = removed
     answers = {}
     hint_deg = float(cell.get("track_hint_deg") or 0.0)
     for name, solver in built.items():
@@ -539,6 +571,14 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
     level = getattr(ctx.prior, "level", "coarse")
     built, composite = build_solvers(ctx, solvers)
     warm_up(built, fr)
+    if st.get("known_defects"):
+        from .defects import from_dataset_tables, leave_one_out
+
+        fr.defects = leave_one_out(from_dataset_tables(fr.tables))
+    if st["track_hint_deg"]:
+        from .registry import get
+
+        fr.zero_point = tracking_zero_point(get(ctx, "whole-sky"), fr)
     labels = np.argmax(fr.v_true @ centroids.T, axis=1)
     search_labels = np.argmax(fr.v_true @ ctx.search_centroids.T, axis=1)
     learned = (
@@ -576,6 +616,8 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
         },
         "top_k": ctx.top_k,
         "notes": notes,
+        "known_defects": bool(st.get("known_defects")),
+        "tracking_zero_point": fr.zero_point,
         "config_differences": diffs,
         "cells": rows,
         "hardware": hardware_line() + ", one process",
@@ -658,7 +700,16 @@ def markdown(r: dict) -> str:
         "every call timed, refusals included).",
         "",
     ]
-    lines += [f"- {n}" for n in r["notes"]] + ([""] if r["notes"] else [])
+    setup = []
+    if r.get("known_defects"):
+        removed = sum(c.get("defects_removed", 0) for c in r["cells"])
+        setup.append(
+            f"known defects (`--known-defects`): {removed} detections at static hot pixels dropped over all cells "
+            "after the brightest N were kept (each frame's map learned from the other frames)"
+        )
+    if r.get("tracking_zero_point") is not None:
+        setup.append(f"tracking cells: hint zero point {r['tracking_zero_point']:.3f} mag (the frames' median)")
+    lines += [f"- {n}" for n in setup + r["notes"]] + ([""] if setup or r["notes"] else [])
     head = (
         "| cell | N | mean det. | "
         + " | ".join(full)

@@ -142,6 +142,7 @@ from .base import (
     Refusal,
     Solution,
     attitude_covariance,
+    photometric_zero_point,
     rotation_angle_deg,
     solution_from_matrix,
 )
@@ -612,14 +613,20 @@ class CoarseToFineSolver:
         probabilities: np.ndarray | None = None,
         hint: np.ndarray | None = None,
         hint_sigma_deg: float = 1.0,
+        hint_zero_point: float | None = None,
     ) -> Solution | Refusal:
         """An attitude or a refusal (module docstring). ``probabilities``: the regions' prior (default: the
         solver's prior's). ``hint``: tracking; a camera -> ICRS matrix (the previous frame's
         :attr:`Solution.matrix`) with 1-sigma error ``hint_sigma_deg``: the one region searched is every
         attitude within 3 sigma of it (:func:`hint_region`), the prior is not consulted, and the identification
-        is weighed by a likelihood (module docstring, "Tracking"): two stars can suffice."""
+        is weighed by a likelihood (module docstring, "Tracking"): two stars can suffice. ``hint_zero_point``
+        (tracking only): the photometric zero point the previous frame measured (its solution's
+        ``extra["zero_point"]``, catalogue magnitude minus -2.5 log10 flux), which the likelihood then holds each
+        identification's to."""
         t0 = time.perf_counter()
         tracking = hint_region(hint, hint_sigma_deg) if hint is not None else None
+        if hint_zero_point is not None and not np.isfinite(hint_zero_point):
+            raise ValueError(f"hint_zero_point={hint_zero_point}: a finite magnitude (the previous frame's zero point)")
         camera = camera or self.tetra.camera
 
         def ms():
@@ -630,7 +637,7 @@ class CoarseToFineSolver:
                 return Refusal(f"too few detections ({len(detections)})", self.name, ms(), status="too_few_stars")
             if self.max_detections is not None and len(detections) > self.max_detections:
                 detections = detections.brightest(self.max_detections)
-            return self._track(detections, camera, hint, hint_sigma_deg, t0)
+            return self._track(detections, camera, hint, hint_sigma_deg, t0, hint_zero_point)
         if len(detections) < 3:
             return Refusal(f"too few detections ({len(detections)})", self.name, ms(), status="too_few_stars")
         # the brightest max_detections identify; tetra3rs verifies with all of them. Each detection scored costs a
@@ -746,11 +753,11 @@ class CoarseToFineSolver:
                         break  # this pass's best is doubtful: go on
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried}, last.status)
 
-    def _track(self, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float):
+    def _track(self, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float, zero_point=None):
         """Tracking with an attitude hint: :func:`fusion.solve.track.track`."""
         from .track import track  # imports this module: here, not at the top
 
-        return track(self, detections, camera, hint, sigma_deg, t0)
+        return track(self, detections, camera, hint, sigma_deg, t0, zero_point)
 
     def refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
         """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
@@ -838,6 +845,9 @@ class CoarseToFineSolver:
         }
         if len(det_rows) >= 2:
             extra["magnitude_scatter"] = float(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]))
+        zp = photometric_zero_point(tier.mag[cat_rows], flux[det_rows])
+        if zp is not None:
+            extra["zero_point"] = zp
         if self.verify:
             # 1 deg: the few matched stars of a tight group (a cluster, a close pair) can fix the roll only
             # to about a degree; tetra3rs re-matches every detection within that and refines

@@ -475,7 +475,8 @@ def track_hypotheses(
     centroid error (rad); ``near_*``: the bright stars around the hint's field (unit vectors, magnitudes, their
     row in the cut); ``cam``: (f, fy, cx, cy, k1, k2, k3, p1, p2, width, height, edge margin) of the camera;
     ``inst``: the detections' instrumental magnitudes; ``consts``: (log eps, log(1 - eps), log miss,
-    log(1 - miss), magnitude margin, magnitude sigma, log(spread / (sigma sqrt(2 pi)))). Returns (log weights
+    log(1 - miss), magnitude margin, magnitude sigma, log(spread / (sigma sqrt(2 pi))), known zero point (mag),
+    its 1-sigma (0: unknown, fitted per hypothesis)). Returns (log weights
     (H,), rotations (H, 3, 3), focal factors (H,), matched rows (H, n), -1 where a detection is unmatched)."""
     n = t.shape[0]
     ui0x, ui0y, ui0z = _unit(t[i, 0], t[i, 1], 1.0)
@@ -486,7 +487,7 @@ def track_hypotheses(
         lo, hi = d / (1 + s), d / (1 - s)
     else:
         lo, hi = d, d
-    log_eps, log_1eps, log_miss, log_1miss, margin, mag_sig, log_spread = (
+    log_eps, log_1eps, log_miss, log_1miss, margin, mag_sig, log_spread, zp0, zp_sig = (
         consts[0],
         consts[1],
         consts[2],
@@ -494,7 +495,10 @@ def track_hypotheses(
         consts[4],
         consts[5],
         consts[6],
+        consts[7],
+        consts[8],
     )
+    log_mag_norm = log_spread + 0.5 * math.log(2 * math.pi * mag_sig * mag_sig)  # log(spread)
     base = -1.5 * math.log(2 * math.pi * sig * sig) - math.log(max(math.sin(d), 1e-12)) + 2 * log_omega
     cap = max(16, len(a_rows) * 4)
     out_w = np.empty(cap)
@@ -625,6 +629,11 @@ def track_hypotheses(
                     if row[k] >= 0:
                         chi2 += (mag[row[k]] - inst[k] - zp) ** 2
                 lw += -0.5 * chi2 / (mag_sig * mag_sig) + (m - 1) * log_spread
+                if zp_sig > 0:
+                    # a known zero point (the previous frame's): the fitted one's density about it, against
+                    # the coincidental spread -- the m-th magnitude difference, which a fitted zero point spends
+                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / m
+                    lw += log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
             out_w[h] = lw
             out_r[h] = r
             out_k[h] = kf

@@ -51,8 +51,15 @@ Per frame:
 frame's solved attitude is the hint of the next, with a 1-sigma error of DEG degrees (default 1: how far the
 camera may turn between frames). The solver then searches only the attitudes within 3 DEG of the hint
 (``solve(..., hint=, hint_sigma_deg=)``: three stars can be enough), and where that is refused, lost in
-space as without ``--track``; the record says ``"tracking": {"hint_sigma_deg", "tracked", "refused"}``. A
-refused or failed frame leaves the next without a hint.
+space as without ``--track``; the record says ``"tracking": {"hint_sigma_deg", "hint_zero_point", "tracked",
+"refused"}``. The photometric zero point of the last solved frames (the median of their solutions'
+``zero_point``, catalogue magnitude minus -2.5 log10 flux) goes with the hint: the tracker then holds each
+identification's stars to the brightness the camera gives them. A refused or failed frame leaves the next
+without a hint.
+
+``--defects FILE`` (with ``--solve``): a sensor defect map (``fusion defects``, :mod:`fusion.solve.defects`);
+detections at its pixels (static hot pixels) are dropped before solving; the record keeps every detection,
+says ``"defects_removed"``, and the solution's matched rows index the record's detections.
 
 A frame with no detection (blank, capped, overexposed, or a threshold too high for its
 exposure) gives no region probabilities and no attitude: its record says ``"status":
@@ -79,6 +86,7 @@ training dataset.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import sys
@@ -98,6 +106,8 @@ from ..model.checkpoint import differences_warning, load_checkpoint
 from ..model.inputs import downsample
 from .base import Detections, Refusal, Solution
 from .frames import FrameError, iter_inputs, mask_bad_pixels
+
+TRACK_ZERO_POINTS = 10  # --track: the hint's zero point is the median of this many last solved frames'
 
 
 class Predictor:
@@ -294,6 +304,8 @@ class Predictor:
         extra: dict,
         hint: np.ndarray | None = None,
         hint_sigma_deg: float = 1.0,
+        hint_zero_point: float | None = None,
+        defects=None,
     ) -> dict:
         rec = {
             "frame": source,
@@ -333,15 +345,40 @@ class Predictor:
         if self.solver is not None:
             kw = {"probabilities": search_probs} if search_probs is not None else {}
             res = None
+            solve_det = det
+            if defects is not None:  # the sensor's known defect pixels are no stars (the record keeps every detection)
+                solve_det, rec["defects_removed"] = defects.remove(det)
+                if not len(solve_det):
+                    rec["solution"] = Refusal(
+                        "every detection is at a known defect pixel", self.solver.name, status="too_few_stars"
+                    ).to_dict()
+                    return rec
+                # a solution's matched rows index the detections the solver got: back to the record's rows
+                rows = np.flatnonzero(~defects.flags(det))
             if hint is not None:  # tracking: the previous frame's attitude; lost in space where it fails
-                res = self.solver.solve(det, self.camera, stored, hint=hint, hint_sigma_deg=hint_sigma_deg)
-                rec["tracking"] = {"hint_sigma_deg": hint_sigma_deg, "tracked": isinstance(res, Solution)}
+                res = self.solver.solve(
+                    solve_det,
+                    self.camera,
+                    stored,
+                    hint=hint,
+                    hint_sigma_deg=hint_sigma_deg,
+                    hint_zero_point=hint_zero_point,
+                )
+                rec["tracking"] = {
+                    "hint_sigma_deg": hint_sigma_deg,
+                    "hint_zero_point": hint_zero_point,
+                    "tracked": isinstance(res, Solution),
+                }
             if not isinstance(res, Solution):
                 lost = res
-                res = self.solver.solve(det, self.camera, stored, **kw)
+                res = self.solver.solve(solve_det, self.camera, stored, **kw)
                 if lost is not None:  # the time spent tracking counts too
                     rec["tracking"]["refused"] = lost.to_dict()
                     res = dataclasses.replace(res, time_ms=res.time_ms + lost.time_ms)
+            if defects is not None and isinstance(res, Solution) and len(res.matched):
+                matched = res.matched.copy()
+                matched[:, 0] = rows[matched[:, 0]]
+                res = dataclasses.replace(res, matched=matched)
             rec["solution"] = res.to_dict()
         return rec
 
@@ -423,10 +460,14 @@ def predict(
     channel="luminance",
     track_deg=None,
     max_hypotheses=None,
+    defects=None,
 ) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
     become one plane (``channel``: luminance, r, g, b or sum). ``track_deg`` (with ``solve``): the frames are
-    a sequence; each solved attitude is the next frame's hint with that 1-sigma error (degrees)."""
+    a sequence; each solved attitude is the next frame's hint with that 1-sigma error (degrees), and the
+    median zero point of the last :data:`TRACK_ZERO_POINTS` solved frames its ``hint_zero_point``. ``defects``
+    (with ``solve``): a defect-map JSON file (:mod:`fusion.solve.defects`, written by ``fusion defects``) whose
+    detections are dropped before solving."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
@@ -441,6 +482,12 @@ def predict(
             raise ConfigError("--track: tracking needs the camera's field; give --camera (not --fov-range)")
         if not 0 < track_deg <= 20:
             raise ConfigError(f"--track {track_deg:g}: the hint's 1-sigma error in (0, 20] degrees, e.g. 1")
+    if defects is not None:
+        if not solve:
+            raise ConfigError("--defects: the defect pixels are dropped before solving; add --solve")
+        from .defects import DefectMap
+
+        defects = DefectMap.from_json(defects)
     if fov_range is not None and camera is None and checkpoint is None:
         camera = _camera_of_first_frame(frames, fov_range, channel)
     pred = Predictor(
@@ -465,6 +512,7 @@ def predict(
     differences = _dataset_differences(frames, pred, err)
     records, failed = [], 0
     previous: np.ndarray | None = None  # tracking: the camera -> ICRS matrix of the frame before, if solved
+    zero_points: collections.deque = collections.deque(maxlen=TRACK_ZERO_POINTS)  # of the last solved frames
     with contextlib.ExitStack() as stack:
         # --out is written beside its final name and renamed when every frame is done: an interrupted or
         # failed run (a full disk) leaves no file with fewer lines than frames that looks whole
@@ -488,9 +536,12 @@ def predict(
                 else:
                     det, extra = Detections.from_table(table), {"detections_from": "dataset"}
                 hint = previous if track_deg is not None else None
-                rec = pred.run(source, det, stored, extra, hint, track_deg or 1.0)
+                zp = float(np.median(zero_points)) if hint is not None and zero_points else None
+                rec = pred.run(source, det, stored, extra, hint, track_deg or 1.0, zp, defects)
                 sol = rec.get("solution", {})
                 previous = quaternion_to_matrix(sol["quaternion_wxyz"]) if sol.get("status") == "solved" else None
+                if previous is not None and sol.get("zero_point") is not None:
+                    zero_points.append(float(sol["zero_point"]))
                 rec["total_ms"] = (time.perf_counter() - t0) * 1e3
                 diffs = {
                     **pred.config_differences,

@@ -39,7 +39,15 @@ import numpy as np
 from skygen.real import platesolve
 from skygen.real.platesolve import DB_PARAMS, SolverUnavailable, cache_dir, database_path, load_database  # noqa: F401
 
-from .base import HINT_RADIUS_SIGMAS, Detections, Refusal, Solution, attitude_covariance, solution_from_matrix
+from .base import (
+    HINT_RADIUS_SIGMAS,
+    Detections,
+    Refusal,
+    Solution,
+    attitude_covariance,
+    photometric_zero_point,
+    solution_from_matrix,
+)
 
 _tetra3rs = platesolve.tetra3rs
 
@@ -96,6 +104,7 @@ class Tetra3Solver:
         self.max_patterns_checked = max_patterns_checked
         self.timeout_ms = timeout_ms
         self._models: dict = {}
+        self._mags: dict | None = None  # database id -> magnitude, built at the first solution
 
     def _model(self, camera):
         # ideal centroids are square pixels of width 1: a sensor of tall pixels is height * aspect of them high
@@ -113,9 +122,11 @@ class Tetra3Solver:
         image=None,
         hint: np.ndarray | None = None,
         hint_sigma_deg: float = 1.0,
+        hint_zero_point: float | None = None,
     ) -> Solution | Refusal:
         """Lost-in-space, or with ``hint`` (a camera -> ICRS matrix, 1-sigma error ``hint_sigma_deg``) tetra3rs
-        tracking with ``hint_uncertainty_deg`` = 3 sigma, strict (no lost-in-space where it fails)."""
+        tracking with ``hint_uncertainty_deg`` = 3 sigma, strict (no lost-in-space where it fails).
+        ``hint_zero_point`` is accepted and not used: tetra3rs's tracking reads no photometry."""
         if hint is not None:
             if not (np.isfinite(hint_sigma_deg) and 0 < hint_sigma_deg <= 60):
                 raise ValueError(f"hint_sigma_deg={hint_sigma_deg}: the hint's 1-sigma error, in (0, 60] degrees")
@@ -204,5 +215,15 @@ class Tetra3Solver:
                 "false_positive_probability": p,
                 "fov_deg": float(res.fov_deg),
                 "tetra3rs_roll_deg": float(res.roll_deg),
+                **self._zero_point(matched, det),
             },
         )
+
+    def _zero_point(self, matched: np.ndarray, det: Detections) -> dict:
+        """{"zero_point": ...} of a solution's matched stars (their database magnitudes), or {}."""
+        if self._mags is None:
+            stars = [self.db.get_star(i) for i in range(self.db.num_stars)]
+            self._mags = {int(s.id): float(s.magnitude) for s in stars}
+        mag = np.array([self._mags.get(int(c), np.nan) for c in matched[:, 1]])
+        zp = photometric_zero_point(mag, np.asarray(det.flux_adu, np.float64)[matched[:, 0]])
+        return {} if zp is None else {"zero_point": zp}

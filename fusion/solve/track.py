@@ -16,7 +16,10 @@ each is weighed by a likelihood against "no identification" (each term a density
   blurred by ``TRACK_CENTROID_PX`` of centroid error; each further detection matched: its position density
   against a uniform one over the field (the chance-star density of the lost-in-space E_false);
 * magnitudes: the catalogue magnitudes against the instrumental ones about a fitted zero point
-  (``TRACK_MAG_SIGMA``), against a coincidental spread of ``TRACK_MAG_SPREAD``; and every bright-tier star
+  (``TRACK_MAG_SIGMA``), against a coincidental spread of ``TRACK_MAG_SPREAD``; with ``hint_zero_point`` (the
+  zero point earlier frames measured, ``Solution.extra["zero_point"]``) the fitted zero point is also weighed
+  against it (``TRACK_ZP_SIGMA``), so that the magnitude difference a fitted zero point spends counts too:
+  two stars of the right separation but the wrong brightness no longer pass; and every bright-tier star
   the attitude puts on the sensor, more than ``TRACK_MAG_MARGIN`` brighter than its faintest matched star,
   without a detection, costs a factor ``TRACK_MISS`` (measured: 14 of 105 such stars at the true attitude);
 * each detection is no catalogue star with prior ``TRACK_FALSE_DETECTION`` (hot pixels are 4.5 % of the two
@@ -48,15 +51,28 @@ import time
 
 import numpy as np
 
-from .base import HINT_RADIUS_SIGMAS, Detections, Refusal, Solution, attitude_covariance, solution_from_matrix
+from .base import (
+    HINT_RADIUS_SIGMAS,
+    Detections,
+    Refusal,
+    Solution,
+    attitude_covariance,
+    photometric_zero_point,
+    solution_from_matrix,
+)
 from .fine import TRACKING, _kabsch, _unit_at, magnitude_scatter
 from .match import track_hypotheses
 
 # --------------------------------------------------------------------------- tracking (an attitude hint)
 # The model behind track (module docstring, "Tracking"); each constant errs on the side of
-# less confidence where it was measured (results on data/track300, 300 rendered test frames, seed 11):
-TRACK_FALSE_DETECTION = 0.1  # prior chance that a detection is no star of the catalogue cut (a hot pixel, a
-#   cosmic ray, a star beyond the cut): 4.5 % of the two brightest detections of the rendered frames are hot pixels
+# less confidence where it was measured (results on data/track300, 300 rendered test frames, seed 11), except
+# TRACK_FALSE_DETECTION, where the larger value is the less cautious one (see there):
+TRACK_FALSE_DETECTION = 0.05  # prior chance that a detection is no star of the catalogue cut (a hot pixel, a
+#   cosmic ray, a star beyond the cut): 4.5 % of the two brightest detections of the rendered frames are hot pixels.
+#   Not rounded up: a larger value makes a detection left unmatched cheap, which favours partial chance matches
+#   near a wrong hint (data/track300, 2-deg hint, with the zero point and known defects, another frame's
+#   detections: wrong answers at p <= 1e-3 with 0.1 -> 0.05: N = 2 29 -> 34, N = 3 34 -> 26, N = 4 17 -> 5,
+#   N = 6 5 -> 2, and one at p <= 1e-6 -> none; the clean frames answered alike)
 TRACK_MISS = 0.2  # chance that a catalogue star clearly brighter than a detected one (TRACK_MAG_MARGIN) and inside
 #   the sensor (TRACK_EDGE_PX) has no detection of its own: each such star multiplies a hypothesis by this
 TRACK_MAG_MARGIN = 1.0  # magnitudes: "clearly brighter" (catalogue vs instrumental scatter, colour, variability)
@@ -73,11 +89,24 @@ TRACK_HINT_MISS = 0.1  # prior chance that the hint missed the stars (a slew, a 
 #   frame with this frame's 2-deg hint, wrong answers at p <= 1e-3 in 9,000 attempts without -> with it: N = 6
 #   172 -> 5 (4 -> 0 at p <= 1e-6), N = 4 159 -> 22, N = 3 122 -> 47, N = 2 83 -> 68 (two detections' "at most
 #   one star" mass is already 0.19); the clean frames lose 0-1 point. Still overconfident there (see the results)
+TRACK_ZP_SIGMA = 0.25  # 1-sigma (mag) of a known zero point (hint_zero_point: earlier frames') about the one a
+#   frame's brightest stars give: on data/track300 the zero point of all of a frame's stars scatters 0.11 mag from
+#   frame to frame, that of its brightest two 0.17 mag, 0.15 mag fainter (their cores saturate)
 TRACK_ANCHORS = 4  # anchor pairs among the brightest this many detections
-TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma)
+TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma):
+#   the 1-deg roll bound of a correct answer is 4 sigma away. Not looser: a saturated star's centroid can be off by
+#   a pixel or more (data/track300-s23, 0.5-deg hint: two answers reported at 0.30 deg erred by 1.1-1.2 deg in roll)
 
 
-def track(solver, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float) -> Solution | Refusal:
+def track(
+    solver,
+    detections: Detections,
+    camera,
+    hint: np.ndarray,
+    sigma_deg: float,
+    t0: float,
+    zero_point: float | None = None,
+) -> Solution | Refusal:
     """Tracking with an attitude hint: every identification of the brightest detections by catalogue stars
     near their predicted directions, weighed by a likelihood (module docstring); the best one
     if the posterior mass of every other (and of "no identification") is at most
@@ -127,6 +156,8 @@ def track(solver, detections: Detections, camera, hint: np.ndarray, sigma_deg: f
             TRACK_MAG_MARGIN,
             TRACK_MAG_SIGMA,
             math.log(TRACK_MAG_SPREAD / (TRACK_MAG_SIGMA * math.sqrt(2 * math.pi))),
+            float(zero_point) if zero_point is not None else 0.0,
+            TRACK_ZP_SIGMA if zero_point is not None else 0.0,
         ]
     )
     tc = np.ascontiguousarray(t)
@@ -230,6 +261,11 @@ def track(solver, detections: Detections, camera, hint: np.ndarray, sigma_deg: f
         extra["magnitude_scatter"] = float(
             magnitude_scatter(tier.mag[cat_rows], np.asarray(detections.flux_adu, np.float64)[det_rows])
         )
+    zp = photometric_zero_point(tier.mag[cat_rows], flux[det_rows])
+    if zp is not None:
+        extra["zero_point"] = zp
+    if zero_point is not None:
+        extra["hint_zero_point"] = float(zero_point)
     return solution_from_matrix(
         rot,
         matched=np.column_stack([det_rows, tier.ids[cat_rows]]),

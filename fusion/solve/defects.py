@@ -1,0 +1,233 @@
+"""A sensor's defect map: pixels that give a detection in frame after frame wherever the camera points.
+
+A hot pixel sits at the same place on the sensor while the stars move with the attitude, so a detection that no
+catalogue star explains, at the same pixel (within ``radius_px``) in at least ``min_frames`` frames, is a defect of
+the sensor and not a star: flight star trackers keep such a map and drop its detections before identifying. skygen
+renders hot pixels the same way (a static map seeded per sensor), and they are 4.5 % of the two brightest
+detections of its default renders: with three detections, one of them a hot pixel, only two stars are left to
+identify by, and a solver that does not know the pixel spends its identification on it.
+
+:func:`learn` builds the map from detection tables whose detections are marked as explained or not (a
+dataset's ``hip_id``, or the catalogue stars a solve matched); :func:`leave_one_out` gives each frame the map
+learned from the *other* frames (the benchmark's ``--known-defects``: a frame's own detections never flag
+themselves). :meth:`DefectMap.remove` drops the detections a map flags.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .base import Detections
+
+DEFECT_RADIUS_PX = 1.0  # a detection this close to a mapped pixel is that pixel (centroids of a single hot pixel
+#   scatter by a fraction of a pixel with the noise under them)
+DEFECT_MIN_FRAMES = 3  # unexplained detections at one pixel in this many frames: a defect, not a coincidence
+#   (two stars of frames at unrelated attitudes land within a pixel of each other rarely; three, far more rarely)
+
+
+def _cells(x: np.ndarray, y: np.ndarray) -> set:
+    return {(int(round(a)), int(round(b))) for a, b in zip(np.asarray(x, float), np.asarray(y, float))}
+
+
+@dataclass(frozen=True)
+class DefectMap:
+    """Pixel positions ``xy`` (K, 2) (skygen's pixel convention: x along columns) a detection within ``radius_px``
+    of which is a sensor defect."""
+
+    xy: np.ndarray
+    radius_px: float = DEFECT_RADIUS_PX
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    def flags(self, det: Detections) -> np.ndarray:
+        """(n,) bool: which of ``det`` the map flags."""
+        if not len(self.xy) or not len(det):
+            return np.zeros(len(det), bool)
+        d2 = (det.x_px[:, None] - self.xy[None, :, 0]) ** 2 + (det.y_px[:, None] - self.xy[None, :, 1]) ** 2
+        return np.any(d2 <= self.radius_px**2, axis=1)
+
+    def remove(self, det: Detections) -> tuple[Detections, int]:
+        """(``det`` without the flagged detections, brightest first as before; how many were dropped)."""
+        bad = self.flags(det)
+        if not bad.any():
+            return det, 0
+        keep = ~bad
+        return Detections(det.x_px[keep], det.y_px[keep], det.flux_adu[keep]), int(bad.sum())
+
+    def to_json(self, path) -> None:
+        Path(path).write_text(
+            json.dumps({"radius_px": self.radius_px, "pixels_xy": np.round(self.xy, 2).tolist()}) + "\n"
+        )
+
+    @classmethod
+    def from_json(cls, path) -> "DefectMap":
+        from ..errors import ConfigError
+
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ConfigError(f"--defects {path}: cannot read the defect map ({exc.strerror or exc})") from None
+        try:
+            data = json.loads(text)
+            xy = np.asarray(data["pixels_xy"], np.float64).reshape(-1, 2)
+            radius = float(data.get("radius_px", DEFECT_RADIUS_PX))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(
+                f"{path}: not a defect map ({exc}); expected JSON {{'radius_px': 1.0, 'pixels_xy': [[x, y], ...]}}"
+            ) from None
+        if not (np.all(np.isfinite(xy)) and np.isfinite(radius) and radius > 0):
+            raise ConfigError(f"{path}: a defect map needs finite pixel positions and a positive radius_px")
+        return cls(xy, radius)
+
+
+def _unexplained_cells(tables) -> list[set]:
+    """Each frame's set of integer pixel cells holding a detection no catalogue star explains. ``tables``:
+    (x_px, y_px, explained) per frame."""
+    return [_cells(np.asarray(x)[~np.asarray(e, bool)], np.asarray(y)[~np.asarray(e, bool)]) for x, y, e in tables]
+
+
+def _map_from_counts(counts: Counter, min_frames: int, radius_px: float, cells=None) -> DefectMap:
+    # a cell's recurrences include its 8 neighbours' (a centroid near a pixel's edge rounds either way); each
+    # defect is reported once, at its most frequent cell. ``cells``: the only cells that can qualify (default all)
+    hits = []
+    for cx, cy in counts if cells is None else cells:
+        own = counts.get((cx, cy), 0)
+        if own <= 0:
+            continue
+        near = sum(counts.get((cx + a, cy + b), 0) for a in (-1, 0, 1) for b in (-1, 0, 1))
+        if near < min_frames:
+            continue
+        if any(counts.get((cx + a, cy + b), 0) > own for a in (-1, 0, 1) for b in (-1, 0, 1)):
+            continue
+        hits.append((cx, cy))
+    return DefectMap(np.asarray(sorted(hits), np.float64).reshape(-1, 2), radius_px)
+
+
+DEFECT_MIN_APART_DEG = 0.5  # frames whose boresights are closer than this count as one pointing: a staring
+#   camera keeps an uncatalogued star on one pixel, and only a pixel that stays lit while the sky moves is a defect
+
+
+def learn(
+    tables, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX, boresights=None
+) -> DefectMap:
+    """The defect map of frames ``tables`` = [(x_px, y_px, explained), ...]: integer pixels (with their
+    neighbours) holding an unexplained detection in at least ``min_frames`` frames. ``boresights`` (one unit
+    vector per frame, optional): frames within :data:`DEFECT_MIN_APART_DEG` of each other count once."""
+    per = _unexplained_cells(tables)
+    counts: Counter = Counter()
+    if boresights is None:
+        for cells in per:
+            counts.update(cells)
+        return _map_from_counts(counts, min_frames, radius_px)
+    cos_apart = np.cos(np.radians(DEFECT_MIN_APART_DEG))
+    pointings: dict = {}  # cell -> the distinct boresights it was lit at
+    for cells, v in zip(per, np.asarray(boresights, np.float64).reshape(-1, 3)):
+        for c in cells:
+            seen = pointings.setdefault(c, [])
+            if all(float(v @ w) < cos_apart for w in seen):
+                seen.append(v)
+    counts.update({c: len(v) for c, v in pointings.items()})
+    return _map_from_counts(counts, min_frames, radius_px)
+
+
+def leave_one_out(tables, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX) -> list[DefectMap]:
+    """One map per frame of ``tables``, each learned from the other frames only."""
+    per = _unexplained_cells(tables)
+    counts: Counter = Counter()
+    for cells in per:
+        counts.update(cells)
+    # a cell that does not qualify with every frame counted cannot qualify with one left out
+    candidates = [tuple(c) for c in _candidates(counts, min_frames)]
+    maps = []
+    for cells in per:
+        counts.subtract(cells)
+        maps.append(_map_from_counts(counts, min_frames, radius_px, candidates))
+        counts.update(cells)
+    return maps
+
+
+def _candidates(counts: Counter, min_frames: int) -> list:
+    """The cells whose neighbourhood holds at least ``min_frames`` recurrences."""
+    return [
+        (cx, cy)
+        for cx, cy in counts
+        if sum(counts.get((cx + a, cy + b), 0) for a in (-1, 0, 1) for b in (-1, 0, 1)) >= min_frames
+    ]
+
+
+def from_dataset_tables(tables: list[dict]) -> list[tuple]:
+    """(x_px, y_px, explained) of a skygen dataset's detection tables: explained = the detection is a rendered
+    catalogue star (``hip_id`` >= 0; hot pixels, cosmic rays and false stars carry -1)."""
+    return [(t["x_px"], t["y_px"], np.asarray(t["hip_id"]) >= 0) for t in tables]
+
+
+def from_predictions(path) -> tuple[list[tuple], list, int]:
+    """((x_px, y_px, explained) per solved frame, their boresight unit vectors, frames skipped) of a ``fusion
+    predict --solve`` JSON-lines file: explained = the detection row is among the solution's matched stars.
+    Frames without a solution are skipped (their detections cannot be told from stars)."""
+    from skygen.sky.attitude import quaternion_to_matrix
+
+    from ..errors import ConfigError
+
+    tables, boresights, skipped = [], [], 0
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the predictions ({exc.strerror or exc})") from None
+    for k, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+            det = np.asarray(rec.get("detections") or [], np.float64).reshape(-1, 3)
+            sol = rec.get("solution") or {}
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise ConfigError(
+                f"{path}, line {k}: not a fusion predict record ({exc}); give the JSON lines of fusion predict --solve"
+            ) from None
+        if sol.get("status") != "solved":
+            skipped += 1
+            continue
+        explained = np.zeros(len(det), bool)
+        rows = np.asarray(sol.get("matched") or [], np.int64).reshape(-1, 2)[:, 0]
+        explained[rows[(rows >= 0) & (rows < len(det))]] = True
+        tables.append((det[:, 0], det[:, 1], explained))
+        boresights.append(quaternion_to_matrix(np.asarray(sol["quaternion_wxyz"], np.float64))[:, 2])
+    return tables, boresights, skipped
+
+
+def learn_command(predictions, out, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX) -> str:
+    """``fusion defects``: learn a defect map from predictions and write it to ``out``; returns the summary line."""
+    from skygen.runtime import atomic_path
+
+    from ..errors import ConfigError
+
+    if min_frames < 2:
+        raise ConfigError(f"--min-frames {min_frames}: at least 2 (one frame cannot tell a defect from a star)")
+    if not radius_px > 0:
+        raise ConfigError(f"--radius-px {radius_px:g}: a positive radius in pixels, e.g. 1")
+    tables, boresights, skipped = [], [], 0
+    for p in predictions:
+        t, b, s = from_predictions(p)
+        tables += t
+        boresights += b
+        skipped += s
+    if len(tables) < min_frames:
+        raise ConfigError(
+            f"{len(tables)} solved frame(s) in {', '.join(map(str, predictions))}: a defect recurs in "
+            f"{min_frames} frames at least; solve more frames (fusion predict --solve) or lower --min-frames"
+        )
+    dmap = learn(tables, min_frames, radius_px, boresights)
+    with atomic_path(out) as tmp:
+        dmap.to_json(tmp)
+    return (
+        f"fusion defects: {len(dmap)} defect pixel(s) from {len(tables)} solved frames "
+        f"({skipped} unsolved skipped; unmatched detections recurring within {radius_px:g} px at {min_frames}+ "
+        f"pointings {DEFECT_MIN_APART_DEG:g} deg apart) -> {out}"
+    )

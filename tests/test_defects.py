@@ -1,0 +1,122 @@
+"""A sensor's defect map (fusion.solve.defects): learned from unexplained detections that stay on one pixel while
+the sky moves, applied before solving (fusion predict --defects, fusion benchmark --known-defects)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fusion.errors import ConfigError
+from fusion.solve.base import Detections
+from fusion.solve.defects import DefectMap, learn, learn_command, leave_one_out
+
+
+def _frames(hot=((100.2, 200.7),), lit_in=5, frames=8, seed=0):
+    """Detection tables of ``frames`` frames: 20 stars at random pixels (explained) and each hot pixel (with
+    0.2 px of centroid scatter) unexplained in the first ``lit_in`` frames, plus one random unexplained
+    detection per frame (a cosmic ray)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(frames):
+        x, y = list(rng.uniform(0, 1024, 20)), list(rng.uniform(0, 1024, 20))
+        e = [True] * 20
+        for hx, hy in hot if k < lit_in else ():
+            x.append(hx + rng.normal(0, 0.2))
+            y.append(hy + rng.normal(0, 0.2))
+            e.append(False)
+        x.append(rng.uniform(0, 1024))
+        y.append(rng.uniform(0, 1024))
+        e.append(False)
+        out.append((np.array(x), np.array(y), np.array(e)))
+    return out
+
+
+def test_a_pixel_unexplained_in_three_frames_is_a_defect_and_nothing_else_is():
+    tables = _frames(hot=((100.2, 200.7), (700.0, 33.0)), lit_in=3)
+    dmap = learn(tables)
+    assert len(dmap) == 2
+    assert np.allclose(sorted(map(tuple, dmap.xy)), [(100, 201), (700, 33)], atol=1)
+    assert len(learn(_frames(lit_in=2))) == 0  # two frames: not enough
+    # a star that recurs (explained) is no defect
+    stars = [(np.array([50.0]), np.array([60.0]), np.array([True]))] * 6
+    assert len(learn(stars)) == 0
+
+
+def test_remove_drops_the_flagged_detections_and_keeps_the_order():
+    dmap = DefectMap(np.array([[100.0, 200.0]]), 1.0)
+    det = Detections(
+        np.array([10.0, 100.4, 300.0, 101.5]), np.array([10.0, 199.8, 5.0, 200.0]), np.array([9, 8, 7, 6.0])
+    )
+    kept, n = dmap.remove(det)
+    assert n == 1 and kept.x_px.tolist() == [10.0, 300.0, 101.5] and kept.flux_adu.tolist() == [9, 7, 6]
+    same, none = DefectMap(np.zeros((0, 2))).remove(det)
+    assert none == 0 and same is det
+
+
+def test_leave_one_out_never_lets_a_frame_flag_itself():
+    tables = _frames(lit_in=3)
+    maps = leave_one_out(tables)
+    # frames 0-2 hold the hot pixel: each sees it in only two others, so not a defect for them
+    assert [len(m) for m in maps[:3]] == [0, 0, 0]
+    assert all(len(m) == 1 for m in maps[3:])  # the others see it in three
+    tables4 = _frames(lit_in=4)
+    assert all(len(m) == 1 for m in leave_one_out(tables4))
+
+
+def test_a_staring_camera_does_not_make_its_faint_stars_defects():
+    """An uncatalogued star stays on one pixel while the camera stares: frames at one pointing count once."""
+    tables = _frames(lit_in=8)
+    still = np.tile([0.0, 0.0, 1.0], (8, 1))
+    assert len(learn(tables, boresights=still)) == 0
+    moving = np.array([[np.sin(np.radians(k)), 0.0, np.cos(np.radians(k))] for k in range(8)])
+    assert len(learn(tables, boresights=moving)) == 1
+
+
+def test_defect_map_files_round_trip_and_bad_ones_are_refused(tmp_path):
+    dmap = DefectMap(np.array([[1.5, 2.0], [30.0, 40.25]]), 1.5)
+    path = tmp_path / "d.json"
+    dmap.to_json(path)
+    back = DefectMap.from_json(path)
+    assert np.allclose(back.xy, dmap.xy) and back.radius_px == 1.5
+    path.write_text("{not json")
+    with pytest.raises(ConfigError, match="not a defect map"):
+        DefectMap.from_json(path)
+    path.write_text(json.dumps({"radius_px": -1, "pixels_xy": [[1, 2]]}))
+    with pytest.raises(ConfigError, match="positive radius"):
+        DefectMap.from_json(path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        DefectMap.from_json(tmp_path / "missing.json")
+
+
+def _predictions(path, tables, solved=True):
+    lines = []
+    for k, (x, y, e) in enumerate(tables):
+        det = [[float(a), float(b), 100.0] for a, b in zip(x, y)]
+        th = np.radians(k)  # a different pointing each frame
+        q = [float(np.cos(th / 2)), float(np.sin(th / 2)), 0.0, 0.0]
+        sol = {"status": "solved", "quaternion_wxyz": q, "matched": [[int(r), 7] for r in np.flatnonzero(e)]}
+        lines.append(
+            json.dumps({"frame": f"f{k}", "detections": det, "solution": sol if solved else {"status": "refused"}})
+        )
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_fusion_defects_learns_from_predictions_and_says_what_is_wrong(tmp_path, capsys):
+    from fusion.cli import main
+
+    pred = tmp_path / "p.jsonl"
+    _predictions(pred, _frames(hot=((512.0, 12.0),), lit_in=4))
+    out = tmp_path / "defects.json"
+    assert main(["defects", str(pred), "--out", str(out)]) == 0
+    assert "1 defect pixel(s) from 8 solved frames" in capsys.readouterr().out
+    assert np.allclose(DefectMap.from_json(out).xy, [[512, 12]])
+    _predictions(pred, _frames(lit_in=4), solved=False)
+    assert main(["defects", str(pred), "--out", str(tmp_path / "none.json")]) == 2
+    assert "0 solved frame(s)" in capsys.readouterr().err and not (tmp_path / "none.json").exists()
+    pred.write_text("not a record\n")
+    assert main(["defects", str(pred), "--out", str(out)]) == 2
+    assert "line 1: not a fusion predict record" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="--min-frames"):
+        learn_command([pred], out, min_frames=1)
