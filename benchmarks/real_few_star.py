@@ -1,7 +1,7 @@
 """Few-star solving on real frames: the brightest N real detections, every prior-free solver side by side.
 
     python benchmarks/real_few_star.py FRAMES... --camera CAMERA.yaml [--n 3 4 5 6 8]
-                                       [--solvers tetra3rs whole-sky tetra3rs>whole-sky] --out DIR
+                                       [--solvers tetra3rs whole-sky tetra3rs>whole-sky] [--known-defects] --out DIR
     python benchmarks/real_few_star.py FRAMES... --checkpoint CK [--solvers ... learned+fine>whole-sky] --out DIR
 
 For every frame: detect with skygen's detector and the camera's detection settings (exactly what
@@ -86,6 +86,7 @@ def run(
     background_box: int | None = None,
     checkpoint: str | Path | None = None,
     search_k: int | None = None,
+    known_defects: bool = False,
     log=print,
 ) -> dict:
     """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``, or for the camera of
@@ -153,6 +154,22 @@ def run(
         rec["truth_radec_roll_deg"] = [float(v) for v in matrix_to_radec_roll(m_true)]
         kept.append(rec)
     log(f"{len(kept)} of {len(frames)} frames kept with a truth attitude; {len(dropped)} left out")
+    if (
+        known_defects
+    ):  # each frame's defect map from the others: what no truth solve matched, at one pixel, 3+ pointings
+        from fusion.solve.defects import leave_one_out
+
+        tables = [
+            (
+                r["_det"].x_px,
+                r["_det"].y_px,
+                [r["_matched_rows"] is None or i in r["_matched_rows"] for i in range(len(r["_det"]))],
+            )
+            for r in kept
+        ]
+        for r, dmap in zip(kept, leave_one_out(tables, boresights=[r["_m"][:, 2] for r in kept])):
+            r["_defects"] = dmap
+            r["defect_pixels"] = np.round(dmap.xy, 1).tolist()
     # untimed warm-up: numba kernels, pair indices (the 3-star bright tier too) and caches are built on first use
     t0 = time.perf_counter()
     if kept:
@@ -172,13 +189,19 @@ def run(
         row["share_non_catalogue_in_brightest"] = non_cat / len(with_truth_rows) if with_truth_rows else None
         for r in with_truth_rows:  # per frame: how many of its brightest n no all-detection solve matched
             r.setdefault("non_catalogue_in_brightest", {})[str(n)] = sum(i not in r["_matched_rows"] for i in range(n))
+        dets = {}
+        for r in usable:  # the brightest n, then (known_defects) the defect pixels' detections dropped
+            d = r["_det"].brightest(n)
+            dets[r["frame"]] = r["_defects"].remove(d)[0] if known_defects else d
+        if known_defects:
+            row["defects_removed"] = int(sum(n - len(d) for d in dets.values()))
         for sname, solver in built.items():
             ok = wrong = refused = 0
             ms = []
             errs = []
             good, good_truth = [], []  # correct answers and their truth: the covariance's coverage
             for r in usable:
-                d = r["_det"].brightest(n)
+                d = dets[r["frame"]]
                 roll_true = matrix_to_radec_roll(r["_m"])[2]
                 t = time.perf_counter()
                 res = solver.solve(d, cam)
@@ -230,6 +253,7 @@ def run(
             "background_box_px": pred.background_box,
         },
         "solvers": list(solvers),
+        "known_defects": bool(known_defects),
         "n_values": [int(n) for n in n_values],
         "truth_rule": f"all-detection tetra3rs solve with false-positive probability <= {truth_max_fpp:g} "
         f"and >= {truth_min_matched} matched stars (rendered frames: the rendered attitude)",
@@ -338,6 +362,12 @@ def main(argv=None) -> int:
         help="detector background box, px (default: the camera's detection.background_box_px; 64 for sky glow, "
         "as `fusion predict --background-box 64`)",
     )
+    p.add_argument(
+        "--known-defects",
+        action="store_true",
+        help="drop detections at the sensor's defect pixels first: each frame's map learned from the other frames' "
+        "detections no truth solve matched, recurring at one pixel at 3+ pointings (fusion.solve.defects)",
+    )
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="folder for real_few_star.json and real_few_star.md")
     a = p.parse_args(argv)
@@ -356,6 +386,7 @@ def main(argv=None) -> int:
         background_box=a.background_box,
         checkpoint=a.checkpoint,
         search_k=a.search_k,
+        known_defects=a.known_defects,
         log=lambda s: print(s, file=sys.stderr),
     )
     res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])

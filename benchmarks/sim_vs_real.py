@@ -218,6 +218,12 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="the renders' seed")
     p.add_argument("--channel", default="luminance", help="colour frames: luminance, r, g, b or sum")
     p.add_argument("--work", default=None, help="folder for the renders (default OUT/renders)")
+    p.add_argument(
+        "--known-defects",
+        action="store_true",
+        help="real frames and renders alike: drop detections at defect pixels learned from the other frames "
+        "(real_few_star.py --known-defects)",
+    )
     p.add_argument("--out", required=True, help="folder for sim_vs_real.json and sim_vs_real.md")
     a = p.parse_args(argv)
     out = Path(a.out)
@@ -227,6 +233,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     # with a model, its own camera detects and solves (the camera file still renders the frames)
     cam, kw = (None, {"checkpoint": a.checkpoint}) if a.checkpoint else (a.camera, {})
+    kw["known_defects"] = a.known_defects
     real = run(load_frames(a.frames, None, a.channel), cam, a.n, a.solvers, log=log, **kw)
     if not real["frames_kept"]:
         raise SystemExit("sim_vs_real: no real frame has a certain truth attitude: nothing to predict")
@@ -243,6 +250,7 @@ def main(argv=None) -> int:
         "camera": a.camera,
         "checkpoint": a.checkpoint,
         "renders": a.renders,
+        "known_defects": a.known_defects,
         "per_attitude": a.per_attitude,
         "seed": a.seed,
         "rows": compare(real, at_truth, random_sky, a.solvers, a.n),

@@ -120,3 +120,14 @@ def test_fusion_defects_learns_from_predictions_and_says_what_is_wrong(tmp_path,
     assert "line 1: not a fusion predict record" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="--min-frames"):
         learn_command([pred], out, min_frames=1)
+
+
+def test_leave_one_out_with_pointings_counts_each_pointing_once():
+    tables = _frames(lit_in=5)
+    apart = np.array([[np.sin(np.radians(k)), 0.0, np.cos(np.radians(k))] for k in range(8)])
+    assert [len(m) for m in leave_one_out(tables, boresights=apart)] == [1] * 8  # 4 other pointings or 5
+    # frames 0-3 at one pointing, 4 apart: the hot pixel is lit at two pointings only
+    two = np.array(
+        [[0.0, 0.0, 1.0]] * 4 + [[np.sin(np.radians(5 + k)), 0.0, np.cos(np.radians(5 + k))] for k in range(4)]
+    )
+    assert all(len(m) == 0 for m in leave_one_out(tables, boresights=two))

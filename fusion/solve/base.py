@@ -281,7 +281,10 @@ def attitude_covariance(
     k2 = student_scale(dof) ** 2 if student else 1.0
     sigma2 = max(k2 * n * residual_arcsec**2 / dof, (CENTROID_FLOOR_PX * pixel_scale_arcsec) ** 2)
     info = n * np.eye(3) - u.T @ u  # sum of (I - v v^T)
-    return sigma2 * np.linalg.pinv(info)
+    try:  # two distinct directions or more make it invertible; pinv for one (or a degenerate set)
+        return sigma2 * np.linalg.inv(info) if n >= 2 else sigma2 * np.linalg.pinv(info)
+    except np.linalg.LinAlgError:
+        return sigma2 * np.linalg.pinv(info)
 
 
 def rotation_vector_deg(m_a: np.ndarray, m_b: np.ndarray) -> np.ndarray:

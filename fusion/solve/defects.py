@@ -16,7 +16,6 @@ themselves). :meth:`DefectMap.remove` drops the detections a map flags.
 from __future__ import annotations
 
 import json
-from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,31 +85,53 @@ class DefectMap:
         return cls(xy, radius)
 
 
-def _unexplained_cells(tables) -> list[set]:
-    """Each frame's set of integer pixel cells holding a detection no catalogue star explains. ``tables``:
+DEFECT_MIN_APART_DEG = 0.5  # frames whose boresights are closer than this count as one pointing: a staring
+#   camera keeps an uncatalogued star on one pixel, and only a pixel that stays lit while the sky moves is a defect
+_NEAR = [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)]  # a centroid near a pixel's edge rounds either way
+
+
+def _pointings(n: int, boresights) -> list[int]:
+    """Each frame's pointing: frames within DEFECT_MIN_APART_DEG of an earlier one share its number (greedy);
+    without boresights every frame is its own."""
+    if boresights is None:
+        return list(range(n))
+    cos_apart = np.cos(np.radians(DEFECT_MIN_APART_DEG))
+    reps: list = []
+    ids = []
+    for v in np.asarray(boresights, np.float64).reshape(-1, 3):
+        k = next((k for k, w in enumerate(reps) if float(v @ w) >= cos_apart), None)
+        if k is None:
+            reps.append(v)
+            k = len(reps) - 1
+        ids.append(k)
+    return ids
+
+
+def _lit(tables) -> dict:
+    """integer pixel cell -> the frames holding a detection no catalogue star explains there. ``tables``:
     (x_px, y_px, explained) per frame."""
-    return [_cells(np.asarray(x)[~np.asarray(e, bool)], np.asarray(y)[~np.asarray(e, bool)]) for x, y, e in tables]
+    lit: dict = {}
+    for f, (x, y, e) in enumerate(tables):
+        bad = ~np.asarray(e, bool)
+        for c in _cells(np.asarray(x)[bad], np.asarray(y)[bad]):
+            lit.setdefault(c, set()).add(f)
+    return lit
 
 
-def _map_from_counts(counts: Counter, min_frames: int, radius_px: float, cells=None) -> DefectMap:
-    # a cell's recurrences include its 8 neighbours' (a centroid near a pixel's edge rounds either way); each
-    # defect is reported once, at its most frequent cell. ``cells``: the only cells that can qualify (default all)
+def _map(lit: dict, pointing: list, min_frames: int, radius_px: float, cells, leave_out: int | None = None):
+    """The map of ``cells`` (of ``lit``) lit at ``min_frames`` pointings or more within one pixel, frame
+    ``leave_out`` not counted; each defect once, at its most often lit cell."""
     hits = []
-    for cx, cy in counts if cells is None else cells:
-        own = counts.get((cx, cy), 0)
-        if own <= 0:
+    for cx, cy in cells:
+        near = [lit.get((cx + a, cy + b), set()) for a, b in _NEAR]
+        frames = set().union(*near) - {leave_out}
+        if len({pointing[f] for f in frames}) < min_frames:
             continue
-        near = sum(counts.get((cx + a, cy + b), 0) for a in (-1, 0, 1) for b in (-1, 0, 1))
-        if near < min_frames:
-            continue
-        if any(counts.get((cx + a, cy + b), 0) > own for a in (-1, 0, 1) for b in (-1, 0, 1)):
+        own = len(lit.get((cx, cy), set()) - {leave_out})
+        if own == 0 or any(len(n - {leave_out}) > own for n in near):
             continue
         hits.append((cx, cy))
     return DefectMap(np.asarray(sorted(hits), np.float64).reshape(-1, 2), radius_px)
-
-
-DEFECT_MIN_APART_DEG = 0.5  # frames whose boresights are closer than this count as one pointing: a staring
-#   camera keeps an uncatalogued star on one pixel, and only a pixel that stays lit while the sky moves is a defect
 
 
 def learn(
@@ -119,46 +140,25 @@ def learn(
     """The defect map of frames ``tables`` = [(x_px, y_px, explained), ...]: integer pixels (with their
     neighbours) holding an unexplained detection in at least ``min_frames`` frames. ``boresights`` (one unit
     vector per frame, optional): frames within :data:`DEFECT_MIN_APART_DEG` of each other count once."""
-    per = _unexplained_cells(tables)
-    counts: Counter = Counter()
-    if boresights is None:
-        for cells in per:
-            counts.update(cells)
-        return _map_from_counts(counts, min_frames, radius_px)
-    cos_apart = np.cos(np.radians(DEFECT_MIN_APART_DEG))
-    pointings: dict = {}  # cell -> the distinct boresights it was lit at
-    for cells, v in zip(per, np.asarray(boresights, np.float64).reshape(-1, 3)):
-        for c in cells:
-            seen = pointings.setdefault(c, [])
-            if all(float(v @ w) < cos_apart for w in seen):
-                seen.append(v)
-    counts.update({c: len(v) for c, v in pointings.items()})
-    return _map_from_counts(counts, min_frames, radius_px)
+    lit = _lit(tables)
+    return _map(lit, _pointings(len(tables), boresights), min_frames, radius_px, list(lit))
 
 
-def leave_one_out(tables, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX) -> list[DefectMap]:
-    """One map per frame of ``tables``, each learned from the other frames only."""
-    per = _unexplained_cells(tables)
-    counts: Counter = Counter()
-    for cells in per:
-        counts.update(cells)
+def leave_one_out(
+    tables, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX, boresights=None
+) -> list[DefectMap]:
+    """One map per frame of ``tables``, each learned from the other frames only (``boresights``: as
+    :func:`learn`'s)."""
+    lit = _lit(tables)
+    pointing = _pointings(len(tables), boresights)
     # a cell that does not qualify with every frame counted cannot qualify with one left out
-    candidates = [tuple(c) for c in _candidates(counts, min_frames)]
-    maps = []
-    for cells in per:
-        counts.subtract(cells)
-        maps.append(_map_from_counts(counts, min_frames, radius_px, candidates))
-        counts.update(cells)
-    return maps
+    candidates = [c for c in lit if _reaches(lit, c, pointing, min_frames)]
+    return [_map(lit, pointing, min_frames, radius_px, candidates, j) for j in range(len(tables))]
 
 
-def _candidates(counts: Counter, min_frames: int) -> list:
-    """The cells whose neighbourhood holds at least ``min_frames`` recurrences."""
-    return [
-        (cx, cy)
-        for cx, cy in counts
-        if sum(counts.get((cx + a, cy + b), 0) for a in (-1, 0, 1) for b in (-1, 0, 1)) >= min_frames
-    ]
+def _reaches(lit: dict, c, pointing: list, min_frames: int) -> bool:
+    frames = set().union(*(lit.get((c[0] + a, c[1] + b), ()) for a, b in _NEAR))
+    return len({pointing[f] for f in frames}) >= min_frames
 
 
 def from_dataset_tables(tables: list[dict]) -> list[tuple]:

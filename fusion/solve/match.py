@@ -639,3 +639,53 @@ def track_hypotheses(
             out_k[h] = kf
             h += 1
     return out_w[:h], out_r[:h], out_k[:h], out_c[:h]
+
+
+@njit(cache=True)
+def refine_track(t, vec, k: float, s: float, passes: int):
+    """Tracking's least-squares attitude of an identification (:func:`fusion.solve.track.track`): ``t`` (m, 2)
+    the matched detections' tangent-plane coordinates, ``vec`` (m, 3) their catalogue stars. Per pass: Kabsch's
+    rotation at focal factor ``k``, then (three stars or more, ``s`` > 0) Umeyama's scale of the tangent-plane
+    coordinates, clipped to 1 +- s. Returns (rotation camera -> ICRS, k, the unit vectors at k (m, 3), rms
+    residual angle (rad))."""
+    m = t.shape[0]
+    uk = np.empty((m, 3))
+    rot = np.eye(3)
+    for it in range(passes):
+        for r in range(m):
+            uk[r, 0], uk[r, 1], uk[r, 2] = _unit(t[r, 0], t[r, 1], k)
+        h = uk.T @ vec
+        uu, _, vt = np.linalg.svd(h)
+        d = 1.0 if np.linalg.det(vt.T @ uu.T) >= 0 else -1.0
+        dd = np.eye(3)
+        dd[2, 2] = d
+        rot = vt.T @ dd @ uu.T
+        if m >= 3 and s > 0:
+            c = vec @ rot
+            g = np.empty((m, 2))
+            for r in range(m):
+                g[r, 0], g[r, 1] = c[r, 0] / c[r, 2], c[r, 1] / c[r, 2]
+            gm0, gm1, tm0, tm1 = g[:, 0].mean(), g[:, 1].mean(), t[:, 0].mean(), t[:, 1].mean()
+            mm = np.zeros((2, 2))
+            ss = 0.0
+            for r in range(m):
+                a0, a1, b0, b1 = g[r, 0] - gm0, g[r, 1] - gm1, t[r, 0] - tm0, t[r, 1] - tm1
+                mm[0, 0] += a0 * b0
+                mm[0, 1] += a0 * b1
+                mm[1, 0] += a1 * b0
+                mm[1, 1] += a1 * b1
+                ss += a0 * a0 + a1 * a1
+            sv = np.linalg.svd(mm)[1]
+            det = mm[0, 0] * mm[1, 1] - mm[0, 1] * mm[1, 0]
+            flip = 1.0 if det >= 0 else -1.0
+            k = min(1.0 + s, max(1.0 - s, (sv[0] + flip * sv[1]) / ss))
+    for r in range(m):
+        uk[r, 0], uk[r, 1], uk[r, 2] = _unit(t[r, 0], t[r, 1], k)
+    acc = 0.0
+    for r in range(m):
+        x0 = rot[0, 0] * uk[r, 0] + rot[0, 1] * uk[r, 1] + rot[0, 2] * uk[r, 2]
+        x1 = rot[1, 0] * uk[r, 0] + rot[1, 1] * uk[r, 1] + rot[1, 2] * uk[r, 2]
+        x2 = rot[2, 0] * uk[r, 0] + rot[2, 1] * uk[r, 1] + rot[2, 2] * uk[r, 2]
+        a = _angle(x0, x1, x2, vec[r, 0], vec[r, 1], vec[r, 2])
+        acc += a * a
+    return rot, k, uk, math.sqrt(acc / m)

@@ -57,11 +57,10 @@ from .base import (
     Refusal,
     Solution,
     attitude_covariance,
-    photometric_zero_point,
     solution_from_matrix,
 )
-from .fine import TRACKING, _kabsch, _unit_at, magnitude_scatter
-from .match import track_hypotheses
+from .fine import TRACKING
+from .match import refine_track, track_hypotheses
 
 # --------------------------------------------------------------------------- tracking (an attitude hint)
 # The model behind track (module docstring, "Tracking"); each constant errs on the side of
@@ -161,6 +160,8 @@ def track(
         ]
     )
     tc = np.ascontiguousarray(t)
+    near_vec, near_mag, near_row = bright.vec[near], bright.mag[near], solver._bright_rows[near]
+    log_omega = math.log(omega)
     found = []
     tried = 0
     for i in range(na):
@@ -170,7 +171,7 @@ def track(
                 continue
             logw, rot, k, cats = track_hypotheses(
                 tc, i, j, a_rows, b_rows, cand_offs, cand_rows, tier.vec, tier.mag, m_hint, sig, s, tol, sig_c,
-                math.log(omega), bright.vec[near], bright.mag[near], solver._bright_rows[near], cam, inst, phot,
+                log_omega, near_vec, near_mag, near_row, cam, inst, phot,
                 consts,
             )  # fmt: skip
             tried += len(logw)
@@ -191,7 +192,11 @@ def track(
     # its best weight; one below e^-30 of the best changes no probability this solver states
     order = np.argsort(-lw, kind="stable")
     order = order[lw[order] > lw[order[0]] - 30.0]
-    _, first = np.unique(cats[order], axis=0, return_index=True)
+    rows = cats[order]  # each distinct row's first place in the weight order (a stable lexicographic sort)
+    srt = np.lexsort(rows.T[::-1])
+    lead = np.ones(len(srt), bool)
+    lead[1:] = np.any(rows[srt[1:]] != rows[srt[:-1]], axis=1)
+    first = srt[lead]
     keep = order[np.sort(first)]
     lw, cats, rots, ks = lw[keep], cats[keep], rots[keep], ks[keep]
     best = 0  # keep is in descending weight
@@ -222,25 +227,15 @@ def track(
     cat_rows = cats[best][det_rows]
     # the least-squares rotation of the identified stars and, from three on, the focal factor (Umeyama's scale
     # of the tangent-plane coordinates, within 1 +- s): two passes, the identification is not revisited
-    for _ in range(2 if len(det_rows) >= 3 and s > 0 else 1):
-        uk = _unit_at(t, k)
-        rot = _kabsch(uk[det_rows], tier.vec[cat_rows])
-        if len(det_rows) >= 3 and s > 0:
-            c = tier.vec[cat_rows] @ rot
-            g = c[:, :2] / c[:, 2:3]
-            gc, tcc = g - g.mean(axis=0), t[det_rows] - t[det_rows].mean(axis=0)
-            sv = np.linalg.svd(gc.T @ tcc, compute_uv=False)
-            flip = np.sign(np.linalg.det(gc.T @ tcc)) or 1.0
-            k = float(np.clip((sv[0] + flip * sv[1]) / np.sum(gc * gc), 1 - s, 1 + s))
-    uk = _unit_at(t, k)
-    resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
-    rms_arcsec = float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600)
+    passes = 2 if len(det_rows) >= 3 and s > 0 else 1
+    rot, k, u_det, rms_rad = refine_track(np.ascontiguousarray(t[det_rows]), tier.vec[cat_rows], k, s, passes)
+    rms_arcsec = math.degrees(rms_rad) * 3600
     cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
     # the covariance assumes at least the model's centroid error where the stars are too few to measure it
     # (two stars and a free focal length fit exactly)
     floor = TRACK_COV_CENTROID_PX * cam_k.pixel_scale_arcsec if len(det_rows) <= 3 else 0.0
     # (the plain estimate: tracking's floor already makes its 1 sigma hold 97-99 %, session 15's measure)
-    cov = attitude_covariance(uk[det_rows], max(rms_arcsec, floor), cam_k.pixel_scale_arcsec, student=False)
+    cov = attitude_covariance(u_det, max(rms_arcsec, floor), cam_k.pixel_scale_arcsec, student=False)
     if math.sqrt(cov[2, 2]) / 3600 > TRACK_MAX_ROLL_SIGMA_DEG:
         return refuse(
             f"tracking: the matched stars fix the roll only to {math.sqrt(cov[2, 2]) / 3600:.2f} deg (1 sigma) "
@@ -257,13 +252,11 @@ def track(
             "identifications": len(lw),
         }
     )
-    if len(det_rows) >= 2:
-        extra["magnitude_scatter"] = float(
-            magnitude_scatter(tier.mag[cat_rows], np.asarray(detections.flux_adu, np.float64)[det_rows])
-        )
-    zp = photometric_zero_point(tier.mag[cat_rows], flux[det_rows])
-    if zp is not None:
-        extra["zero_point"] = zp
+    if phot:  # as fine.magnitude_scatter and base.photometric_zero_point, inline (every flux is positive)
+        d = tier.mag[cat_rows] - inst[det_rows]
+        if len(d) >= 2:
+            extra["magnitude_scatter"] = float(d.std(ddof=1))
+        extra["zero_point"] = float(d.mean())
     if zero_point is not None:
         extra["hint_zero_point"] = float(zero_point)
     return solution_from_matrix(
