@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from fusion.model.checkpoint import load_checkpoint
-from fusion.model.networks import PeakRows, StarFusion
+from fusion.model.networks import UNEXPLAINED_TOL_PX, PeakRows, StarFusion, unexplained_share
 from fusion.model.shards import FrameDataset, boresight_vectors, split_positions
 from skygen.datasets.shards import open_dataset
 from skygen.runtime import hardware_line
@@ -112,41 +112,54 @@ def non_star_bright_peaks(ds, fd, rows: torch.Tensor, mask: torch.Tensor, js, to
     return n
 
 
-def weight_grid(model, kept: dict[str, list], show: int = 8) -> list[str]:
-    """Markdown lines: the best ``show`` (image_weight, image_weight_stars) settings on the kept cells by
-    their mean top-1, and the model's own, each fused by the model's ``view_weight``."""
+def weight_grid(model, kept: dict[str, list], show: int = 8, by: str = "count") -> list[str]:
+    """Markdown lines: the best ``show`` settings of the image view's weight on the kept cells by their mean
+    top-1, and the model's own, each fused by the model's ``view_weight``: (image_weight, image_weight_stars)
+    with ``by="count"``, (image_weight, image_weight_unexplained) with ``by="unexplained"``."""
     cells = {lab: [torch.cat(parts) for parts in zip(*batches)] for lab, batches in kept.items()}
-    own = (model.image_weight, model.image_weight_stars)
+    keys = ("image_weight_by", "image_weight", "image_weight_stars", "image_weight_unexplained")
+    own = {k: getattr(model, k) for k in keys}
 
-    def score(weight, stars) -> list[float]:
-        model.image_weight, model.image_weight_stars = weight, stars
+    def score(how: str, weight, second) -> list[float]:
+        model.image_weight_by, model.image_weight = how, weight
+        if how == "count":
+            model.image_weight_stars = second
+        else:
+            model.image_weight_unexplained = second
         out = []
-        for det, img, mask, pmask, y in cells.values():
-            w = model.view_weight(mask, pmask)[:, None]
+        for det, img, mask, pmask, share, y in cells.values():
+            w = model.view_weight(mask, pmask, share)[:, None]
             out.append(100 * float((((1 - w) * det + w * img).argmax(dim=1) == y).float().mean()))
         return out
 
     grid = []
+    if by == "count":
+        seconds: list = [(a, b) for a in (3, 4, 5, 6) for b in (4, 6, 8, 10, 12, 16, 20) if b >= a]
+    else:
+        seconds = [(a, b) for a in (0.0, 0.05, 0.1, 0.15, 0.2) for b in (0.2, 0.3, 0.4, 0.5, 0.6, 0.8) if b > a]
     for few in (0.3, 0.4, 0.5, 0.6, 0.7):
         for many in (0.0, 0.05, 0.1, 0.2, 0.3, 0.5):
-            for n_few in (3, 4, 5, 6):
-                for n_many in (4, 6, 8, 10, 12, 16, 20):
-                    if n_many >= n_few:
-                        grid.append(((few, many), (n_few, n_many), score((few, many), (n_few, n_many))))
-    own_row = (*own, score(*own))
-    model.image_weight, model.image_weight_stars = own
+            for second in seconds:
+                grid.append(((few, many), second, score(by, (few, many), second)))
+    own_how = own["image_weight_by"]
+    own_second = own["image_weight_stars"] if own_how == "count" else own["image_weight_unexplained"]
+    own_row = (own["image_weight"], own_second, score(own_how, own["image_weight"], own_second))
+    for k, v in own.items():
+        setattr(model, k, v)
     grid.sort(key=lambda g: -float(np.mean(g[2])))
     labels = list(cells)
+    col = "image_weight_stars" if by == "count" else "image_weight_unexplained"
     lines = [
-        "Image-view weight searched (`--choose-weight`): top-1 (%) per cell, best "
-        f"{show} of {len(grid)} settings by their mean, and the model's own:",
+        f"Image-view weight searched (`--choose-weight`, by {by}): top-1 (%) per cell, best "
+        f"{show} of {len(grid)} settings by their mean, and the model's own "
+        f"({own['image_weight_by']}, last row):",
         "",
-        "| image_weight | image_weight_stars | " + " | ".join(labels) + " | mean |",
+        f"| image_weight | {col} | " + " | ".join(labels) + " | mean |",
         "|---|---|" + "---|" * (len(labels) + 1),
     ]
-    for (few, many), (n_few, n_many), sc in [*grid[:show], own_row]:
+    for (few, many), second, sc in [*grid[:show], own_row]:
         lines.append(
-            f"| [{few:g}, {many:g}] | [{n_few}, {n_many}] | "
+            f"| [{few:g}, {many:g}] | [{second[0]:g}, {second[1]:g}] | "
             + " | ".join(f"{v:.1f}" for v in sc)
             + f" | {np.mean(sc):.2f} |"
         )
@@ -213,7 +226,9 @@ def score(path: str, a: argparse.Namespace) -> tuple[list[str], StarFusion, dict
                         out[f"image weight {w:g}"] = (1 - w) * torch.log_softmax(out["detections"], -1) + w * img
                     if a.choose_weight and sigma == 0:
                         det = torch.log_softmax(out["detections"], -1)
-                        kept.setdefault(label, []).append((det, img, mask, pmask, y))
+                        tol = UNEXPLAINED_TOL_PX * 2.0 / image.shape[-1]
+                        share = unexplained_share(prow, pmask, coords, mask, tol)
+                        kept.setdefault(label, []).append((det, img, mask, pmask, share, y))
                     if label == "whole frame" and (probe is not None or model.image.backbone.pixel_flux):
                         js = range(start, min(start + 64, len(pos)))
                         non_star += non_star_bright_peaks(ds, fd, prow, pmask, js)
@@ -271,6 +286,12 @@ def main(argv=None) -> int:
         "(a pixel-flux model; use --split val)",
     )
     ap.add_argument(
+        "--weight-by",
+        choices=("count", "unexplained"),
+        default="count",
+        help="--choose-weight: what the searched weight moves with (model.peaks.image_weight_by)",
+    )
+    ap.add_argument(
         "--extra-data",
         nargs="*",
         default=[],
@@ -287,7 +308,7 @@ def main(argv=None) -> int:
         for label, batches in cells_kept.items():  # pooled over checkpoints: the same frames once per model
             kept.setdefault(label, []).extend(batches)
     if a.choose_weight:
-        lines += weight_grid(model, kept) + [""]
+        lines += weight_grid(model, kept, by=a.weight_by) + [""]
     lines += [
         "command: `python benchmarks/tied_views.py " + " ".join(argv or sys.argv[1:]) + "`",
         f"hardware: {hardware_line()} (top-1 does not depend on it)",

@@ -151,6 +151,21 @@ class PeaksConfig:
         doc="the detection counts at which image_weight's first and second values apply (at most the first: the "
         "first value; at least the second: the second)",
     )
+    image_weight_by: str = param(
+        "count",
+        choices=("count", "unexplained"),
+        doc="what moves the image view's weight between image_weight's values: count (the detection count, "
+        "image_weight_stars) or unexplained (the share of the image's peaks that no detection explains, "
+        "image_weight_unexplained: a frame whose detector missed or dropped stars the pixels show, or was cut to "
+        "its brightest few, gets the first value; one whose detections explain its peaks, the second); inference only",
+    )
+    image_weight_unexplained: tuple[float, float] = param(
+        (0.1, 0.2),
+        lo=0,
+        hi=1,
+        doc="image_weight_by=unexplained: the shares of unexplained peaks at and below which image_weight's second "
+        "value applies, and at and above which its first (linear between)",
+    )
     dim: int = param(64, lo=8, hi=4096, doc="token width of the peaks' transformer")
     layers: int = param(2, lo=1, hi=64, doc="encoder layers of the peaks' transformer")
     heads: int = param(4, lo=1, hi=64, doc="attention heads of the peaks' transformer")
@@ -461,6 +476,12 @@ def check_consistency(cfg: FusionConfig) -> None:
         raise ConfigError(
             "stream.kind=detections makes no images, but model.branches.image is on; use "
             "--stream frames, or switch the image branch off (model.branches.image=false)"
+        )
+    u_lo, u_hi = cfg.model.peaks.image_weight_unexplained
+    if u_lo > u_hi:
+        raise ConfigError(
+            f"model.peaks.image_weight_unexplained={[u_lo, u_hi]}: the first share (detections trusted) must not "
+            f"exceed the second (the image trusted), e.g. [{u_hi}, {u_lo}]"
         )
     lo, hi = cfg.model.peaks.image_weight_stars
     if lo > hi:

@@ -100,6 +100,37 @@ def test_the_image_views_weight_falls_with_the_detection_count():
         load_config(None, ["model.peaks.image_weight=[0.5,1.5]"])
 
 
+def test_the_image_views_weight_rises_with_the_peaks_no_detection_explains():
+    """image_weight_by=unexplained: every peak explained by a detection -> image_weight[1]; most peaks
+    unexplained (the frame cut to its brightest two) -> image_weight[0]; the fused output uses that weight."""
+    from fusion.model.networks import UNEXPLAINED_TOL_PX, unexplained_share
+
+    peaks = {"image_weight": [0.5, 0.0], "image_weight_by": "unexplained", "image_weight_unexplained": [0.1, 0.2]}
+    model = _tied(peaks=peaks).eval()
+    img, rows = _frame(STARS)
+    prow, pmask = model.image.rows(img)
+    tol = UNEXPLAINED_TOL_PX * 2 / 64
+    every, two = torch.ones(1, len(STARS), dtype=torch.bool), torch.ones(1, 2, dtype=torch.bool)
+    assert float(unexplained_share(prow, pmask, rows, every, tol)) == 0.0
+    assert float(unexplained_share(prow, pmask, rows[:, :2], two, tol)) == pytest.approx(3 / 5)
+    far = rows.clone()
+    far[..., :2] += 10 * tol  # detections nowhere near the peaks explain none of them
+    assert float(unexplained_share(prow, pmask, far, every, tol)) == 1.0
+    with torch.no_grad():
+        view = torch.log_softmax(model(None, prow, pmask), -1)
+        for det_rows, mask, a in ((rows, every, 0.0), (rows[:, :2], two, 0.5)):
+            det = torch.log_softmax(model(None, det_rows, mask), -1)
+            want = torch.log_softmax((1 - a) * det + a * view, -1)
+            torch.testing.assert_close(model(img, det_rows, mask), want, atol=1e-5, rtol=0)
+    share = torch.tensor([0.0, 0.1, 0.15, 0.2, 0.9])
+    a = model.view_weight(torch.ones(5, 3, dtype=torch.bool), torch.ones(5, 4, dtype=torch.bool), share)
+    torch.testing.assert_close(a, torch.tensor([0.0, 0.0, 0.25, 0.5, 0.5]))
+    with pytest.raises(ConfigError, match="image_weight_unexplained"):
+        load_config(None, ["model.peaks.image_weight_unexplained=[0.5,0.2]"])
+    with pytest.raises(ConfigError, match="image_weight_by"):
+        load_config(None, ["model.peaks.image_weight_by=brightness"])
+
+
 def test_tied_model_is_roll_invariant():
     """A quarter turn of the image (exact: no resampling) and of the detections gives the same output."""
     model = _tied().eval()

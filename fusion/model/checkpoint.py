@@ -83,7 +83,13 @@ def versions() -> dict:
 #: config keys that no trained weight depends on, so that ``fusion evaluate --set`` may change them on a
 #: trained model: the tied views' weighing and the image view's defect cut (the tied image view has no
 #: parameters, and the model trains on detections only)
-INFERENCE_KEYS = ("model.peaks.image_weight", "model.peaks.image_weight_stars", "model.peaks.max_peak_share")
+INFERENCE_KEYS = (
+    "model.peaks.image_weight",
+    "model.peaks.image_weight_stars",
+    "model.peaks.image_weight_by",
+    "model.peaks.image_weight_unexplained",
+    "model.peaks.max_peak_share",
+)
 
 
 @dataclass
