@@ -85,7 +85,7 @@ def test_reliability_bins_and_verdicts(cal):
     rows = [{"returned": True, "correct": c, "p": p} for c, p in
             [(True, 1e-12), (False, 1e-12), (True, 5e-8), (True, 2e-4), (False, 0.5), (True, 0.005)]]  # fmt: skip
     rel = cal.reliability(rows + [{"returned": False, "correct": None, "p": None}])
-    assert [b["count"] for b in rel] == [2, 1, 1, 1, 1] and [b["wrong"] for b in rel] == [1, 0, 0, 0, 1]
+    assert [b["count"] for b in rel] == [2, 1, 1, 1, 0, 1] and [b["wrong"] for b in rel] == [1, 0, 0, 0, 0, 1]
     assert rel[1]["rate_upper95"] == 1.0 and rel[0]["rate_upper95"] is None
     assert cal.verdict(10, 10.0) == "within x3"
     assert cal.verdict(1, 1e-9) == "UNDER-estimates risk"  # one wrong answer where p promised 1e-9
@@ -124,3 +124,16 @@ def test_an_interrupted_run_is_not_mistaken_for_complete_and_resumes(cal, tmp_pa
     (tmp_path / "calibration.json").write_text(json.dumps({**rep, "complete": False}))
     with pytest.raises(cal.Incomplete):
         cal.load_report(tmp_path)
+
+
+def test_answer_bar_relaxes_every_fine_stage_of_a_chain(cal):
+    """``--answer-bar P``: a chain's fine stage answers up to p = P (its bars 1 - P); tetra3rs is left alone."""
+    from types import SimpleNamespace
+
+    fine = SimpleNamespace(min_confidence=0.99, unverified_confidence=1 - 1e-6, tracking_unverified_confidence=0.999)
+    tetra = SimpleNamespace(match_threshold=1e-5)
+    cal.relax(SimpleNamespace(first=tetra, second=fine), 0.5)
+    assert fine.min_confidence == fine.unverified_confidence == fine.tracking_unverified_confidence == 0.5
+    assert tetra.match_threshold == 1e-5 and not hasattr(tetra, "min_confidence")
+    with pytest.raises(SystemExit, match="answer-bar"):
+        cal.main(["--out", "/nonexistent", "--answer-bar", "1.5"])
