@@ -533,6 +533,21 @@ def reliability(rows: list) -> list[dict]:
     return out
 
 
+COARSE_EDGES = (0.0, 1e-6, 1e-2, math.inf)
+COARSE_LABELS = ("< 1e-6", "1e-6 .. 1e-2", ">= 1e-2")
+
+
+def coarse_reliability(rows: list) -> list[dict]:
+    """Every solver's returned answers of ``rows`` in three bins of p (COARSE_EDGES): count, wrong, sum of p."""
+    ret = [r for r in rows if r["returned"] and r["p"] is not None]
+    out = []
+    for lo, hi, label in zip(COARSE_EDGES[:-1], COARSE_EDGES[1:], COARSE_LABELS):
+        b = [r for r in ret if lo <= r["p"] < hi]
+        w = sum(1 for r in b if not r["correct"])
+        out.append({"bin": label, "count": len(b), "wrong": w, "p_sum": float(sum(r["p"] for r in b))})
+    return out
+
+
 def targets(t: dict) -> dict:
     """The issue's targets for one solver's answers: wrong <= sum p, no wrong answer with p < 1e-6, and whether
     a factor-of-3 calibration is testable at all (3 or more wrong answers expected or seen: below that, zero
@@ -589,6 +604,7 @@ def summarise(rows: list, st: dict, notes: list, wall_s: float) -> dict:
         "table": table,
         "reliability": rel,
         "reliability_all": reliability(d),
+        "reliability_by_family": {f: coarse_reliability([r for r in d if r["family"] == f]) for f in fams},
         "overall": {s: next(t for t in table if t["solver"] == s and t["family"] == "all") for s in solvers},
         "targets": {s: targets(next(t for t in table if t["solver"] == s and t["family"] == "all")) for s in solvers},
         "wrong_answers": wrong_rows[:500],
@@ -712,6 +728,14 @@ def markdown(r: dict) -> str:
                 rate += f" (< {b['rate_upper95']:.2g}, 95 %)"
             lines.append(f"| {s} | {b['bin']} | {b['count']:,} | {b['wrong']} | {b['p_sum']:.3g} | "
                          f"{_g(b['p_mean'], '.2g')} | {rate} | {_g(b['ratio'], '.3g')} |")  # fmt: skip
+    by_fam = r.get("reliability_by_family") or {}
+    if by_fam:
+        lines += ["", "Reliability by family (every solver; answers / wrong / sum of p per bin of p):", ""]
+        lines += ["| family | " + " | ".join(COARSE_LABELS) + " |", "|---|" + "---|" * len(COARSE_LABELS)]
+        for fam, bins in by_fam.items():
+            lines.append(
+                f"| {fam} | " + " | ".join(f"{b['count']:,} / {b['wrong']} / {b['p_sum']:.3g}" for b in bins) + " |"
+            )
     lines += ["", "Targets (every family together):", ""]
     for s, g in r.get("targets", {}).items():
         t = r["overall"][s]

@@ -68,6 +68,12 @@ def test_noise_is_never_correct_and_the_tables_add_up(cal, tmp_path):
         for k in ("attempts", "returned", "wrong", "wrong_below_1e-6"):
             assert sum(u[k] for u in fam) == t[k]
         assert t["wrong_below_1e-6"] == sum(1 for x in returned if not x["correct"] and x["p"] < cal.LOW_P)
+    # the per-family bins count every solver's answers of that family, each once
+    for fam, bins in r["reliability_by_family"].items():
+        answers = [x for x in rows if x["family"] == fam and x["returned"] and x["p"] is not None]
+        assert sum(b["count"] for b in bins) == len(answers)
+        assert sum(b["wrong"] for b in bins) == sum(1 for x in answers if not x["correct"])
+    assert "Reliability by family" in (tmp_path / "calibration.md").read_text()
     assert (tmp_path / "reliability.png").stat().st_size > 1000 and not (tmp_path / "chunks").exists()
 
 
