@@ -1,8 +1,9 @@
 """A sensor's defect map: pixels that give a detection in frame after frame wherever the camera points.
 
 A hot pixel sits at the same place on the sensor while the stars move with the attitude, so a detection that no
-catalogue star explains, at the same pixel (within ``radius_px``) in at least ``min_frames`` frames, is a defect of
-the sensor and not a star: flight star trackers keep such a map and drop its detections before identifying. skygen
+catalogue star explains, at the same pixel (within ``radius_px``) in at least ``min_frames`` frames (pointings, where
+the frames' attitudes are given: a staring camera's uncatalogued star stays put too), is a defect of the sensor and
+not a star: flight star trackers keep such a map and drop its detections before identifying. skygen
 renders hot pixels the same way (a static map seeded per sensor), and they are 4.5 % of the two brightest
 detections of its default renders: with three detections, one of them a hot pixel, only two stars are left to
 identify by, and a solver that does not know the pixel spends its identification on it.

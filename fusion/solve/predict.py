@@ -58,8 +58,9 @@ identification's stars to the brightness the camera gives them. A refused or fai
 without a hint.
 
 ``--defects FILE`` (with ``--solve``): a sensor defect map (``fusion defects``, :mod:`fusion.solve.defects`);
-detections at its pixels (static hot pixels) are dropped before solving; the record keeps every detection,
-says ``"defects_removed"``, and the solution's matched rows index the record's detections.
+detections at its pixels (static hot pixels) are dropped before the model and the solver read them; the record
+keeps every detection, says ``"defects_removed"``, and the solution's matched rows index the record's
+detections.
 
 A frame with no detection (blank, capped, overexposed, or a threshold too high for its
 exposure) gives no region probabilities and no attitude: its record says ``"status":
@@ -324,10 +325,21 @@ class Predictor:
                     "no detections in the frame", self.solver.name, status="too_few_stars"
                 ).to_dict()
             return rec
+        solve_det, rows = det, None  # rows: the record's row of each detection the prior and the solver get
+        if defects is not None:  # the sensor's known defect pixels are no stars (the record keeps every detection)
+            rows = np.flatnonzero(~defects.flags(det))
+            solve_det = Detections(det.x_px[rows], det.y_px[rows], det.flux_adu[rows])
+            rec["defects_removed"] = len(det) - len(rows)
+            if not len(rows):
+                if self.solver is not None:
+                    rec["solution"] = Refusal(
+                        "every detection is at a known defect pixel", self.solver.name, status="too_few_stars"
+                    ).to_dict()
+                return rec
         probs = search_probs = None
         if self.prior is not None:
             t0 = time.perf_counter()
-            probs, fine = self.prior.both(det, stored)
+            probs, fine = self.prior.both(solve_det, stored)
             search_probs = fine if self.solver is not None and self.search_level == "fine" else probs
             rec["model_ms"] = (time.perf_counter() - t0) * 1e3
             order = np.argsort(-probs, kind="stable")[: self.top_k]
@@ -345,16 +357,6 @@ class Predictor:
         if self.solver is not None:
             kw = {"probabilities": search_probs} if search_probs is not None else {}
             res = None
-            solve_det = det
-            if defects is not None:  # the sensor's known defect pixels are no stars (the record keeps every detection)
-                solve_det, rec["defects_removed"] = defects.remove(det)
-                if not len(solve_det):
-                    rec["solution"] = Refusal(
-                        "every detection is at a known defect pixel", self.solver.name, status="too_few_stars"
-                    ).to_dict()
-                    return rec
-                # a solution's matched rows index the detections the solver got: back to the record's rows
-                rows = np.flatnonzero(~defects.flags(det))
             if hint is not None:  # tracking: the previous frame's attitude; lost in space where it fails
                 res = self.solver.solve(
                     solve_det,
@@ -375,7 +377,8 @@ class Predictor:
                 if lost is not None:  # the time spent tracking counts too
                     rec["tracking"]["refused"] = lost.to_dict()
                     res = dataclasses.replace(res, time_ms=res.time_ms + lost.time_ms)
-            if defects is not None and isinstance(res, Solution) and len(res.matched):
+            if rows is not None and isinstance(res, Solution) and len(res.matched):
+                # a solution's matched rows index the detections the solver got: back to the record's rows
                 matched = res.matched.copy()
                 matched[:, 0] = rows[matched[:, 0]]
                 res = dataclasses.replace(res, matched=matched)
