@@ -160,6 +160,13 @@ def main(argv=None) -> int:
         help="replace TRACK_HINT_MISS (fusion/solve/track.py) for this run, e.g. 0: the model without it",
     )
     p.add_argument(
+        "--false-detection-prior",
+        type=float,
+        default=None,
+        metavar="EPS",
+        help="replace TRACK_FALSE_DETECTION (fusion/solve/track.py) for this run, e.g. 0.1: the earlier value",
+    )
+    p.add_argument(
         "--no-zero-point", action="store_true", help="track without the frames' zero point (hint_zero_point=None)"
     )
     p.add_argument(
@@ -176,6 +183,10 @@ def main(argv=None) -> int:
         if not 0 <= a.hint_miss_prior < 1:
             p.error(f"--hint-miss-prior {a.hint_miss_prior:g}: a probability in [0, 1)")
         track.TRACK_HINT_MISS = a.hint_miss_prior
+    if a.false_detection_prior is not None:
+        if not 0 < a.false_detection_prior < 1:
+            p.error(f"--false-detection-prior {a.false_detection_prior:g}: a probability in (0, 1)")
+        track.TRACK_FALSE_DETECTION = a.false_detection_prior
 
     t0 = time.perf_counter()
     rows, zp = run(a.data, a.hint_deg, a.frames, a.n, a.families, a.foreign_pairs, not a.no_zero_point, a.known_defects)
@@ -186,7 +197,8 @@ def main(argv=None) -> int:
     header = (
         f"# Tracking's false-match probability against hints that are not what they claim\n\n"
         f"command: `{cmd}`  \nhardware: {hardware_line()} (counts do not depend on it)  \n"
-        f"hint {a.hint_deg:g}° (1σ stated); whole-sky solver (TRACK_HINT_MISS = {track.TRACK_HINT_MISS:g}), every "
+        f"hint {a.hint_deg:g}° (1σ stated); whole-sky solver (TRACK_HINT_MISS = {track.TRACK_HINT_MISS:g}, "
+        f"TRACK_FALSE_DETECTION = {track.TRACK_FALSE_DETECTION:g}), every "
         f"identification kept, thresholds applied here; hint zero point "
         f"{'none' if zp is None else f'{zp:.3f} mag'}; known defects {'dropped' if a.known_defects else 'kept'}; "
         f"{time.perf_counter() - t0:.0f} s. Cells: answered (% of attempts) / wrong / sum of the reported p."
@@ -199,6 +211,7 @@ def main(argv=None) -> int:
                 "command": cmd,
                 "hint_deg": a.hint_deg,
                 "track_hint_miss": track.TRACK_HINT_MISS,
+                "track_false_detection": track.TRACK_FALSE_DETECTION,
                 "hint_zero_point": zp,
                 "known_defects": a.known_defects,
                 "cells": entries,

@@ -377,6 +377,7 @@ class BenchmarkFrames:
     info: dict  # path, dataset_id, split, frames (for the report)
     defects: list | None = None  # --known-defects: each frame's defect map, learned from the other frames
     zero_point: float | None = None  # tracking cells' hint_zero_point (tracking_zero_point)
+    zero_point_scatter: float | None = None  # its scatter from frame to frame (mag, robust)
 
 
 def load_frames(data, split: str, frames: int, with_images: bool) -> BenchmarkFrames:
@@ -460,13 +461,20 @@ def track_hint(m_true: np.ndarray, angle_deg: float, seed: int, frame_index: int
 def tracking_zero_point(solver, fr: BenchmarkFrames) -> float | None:
     """The photometric zero point tracking cells give as ``hint_zero_point``: the median over the frames of the
     zero point ``solver`` (the fine stage) measures on all of a frame's detections at its true attitude (a 0.05 deg
-    hint) -- what a tracker that has solved earlier frames of this camera knows; None if no frame gives one."""
+    hint) -- what a tracker that has solved earlier frames of this camera knows; None if no frame gives one.
+    :func:`frame_zero_points` gives each frame's."""
+    zps = frame_zero_points(solver, fr)
+    return float(np.median(zps)) if len(zps) else None
+
+
+def frame_zero_points(solver, fr: BenchmarkFrames) -> np.ndarray:
+    """Each frame's zero point as :func:`tracking_zero_point` measures it (frames that give none left out)."""
     zps = []
     for j, t in enumerate(fr.tables):
         r = solver.solve(Detections.from_table(t), fr.camera, None, hint=fr.truth[j][0], hint_sigma_deg=0.05)
         if isinstance(r, Solution) and r.extra.get("zero_point") is not None:
             zps.append(r.extra["zero_point"])
-    return float(np.median(zps)) if zps else None
+    return np.asarray(zps, np.float64)
 
 
 def solve_all(solver, dets: list, fr: BenchmarkFrames, hint_deg: float = 0.0) -> tuple[list, list]:
@@ -578,7 +586,11 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
     if st["track_hint_deg"]:
         from .registry import get
 
-        fr.zero_point = tracking_zero_point(get(ctx, "whole-sky"), fr)
+        zps = frame_zero_points(get(ctx, "whole-sky"), fr)
+        if len(zps):
+            fr.zero_point = float(np.median(zps))
+            # the frame-to-frame scatter a tracker's zero point has (robust: 1.4826 x the median absolute deviation)
+            fr.zero_point_scatter = float(1.4826 * np.median(np.abs(zps - fr.zero_point)))
     labels = np.argmax(fr.v_true @ centroids.T, axis=1)
     search_labels = np.argmax(fr.v_true @ ctx.search_centroids.T, axis=1)
     learned = (
@@ -618,6 +630,7 @@ def _run_benchmark(data, out: Path, checkpoint, solvers: list[str], st: dict, lo
         "notes": notes,
         "known_defects": bool(st.get("known_defects")),
         "tracking_zero_point": fr.zero_point,
+        "tracking_zero_point_scatter": fr.zero_point_scatter,
         "config_differences": diffs,
         "cells": rows,
         "hardware": hardware_line() + ", one process",
@@ -708,7 +721,12 @@ def markdown(r: dict) -> str:
             "after the brightest N were kept (each frame's map learned from the other frames)"
         )
     if r.get("tracking_zero_point") is not None:
-        setup.append(f"tracking cells: hint zero point {r['tracking_zero_point']:.3f} mag (the frames' median)")
+        scatter = r.get("tracking_zero_point_scatter")
+        setup.append(
+            f"tracking cells: hint zero point {r['tracking_zero_point']:.3f} mag (the frames' median"
+            + (f"; frame to frame it scatters {scatter:.3f} mag" if scatter is not None else "")
+            + ")"
+        )
     lines += [f"- {n}" for n in setup + r["notes"]] + ([""] if setup or r["notes"] else [])
     head = (
         "| cell | N | mean det. | "

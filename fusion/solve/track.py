@@ -70,8 +70,9 @@ TRACK_FALSE_DETECTION = 0.05  # prior chance that a detection is no star of the 
 #   cosmic ray, a star beyond the cut): 4.5 % of the two brightest detections of the rendered frames are hot pixels.
 #   Not rounded up: a larger value makes a detection left unmatched cheap, which favours partial chance matches
 #   near a wrong hint (data/track300, 2-deg hint, with the zero point and known defects, another frame's
-#   detections: wrong answers at p <= 1e-3 with 0.1 -> 0.05: N = 2 29 -> 34, N = 3 34 -> 26, N = 4 17 -> 5,
-#   N = 6 5 -> 2, and one at p <= 1e-6 -> none; the clean frames answered alike)
+#   detections: wrong answers at p <= 1e-3 with 0.1 -> 0.05: N = 2 28 -> 33, N = 3 33 -> 25, N = 4 15 -> 4,
+#   N = 6 5 -> 2, and one at p <= 1e-6 -> none; the clean frames answered alike. benchmarks/tracking_calibration.py
+#   --false-detection-prior 0.1, results/calibration/tracking/s11-hint2-zp-defects{-eps0.1,})
 TRACK_MISS = 0.2  # chance that a catalogue star clearly brighter than a detected one (TRACK_MAG_MARGIN) and inside
 #   the sensor (TRACK_EDGE_PX) has no detection of its own: each such star multiplies a hypothesis by this
 TRACK_MAG_MARGIN = 1.0  # magnitudes: "clearly brighter" (catalogue vs instrumental scatter, colour, variability)
@@ -89,8 +90,9 @@ TRACK_HINT_MISS = 0.1  # prior chance that the hint missed the stars (a slew, a 
 #   172 -> 5 (4 -> 0 at p <= 1e-6), N = 4 159 -> 22, N = 3 122 -> 47, N = 2 83 -> 68 (two detections' "at most
 #   one star" mass is already 0.19); the clean frames lose 0-1 point. Still overconfident there (see the results)
 TRACK_ZP_SIGMA = 0.25  # 1-sigma (mag) of a known zero point (hint_zero_point: earlier frames') about the one a
-#   frame's brightest stars give: on data/track300 the zero point of all of a frame's stars scatters 0.11 mag from
-#   frame to frame, that of its brightest two 0.17 mag, 0.15 mag fainter (their cores saturate)
+#   frame's brightest stars give: from frame to frame the zero point scatters 0.09 mag on data/track300 (fusion
+#   benchmark's tracking_zero_point_scatter), and two or three stars add their own scatter and their saturated
+#   cores (a bright star's flux is underestimated): 0.25 covers both
 TRACK_ANCHORS = 4  # anchor pairs among the brightest this many detections
 TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma):
 #   the 1-deg roll bound of a correct answer is 4 sigma away. Not looser: a saturated star's centroid can be off by
