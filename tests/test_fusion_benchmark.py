@@ -92,6 +92,10 @@ def test_benchmark_cli_writes_tables_and_plots(small_dataset, tmp_path, monkeypa
             assert sum(s["refusals_by_status"].values()) == round(s["refused"] * s["frames"])
             assert s["false_match_probability_sum"] >= 0
     assert r["cells"][1]["solvers"]["tetra3rs"]["correct"] > 0.5  # 12 clean stars: solved
+    # the fine stage counts its work per solve; tetra3rs does not
+    fine = r["cells"][1]["solvers"]["oracle-prior"]["hypotheses"]["answered"]
+    assert fine is not None and 0 < fine["median"] <= fine["p99"] <= fine["max"]
+    assert r["cells"][1]["solvers"]["tetra3rs"]["hypotheses"] == {"answered": None, "refused": None}
     assert r["solvers"] == ["tetra3rs", "oracle-prior"] and r["notes"] == []
     solved = r["cells"][1]["solvers"]["tetra3rs"]
     assert solved["coverage"]["frames"] == round(solved["correct"] * solved["frames"])

@@ -60,8 +60,9 @@ included (``ms_per_frame``, ``ms_per_frame_median``, ``_p95``, ``_p99``, ``_max`
 solver the report also counts refusals by status (``refusals_by_status``, the codes of
 :data:`fusion.solve.base.REFUSAL_STATUSES`), sums the answers' false-match probabilities
 (``false_match_probability_sum``: the wrong answers to expect if they are calibrated, beside
-``wrong``) and checks each correct answer's attitude covariance against its true error
-(``coverage``: the fraction within 1 and 2 sigma, cross-boresight and roll; 68 / 95 % if calibrated).
+``wrong``), checks each correct answer's attitude covariance against its true error
+(``coverage``: the fraction within 1 and 2 sigma, cross-boresight and roll; 68 / 95 % if calibrated) and counts
+the work of the fine stage's answers and refusals (``hypotheses``: median, p99 and max of each).
 
 Tracking cells (``--track-hint-deg 0.5 2 5``, at each N of ``--track-n``, default 2 and 3): the clean
 detections, and every solver is given a hint, the true attitude turned by that angle about a random
@@ -261,7 +262,21 @@ def _summary(results: list, truth: list, secs: list, correct_deg: float, correct
         "ms_per_frame_p95": 1e3 * float(np.percentile(secs, 95)),
         "ms_per_frame_p99": 1e3 * float(np.percentile(secs, 99)),
         "ms_per_frame_max": 1e3 * float(np.max(secs)),
+        # the work each answer and each refusal took (the fine stage's extra["hypotheses"]): where a work budget
+        # (--max-hypotheses) would cut the refusals' tail without losing answers
+        "hypotheses": {
+            "answered": _quantiles([r.extra.get("hypotheses") for r in results if isinstance(r, Solution)]),
+            "refused": _quantiles([r.extra.get("hypotheses") for r in results if not isinstance(r, Solution)]),
+        },
     }
+
+
+def _quantiles(values: list) -> dict | None:
+    """{median, p99, max} of the numbers among ``values`` (None where a solver does not count), or None."""
+    a = [float(v) for v in values if v is not None]
+    if not a:
+        return None
+    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "max": float(np.max(a))}
 
 
 def needs_learned_prior(name: str) -> bool:
