@@ -83,6 +83,31 @@ def test_the_hypothesis_budget_refuses_deterministically(renderer, tetra):
             CoarseToFineSolver(tetra, None, max_hypotheses=bad)
 
 
+def test_a_focal_pass_hypothesis_costs_three_units_of_the_budget(renderer, tetra):
+    """The focal-length pass tests each detection on the sky grid (~3x a strict hypothesis's time), so the budget
+    counts its hypotheses FOCAL_HYPOTHESIS_COST times: a frame whose strict pass refuses after S hypotheses gets
+    (B - S) // 3 focal ones from a budget B, and H (what E_false counts) stays the number of hypotheses. A frame
+    whose focal length is 1.5 % longer than the camera's still solves, right, with the default budget."""
+    from fusion.solve.fine import FOCAL_HYPOTHESIS_COST, CoarseToFineSolver
+
+    cam = renderer.camera
+    f = renderer.render(1)
+    d = Detections.from_table(f.detections).brightest(5)
+    cx, cy = (cam.width_px - 1) / 2, (cam.height_px - 1) / 2
+    d = Detections(cx + (d.x_px - cx) * 1.015, cy + (d.y_px - cy) * 1.015, d.flux_adu)
+    strict = CoarseToFineSolver(tetra, None, focal_tol=0.0).solve(d, cam)
+    assert isinstance(strict, Refusal) and strict.status != "budget_exhausted"
+    s = strict.extra["hypotheses"]
+    assert strict.extra["work"] == s
+    a = CoarseToFineSolver(tetra, None, focal_tol=0.02, max_hypotheses=s + 300).solve(d, cam)
+    assert isinstance(a, Refusal) and a.status == "budget_exhausted"
+    assert FOCAL_HYPOTHESIS_COST == 3
+    assert a.extra["hypotheses"] == s + 100 and a.extra["work"] == s + 300
+    res = CoarseToFineSolver(tetra, None, focal_tol=0.02).solve(d, cam)
+    assert isinstance(res, Solution) and res.extra["hypotheses"] > s
+    assert np.max(np.abs(rotation_vector_deg(_truth(f), res.matrix))) < 0.1
+
+
 def test_the_budget_reaches_every_fine_stage_solver_from_the_command_line(small_dataset, tmp_path, monkeypatch):
     """--max-hypotheses (fusion benchmark and predict): every registered fine-stage solver gets it, the report
     records it, and a budget below one hypothesis is refused with one line naming the option."""

@@ -86,12 +86,14 @@ more regions demands stronger evidence. The prior is pluggable: any
 :meth:`CoarseToFineSolver.solve`. Doubtful candidates are :class:`~fusion.solve.base.Refusal`
 values (the reason why, and a status code), never strings.
 
-**Work budget and latency bound.** At most ``max_hypotheses`` hypotheses per solve, every pass and region
-together (default: :data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of
-pairs); where they run out without an accepted attitude the answer is a refusal with status
-``budget_exhausted``. A count, not a clock: the same frame gets the same answer on every machine. The time
-of a solve is bounded by that count times the cost of one hypothesis (at most one partner scan per other
-detection; ``max_detections`` bounds the detections), and both are cut where no answer can come of them:
+**Work budget and latency bound.** At most ``max_hypotheses`` units of work per solve, every pass and region
+together: a hypothesis of the strict pass counts 1, one of the focal-length pass :data:`FOCAL_HYPOTHESIS_COST`
+(3: what it costs against a strict one, measured), so the budget bounds time in either pass (default:
+:data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of pairs); where it runs out
+without an accepted attitude the answer is a refusal with status ``budget_exhausted`` (``extra``: ``hypotheses``,
+the count H, and ``work``, the units spent). A count, not a clock: the same frame gets the same answer on every
+machine. The time of a solve is bounded by that count times the cost of one hypothesis (at most one partner scan
+per other detection; ``max_detections`` bounds the detections), and both are cut where no answer can come of them:
 
 * E_false only grows with H, so before each hypothesis the search knows the least score it could still be
   accepted with (:meth:`CoarseToFineSolver._h_limit`: the E_false bar per score, with the smallest q
@@ -115,8 +117,10 @@ Measured (data/tails300, 300 rendered frames, seed 21, whole sky, ``focal_tol`` 
 evidence bar), 24-62 -> 12-26 ms in the others; medians 6.4-11 -> 4.6-6.2 ms (21 -> 12 at 1 px noise); the
 answers, refusal codes and hypothesis counts identical (and on a second seed, data/tails300b). Pure noise
 (4-12 uniform detections, 200 sets): mean 311 -> 44 ms, p99 750 -> 117 ms; frames at a focal length 8 % off:
-mean 238 -> 32 ms. Still above issue 37's target (p99 <= 20 ms in every cell): a refusal at the budget
-costs its 150,000 hypotheses, ~200 ns each at N = 6 in the strict pass and ~450 ns in the focal one.
+mean 238 -> 32 ms. Then a refusal at the budget cost its 150,000 hypotheses, a focal one ~3x a strict one; with
+focal hypotheses counted 3 units of a 200,000 budget (results/benchmark/work-budget: held-out seed 41, 38 cells of
+500 frames, one quiet core): the same answers in every cell, p99 over 20 ms in 16 -> 2 cells (2 and 4 px of
+centroid noise at N = 6: 20.5, 23.6 ms), e.g. clean N = 4 / 5 17.7 / 29.4 -> 10.5 / 15.3 ms.
 
 **Certificate.** A solution's ``false_match_probability`` is its E_false above (so ``confidence =
 1 - E_false``), its covariance that of :func:`fusion.solve.base.attitude_covariance` from the stars it
@@ -149,16 +153,25 @@ from .base import (
 from .match import anchor_hypotheses, partner_table, sky_grid
 from .pairs import load_or_build
 
-# the work budget per solve (hypotheses, both passes and every region together). Chosen from measurement:
-# on 100 rendered frames x 13 cells of the small grid (+ N = 3, 5) every correct whole-sky answer came
-# within 90,492 hypotheses (p99 31,430; centroid noise 1 px the costliest), while refusals searched up
-# to 763,000 (1-2 s); 150,000 leaves a margin of 1.7 over the costliest correct answer. A camera whose
+# the work budget per solve (hypotheses, both passes and every region together; one of the focal pass counts
+# FOCAL_HYPOTHESIS_COST). Chosen from measurement: on 500 rendered frames x 38 cells (clean N = 3-10, every
+# detection-level corruption at N = 4 and 6; data/bench500, seed 11) every correct whole-sky answer came within
+# 164,102 units (the costliest: 2 px of centroid noise at N = 6, 130,868 strict + 11,078 focal hypotheses), and only
+# 5 of 14,129 correct answers needed the focal pass at all, while refusals spent about a third of their hypotheses
+# (and two thirds of their time) there; 200,000 keeps every answer of seed 11 and of a held-out seed (41: the
+# costliest 192,032) and bounds a refusal's time by the strict pass's cost. (Until 2026-11-27: 150,000 hypotheses
+# of either pass.) A camera whose
 # catalogue cut holds more pairs per separation window (a narrower field, a finer pixel) tries more
 # hypotheses for the same frame, so the default (max_hypotheses=None) is scaled by its mean number of
 # catalogue pairs in one detection pair's +-2 tol_px window, relative to that of the 20 deg camera
 # above (REFERENCE_WINDOW_PAIRS); never below MAX_HYPOTHESES. The fitted Blackfly camera (11.5 deg, 25,273
 # stars in the cut): x 5.0, 749,000 (its 8 real frames need 6,500-22,000 at N = 4-6).
-MAX_HYPOTHESES = 150_000
+MAX_HYPOTHESES = 200_000
+# what one hypothesis of the focal-length pass costs against one of the strict pass, in the work budget: its wider
+# tolerances test each detection on the sky grid (rotation, cube-map lookup) rather than in a partner table. Measured
+# (data/bench500, whole sky, the compiled loop alone, one core): 46 vs 166 ns per hypothesis at N = 4, 87 vs 271 ns
+# at N = 6, so 3: the budget is a count, the same on every machine, that bounds the time too.
+FOCAL_HYPOTHESIS_COST = 3
 REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
 NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
 PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
@@ -691,14 +704,17 @@ class CoarseToFineSolver:
         # needs is dropped at its first detection too many unmatched, and the search stops where no score can
         h_limit = self._h_limit(tier, flux, n)
         best_seen = 0
+        work = 0  # the budget's units: a strict hypothesis 1, a focal one FOCAL_HYPOTHESIS_COST (tried: H, the count)
         for s in passes:
+            cost = 1 if s == 0 else FOCAL_HYPOTHESIS_COST
             for region in regions:
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t, best, stopped in self._hypotheses(
-                    tier, u, region, s, tables, self.max_hypotheses - tried, tried, h_limit
+                    tier, u, region, s, tables, (self.max_hypotheses - work) // cost, tried, h_limit
                 ):
                     tried += t
+                    work += t * cost
                     best_seen = max(best_seen, best)
                     best_possible = self.confidence(tried, n, n, tier=tier)
                     if best_possible < self.min_confidence and self.photometric_mag is not None:
@@ -714,7 +730,7 @@ class CoarseToFineSolver:
                             f"< {self.min_confidence}",
                             self.name,
                             ms(),
-                            {"hypotheses": tried},
+                            {"hypotheses": tried, "work": work},
                             "weak_evidence",
                         )
                     doubtful = False
@@ -739,19 +755,20 @@ class CoarseToFineSolver:
                             self.name,
                             status="weak_evidence",
                         )
-                    if tried >= self.max_hypotheses:
+                    if self.max_hypotheses - work < cost:
                         # the work budget: a count of hypotheses, so the same answer on every machine
                         return Refusal(
-                            f"work budget exhausted: {tried} hypotheses (max_hypotheses) without an accepted "
+                            f"work budget exhausted: {tried} hypotheses ({work} of max_hypotheses={self.max_hypotheses}"
+                            f", a focal-pass hypothesis counting {FOCAL_HYPOTHESIS_COST}) without an accepted "
                             f"attitude; last: {last.reason}",
                             self.name,
                             ms(),
-                            {"hypotheses": tried},
+                            {"hypotheses": tried, "work": work},
                             "budget_exhausted",
                         )
                     if doubtful:
                         break  # this pass's best is doubtful: go on
-        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried}, last.status)
+        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried, "work": work}, last.status)
 
     def _track(self, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float, zero_point=None):
         """Tracking with an attitude hint: :func:`fusion.solve.track.track`."""

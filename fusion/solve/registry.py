@@ -210,7 +210,7 @@ def check_search_options(
     if search_k is not None and search_k < 1:
         raise ConfigError(f"{k_flag} {search_k}: search at least 1 region")
     if max_hypotheses is not None and max_hypotheses < 1:
-        raise ConfigError(f"--max-hypotheses {max_hypotheses}: a positive number of hypotheses per solve, e.g. 150000")
+        raise ConfigError(f"--max-hypotheses {max_hypotheses}: a positive number of hypotheses per solve, e.g. 200000")
 
 
 def make_context(
