@@ -332,8 +332,9 @@ def build(camera, st: dict, notes: list) -> tuple[dict, dict]:
 
 
 def relax(solver, bar: float) -> None:
-    """``--answer-bar P``: every fine stage in ``solver`` (a chain's parts too) answers wherever its reported
-    false-match probability is at most P, verified by tetra3rs or not (``min_confidence`` and
+    """``--answer-bar P``: every fine stage in ``solver`` (a chain's parts too) answers wherever its false-match
+    probability at the sky's mean density (the number its bars are on; the reported one weighs in the catalogue's
+    clustering) is at most P, verified by tetra3rs or not (``min_confidence`` and
     ``unverified_confidence`` = 1 - P; tracking's bar likewise); tetra3rs keeps its own. With P well above the
     solvers' own bars (0.01, 1e-6 unverified) the answers they would refuse are scored too, so the reliability
     of p can be measured where wrong answers are common enough to count."""
