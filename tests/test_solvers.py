@@ -209,6 +209,36 @@ def test_a_misleading_prior_refuses_and_then_whole_sky_searches_the_rest(rendere
     assert solved >= 3
 
 
+def test_a_chain_ending_with_the_sky_searches_the_focal_length_over_the_sky_only(renderer, tetra, regions):
+    """Detections of a lens 1.5 % longer than the camera's: only the +-2 % focal pass can identify them. A prior's
+    regions alone find them in the true region's focal pass; a chain that ends with the rest of the sky skips the
+    regions' focal passes (each scans the whole focal window for a few stars) and finds them over the sky (region
+    -1), which holds the regions: the same attitude, within the 0.05 deg a correct answer needs."""
+    from fusion.solve.fine import CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior
+
+    prior = OraclePrior(regions)
+    cam = renderer.camera
+    only = CoarseToFineSolver(tetra, prior, top_k=2, focal_tol=0.02, name="regions")
+    then = CoarseToFineSolver(tetra, prior, top_k=2, focal_tol=0.02, name="regions>sky", then_whole_sky=True)
+    cx, cy = (cam.width_px - 1) / 2, (cam.height_px - 1) / 2
+    both = 0
+    for i in range(6):
+        f = renderer.render(i)
+        truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+        d = Detections.from_table(f.detections).brightest(6)
+        d = Detections(cx + (d.x_px - cx) * 1.015, cy + (d.y_px - cy) * 1.015, d.flux_adu)
+        p = prior.probabilities_for(f.unit_vector, i)
+        a, b = only.solve(d, cam, probabilities=p), then.solve(d, cam, probabilities=p)
+        if isinstance(a, Solution) and isinstance(b, Solution):
+            assert a.extra["region"] != -1 and b.extra["region"] == -1
+            assert abs(a.extra["focal_factor"] - 1.015) < 0.003 and abs(b.extra["focal_factor"] - 1.015) < 0.003
+            for res in (a, b):
+                assert boresight_error_deg(truth, res.matrix) < 0.05
+            both += 1
+    assert both >= 3
+
+
 def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_from_detections(renderer, tetra, regions):
     """learned+fine>whole-sky with whole_sky_from (6 here): six detections or more go to tetra3rs lost in space
     first and, where it refuses, straight to the whole sky (the prior is not asked; region -1), so the answer is

@@ -74,7 +74,8 @@ For one region (a cap around a region centroid, :class:`Region`):
 
 Regions are tried in order of prior probability (``top_k`` at most; ``few_top_k_factor`` times as many
 for three detections), and with ``then_whole_sky`` the whole sky after them (region index -1; the
-hypotheses of the prior's regions are counted again there, which only costs confidence); with
+hypotheses of the prior's regions are counted again there, which only costs confidence; the focal-length pass
+then searches the sky alone, not each region again: results/benchmark/work-budget); with
 ``whole_sky_from`` (the registered ``learned+fine>whole-sky``: :data:`WHOLE_SKY_FROM`), frames of that many
 detections or more go to tetra3rs lost in space first and, where it refuses, to the whole sky at once, the prior
 not consulted (region index -1) — the prior's coarse
@@ -753,6 +754,12 @@ class CoarseToFineSolver:
         for s in passes:
             cost = 1 if s == 0 else FOCAL_HYPOTHESIS_COST
             for region in regions:
+                if s > 0 and len(regions) > 1 and regions[-1].index == REST_OF_SKY and region.index != REST_OF_SKY:
+                    # the focal pass searches the rest of the sky only, which holds the prior's regions: a region's
+                    # focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,000 ns per
+                    # hypothesis it counts, against ~170 over the sky), and none of 1,500 learned-chain answers came
+                    # from one on data/bench500 (results/benchmark/work-budget)
+                    continue
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t, best, stopped in self._hypotheses(
