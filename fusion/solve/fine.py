@@ -583,7 +583,9 @@ class CoarseToFineSolver:
     ) -> float:
         """E_false: the expected number of coincidental hypotheses with ``score`` or more matches (see module
         doc), with the chance rate of the catalogue tier being searched; ``q``: the chance that a coincidental
-        match also passes the photometric test (1: not tested). Infinite for two matches or fewer."""
+        match also passes the photometric test (1: not tested); ``clustered``: k chance matches weighed by the tier's
+        :func:`density_clustering` (what a solution reports; the bars are on the mean density's). Infinite for two
+        matches or fewer."""
         tier = tier or self.tiers[0]
         if score - 2 <= 0:
             return math.inf
@@ -751,14 +753,15 @@ class CoarseToFineSolver:
         h_limit = self._h_limit(tier, flux, n)
         best_seen = 0
         work = 0  # the budget's units: a strict hypothesis 1, a focal one FOCAL_HYPOTHESIS_COST (tried: H, the count)
+        # where the prior's regions end with the rest of the sky, the focal pass searches that alone (it holds the
+        # regions): a region's focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,000
+        # ns per hypothesis it counts, against ~170 over the sky), and none of 1,500 learned-chain answers came from
+        # one on data/bench500 (results/benchmark/work-budget)
+        sky_focal_only = len(regions) > 1 and regions[-1].index == REST_OF_SKY
         for s in passes:
             cost = 1 if s == 0 else FOCAL_HYPOTHESIS_COST
             for region in regions:
-                if s > 0 and len(regions) > 1 and regions[-1].index == REST_OF_SKY and region.index != REST_OF_SKY:
-                    # the focal pass searches the rest of the sky only, which holds the prior's regions: a region's
-                    # focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,000 ns per
-                    # hypothesis it counts, against ~170 over the sky), and none of 1,500 learned-chain answers came
-                    # from one on data/bench500 (results/benchmark/work-budget)
+                if s > 0 and sky_focal_only and region.index != REST_OF_SKY:
                     continue
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
