@@ -41,11 +41,13 @@ Per frame:
    whole-sky fine stage where it refuses (``tetra3rs>whole-sky``); ``--solver NAME`` picks any registered
    solver (:mod:`fusion.solve.registry`). A full attitude
    (quaternion, RA/Dec/roll in skygen's conventions, matched catalog stars, residual,
-   confidence, ``false_match_probability``, ``covariance_arcsec`` [x, y, roll] 1 sigma and
-   ``covariance_matrix_arcsec2``: :mod:`fusion.solve.base`) with ``"status": "solved"``, or an
+   confidence, ``false_match_probability`` (the fine stage's with the catalogue's clustering weighed in;
+   ``false_match_probability_mean_density``, the value its bars are on), ``covariance_arcsec`` [x, y, roll] 1 sigma
+   and ``covariance_matrix_arcsec2``: :mod:`fusion.solve.base`) with ``"status": "solved"``, or an
    explicit refusal (``"status": "refused"``) with its reason and a ``refusal_status`` code
    (``too_few_stars``, ``no_pattern``, ``budget_exhausted``, ``ambiguous``, ``weak_evidence``,
-   ``not_verified``, ...: :data:`fusion.solve.base.REFUSAL_STATUSES`).
+   ``not_verified``, ...: :data:`fusion.solve.base.REFUSAL_STATUSES`; the fine stage's also ``hypotheses`` and
+   ``work``, the units of its budget spent).
 
 ``--track [DEG]`` (with ``--solve``): the frames are a sequence (in the order given, folders by name); each
 frame's solved attitude is the hint of the next, with a 1-sigma error of DEG degrees (default 1: how far the
