@@ -177,8 +177,8 @@ from .pairs import load_or_build
 MAX_HYPOTHESES = 200_000
 # what one hypothesis of the focal-length pass costs against one of the strict pass, in the work budget: its wider
 # tolerances test each detection on the sky grid (rotation, cube-map lookup) rather than in a partner table. Measured
-# (data/bench500, whole sky, the compiled loop alone, one core): 46 vs 166 ns per hypothesis at N = 4, 87 vs 271 ns
-# at N = 6, so 3: the budget is a count, the same on every machine, that bounds the time too.
+# (benchmarks/pass_cost.py, data/bench500, whole sky, the compiled loop alone, one core): 41 vs 150 ns per hypothesis
+# at N = 4, 83 vs 286 ns at N = 6, so 3: the budget is a count, the same on every machine, that bounds the time too.
 FOCAL_HYPOTHESIS_COST = 3
 REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
 NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
@@ -754,9 +754,9 @@ class CoarseToFineSolver:
         best_seen = 0
         work = 0  # the budget's units: a strict hypothesis 1, a focal one FOCAL_HYPOTHESIS_COST (tried: H, the count)
         # where the prior's regions end with the rest of the sky, the focal pass searches that alone (it holds the
-        # regions): a region's focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,000
-        # ns per hypothesis it counts, against ~170 over the sky), and none of 1,500 learned-chain answers came from
-        # one on data/bench500 (results/benchmark/work-budget)
+        # regions): a region's focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,400
+        # ns per hypothesis it counts, against ~150 over the sky), and none of 1,744 correct learned-chain answers came
+        # from any focal pass on data/bench500 (benchmarks/pass_cost.py, results/benchmark/work-budget)
         sky_focal_only = len(regions) > 1 and regions[-1].index == REST_OF_SKY
         for s in passes:
             cost = 1 if s == 0 else FOCAL_HYPOTHESIS_COST
