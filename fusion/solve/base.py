@@ -41,16 +41,18 @@ The certificate of a solution
     angular centroid error,
 
         C = sigma^2 * (sum_i (I - v_i v_i^T))^-1,
-        sigma^2 = max(k_nu^2 * n * rms^2 / (2 n - 3), sigma_floor^2)
+        sigma^2 = max(k_nu^2 * n * rms^2 / nu, sigma_floor^2),   nu = 2n - p
 
     (each star constrains the two directions perpendicular to itself; ``rms`` the matched stars'
-    rms residual angle after the fit, 2n measurements less 3 fitted angles; ``sigma_floor`` the
-    camera's pixel scale times ``CENTROID_FLOOR_PX``, so three stars that happen to fit perfectly
-    do not claim a perfect attitude). sigma is estimated from the same few residuals, so an error
-    divided by it follows Student's t with nu = 2n - 3 degrees of freedom, not a Gaussian: k_nu
-    (:func:`student_scale`) is the t quantile that holds 68.27 % (1.20 for three stars, 1.06 for
-    six, -> 1), so that 1 sigma holds what a Gaussian 1 sigma does (without it, four stars: t with 5
-    degrees of freedom holds 64 % within 1 and 90 % within 2). Near the boresight this is
+    rms residual angle after the fit, 2n measurements less the p fitted parameters: 3 angles, and a
+    fourth where the focal length was fitted to the same stars, as the fine stage does from three stars
+    on -- then C is the rotation's block of the four-parameter fit's inverse information, larger across
+    the boresight wherever the stars lie off it, since a scale error moves them the way a turn does;
+    ``sigma_floor`` the camera's pixel scale times ``CENTROID_FLOOR_PX``, so three stars that happen to
+    fit perfectly do not claim a perfect attitude). sigma is estimated from the same few residuals, so
+    an error divided by it follows Student's t with nu degrees of freedom, not a Gaussian: k_nu
+    (:func:`student_scale`) puts the t's 1 and 2 sigma nearest the Gaussian 68 / 95 % (four stars and a
+    fitted focal length, nu = 4: k = 1.25, 72 / 93 %; without it 63 / 88 %). Near the boresight this is
     sigma_x = sigma_y ~ sigma / sqrt(n) and sigma_roll ~ sigma / (sqrt(n) * rho_rms), rho_rms the
     matched stars' rms distance from their own centroid (radians). It assumes the matches are right
     and the centroid errors independent; ``fusion benchmark`` reports how often the true error lies
@@ -118,7 +120,7 @@ REFUSAL_STATUSES: dict[str, str] = {
     "other": "the solver gives no code",
 }
 HINT_RADIUS_SIGMAS = 3.0  # tracking: a hint with 1-sigma error s leaves the attitudes within 3 s of it
-CENTROID_FLOOR_PX = 0.05  # the smallest per-axis centroid error an attitude covariance assumes (pixels)
+CENTROID_FLOOR_PX = 0.03  # the smallest per-axis centroid error an attitude covariance assumes (pixels)
 
 
 @dataclass(frozen=True)
@@ -258,29 +260,56 @@ def photometric_zero_point(cat_mag: np.ndarray, flux_adu: np.ndarray) -> float |
 
 @functools.lru_cache(maxsize=256)
 def student_scale(dof: int) -> float:
-    """k with P(|t_dof| <= k) = P(|z| <= 1) = 68.27 % (Student's t with ``dof`` degrees of freedom): the
-    factor that makes a sigma estimated from ``dof`` residual degrees of freedom a calibrated 1 sigma."""
-    from scipy.special import stdtrit  # the t quantile; scipy.special is loaded by the solvers already
+    """The factor k that makes a sigma estimated from ``dof`` residual degrees of freedom a calibrated one:
+    an error divided by it follows Student's t with ``dof`` degrees of freedom, whose tails are heavier than
+    a Gaussian's, so no single k gives both the Gaussian 68.27 % within 1 sigma and 95.45 % within 2. k is
+    the one whose 1 and 2 sigma miss those by the least, in units of the tolerances a covariance is held to
+    (5 and 3 points: issue 37), from the 68.27 % quantile up (three degrees of freedom: 1.35 -> 73 / 93 %;
+    five: 1.19 -> 71 / 94 %; 26: 1.03 -> 69 / 95 %; -> 1 for many)."""
+    from scipy.special import stdtr, stdtrit  # the t distribution; scipy.special is loaded by the solvers already
 
-    return float(stdtrit(max(int(dof), 1), 0.5 * (1.0 + math.erf(1.0 / math.sqrt(2.0)))))
+    nu = max(int(dof), 1)
+    k68 = float(stdtrit(nu, 0.5 * (1.0 + math.erf(1.0 / math.sqrt(2.0)))))
+    ks = np.linspace(k68, 2.0 * k68, 2001)
+    p1, p2 = 2.0 * stdtr(nu, ks) - 1.0, 2.0 * stdtr(nu, 2.0 * ks) - 1.0
+    miss = np.maximum(np.abs(p1 - 0.6827) / 0.05, np.abs(p2 - 0.9545) / 0.03)
+    return float(ks[int(np.argmin(miss))])
 
 
 def attitude_covariance(
-    u: np.ndarray, residual_arcsec: float, pixel_scale_arcsec: float, *, student: bool = True
+    u: np.ndarray,
+    residual_arcsec: float,
+    pixel_scale_arcsec: float,
+    *,
+    student: bool = True,
+    scale_fitted: bool = False,
 ) -> np.ndarray:
     """The 3 x 3 attitude covariance (arcsec^2) of a rotation fitted to matched stars (module docstring).
 
     ``u`` (n, 3): the matched detections' unit vectors in the camera frame; ``residual_arcsec``: their rms
     angle from their catalogue stars after the fit; ``pixel_scale_arcsec``: of the camera (the floor of
     the per-axis centroid error is :data:`CENTROID_FLOOR_PX` pixels). ``student``: scale the sigma
-    estimated from the residuals by :func:`student_scale` of its 2n - 3 degrees of freedom (the
-    default; False gives the plain estimate, whose 1 sigma holds less than 68 % for few stars)."""
+    estimated from the residuals by :func:`student_scale` of its degrees of freedom (the default; False
+    gives the plain estimate, whose 1 sigma holds less than 68 % for few stars). ``scale_fitted``: the
+    focal length was fitted to the same stars (the fine stage's focal factor, from three stars on): a
+    fourth parameter, so 2n - 4 degrees of freedom, and the rotation's covariance marginalised over it
+    (a scale error moves a star set lying off the boresight the way a cross-boresight turn does)."""
     u = np.asarray(u, np.float64).reshape(-1, 3)
     n = len(u)
-    dof = max(2 * n - 3, 1)
+    scale_fitted = scale_fitted and n >= 3
+    dof = max(2 * n - (4 if scale_fitted else 3), 1)
     k2 = student_scale(dof) ** 2 if student else 1.0
     sigma2 = max(k2 * n * residual_arcsec**2 / dof, (CENTROID_FLOOR_PX * pixel_scale_arcsec) ** 2)
     info = n * np.eye(3) - u.T @ u  # sum of (I - v v^T)
+    if scale_fitted:
+        # d_i: how star i moves per unit of relative focal-length change (radially, perpendicular to it); the
+        # information of (rotation, scale) is [[info, b], [b^T, e]] with b = -sum v_i x d_i, e = sum |d_i|^2,
+        # and the rotation's marginal information its Schur complement info - b b^T / e
+        d = np.column_stack([u[:, 0], u[:, 1], np.zeros(n)]) - u * (1.0 - u[:, 2:3] ** 2)
+        b = -np.sum(np.cross(u, d), axis=0)
+        e = float(np.sum(d * d))
+        if e > 0:
+            info = info - np.outer(b, b) / e
     try:  # two distinct directions or more make it invertible; pinv for one (or a degenerate set)
         return sigma2 * np.linalg.inv(info) if n >= 2 else sigma2 * np.linalg.pinv(info)
     except np.linalg.LinAlgError:

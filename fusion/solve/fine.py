@@ -908,6 +908,8 @@ class CoarseToFineSolver:
                 status="weak_evidence",
             )
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
+        scale_fitted = self.focal_tol > 0 and len(det_rows) >= 3  # refine fitted k to these stars: the covariance's
+        # fourth parameter
         # the bars above are on E_false at the sky's mean density (as measured and chosen); the solution reports the
         # probability with the catalogue's clustering (density_clustering: the same count, more chance matches
         # where stars crowd), the better-calibrated number (results/calibration/clustering)
@@ -955,6 +957,16 @@ class CoarseToFineSolver:
                 )
             if confirmed:
                 extra["refined_by"] = "tetra3rs tracking"
+                if scale_fitted:  # tetra3rs fitted the turn alone, at the focal length our stars fitted
+                    dets = every if every is not None else detections
+                    rows = res.matched[:, 0]
+                    u_t = cam_k.unproject(dets.x_px[rows], dets.y_px[rows])
+                    res = dataclasses.replace(
+                        res,
+                        covariance_matrix_arcsec2=attitude_covariance(
+                            u_t, res.residual_arcsec, cam_k.pixel_scale_arcsec, scale_fitted=True
+                        ),
+                    )
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
                 extra["fov_deg"] = [res.extra.get("fov_deg", cam_k.fov_deg[0]), cam_k.fov_deg[1]]
                 return dataclasses.replace(
@@ -982,5 +994,7 @@ class CoarseToFineSolver:
             time_ms=(time.perf_counter() - t0) * 1e3,
             extra=extra,
             false_match_probability=min(1.0, e_false),
-            covariance_matrix_arcsec2=attitude_covariance(uk[det_rows], rms_arcsec, cam_k.pixel_scale_arcsec),
+            covariance_matrix_arcsec2=attitude_covariance(
+                uk[det_rows], rms_arcsec, cam_k.pixel_scale_arcsec, scale_fitted=scale_fitted
+            ),
         )

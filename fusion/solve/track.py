@@ -236,8 +236,12 @@ def track(
     # the covariance assumes at least the model's centroid error where the stars are too few to measure it
     # (two stars and a free focal length fit exactly)
     floor = TRACK_COV_CENTROID_PX * cam_k.pixel_scale_arcsec if len(det_rows) <= 3 else 0.0
-    # (the plain estimate: tracking's floor already makes its 1 sigma hold 97-99 %, session 15's measure)
-    cov = attitude_covariance(u_det, max(rms_arcsec, floor), cam_k.pixel_scale_arcsec, student=False)
+    # (three stars or fewer: the plain estimate, the floor already makes their 1 sigma hold 97-99 %; from four on as
+    # lost in space: the Student scale, and the focal factor fitted from three on as a fourth parameter)
+    few = len(det_rows) <= 3
+    cov = attitude_covariance(
+        u_det, max(rms_arcsec, floor), cam_k.pixel_scale_arcsec, student=not few, scale_fitted=passes == 2
+    )
     if math.sqrt(cov[2, 2]) / 3600 > TRACK_MAX_ROLL_SIGMA_DEG:
         return refuse(
             f"tracking: the matched stars fix the roll only to {math.sqrt(cov[2, 2]) / 3600:.2f} deg (1 sigma) "
