@@ -243,8 +243,9 @@ def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
 @pytest.mark.parametrize("n", [3, 4, 8])
 def test_covariance_sigma_covers_68_and_95_percent_with_few_stars(n):
     """Each draw's own 1 and 2 sigma (estimated from its own n residuals) hold what Student's t of 2n - 3
-    degrees of freedom holds at the scale student_scale chose (within issue 37's bands: the next test); the plain estimate holds visibly less (for three stars, t with 3 degrees of freedom: 61 /
-    86 %). The fit's own error, not a formula's."""
+    degrees of freedom holds at the scale student_scale chose (within issue 37's bands: the next test); the
+    plain estimate holds visibly less (for three stars, t with 3 degrees of freedom: 61 / 86 %). The fit's
+    own error, not a formula's."""
     from scipy.stats import t
 
     from fusion.solve.base import student_scale
