@@ -349,6 +349,25 @@ def test_fine_regions_head(smoke, tmp_path):
         _cfg(smoke, "labels.fine_k=3")
 
 
+def test_geometry_prior_traced_gives_the_eager_probabilities(smoke, tmp_path):
+    """A prior without an image branch runs traced (TorchScript, frozen) after its first frame: the same
+    coarse and fine probabilities as the eager model (``fast=False``) on frames of 3 to 12 detections (the
+    traced forward is not fixed to the first frame's count)."""
+    from fusion.solve.base import Detections
+    from fusion.solve.priors import load_prior
+
+    cfg = _cfg(smoke, "train.epochs=1", "labels.fine_k=8", "model.branches.image=false")
+    train(cfg, tmp_path / "geo", log=quiet)
+    fast, eager = (load_prior(tmp_path / "geo" / "best.pt", level="fine", fast=f) for f in (True, False))
+    rng = np.random.default_rng(1)
+    for n in (5, 3, 4, 8, 12, 3):
+        det = Detections(rng.uniform(0, 63, n), rng.uniform(0, 63, n), rng.uniform(1e3, 1e4, n))
+        (cf, ff), (ce, fe) = fast.both(det), eager.both(det)
+        np.testing.assert_allclose(cf, ce, atol=1e-5)
+        np.testing.assert_allclose(ff, fe, atol=1e-5)
+    assert isinstance(fast._traced, torch.jit.ScriptModule) and eager._traced is False
+
+
 def test_frames_stream_binned_by_default_full_selectable():
     """stream.frames_renderer: binned (default) draws the stored image directly, full renders
     it; both give the Preprocessor the same scenes (labels, indices) and images that agree in

@@ -400,6 +400,27 @@ def test_photometric_chance_rate_is_a_conservative_monte_carlo(tetra):
     assert c2f._photometric_q(tier, np.array([5000.0, -1.0, 900.0])) == 1.0  # no usable flux: no evidence
 
 
+def test_photometric_chance_rate_kept_draws_equal_the_direct_monte_carlo(tetra):
+    """_photometric_q keeps its fixed-seed draws per detection count and computes every draw's scatter as a
+    variance: the same q, exactly, as drawing them afresh and taking magnitude_scatter's standard deviation, for
+    3 to 12 detections (the draws are reused across calls and counts without leaking between them)."""
+    import math
+
+    from fusion.solve.fine import PHOTOMETRIC_SAMPLES, CoarseToFineSolver, magnitude_scatter
+
+    c2f = CoarseToFineSolver(tetra, None)
+    rng = np.random.default_rng(3)
+    for tier in c2f.tiers:
+        for m in (3, 4, 5, 3, 6, 8, 12):
+            for _ in range(60):
+                flux = 10 ** rng.uniform(2.5, 5.0, m)
+                draw = np.random.default_rng(0x9407)
+                mags = tier.mag[draw.integers(0, len(tier.mag), (PHOTOMETRIC_SAMPLES, m))]
+                q = float(np.mean(magnitude_scatter(mags, flux) <= c2f.photometric_mag))
+                want = min(1.0, q + 2 * math.sqrt(q * (1 - q) / PHOTOMETRIC_SAMPLES) + 1.0 / PHOTOMETRIC_SAMPLES)
+                assert c2f._photometric_q(tier, flux) == want
+
+
 def test_three_stars_in_the_right_region_are_identified_by_the_bright_tier(renderer, tetra, regions):
     """Three detections: over the whole sky no attitude passes the bar; inside the true region the bright
     catalogue tier identifies most of them, and none wrongly."""

@@ -302,12 +302,13 @@ def attitude_covariance(
     sigma2 = max(k2 * n * residual_arcsec**2 / dof, (CENTROID_FLOOR_PX * pixel_scale_arcsec) ** 2)
     info = n * np.eye(3) - u.T @ u  # sum of (I - v v^T)
     if scale_fitted:
-        # d_i: how star i moves per unit of relative focal-length change (radially, perpendicular to it); the
-        # information of (rotation, scale) is [[info, b], [b^T, e]] with b = -sum v_i x d_i, e = sum |d_i|^2,
-        # and the rotation's marginal information its Schur complement info - b b^T / e
-        d = np.column_stack([u[:, 0], u[:, 1], np.zeros(n)]) - u * (1.0 - u[:, 2:3] ** 2)
-        b = -np.sum(np.cross(u, d), axis=0)
-        e = float(np.sum(d * d))
+        # d_i = (x z^2, y z^2, -z rho^2) for v_i = (x, y, z), rho^2 = x^2 + y^2: how star i moves per unit of
+        # relative focal-length change (radially, perpendicular to it). The information of (rotation, scale)
+        # is [[info, b], [b^T, e]] with b = -sum v_i x d_i = (-sum z y, sum z x, 0) and e = sum |d_i|^2 =
+        # sum z^2 rho^2; the rotation's marginal information is its Schur complement info - b b^T / e
+        z = u[:, 2]
+        b = np.array([-np.dot(z, u[:, 1]), np.dot(z, u[:, 0]), 0.0])
+        e = float(np.dot(z * z, 1.0 - z * z))
         if e > 0:
             info = info - np.outer(b, b) / e
     try:  # two distinct directions or more make it invertible; pinv for one (or a degenerate set)

@@ -142,16 +142,18 @@ class Tetra3Solver:
         hint_matrix: np.ndarray,
         uncertainty_deg: float,
         name: str = "tetra3rs-hint",
+        covariance: bool = True,
     ) -> Solution | Refusal:
-        """Tracking from a camera -> ICRS hint matrix; never falls back to lost-in-space (strict)."""
+        """Tracking from a camera -> ICRS hint matrix; never falls back to lost-in-space (strict).
+        ``covariance=False``: the solution carries none (a caller that computes its own)."""
         kw = {
             "attitude_hint": np.ascontiguousarray(np.asarray(hint_matrix, np.float64).T),
             "hint_uncertainty_deg": float(uncertainty_deg),
             "strict_hint": True,
         }
-        return self._run(detections, camera, name, kw)
+        return self._run(detections, camera, name, kw, covariance)
 
-    def _run(self, det: Detections, camera, name: str, kw: dict) -> Solution | Refusal:
+    def _run(self, det: Detections, camera, name: str, kw: dict, covariance: bool = True) -> Solution | Refusal:
         t0 = time.perf_counter()
         if len(det) < 3:
             return Refusal(
@@ -201,7 +203,10 @@ class Tetra3Solver:
         p = float(res.probability)
         if self.fov_range is not None:  # the field it found, not the camera's nominal one
             camera = dataclasses.replace(camera, f_px=camera.width_px / 2 / np.tan(np.radians(res.fov_deg) / 2))
-        u = camera.unproject(det.x_px[matched[:, 0]], det.y_px[matched[:, 0]])
+        cov = None
+        if covariance:
+            u = camera.unproject(det.x_px[matched[:, 0]], det.y_px[matched[:, 0]])
+            cov = attitude_covariance(u, float(res.rmse_arcsec), camera.pixel_scale_arcsec)
         return solution_from_matrix(
             np.asarray(res.rotation_matrix_icrs_to_camera).T,
             matched=matched,
@@ -210,7 +215,7 @@ class Tetra3Solver:
             solver=name,
             time_ms=ms,
             false_match_probability=p,
-            covariance_matrix_arcsec2=attitude_covariance(u, float(res.rmse_arcsec), camera.pixel_scale_arcsec),
+            covariance_matrix_arcsec2=cov,
             extra={
                 "false_positive_probability": p,
                 "fov_deg": float(res.fov_deg),
