@@ -509,6 +509,37 @@ def test_tracking_two_stars_with_a_2_deg_hint_solves_most_and_is_never_wrong(ren
     assert wrong == 0 and solved >= 0.8 * len(frames)
 
 
+def test_tracking_floor_drops_only_what_the_answer_ignores(renderer, whole_sky, monkeypatch):
+    """track_hypotheses skips an identification whose weight, before the bright stars it leaves unexplained (which
+    only lower it), is already 30 below the best so far: track drops those anyway. With a 5 deg hint (many
+    candidates) the same answers, attitudes and false-match probabilities with the floor as without it, while
+    fewer identifications are kept where the floor bites."""
+    import fusion.solve.track as track_mod
+    from fusion.solve.benchmark import track_hint
+
+    compiled = track_mod.track_hypotheses
+
+    def no_floor(*args):
+        return compiled(*args[:-1], -np.inf)  # the floor is the last argument
+
+    frames = _generated_frames(whole_sky, renderer.camera, 30, 3, seed=8)
+    hints = [track_hint(m, 5.0, 4, k) for k, (_, m) in enumerate(frames)]
+    floored = [whole_sky.solve(d, renderer.camera, hint=h, hint_sigma_deg=5.0) for (d, _), h in zip(frames, hints)]
+    monkeypatch.setattr(track_mod, "track_hypotheses", no_floor)
+    full = [whole_sky.solve(d, renderer.camera, hint=h, hint_sigma_deg=5.0) for (d, _), h in zip(frames, hints)]
+    fewer = 0
+    for a, b in zip(floored, full):
+        assert type(a) is type(b)
+        if isinstance(a, Solution):
+            np.testing.assert_array_equal(a.matrix, b.matrix)
+            assert a.false_match_probability == b.false_match_probability
+        else:
+            assert a.status == b.status
+        fewer += a.extra["hypotheses"] < b.extra["hypotheses"]
+        assert a.extra["hypotheses"] <= b.extra["hypotheses"]
+    assert sum(isinstance(a, Solution) for a in floored) >= 20 and fewer >= 10
+
+
 def test_tracking_a_hint_in_the_wrong_place_is_refused_not_answered(renderer, whole_sky):
     """A hint 25 deg from the truth, claiming 2 deg: the stars it would predict are elsewhere; two or three
     detections give a refusal, never an attitude near the wrong hint."""

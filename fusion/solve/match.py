@@ -465,6 +465,7 @@ def track_hypotheses(
     inst,
     phot: bool,
     consts,
+    floor: float = -np.inf,
 ):
     """Tracking: every hypothesis "detection i is star a, j is star b" (a of ``a_rows``, b of ``b_rows``, rows of the
     catalogue cut ``vec``/``mag``) and its log weight (:func:`fusion.solve.track.track`).
@@ -476,8 +477,11 @@ def track_hypotheses(
     row in the cut); ``cam``: (f, fy, cx, cy, k1, k2, k3, p1, p2, width, height, edge margin) of the camera;
     ``inst``: the detections' instrumental magnitudes; ``consts``: (log eps, log(1 - eps), log miss,
     log(1 - miss), magnitude margin, magnitude sigma, log(spread / (sigma sqrt(2 pi))), known zero point (mag),
-    its 1-sigma (0: unknown, fitted per hypothesis)). Returns (log weights
-    (H,), rotations (H, 3, 3), focal factors (H,), matched rows (H, n), -1 where a detection is unmatched)."""
+    its 1-sigma (0: unknown, fitted per hypothesis)); ``floor``: a log weight at or below which a hypothesis is
+    dropped (:func:`fusion.solve.track.track` drops every one 30 below the best: the best of earlier calls less
+    30), decided before its costliest term, the bright stars it leaves unexplained, which can only lower its
+    weight; the best of this call raises it too. Returns (log weights (H,), rotations (H, 3, 3), focal factors
+    (H,), matched rows (H, n), -1 where a detection is unmatched) of the hypotheses kept."""
     n = t.shape[0]
     ui0x, ui0y, ui0z = _unit(t[i, 0], t[i, 1], 1.0)
     uj0x, uj0y, uj0z = _unit(t[j, 0], t[j, 1], 1.0)
@@ -588,6 +592,27 @@ def track_hypotheses(
                     row[k] = best_c
                     m += 1
             lw += m * log_1eps + (n - m) * log_eps
+            # the photometric terms (added below, after the misses, as always): with the misses' most favourable
+            # value (none missed), an upper bound of the final weight
+            phot_a = phot_b = 0.0
+            if phot:
+                zp = 0.0
+                for k in range(n):
+                    if row[k] >= 0:
+                        zp += mag[row[k]] - inst[k]
+                zp /= m
+                chi2 = 0.0
+                for k in range(n):
+                    if row[k] >= 0:
+                        chi2 += (mag[row[k]] - inst[k] - zp) ** 2
+                phot_a = -0.5 * chi2 / (mag_sig * mag_sig) + (m - 1) * log_spread
+                if zp_sig > 0:
+                    # a known zero point (the previous frame's): the fitted one's density about it, against
+                    # the coincidental spread -- the m-th magnitude difference, which a fitted zero point spends
+                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / m
+                    phot_b = log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
+            if lw + m * log_1miss + phot_a + phot_b < floor - 1e-9:
+                continue  # below the floor whatever it misses: dropped (its row is overwritten by the next)
             faint = -1e30
             for k in range(n):
                 if row[k] >= 0 and mag[row[k]] > faint:
@@ -619,21 +644,11 @@ def track_hypotheses(
                     missed += 1
             lw += m * log_1miss + missed * log_miss
             if phot:
-                zp = 0.0
-                for k in range(n):
-                    if row[k] >= 0:
-                        zp += mag[row[k]] - inst[k]
-                zp /= m
-                chi2 = 0.0
-                for k in range(n):
-                    if row[k] >= 0:
-                        chi2 += (mag[row[k]] - inst[k] - zp) ** 2
-                lw += -0.5 * chi2 / (mag_sig * mag_sig) + (m - 1) * log_spread
+                lw += phot_a
                 if zp_sig > 0:
-                    # a known zero point (the previous frame's): the fitted one's density about it, against
-                    # the coincidental spread -- the m-th magnitude difference, which a fitted zero point spends
-                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / m
-                    lw += log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
+                    lw += phot_b
+            if lw - 30.0 > floor:
+                floor = lw - 30.0
             out_w[h] = lw
             out_r[h] = r
             out_k[h] = kf

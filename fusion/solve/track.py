@@ -166,6 +166,7 @@ def track(
     log_omega = math.log(omega)
     found = []
     tried = 0
+    floor = -math.inf  # every identification 30 below the best is dropped (below): track_hypotheses skips them early
     for i in range(na):
         for j in range(i + 1, na):
             a_rows, b_rows = cand_rows[cand_offs[i] : cand_offs[i + 1]], cand_rows[cand_offs[j] : cand_offs[j + 1]]
@@ -174,11 +175,12 @@ def track(
             logw, rot, k, cats = track_hypotheses(
                 tc, i, j, a_rows, b_rows, cand_offs, cand_rows, tier.vec, tier.mag, m_hint, sig, s, tol, sig_c,
                 log_omega, near_vec, near_mag, near_row, cam, inst, phot,
-                consts,
+                consts, floor,
             )  # fmt: skip
             tried += len(logw)
             if len(logw):
                 found.append((logw, cats, rot, k))
+                floor = max(floor, float(logw.max()) - 30.0)
     # no identification: the hint missed the stars (TRACK_HINT_MISS), or at most one detection is a catalogue star
     # (one star alone leaves the attitude free); either way the detections are uniform over the hint's field
     eps, q = TRACK_FALSE_DETECTION, TRACK_HINT_MISS
