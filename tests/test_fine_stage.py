@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fusion.solve import pairs as pairs_mod
+from fusion.solve.fine import NO_CODES
 from fusion.solve.match import anchor_hypotheses, partner_table, triad
 from fusion.solve.pairs import build_index, load_or_build
 
@@ -141,10 +142,10 @@ def test_compiled_scores_equal_brute_force(s):
     every = (0, np.full(n + 1, np.inf))  # no early rejection: every score is enough at every H
     from fusion.solve.fine import NO_GRID
 
-    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *free, *every, *NO_GRID)
+    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *free, *every, *NO_GRID, *NO_CODES)
     assert best == S.max() and not stopped
     # the work budget: exactly that many hypotheses, the first ones in order (a count, not a clock)
-    cut = anchor_hypotheses(*args, 7, *free, *every, *NO_GRID)
+    cut = anchor_hypotheses(*args, 7, *free, *every, *NO_GRID, *NO_CODES)
     assert cut[0] == 7 and cut[1].tolist() == A[:7].tolist() and cut[4].tolist() == S[:7].tolist()
     assert tried == 2 * (hi - lo) == len(A) > 0
     for a, b, kf, score, r in zip(A, B, K, S, R):
@@ -165,16 +166,44 @@ def test_the_focal_pass_sky_grid_scores_as_the_partner_tables():
     args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(0.02)
     n = len(t)
     every = (0, np.full(n + 1, np.inf))
-    tables = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *NO_GRID)
+    tables = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *NO_GRID, *NO_CODES)
     grid = _grid(0.02, vec, tol_n)
     assert grid[0][-1] >= len(vec) and set(grid[2].tolist()) == set(range(len(vec)))
-    by_grid = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *grid)
+    by_grid = anchor_hypotheses(*args, 1 << 62, *FREE, *every, *grid, *NO_CODES)
     assert by_grid[0] == tables[0] and by_grid[6] == tables[6] == len(inside)
     for a, b in zip(by_grid[1:6], tables[1:6]):
         np.testing.assert_array_equal(a, b)
     narrow = sky_grid(vec, 1e-4, 1e-4 * 3.1)  # a margin too narrow for these tolerances
     with pytest.raises(ValueError, match="margin"):
-        anchor_hypotheses(*args, 1 << 62, *FREE, *every, *narrow)
+        anchor_hypotheses(*args, 1 << 62, *FREE, *every, *narrow, *NO_CODES)
+
+
+@pytest.mark.parametrize("s", [0.0, 0.02])
+@pytest.mark.parametrize("budget", [1 << 62, 20])
+def test_region_hypotheses_listed_from_its_stars_equal_the_row_scan(s, budget):
+    """A region's hypotheses listed from its stars A (window_codes / region_codes) are the row scan's: the same
+    count, hypotheses, scores, rotations and order, with and without early rejection and with a budget that runs
+    out part way (the order decides which are tried)."""
+    from fusion.solve.match import region_codes, window_codes
+
+    args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(s)
+    n = len(t)
+    centre = vec[7]  # the true field's boresight, and a cap around it
+    star_ok = vec @ centre >= math.cos(math.radians(30.0))  # stars A that can lie in the field of a boresight
+    region = list(args)  # within 15 deg of it (37 hypotheses of the strict pass, 119 of the focal one)
+    region[9], region[15], region[16] = star_ok, centre, math.cos(math.radians(15.0))
+    grid = _grid(s, vec, tol_n)
+    limit = np.full(n + 1, -1.0)
+    limit[3:] = [40, 400, 4000, np.inf, np.inf, np.inf]
+    codes = (True, region_codes(*window_codes(lo, hi, args[5], args[6], len(vec)), np.flatnonzero(star_ok)))
+    for early in ((0, np.full(n + 1, np.inf)), (0, limit)):
+        scan = anchor_hypotheses(*region, budget, *FREE, *early, *grid, *NO_CODES)
+        listed = anchor_hypotheses(*region, budget, *FREE, *early, *grid, *codes)
+        assert scan[0] == listed[0] and scan[6:] == listed[6:]
+        for x, y in zip(scan[1:6], listed[1:6]):
+            np.testing.assert_array_equal(x, y)
+    assert scan[0] == min(budget, 37 if s == 0 else 119) and len(codes[1]) < 2 * (hi - lo)
+    assert len(scan[1]) > 0 or budget < 37  # the true attitude among them when the budget reaches it
 
 
 @pytest.mark.parametrize("s", [0.0, 0.02])
@@ -185,11 +214,11 @@ def test_early_rejection_drops_only_what_could_never_be_accepted(s):
     args, t, i, j, vec, tol_n, inside, lo, hi = _anchor_case(s)
     n = len(t)
     grid = _grid(s, vec, tol_n)
-    full = anchor_hypotheses(*args, 1 << 62, *FREE, 0, np.full(n + 1, np.inf), *grid)
+    full = anchor_hypotheses(*args, 1 << 62, *FREE, 0, np.full(n + 1, np.inf), *grid, *NO_CODES)
     h0 = 100  # hypotheses of earlier anchor pairs
     limit = np.full(n + 1, -1.0)
     limit[3:] = [h0 + 40, h0 + 400, h0 + 4000, np.inf, np.inf, np.inf]  # 3 matches until H = 140, 4 until 500, ...
-    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, limit, *grid)
+    tried, A, B, K, S, R, best, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, limit, *grid, *NO_CODES)
     assert tried == full[0] and not stopped and best == full[6] == len(inside)
     # the h-th hypothesis needs the least s with limit[s] >= h0 + h: the full search's, filtered by that
     order = {(a, b): h for h, (a, b) in enumerate(_tried_pairs(args, lo, hi), start=1)}
@@ -200,7 +229,7 @@ def test_early_rejection_drops_only_what_could_never_be_accepted(s):
     np.testing.assert_array_equal(R, full[5][keep])
     # no score can pass beyond H = 150: after 50 of its own hypotheses the rest are counted, none scored
     low = np.where(limit > 0, h0 + 50.0, -1.0)
-    tried, A, B, *_, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, low, *grid)
+    tried, A, B, *_, stopped = anchor_hypotheses(*args, 1 << 62, *FREE, h0, low, *grid, *NO_CODES)
     assert stopped and tried == full[0]
     assert all(order[(a, b)] <= 50 for a, b in zip(A, B))
 

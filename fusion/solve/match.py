@@ -51,6 +51,44 @@ def partner_table(lo: int, hi: int, first, second, sep, n_stars: int):
     return offs, partner, psep
 
 
+@njit(cache=True)
+def window_codes(lo: int, hi: int, first, second, n_stars: int):
+    """(offsets (S + 1,), codes) of pair-index rows ``[lo, hi)`` keyed on the star a hypothesis anchors first (A):
+    ``2 q`` where it is ``first[q]``, ``2 q + 1`` where it is ``second[q]`` -- the (row, orientation) order in which
+    :func:`anchor_hypotheses` visits hypotheses; each star's codes ascending."""
+    offs = np.zeros(n_stars + 1, np.int64)
+    for q in range(lo, hi):
+        offs[first[q] + 1] += 1
+        offs[second[q] + 1] += 1
+    for a in range(n_stars):
+        offs[a + 1] += offs[a]
+    codes = np.empty(offs[n_stars], np.int64)
+    fill = offs[:-1].copy()
+    for q in range(lo, hi):
+        a, b = first[q], second[q]
+        codes[fill[a]] = 2 * q
+        fill[a] += 1
+        codes[fill[b]] = 2 * q + 1
+        fill[b] += 1
+    return offs, codes
+
+
+@njit(cache=True)
+def region_codes(offs, codes, rows):
+    """The codes (:func:`window_codes`) whose star A is one of ``rows`` (a region's stars), ascending: the
+    hypotheses of the window :func:`anchor_hypotheses` would visit with A in the region, in its order."""
+    total = 0
+    for a in rows:
+        total += offs[a + 1] - offs[a]
+    out = np.empty(total, np.int64)
+    m = 0
+    for a in rows:
+        for p in range(offs[a], offs[a + 1]):
+            out[m] = codes[p]
+            m += 1
+    return np.sort(out)
+
+
 @njit(cache=True, inline="always")
 def _unit(tx: float, ty: float, kf: float):
     x, y = tx / kf, ty / kf
@@ -228,6 +266,8 @@ def anchor_hypotheses(
     grid_vec,
     grid_row,
     grid_par,
+    by_codes: bool,
+    codes,
 ):
     """Hypotheses of anchor pair (i, j) over pair-index rows ``[lo, hi)``.
 
@@ -259,6 +299,10 @@ def anchor_hypotheses(
     on the sky and the grid's few stars near it are tested, the same exact test against every star within
     ``tol_n[k]`` but A (the partner tables' candidates are a superset of those): the same scores, in a few
     reads of a compact table. No partner table is needed then.
+
+    **A region's rows** (``by_codes``): ``codes`` (:func:`region_codes`) lists the (row, orientation) pairs of
+    ``[lo, hi)`` whose star A is in the region (``star_ok``), in the order the row scan would meet them: the same
+    hypotheses in the same order, without scanning the whole separation window for the few of a small region.
     """
     n = t.shape[0]
     ax, ay, az = _unit(t[i, 0], t[i, 1], 1.0)
@@ -303,136 +347,138 @@ def anchor_hypotheses(
     ujx, ujy, ujz = u1[j, 0], u1[j, 1], u1[j, 2]
     d_ij = d_nom
     use_grid = s > 0 and grid_start.shape[0] > 1
-    for q in range(lo, hi):
+    n_visit = codes.shape[0] if by_codes else 2 * (hi - lo)
+    for v in range(n_visit):
         if tried >= max_tried:
-            break
-        for orient in range(2):
-            a = first[q] if orient == 0 else second[q]
-            b = second[q] if orient == 0 else first[q]
-            if not star_ok[a]:
+            break  # (the row scan's two checks: nothing is counted or scored after the budget ran out)
+        code = codes[v] if by_codes else 2 * lo + v
+        q, orient = code >> 1, code & 1
+        a = first[q] if orient == 0 else second[q]
+        b = second[q] if orient == 0 else first[q]
+        if not star_ok[a]:
+            continue
+        kf = 1.0
+        if s > 0:
+            kf = min(1.0 + s, max(1.0 - s, d_nom / max(sep[q], 1e-12)))
+            uix, uiy, uiz = _unit(t[i, 0], t[i, 1], kf)
+            ujx, ujy, ujz = _unit(t[j, 0], t[j, 1], kf)
+            d_ij = _angle(uix, uiy, uiz, ujx, ujy, ujz)
+        have_r = cos_r > -1.0  # a region, not the whole sky: place the boresight first
+        if have_r:
+            _triad_into(
+                r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
+            )
+            if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
+                continue  # its boresight lies in another region
+            if r[0, 0] * x_axis[0] + r[1, 0] * x_axis[1] + r[2, 0] * x_axis[2] < cos_x - 1e-12:
+                continue  # its roll lies outside the hint's
+        if tried >= max_tried:
+            break  # the budget: a count, so the same answer on every machine
+        while need <= n and h_limit[need] < h0 + tried + 1:
+            need += 1  # H only grows: so does the score a hypothesis needs
+        tried += 1
+        if need > n:  # not even every detection matched could be accepted any more: counted, not scored
+            stopped = True
+            continue
+        delta = abs(d_ij - sep[q])
+        score = 1 + (1 if delta <= tol_n[j] else 0)
+        if s > 0 and not use_grid:
+            c_d, s_d = math.cos(delta + 1e-12), math.sin(delta + 1e-12)
+        reach = n - 2 + score  # the most this hypothesis can still score
+        if reach < need:
+            continue
+        for k in range(n):
+            if k == i or k == j:
                 continue
-            kf = 1.0
-            if s > 0:
-                kf = min(1.0 + s, max(1.0 - s, d_nom / max(sep[q], 1e-12)))
-                uix, uiy, uiz = _unit(t[i, 0], t[i, 1], kf)
-                ujx, ujy, ujz = _unit(t[j, 0], t[j, 1], kf)
-                d_ij = _angle(uix, uiy, uiz, ujx, ujy, ujz)
-            have_r = cos_r > -1.0  # a region, not the whole sky: place the boresight first
-            if have_r:
-                _triad_into(
-                    r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
-                )
-                if r[0, 2] * center[0] + r[1, 2] * center[1] + r[2, 2] * center[2] < cos_r - 1e-12:
-                    continue  # its boresight lies in another region
-                if r[0, 0] * x_axis[0] + r[1, 0] * x_axis[1] + r[2, 0] * x_axis[2] < cos_x - 1e-12:
-                    continue  # its roll lies outside the hint's
-            if tried >= max_tried:
-                break  # the budget: a count, so the same answer on every machine
-            while need <= n and h_limit[need] < h0 + tried + 1:
-                need += 1  # H only grows: so does the score a hypothesis needs
-            tried += 1
-            if need > n:  # not even every detection matched could be accepted any more: counted, not scored
-                stopped = True
-                continue
-            delta = abs(d_ij - sep[q])
-            score = 1 + (1 if delta <= tol_n[j] else 0)
-            if s > 0 and not use_grid:
-                c_d, s_d = math.cos(delta + 1e-12), math.sin(delta + 1e-12)
-            reach = n - 2 + score  # the most this hypothesis can still score
-            if reach < need:
-                continue
-            for k in range(n):
-                if k == i or k == j:
-                    continue
-                matched = False
-                if use_grid:
-                    if not have_r:
+            matched = False
+            if use_grid:
+                if not have_r:
+                    _triad_into(
+                        r, uix, uiy, uiz, ujx, ujy, ujz,
+                        vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2],
+                    )  # fmt: skip
+                    have_r = True
+                ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
+                x0 = r[0, 0] * ukx + r[0, 1] * uky + r[0, 2] * ukz
+                x1 = r[1, 0] * ukx + r[1, 1] * uky + r[1, 2] * ukz
+                x2 = r[2, 0] * ukx + r[2, 1] * uky + r[2, 2] * ukz
+                matched = _grid_near(x0, x1, x2, cos_t[k], tol_n[k], a, grid_start, grid_vec, grid_row, grid_par)
+                p0 = p1 = 0
+            else:
+                p0, p1 = offs[a, k], offs[a + 1, k]
+            if p0 != p1:  # else no star at the right distance from A: k cannot match
+                if s > 0:
+                    ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
+                    dik = _angle(uix, uiy, uiz, ukx, uky, ukz)
+                else:
+                    ukx, uky, ukz = u1[k, 0], u1[k, 1], u1[k, 2]
+                    dik = d1[k]
+                tk = tol_n[k]
+                lo_b, hi_b = (-2.0, -2.0) if s > 0 else (lo_b1[k], hi_b1[k])  # cosine bounds of sep(B, C)
+                if p1 - p0 > 8:  # a long list (the focal pass's wide windows, a dense field): skip to dik - tk
+                    lo_p, hi_p = p0, p1
+                    while lo_p < hi_p:
+                        mid = (lo_p + hi_p) >> 1
+                        if psep[mid] < dik - tk:
+                            lo_p = mid + 1
+                        else:
+                            hi_p = mid
+                    p0 = lo_p
+                for p in range(p0, p1):  # A's partners, by separation (the pair index's order)
+                    if psep[p] < dik - tk:
+                        continue
+                    if psep[p] > dik + tk:
+                        break
+                    if lo_b < -1.5:  # the focal pass: cos(d_jk -+ (delta + tk)) on first use, no trigonometry
+                        c_jk = min(1.0, ujx * ukx + ujy * uky + ujz * ukz)
+                        c_w = c_d * cos_w[k] - s_d * sin_w[k]
+                        s_w = s_d * cos_w[k] + c_d * sin_w[k]
+                        if c_jk > 0.0 and c_w > 0.0:  # d_jk and delta + tk both below 90 deg: sum formulas
+                            s_jk = math.sqrt(max(0.0, 1.0 - c_jk * c_jk))
+                            lo_b = c_jk * c_w - s_jk * s_w
+                            hi_b = 1.0 if c_jk >= c_w else c_jk * c_w + s_jk * s_w
+                        else:
+                            djk = _angle(ujx, ujy, ujz, ukx, uky, ukz)
+                            lo_b = math.cos(min(math.pi, djk + delta + tk))
+                            hi_b = math.cos(max(0.0, djk - delta - tk))
+                    c = partner[p]
+                    cx, cy, cz = vec[c, 0], vec[c, 1], vec[c, 2]
+                    cbc = vec[b, 0] * cx + vec[b, 1] * cy + vec[b, 2] * cz
+                    if cbc < lo_b or cbc > hi_b:
+                        continue
+                    if not have_r:  # whole sky: the rotation only when a partner fits
                         _triad_into(
                             r, uix, uiy, uiz, ujx, ujy, ujz,
                             vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2],
                         )  # fmt: skip
                         have_r = True
-                    ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
                     x0 = r[0, 0] * ukx + r[0, 1] * uky + r[0, 2] * ukz
                     x1 = r[1, 0] * ukx + r[1, 1] * uky + r[1, 2] * ukz
                     x2 = r[2, 0] * ukx + r[2, 1] * uky + r[2, 2] * ukz
-                    matched = _grid_near(x0, x1, x2, cos_t[k], tol_n[k], a, grid_start, grid_vec, grid_row, grid_par)
-                    p0 = p1 = 0
-                else:
-                    p0, p1 = offs[a, k], offs[a + 1, k]
-                if p0 != p1:  # else no star at the right distance from A: k cannot match
-                    if s > 0:
-                        ukx, uky, ukz = _unit(t[k, 0], t[k, 1], kf)
-                        dik = _angle(uix, uiy, uiz, ukx, uky, ukz)
-                    else:
-                        ukx, uky, ukz = u1[k, 0], u1[k, 1], u1[k, 2]
-                        dik = d1[k]
-                    tk = tol_n[k]
-                    lo_b, hi_b = (-2.0, -2.0) if s > 0 else (lo_b1[k], hi_b1[k])  # cosine bounds of sep(B, C)
-                    if p1 - p0 > 8:  # a long list (the focal pass's wide windows, a dense field): skip to dik - tk
-                        lo_p, hi_p = p0, p1
-                        while lo_p < hi_p:
-                            mid = (lo_p + hi_p) >> 1
-                            if psep[mid] < dik - tk:
-                                lo_p = mid + 1
-                            else:
-                                hi_p = mid
-                        p0 = lo_p
-                    for p in range(p0, p1):  # A's partners, by separation (the pair index's order)
-                        if psep[p] < dik - tk:
-                            continue
-                        if psep[p] > dik + tk:
-                            break
-                        if lo_b < -1.5:  # the focal pass: cos(d_jk -+ (delta + tk)) on first use, no trigonometry
-                            c_jk = min(1.0, ujx * ukx + ujy * uky + ujz * ukz)
-                            c_w = c_d * cos_w[k] - s_d * sin_w[k]
-                            s_w = s_d * cos_w[k] + c_d * sin_w[k]
-                            if c_jk > 0.0 and c_w > 0.0:  # d_jk and delta + tk both below 90 deg: sum formulas
-                                s_jk = math.sqrt(max(0.0, 1.0 - c_jk * c_jk))
-                                lo_b = c_jk * c_w - s_jk * s_w
-                                hi_b = 1.0 if c_jk >= c_w else c_jk * c_w + s_jk * s_w
-                            else:
-                                djk = _angle(ujx, ujy, ujz, ukx, uky, ukz)
-                                lo_b = math.cos(min(math.pi, djk + delta + tk))
-                                hi_b = math.cos(max(0.0, djk - delta - tk))
-                        c = partner[p]
-                        cx, cy, cz = vec[c, 0], vec[c, 1], vec[c, 2]
-                        cbc = vec[b, 0] * cx + vec[b, 1] * cy + vec[b, 2] * cz
-                        if cbc < lo_b or cbc > hi_b:
-                            continue
-                        if not have_r:  # whole sky: the rotation only when a partner fits
-                            _triad_into(
-                                r, uix, uiy, uiz, ujx, ujy, ujz,
-                                vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2],
-                            )  # fmt: skip
-                            have_r = True
-                        x0 = r[0, 0] * ukx + r[0, 1] * uky + r[0, 2] * ukz
-                        x1 = r[1, 0] * ukx + r[1, 1] * uky + r[1, 2] * ukz
-                        x2 = r[2, 0] * ukx + r[2, 1] * uky + r[2, 2] * ukz
-                        if x0 * cx + x1 * cy + x2 * cz >= cos_t[k]:  # within tk of C
-                            matched = True
-                            break
-                if matched:
-                    score += 1
-                else:
-                    reach -= 1
-                    if reach < need:
-                        break  # early rejection: the score it needs is out of reach
-            if score > best_seen:
-                best_seen = score
-            if score < min_score or score < need:
-                continue
-            if not have_r:
-                _triad_into(
-                    r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
-                )
-            if m == cap:  # grow the outputs (rarely: few hypotheses score)
-                cap *= 2
-                out_a, out_b, out_k = _grow(out_a, cap), _grow(out_b, cap), _grow(out_k, cap)
-                out_s, out_r = _grow(out_s, cap), _grow(out_r, cap)
-            out_a[m], out_b[m], out_k[m], out_s[m] = a, b, kf, score
-            out_r[m] = r
-            m += 1
+                    if x0 * cx + x1 * cy + x2 * cz >= cos_t[k]:  # within tk of C
+                        matched = True
+                        break
+            if matched:
+                score += 1
+            else:
+                reach -= 1
+                if reach < need:
+                    break  # early rejection: the score it needs is out of reach
+        if score > best_seen:
+            best_seen = score
+        if score < min_score or score < need:
+            continue
+        if not have_r:
+            _triad_into(
+                r, uix, uiy, uiz, ujx, ujy, ujz, vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2]
+            )
+        if m == cap:  # grow the outputs (rarely: few hypotheses score)
+            cap *= 2
+            out_a, out_b, out_k = _grow(out_a, cap), _grow(out_b, cap), _grow(out_k, cap)
+            out_s, out_r = _grow(out_s, cap), _grow(out_r, cap)
+        out_a[m], out_b[m], out_k[m], out_s[m] = a, b, kf, score
+        out_r[m] = r
+        m += 1
     return tried, out_a[:m], out_b[:m], out_k[:m], out_s[:m], out_r[:m], best_seen, stopped
 
 
