@@ -588,6 +588,17 @@ def summarise(rows: list, st: dict, notes: list, wall_s: float) -> dict:
         ms = sum(r["ms"] for r in d if r["solver"] == s)
         n = sum(1 for r in d if r["solver"] == s)
         thr[s] = {"attempts": n, "ms_mean": ms / max(n, 1), "attempts_per_s": 1e3 * n / ms if ms > 0 else None}
+    # latency by detection count: the refusals' time grows with N (a hypothesis scores every detection)
+    latency = {}
+    for s in solvers:
+        by_n: dict = {}
+        for r in d:
+            if r["solver"] == s:
+                by_n.setdefault(int(r["n"]), []).append(r["ms"])
+        latency[s] = {
+            str(n): {"attempts": len(v), "median_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99))}
+            for n, v in sorted(by_n.items())
+        }
     run_solvers = [s for s in solvers if not _composed(s, solvers)]  # a composed chain costs nothing extra
     case_ms = sum(thr[s]["ms_mean"] for s in run_solvers)
     cases = len({r["case"] for r in d})
@@ -610,6 +621,7 @@ def summarise(rows: list, st: dict, notes: list, wall_s: float) -> dict:
         "targets": {s: targets(next(t for t in table if t["solver"] == s and t["family"] == "all")) for s in solvers},
         "wrong_answers": wrong_rows[:500],
         "wrong_below_1e-6": [r for r in wrong_rows if r["p"] is not None and r["p"] < LOW_P],
+        "latency_by_n": latency,
         "throughput": {
             "per_solver": thr,
             "ms_per_case": case_ms,
@@ -761,6 +773,20 @@ def markdown(r: dict) -> str:
     ]
     for s, t in th["per_solver"].items():
         lines.append(f"| {s} | {t['attempts']:,} | {t['ms_mean']:.1f} | {_g(t['attempts_per_s'], '.1f')} |")
+    lat = r.get("latency_by_n") or {}
+    if lat:
+        ns = sorted({int(n) for v in lat.values() for n in v})
+        lines += [
+            "",
+            f"Latency by detection count N (every family, refusals included; ms per attempt, median / p99; "
+            f"{r['hardware']}):",
+            "",
+            "| solver | " + " | ".join(f"N = {n}" for n in ns) + " |",
+            "|---|" + "---|" * len(ns),
+        ]
+        for s, v in lat.items():
+            cells = [f"{v[str(n)]['median_ms']:.1f} / {v[str(n)]['p99_ms']:.1f}" if str(n) in v else "–" for n in ns]
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
     lines += [
         "",
         f"One case through every solver run: {th['ms_per_case']:.0f} ms; 100,000 cases: "

@@ -74,6 +74,12 @@ def test_noise_is_never_correct_and_the_tables_add_up(cal, tmp_path):
         assert sum(b["count"] for b in bins) == len(answers)
         assert sum(b["wrong"] for b in bins) == sum(1 for x in answers if not x["correct"])
     assert "Reliability by family" in (tmp_path / "calibration.md").read_text()
+    # latency by detection count: every attempt of a solver in exactly one N, its median at most its p99
+    for s, by_n in r["latency_by_n"].items():
+        assert sum(v["attempts"] for v in by_n.values()) == r["overall"][s]["attempts"]
+        assert all(v["median_ms"] <= v["p99_ms"] for v in by_n.values())
+        assert {int(n) for n in by_n} == {x["n"] for x in rows if x["solver"] == s}
+    assert "Latency by detection count N" in (tmp_path / "calibration.md").read_text()
     assert (tmp_path / "reliability.png").stat().st_size > 1000 and not (tmp_path / "chunks").exists()
 
 

@@ -573,7 +573,11 @@ class CoarseToFineSolver:
             near = [_angle_at(t[i], t[k], f) for f in (1 + s, 1 - s)]
             tk = tol + s * math.hypot(t[k, 0] - t[i, 0], t[k, 1] - t[i, 1])
             lo, hi = idx.range(min(near) - tk, max(near) + tk)
-            o, p, q = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
+            # the window is symmetric in i and k: (k, i)'s table, where anchor k built it, is this one
+            pkey = ("partner", lo, hi)
+            if pkey not in tables:
+                tables[pkey] = partner_table(lo, hi, idx.first, idx.second, idx.sep, n_stars)
+            o, p, q = tables[pkey]
             offs[:, k] = o + base
             parts.append(p)
             seps.append(q)
