@@ -96,3 +96,14 @@ def assert_same_run(a, b) -> None:
         assert torch.equal(tensor, cb.model[name]), name
     strip = lambda rows: [{k: v for k, v in r.items() if k != "epoch_time_s"} for r in rows]  # noqa: E731
     assert strip(ca.history) == strip(cb.history)
+
+
+def benchmark_script(name: str):
+    """``benchmarks/<name>.py`` of this checkout as a module (the benchmark scripts are not a package)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from fusion.testing import benchmark_script
 
 pytest.importorskip("tetra3rs")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("chain_latency", ROOT / "benchmarks" / "chain_latency.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_script("chain_latency")
 
 
 def test_chain_latency_table_has_every_cell_and_repeat(small_dataset, tmp_path, capsys):

@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from fusion.testing import benchmark_script
 
 pytest.importorskip("tetra3rs")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("pass_cost", ROOT / "benchmarks" / "pass_cost.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_script("pass_cost")
 
 
 def test_pass_cost_counts_every_hypothesis_by_pass_and_restores_the_loop(small_dataset, tmp_path, capsys):

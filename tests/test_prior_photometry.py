@@ -2,21 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 from fusion.solve.base import Detections
-
-ROOT = Path(__file__).resolve().parents[1]
+from fusion.testing import benchmark_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("prior_photometry", ROOT / "benchmarks" / "prior_photometry.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_script("prior_photometry")
 
 
 def test_variants_separate_the_kept_set_from_the_flux_values():

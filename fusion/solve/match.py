@@ -28,15 +28,23 @@ from numba import njit
 
 
 @njit(cache=True)
-def partner_table(lo: int, hi: int, first, second, sep, n_stars: int):
-    """(offsets (S + 1,), partner, separation) of pair-index rows ``[lo, hi)``, keyed on either star; each
-    star's partners in ascending separation (the pair index's order), which :func:`anchor_hypotheses` relies on."""
+def _star_offsets(lo: int, hi: int, first, second, n_stars: int):
+    """(S + 1,) offsets of a table of pair-index rows ``[lo, hi)`` keyed on either star (CSR: star a's entries at
+    ``offs[a]:offs[a + 1]``)."""
     offs = np.zeros(n_stars + 1, np.int64)
     for q in range(lo, hi):
         offs[first[q] + 1] += 1
         offs[second[q] + 1] += 1
     for a in range(n_stars):
         offs[a + 1] += offs[a]
+    return offs
+
+
+@njit(cache=True)
+def partner_table(lo: int, hi: int, first, second, sep, n_stars: int):
+    """(offsets (S + 1,), partner, separation) of pair-index rows ``[lo, hi)``, keyed on either star; each
+    star's partners in ascending separation (the pair index's order), which :func:`anchor_hypotheses` relies on."""
+    offs = _star_offsets(lo, hi, first, second, n_stars)
     partner = np.empty(offs[n_stars], np.int32)
     psep = np.empty(offs[n_stars], np.float64)
     fill = offs[:-1].copy()
@@ -56,12 +64,7 @@ def window_codes(lo: int, hi: int, first, second, n_stars: int):
     """(offsets (S + 1,), codes) of pair-index rows ``[lo, hi)`` keyed on the star a hypothesis anchors first (A):
     ``2 q`` where it is ``first[q]``, ``2 q + 1`` where it is ``second[q]`` -- the (row, orientation) order in which
     :func:`anchor_hypotheses` visits hypotheses; each star's codes ascending."""
-    offs = np.zeros(n_stars + 1, np.int64)
-    for q in range(lo, hi):
-        offs[first[q] + 1] += 1
-        offs[second[q] + 1] += 1
-    for a in range(n_stars):
-        offs[a + 1] += offs[a]
+    offs = _star_offsets(lo, hi, first, second, n_stars)
     codes = np.empty(offs[n_stars], np.int64)
     fill = offs[:-1].copy()
     for q in range(lo, hi):
