@@ -559,7 +559,8 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--defects",
         metavar="FILE.json",
-        help="--solve without the detections at these defect pixels (static hot pixels; written by fusion defects)",
+        help="--solve without the detections at these defect pixels and regions (hot pixels, a wandering glow; "
+        "written by fusion defects)",
     )
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)
@@ -776,7 +777,8 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
         _run_predict,
     ),
     "defects": (
-        "learn a sensor's defect pixels (static hot pixels) from fusion predict --solve output",
+        "learn a sensor's defect pixels (static hot pixels) and regions (a glow whose detections wander a few "
+        "pixels) from fusion predict --solve output",
         _add_defects,
         _run_defects,
     ),

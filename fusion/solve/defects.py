@@ -17,6 +17,7 @@ themselves). :meth:`DefectMap.remove` drops the detections a map flags.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +29,8 @@ DEFECT_RADIUS_PX = 1.0  # a detection this close to a mapped pixel is that pixel
 #   scatter by a fraction of a pixel with the noise under them)
 DEFECT_MIN_FRAMES = 3  # unexplained detections at one pixel in this many frames: a defect, not a coincidence
 #   (two stars of frames at unrelated attitudes land within a pixel of each other rarely; three, far more rarely)
+DEFECT_REGION_PX = 8.0  # a defect region: unexplained detections of other frames crowd within this radius ...
+DEFECT_REGION_P = 1e-6  # ... more than chance allows (Poisson, at this probability), from DEFECT_MIN_FRAMES pointings
 
 
 def _cells(x: np.ndarray, y: np.ndarray) -> set:
@@ -37,20 +40,38 @@ def _cells(x: np.ndarray, y: np.ndarray) -> set:
 @dataclass(frozen=True)
 class DefectMap:
     """Pixel positions ``xy`` (K, 2) (skygen's pixel convention: x along columns) a detection within ``radius_px``
-    of which is a sensor defect."""
+    of which is a sensor defect; and, where ``region_min`` > 0, **defect regions**: a detection with at least
+    ``region_min`` of the learning frames' unexplained detections ``region_xy`` (M, 2) within ``region_px``,
+    from at least ``region_pointings`` pointings (``region_pointing`` (M,)), is one too. A defect that does not
+    sit on one pixel (a glow at the sensor's edge, whose detections wander by a few pixels from frame to frame)
+    crowds unexplained detections far beyond their chance density; ``region_min`` is the least count whose
+    chance is below :data:`DEFECT_REGION_P` at that density (:func:`region_threshold`)."""
 
     xy: np.ndarray
     radius_px: float = DEFECT_RADIUS_PX
+    region_xy: np.ndarray | None = None
+    region_pointing: np.ndarray | None = None
+    region_px: float = DEFECT_REGION_PX
+    region_min: int = 0
+    region_pointings: int = DEFECT_MIN_FRAMES
 
     def __len__(self) -> int:
         return len(self.xy)
 
     def flags(self, det: Detections) -> np.ndarray:
         """(n,) bool: which of ``det`` the map flags."""
-        if not len(self.xy) or not len(det):
-            return np.zeros(len(det), bool)
-        d2 = (det.x_px[:, None] - self.xy[None, :, 0]) ** 2 + (det.y_px[:, None] - self.xy[None, :, 1]) ** 2
-        return np.any(d2 <= self.radius_px**2, axis=1)
+        out = np.zeros(len(det), bool)
+        if not len(det):
+            return out
+        if len(self.xy):
+            d2 = (det.x_px[:, None] - self.xy[None, :, 0]) ** 2 + (det.y_px[:, None] - self.xy[None, :, 1]) ** 2
+            out |= np.any(d2 <= self.radius_px**2, axis=1)
+        if self.region_min > 0 and self.region_xy is not None and len(self.region_xy):
+            rx, ry = self.region_xy[:, 0], self.region_xy[:, 1]
+            near = (det.x_px[:, None] - rx[None, :]) ** 2 + (det.y_px[:, None] - ry[None, :]) ** 2 <= self.region_px**2
+            for k in np.flatnonzero(near.sum(axis=1) >= self.region_min):
+                out[k] |= len(np.unique(self.region_pointing[near[k]])) >= self.region_pointings
+        return out
 
     def remove(self, det: Detections) -> tuple[Detections, int]:
         """(``det`` without the flagged detections, brightest first as before; how many were dropped)."""
@@ -61,9 +82,16 @@ class DefectMap:
         return Detections(det.x_px[keep], det.y_px[keep], det.flux_adu[keep]), int(bad.sum())
 
     def to_json(self, path) -> None:
-        Path(path).write_text(
-            json.dumps({"radius_px": self.radius_px, "pixels_xy": np.round(self.xy, 2).tolist()}) + "\n"
-        )
+        data = {"radius_px": self.radius_px, "pixels_xy": np.round(self.xy, 2).tolist()}
+        if self.region_min > 0 and self.region_xy is not None:
+            data["regions"] = {
+                "radius_px": self.region_px,
+                "min_detections": int(self.region_min),
+                "min_pointings": int(self.region_pointings),
+                "detections_xy": np.round(self.region_xy, 2).tolist(),
+                "pointing": np.asarray(self.region_pointing, int).tolist(),
+            }
+        Path(path).write_text(json.dumps(data) + "\n")
 
     @classmethod
     def from_json(cls, path) -> "DefectMap":
@@ -77,13 +105,33 @@ class DefectMap:
             data = json.loads(text)
             xy = np.asarray(data["pixels_xy"], np.float64).reshape(-1, 2)
             radius = float(data.get("radius_px", DEFECT_RADIUS_PX))
+            reg = data.get("regions")
+            kw = {}
+            if reg is not None:
+                kw = {
+                    "region_xy": np.asarray(reg["detections_xy"], np.float64).reshape(-1, 2),
+                    "region_pointing": np.asarray(reg["pointing"], np.int64).reshape(-1),
+                    "region_px": float(reg["radius_px"]),
+                    "region_min": int(reg["min_detections"]),
+                    "region_pointings": int(reg["min_pointings"]),
+                }
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ConfigError(
-                f"{path}: not a defect map ({exc}); expected JSON {{'radius_px': 1.0, 'pixels_xy': [[x, y], ...]}}"
+                f"{path}: not a defect map ({exc}); expected JSON {{'radius_px': 1.0, 'pixels_xy': [[x, y], ...]}} "
+                "(and optionally 'regions': {'radius_px', 'min_detections', 'min_pointings', 'detections_xy', "
+                "'pointing'})"
             ) from None
         if not (np.all(np.isfinite(xy)) and np.isfinite(radius) and radius > 0):
             raise ConfigError(f"{path}: a defect map needs finite pixel positions and a positive radius_px")
-        return cls(xy, radius)
+        if kw and not (
+            np.all(np.isfinite(kw["region_xy"]))
+            and len(kw["region_pointing"]) == len(kw["region_xy"])
+            and kw["region_px"] > 0
+            and kw["region_min"] >= 1
+        ):
+            raise ConfigError(f"{path}: a defect map's regions need finite positions, one pointing each, a positive "
+                              "radius_px and min_detections >= 1")  # fmt: skip
+        return cls(xy, radius, **kw)
 
 
 DEFECT_MIN_APART_DEG = 0.5  # frames whose boresights are closer than this count as one pointing: a staring
@@ -135,14 +183,58 @@ def _map(lit: dict, pointing: list, min_frames: int, radius_px: float, cells, le
     return DefectMap(np.asarray(sorted(hits), np.float64).reshape(-1, 2), radius_px)
 
 
+def region_threshold(count: int, area_px2: float, radius_px: float = DEFECT_REGION_PX, p: float = DEFECT_REGION_P):
+    """The least number of ``count`` unexplained detections spread at random over ``area_px2`` that falls within
+    ``radius_px`` of a point with a Poisson chance below ``p``: a crowd that many is no coincidence."""
+    from scipy.stats import poisson
+
+    lam = count * math.pi * radius_px**2 / max(area_px2, 1.0)
+    k = 1
+    while poisson.sf(k - 1, lam) >= p:
+        k += 1
+    return k
+
+
+def _unexplained(tables, pointing: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(xy (M, 2), pointing (M,), frame (M,)) of every unexplained detection, and the area they are spread over
+    (the detections' bounding box: the sensor, as far as the frames show it)."""
+    xy, pt, fr, allx, ally = [], [], [], [], []
+    for f, (x, y, e) in enumerate(tables):
+        x, y, bad = np.asarray(x, float), np.asarray(y, float), ~np.asarray(e, bool)
+        allx.append(x)
+        ally.append(y)
+        xy.append(np.column_stack([x[bad], y[bad]]))
+        pt.append(np.full(int(bad.sum()), pointing[f]))
+        fr.append(np.full(int(bad.sum()), f))
+    ax, ay = np.concatenate(allx) if allx else np.zeros(0), np.concatenate(ally) if ally else np.zeros(0)
+    area = float((np.ptp(ax) + 1) * (np.ptp(ay) + 1)) if len(ax) else 1.0
+    cat = np.concatenate(xy) if xy else np.zeros((0, 2))
+    return cat.reshape(-1, 2), np.concatenate(pt).astype(np.int64), np.concatenate(fr).astype(np.int64), area
+
+
+def _with_regions(dmap: DefectMap, xy, pt, area: float, min_frames: int) -> DefectMap:
+    import dataclasses
+
+    return dataclasses.replace(
+        dmap,
+        region_xy=xy,
+        region_pointing=pt,
+        region_min=region_threshold(len(xy), area),
+        region_pointings=min_frames,
+    )
+
+
 def learn(
     tables, min_frames: int = DEFECT_MIN_FRAMES, radius_px: float = DEFECT_RADIUS_PX, boresights=None
 ) -> DefectMap:
     """The defect map of frames ``tables`` = [(x_px, y_px, explained), ...]: integer pixels (with their
-    neighbours) holding an unexplained detection in at least ``min_frames`` frames. ``boresights`` (one unit
-    vector per frame, optional): frames within :data:`DEFECT_MIN_APART_DEG` of each other count once."""
+    neighbours) holding an unexplained detection in at least ``min_frames`` frames, and the frames' unexplained
+    detections for the defect regions (:class:`DefectMap`). ``boresights`` (one unit vector per frame,
+    optional): frames within :data:`DEFECT_MIN_APART_DEG` of each other count once."""
     lit = _lit(tables)
-    return _map(lit, _pointings(len(tables), boresights), min_frames, radius_px, list(lit))
+    pointing = _pointings(len(tables), boresights)
+    xy, pt, _, area = _unexplained(tables, pointing)
+    return _with_regions(_map(lit, pointing, min_frames, radius_px, list(lit)), xy, pt, area, min_frames)
 
 
 def leave_one_out(
@@ -154,7 +246,16 @@ def leave_one_out(
     pointing = _pointings(len(tables), boresights)
     # a cell that does not qualify with every frame counted cannot qualify with one left out
     candidates = [c for c in lit if _reaches(lit, c, pointing, min_frames)]
-    return [_map(lit, pointing, min_frames, radius_px, candidates, j) for j in range(len(tables))]
+    xy, pt, fr, area = _unexplained(tables, pointing)
+    maps = []
+    for j in range(len(tables)):
+        other = fr != j
+        maps.append(
+            _with_regions(
+                _map(lit, pointing, min_frames, radius_px, candidates, j), xy[other], pt[other], area, min_frames
+            )
+        )
+    return maps
 
 
 def _reaches(lit: dict, c, pointing: list, min_frames: int) -> bool:
@@ -230,5 +331,6 @@ def learn_command(predictions, out, min_frames: int = DEFECT_MIN_FRAMES, radius_
     return (
         f"fusion defects: {len(dmap)} defect pixel(s) from {len(tables)} solved frames "
         f"({skipped} unsolved skipped; unmatched detections recurring within {radius_px:g} px at {min_frames}+ "
-        f"pointings {DEFECT_MIN_APART_DEG:g} deg apart) -> {out}"
+        f"pointings {DEFECT_MIN_APART_DEG:g} deg apart), and regions where {dmap.region_min}+ of their "
+        f"{len(dmap.region_xy)} unmatched detections crowd within {dmap.region_px:g} px -> {out}"
     )
