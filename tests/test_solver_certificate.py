@@ -202,7 +202,7 @@ def _fitted_rotations(n: int, sigma: float, draws: int, seed: int):
     """n stars in a 20 deg field with Gaussian centroid errors of ``sigma`` radians per axis, a least-squares
     rotation fitted to them ``draws`` times: the stars' unit vectors (camera frame), each fit's error as a
     rotation vector (arcsec, per axis) and each fit's rms residual angle (arcsec)."""
-    from fusion.solve.fine import _kabsch
+    from fusion.solve.match import refine_track
 
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-0.17, 0.17, (n, 2))
@@ -215,7 +215,7 @@ def _fitted_rotations(n: int, sigma: float, draws: int, seed: int):
         e = rng.normal(0, sigma, (n, 3))
         e -= np.sum(e * u, axis=1, keepdims=True) * u  # perpendicular: two components per star
         un = (u + e) / np.linalg.norm(u + e, axis=1, keepdims=True)
-        r = _kabsch(un, sky)
+        r = refine_track(un[:, :2] / un[:, 2:3], sky, 1.0, 0.0, 1)[0]  # Kabsch's least-squares rotation
         vecs.append(rotation_vector_deg(rot_true, r) * 3600)
         ang = np.arccos(np.clip(np.sum((un @ r.T) * sky, axis=1), -1, 1))
         rms.append(np.degrees(np.sqrt(np.mean(ang**2))) * 3600)

@@ -261,14 +261,6 @@ def _angle_at(ti: np.ndarray, tk: np.ndarray, f: float) -> float:
     return math.acos(min(1.0, c))
 
 
-def _kabsch(u: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Least-squares rotation R with R u_i ~ s_i (proper rotation)."""
-    h = u.T @ s
-    uu, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ uu.T))
-    return vt.T @ np.diag([1.0, 1.0, d]) @ uu.T
-
-
 @dataclass
 class _Tier:
     """One catalogue cut: the brightest ``stars_per_fov`` stars per field, their index and chance rate."""

@@ -707,7 +707,8 @@ def track_hypotheses(
 
 @njit(cache=True)
 def refine_track(t, vec, k: float, s: float, passes: int):
-    """Tracking's least-squares attitude of an identification (:func:`fusion.solve.track.track`): ``t`` (m, 2)
+    """The least-squares attitude of an identification (tracking's, :func:`fusion.solve.track.track`, and one pass
+    per iteration of the fine stage's ``refine``): ``t`` (m, 2)
     the matched detections' tangent-plane coordinates, ``vec`` (m, 3) their catalogue stars. Per pass: Kabsch's
     rotation at focal factor ``k``, then (three stars or more, ``s`` > 0) Umeyama's scale of the tangent-plane
     coordinates, clipped to 1 +- s. Returns (rotation camera -> ICRS, k, the unit vectors at k (m, 3), rms
