@@ -82,6 +82,15 @@ class CameraConfig:
         "rows twice as tall as columns are wide, e.g. interlaced frames stored at half "
         "height); pixel_pitch_um and fov_deg are along x",
     )
+    centroid_sigma_px: Optional[float] = param(
+        None,
+        lo=0,
+        hi=10,
+        doc="per-axis centroid error of a matched star on this camera's real frames, px (skygen fit-camera writes "
+        "its geometry fit's residual rms / sqrt 2): the least per-star error a solution's attitude covariance "
+        "assumes, since the few stars of one solve cannot measure errors shared across the field (residual "
+        "distortion); None: 0.03 px (fusion.solve.base.CENTROID_FLOOR_PX). Changes no rendered pixel",
+    )
 
 
 @dataclass(frozen=True)

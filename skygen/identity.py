@@ -27,7 +27,8 @@ import json
 
 import numpy as np
 
-# keys that do not change any frame's pixels or labels under the (split, j) keying
+# keys that do not change any frame's pixels or labels under the (split, j) keying (storage, and what a solver
+# is told about the real camera)
 STORAGE_KEYS = (
     "n_frames",
     "output.shard_size",
@@ -35,6 +36,7 @@ STORAGE_KEYS = (
     "output.compression_level",
     "output.full_res",
     "output.split_fractions",
+    "camera.centroid_sigma_px",  # what a solver assumes of the real camera's centroids, not how frames are rendered
 )
 
 
@@ -49,6 +51,7 @@ NEUTRAL_DEFAULTS = {
     "catalog.source": "hipparcos",
     "photometry.star_scatter_mag": 0.0,
     "optics.sky_vignetting": None,
+    "camera.centroid_sigma_px": None,
 }
 
 

@@ -113,6 +113,22 @@ def test_the_neutral_shape_keeps_older_datasets_ids():
     assert content_id(cfg) != content_id(old)
 
 
+def test_a_cameras_measured_centroid_error_changes_no_frame_id_and_no_calibration():
+    """camera.centroid_sigma_px tells solvers about the real camera (fit-camera writes it); it renders nothing,
+    so neither the frames' content id nor the detector calibration's key depend on it."""
+    from skygen.stream.emulator import calibration_key
+
+    cfg = config_dict(load_config())
+    assert cfg["camera"]["centroid_sigma_px"] is None
+    fitted = config_dict(load_config(overrides=["camera.centroid_sigma_px=0.09"]))
+    assert fitted["camera"]["centroid_sigma_px"] == 0.09
+    assert content_id(fitted) == content_id(cfg)
+    assert calibration_key(fitted) == calibration_key(cfg)
+    old = {k: dict(v) if isinstance(v, dict) else v for k, v in cfg.items()}
+    del old["camera"]["centroid_sigma_px"]  # a dataset made before the key
+    assert content_id(old) == content_id(cfg)
+
+
 def test_the_bright_tail_is_capped_to_what_the_frames_brightest_ten_show():
     """cap_bright_tail: the share of false stars it expects above each frame's tenth-brightest star is the
     renderer's own draw (false_star_magnitudes); it shortens the span until the renders' false-star part matches

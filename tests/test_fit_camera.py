@@ -94,6 +94,9 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
 
     rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
     assert rec["geometry"]["rms_px"] < 0.3
+    # the per-axis centroid error a solver's covariance assumes for this camera: the fit's residual / sqrt 2
+    assert c.centroid_sigma_px == pytest.approx(rec["geometry"]["rms_px"] / np.sqrt(2), rel=1e-6)
+    assert Camera.from_config(c).centroid_sigma_px == c.centroid_sigma_px
     cmp = rec["compare"]
     assert cmp["background_adu"]["fitted"] == pytest.approx(cmp["background_adu"]["real"], rel=0.1)
     assert cmp["zero_point_mag"]["fitted"] == pytest.approx(cmp["zero_point_mag"]["real"], abs=0.2)

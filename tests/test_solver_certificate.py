@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fusion.solve.base import (
+    CENTROID_FLOOR_PX,
     REFUSAL_STATUSES,
     Detections,
     FallbackSolver,
@@ -238,6 +239,27 @@ def test_covariance_formula_matches_a_monte_carlo_of_the_fit():
         u, np.degrees(sigma) * 3600 * np.sqrt((2 * n - 3) * 2 / (2 * n)), tiny_pixel, student=False
     )
     np.testing.assert_allclose(np.sqrt(np.diag(exact)), np.sqrt(np.diag(empirical)), rtol=0.1)
+
+
+def test_a_cameras_measured_centroid_error_is_the_covariance_floor():
+    """``floor_px`` (a real camera's ``centroid_sigma_px``, measured by fit-camera over hundreds of stars) replaces
+    the 0.03 px floor where it is larger, never lowers it, and given the true per-axis error it is the fit's exact
+    covariance: four stars' fitted rotations fall within its 1 / 2 sigma 68 / 95 % of the time, whatever their own
+    (noisy, few) residuals say."""
+    sigma = 2e-5  # radians per axis
+    u, vecs, _ = _fitted_rotations(4, sigma, 3000, 5)
+    scale = 1.0  # arcsec per pixel, so pixels are arcsec
+    sig_px = float(np.degrees(sigma) * 3600)
+    base = attitude_covariance(u, 0.0, scale)  # no residual: the default floor alone
+    floored = attitude_covariance(u, 0.0, scale, floor_px=sig_px)
+    np.testing.assert_allclose(floored, base * (sig_px / CENTROID_FLOOR_PX) ** 2)
+    np.testing.assert_array_equal(attitude_covariance(u, 0.0, scale, floor_px=0.001), base)
+    # a residual above the floor still leads
+    big = attitude_covariance(u, 10 * sig_px, scale, floor_px=sig_px)
+    assert np.all(np.diag(big) > 10 * np.diag(floored))
+    z = np.abs(vecs) / np.sqrt(np.diag(floored))
+    for axes in (slice(0, 2), slice(2, 3)):
+        assert abs(np.mean(z[:, axes] <= 1) - 0.6827) < 0.03 and abs(np.mean(z[:, axes] <= 2) - 0.9545) < 0.015
 
 
 @pytest.mark.parametrize("n", [3, 4, 8])

@@ -49,7 +49,8 @@ The certificate of a solution
     on -- then C is the rotation's block of the four-parameter fit's inverse information, larger across
     the boresight wherever the stars lie off it, since a scale error moves them the way a turn does;
     ``sigma_floor`` the camera's pixel scale times ``CENTROID_FLOOR_PX``, so three stars that happen to
-    fit perfectly do not claim a perfect attitude). sigma is estimated from the same few residuals, so
+    fit perfectly do not claim a perfect attitude, or times the real camera's measured centroid error where
+    ``skygen fit-camera`` wrote one, ``camera.centroid_sigma_px``). sigma is estimated from the same few residuals, so
     an error divided by it follows Student's t with nu degrees of freedom, not a Gaussian: k_nu
     (:func:`student_scale`) puts the t's 1 and 2 sigma nearest the Gaussian 68 / 95 % (four stars and a
     fitted focal length, nu = 4: k = 1.25, 72 / 93 %; without it 63 / 88 %). Near the boresight this is
@@ -283,6 +284,7 @@ def attitude_covariance(
     *,
     student: bool = True,
     scale_fitted: bool = False,
+    floor_px: float | None = None,
 ) -> np.ndarray:
     """The 3 x 3 attitude covariance (arcsec^2) of a rotation fitted to matched stars (module docstring).
 
@@ -293,13 +295,18 @@ def attitude_covariance(
     gives the plain estimate, whose 1 sigma holds less than 68 % for few stars). ``scale_fitted``: the
     focal length was fitted to the same stars (the fine stage's focal factor, from three stars on): a
     fourth parameter, so 2n - 4 degrees of freedom, and the rotation's covariance marginalised over it
-    (a scale error moves a star set lying off the boresight the way a cross-boresight turn does)."""
+    (a scale error moves a star set lying off the boresight the way a cross-boresight turn does).
+    ``floor_px``: the camera's measured per-axis centroid error (``camera.centroid_sigma_px``, from
+    ``skygen fit-camera``), the floor in place of :data:`CENTROID_FLOOR_PX` where it is larger: a few
+    stars' residuals cannot show the errors they share (residual distortion, the catalogue's positions),
+    which move the attitude all the same."""
     u = np.asarray(u, np.float64).reshape(-1, 3)
     n = len(u)
     scale_fitted = scale_fitted and n >= 3
     dof = max(2 * n - (4 if scale_fitted else 3), 1)
     k2 = student_scale(dof) ** 2 if student else 1.0
-    sigma2 = max(k2 * n * residual_arcsec**2 / dof, (CENTROID_FLOOR_PX * pixel_scale_arcsec) ** 2)
+    floor = CENTROID_FLOOR_PX if floor_px is None else max(floor_px, CENTROID_FLOOR_PX)
+    sigma2 = max(k2 * n * residual_arcsec**2 / dof, (floor * pixel_scale_arcsec) ** 2)
     info = n * np.eye(3) - u.T @ u  # sum of (I - v v^T)
     if scale_fitted:
         # d_i = (x z^2, y z^2, -z rho^2) for v_i = (x, y, z), rho^2 = x^2 + y^2: how star i moves per unit of

@@ -979,7 +979,11 @@ class CoarseToFineSolver:
                     res = dataclasses.replace(
                         res,
                         covariance_matrix_arcsec2=attitude_covariance(
-                            u_t, res.residual_arcsec, cam_k.pixel_scale_arcsec, scale_fitted=True
+                            u_t,
+                            res.residual_arcsec,
+                            cam_k.pixel_scale_arcsec,
+                            scale_fitted=True,
+                            floor_px=cam_k.centroid_sigma_px,
                         ),
                     )
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
@@ -1010,6 +1014,10 @@ class CoarseToFineSolver:
             extra=extra,
             false_match_probability=min(1.0, e_false),
             covariance_matrix_arcsec2=attitude_covariance(
-                uk[det_rows], rms_arcsec, cam_k.pixel_scale_arcsec, scale_fitted=scale_fitted
+                uk[det_rows],
+                rms_arcsec,
+                cam_k.pixel_scale_arcsec,
+                scale_fitted=scale_fitted,
+                floor_px=cam_k.centroid_sigma_px,
             ),
         )

@@ -242,7 +242,12 @@ def track(
     # lost in space: the Student scale, and the focal factor fitted from three on as a fourth parameter)
     few = len(det_rows) <= 3
     cov = attitude_covariance(
-        u_det, max(rms_arcsec, floor), cam_k.pixel_scale_arcsec, student=not few, scale_fitted=passes == 2
+        u_det,
+        max(rms_arcsec, floor),
+        cam_k.pixel_scale_arcsec,
+        student=not few,
+        scale_fitted=passes == 2,
+        floor_px=cam_k.centroid_sigma_px,
     )
     if math.sqrt(cov[2, 2]) / 3600 > TRACK_MAX_ROLL_SIGMA_DEG:
         return refuse(

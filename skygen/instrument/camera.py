@@ -38,6 +38,9 @@ class Camera:
     p1: float = 0.0
     p2: float = 0.0
     aspect: float = 1.0  # pixel height / width
+    # per-axis centroid error of a matched star measured on real frames (camera.centroid_sigma_px), px; None: unknown.
+    # The attitude covariance's floor (fusion.solve.base.attitude_covariance); nothing here depends on it
+    centroid_sigma_px: float | None = None
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -59,6 +62,7 @@ class Camera:
             cfg.p1,
             cfg.p2,
             float(getattr(cfg, "pixel_aspect", 1.0)),
+            getattr(cfg, "centroid_sigma_px", None),
         )
 
     @property

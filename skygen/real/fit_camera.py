@@ -547,6 +547,8 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
         "psf": psf,
         "hot": hot,
         "settings": settings,
+        # per axis: the geometry fit's residual over every matched star (its rms is radial, sqrt(dx^2 + dy^2))
+        "centroid_sigma_px": float(g.rms_px / np.sqrt(2.0)),
     }
     return {"mv": sensor_rec, "meas": meas, "zp_real": zp_real, "stars": stars, "boxes": boxes, "sensor": sensor}
 

@@ -531,6 +531,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "k1": float(cam.k1),
             "k2": float(cam.k2),
             "pixel_aspect": float(cam.aspect),
+            "centroid_sigma_px": meas.get("centroid_sigma_px"),
         }
     )
     psf = meas["psf"]

@@ -31,6 +31,8 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
         f"#   {command}" if command else "#   (from Python: skygen.real.fit_camera.fit_camera)",
         f"# geometry: {g['n_matched']} matched stars, {g['rms_px']:.3f} px rms; horizontal field "
         f"{g['fov_deg']:.4f} deg; terms fitted: {', '.join(g['fitted'])}; {fixed}.",
+        "# camera.centroid_sigma_px is that residual per axis (rms / sqrt 2): solvers take it as the least "
+        "per-star centroid error of an attitude covariance (fusion.solve.base.attitude_covariance);",
         "# sensor.exposure_s is exposure x throughput relative to the start camera's aperture, transmission "
         "and QE; photometry.sky_mag_arcsec2 the measured background, optics.vignetting its fall to the corners, "
         "corruptions.stray_light its gradient;",

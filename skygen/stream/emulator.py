@@ -83,9 +83,13 @@ def calibration_key(config: dict) -> dict:
     for name in KEY_CORRUPTIONS:
         key[f"corruptions.{name}"] = config["corruptions"][name]
     key["detection.max_detections"] = config["detection"]["max_detections"]
-    from skygen.identity import NEUTRAL_DEFAULTS
+    from skygen.identity import NEUTRAL_DEFAULTS, STORAGE_KEYS
 
-    return {k: v for k, v in key.items() if not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])}
+    return {
+        k: v
+        for k, v in key.items()
+        if k not in STORAGE_KEYS and not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])
+    }
 
 
 def threshold_electrons(renderer) -> float:
