@@ -353,8 +353,8 @@ def _coverage_table(res: dict, key: str, what: str) -> list[str]:
         )
     if not rows:
         return []
-    return ["", f"Covariance against {what}, correct answers of every N pooled (within 1σ / 2σ; 68 / 95 % if "
-            "calibrated):", "", "| solver | answers | cross-boresight | roll |", "|---|---|---|---|", *rows]  # fmt: skip
+    head = f"Covariance against {what}, correct answers of every N pooled (within 1σ / 2σ; 68 / 95 % if calibrated):"
+    return ["", head, "", "| solver | answers | cross-boresight | roll |", "|---|---|---|---|", *rows]
 
 
 def main(argv=None) -> int:

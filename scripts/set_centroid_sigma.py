@@ -39,7 +39,8 @@ def main(argv=None) -> int:
     lines.insert(
         head,
         f"# camera.centroid_sigma_px added later from this fit's record ({rec}: {rms:.4f} px rms / sqrt 2): solvers "
-        "take it as the least per-star centroid error of an attitude covariance (fusion.solve.base.attitude_covariance)\n",
+        "take it as the least per-star centroid error of an attitude covariance "
+        "(fusion.solve.base.attitude_covariance)\n",
     )
     cam.write_text("".join(lines))
     print(f"{cam}: camera.centroid_sigma_px = {sigma:.4f} px")
