@@ -173,6 +173,13 @@ class SensorConfig:
     )
     dead_pixel_fraction: float = param(1e-5, lo=0, hi=0.1, doc="fraction of pixels with no response (static map)")
     sensor_seed: int = param(1234, lo=0, doc="seed of the static sensor maps (PRNU, FPN, hot and dead pixels)")
+    fixed_sources: tuple[tuple[float, float, float, float], ...] = param(
+        (),
+        doc="light fixed on the sensor wherever the camera points (amplifier glow, a light leak, a bright defect): "
+        "[x_px, y_px, e-/s, sigma_px] each, a round Gaussian of that rate added to every frame's charge before "
+        "the noise (NumPy backend); skygen fit-camera finds them where the frames' uncatalogued detections recur "
+        "at one place from several pointings",
+    )
     sampler: str = param(
         "fast",
         choices=("fast", "exact"),
@@ -325,6 +332,18 @@ def check_consistency(cfg: RenderConfig) -> None:
         raise ConfigError(f"render.device: {r.device!r} is not allowed; expected cpu, cuda or cuda:N")
     if r.backend == "numpy" and r.device != "cpu":
         raise ConfigError(f"render.device={r.device} needs render.backend=torch (the numpy backend runs on the CPU)")
+    for k, src in enumerate(cfg.sensor.fixed_sources):
+        x, y, rate, sigma = src
+        if not (-0.5 <= x <= cam.width_px - 0.5 and -0.5 <= y <= cam.height_px - 0.5):
+            raise ConfigError(
+                f"sensor.fixed_sources[{k}]: ({x:g}, {y:g}) px must lie on the {cam.width_px} x {cam.height_px} sensor"
+            )
+        if rate < 0 or not (0 < sigma <= 100):
+            raise ConfigError(
+                f"sensor.fixed_sources[{k}]: rate {rate:g} e-/s must be >= 0 and sigma {sigma:g} px in (0, 100]"
+            )
+    if cfg.sensor.fixed_sources and r.backend == "torch":
+        raise ConfigError("sensor.fixed_sources needs render.backend=numpy (the torch backend does not draw them)")
     for key in ("principal_x_px", "principal_y_px"):
         v = getattr(cam, key)
         size = cam.width_px if key == "principal_x_px" else cam.height_px

@@ -52,6 +52,7 @@ NEUTRAL_DEFAULTS = {
     "photometry.star_scatter_mag": 0.0,
     "optics.sky_vignetting": None,
     "camera.centroid_sigma_px": None,
+    "sensor.fixed_sources": [],
 }
 
 

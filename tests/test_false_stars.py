@@ -125,8 +125,10 @@ def test_a_cameras_measured_centroid_error_changes_no_frame_id_and_no_calibratio
     assert content_id(fitted) == content_id(cfg)
     assert calibration_key(fitted) == calibration_key(cfg)
     old = {k: dict(v) if isinstance(v, dict) else v for k, v in cfg.items()}
-    del old["camera"]["centroid_sigma_px"]  # a dataset made before the key
+    del old["camera"]["centroid_sigma_px"], old["sensor"]["fixed_sources"]  # a dataset made before the keys
     assert content_id(old) == content_id(cfg)
+    glow = config_dict(load_config(overrides=["sensor.fixed_sources=[[10.0, 20.0, 100.0, 2.0]]"]))
+    assert content_id(glow) != content_id(cfg)  # light on the sensor is in the frames
 
 
 def test_the_bright_tail_is_capped_to_what_the_frames_brightest_ten_show():

@@ -37,11 +37,12 @@ TRUTH = {
 }
 
 
-def _write_truth(folder: Path, n: int = 5) -> Path:
+def _write_truth(folder: Path, n: int = 5, sensor: dict | None = None) -> Path:
     from skygen.config import build_config
     from skygen.render.frame import Renderer
 
-    cfg = build_config({**TRUTH, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
+    truth = {**TRUTH, "sensor": {**TRUTH["sensor"], **(sensor or {})}}
+    cfg = build_config({**truth, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
         cv2.imwrite(str(folder / f"frame{i}.png"), r.render(i).image_full.astype(np.uint16))
@@ -94,6 +95,7 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
 
     rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
     assert rec["geometry"]["rms_px"] < 0.3
+    assert rec["pixels"]["fixed_sources"] == [] and fit.sensor.fixed_sources == ()
     # the per-axis centroid error a solver's covariance assumes for this camera: the fit's residual / sqrt 2
     assert c.centroid_sigma_px == pytest.approx(rec["geometry"]["rms_px"] / np.sqrt(2), rel=1e-6)
     assert Camera.from_config(c).centroid_sigma_px == c.centroid_sigma_px
@@ -107,6 +109,35 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
 def _listed():
     with open(REAL / "solutions.csv", newline="") as f:
         return {r["file"]: float(r["fov_deg"]) for r in csv.DictReader(f)}
+
+
+def test_light_fixed_on_the_sensor_is_found_and_rendered(tmp_path):
+    """A glow fixed at one place on the sensor (sensor.fixed_sources) while the five frames point elsewhere:
+    fit-camera finds it among the detections no catalogue star explains (the same place from every pointing,
+    far beyond chance), writes it into the fitted camera at its place and brightness, and the fitted camera's
+    renders show it there; without one, none is found (the recovery test above writes an empty list)."""
+    glow = (490.0, 60.0, 2.0e5, 2.0)  # x, y px, e-/s, sigma px: ~24,000 ADU at the truth's exposure and gain
+    folder = _write_truth(tmp_path, sensor={"fixed_sources": [list(glow)]})
+    out = tmp_path / "fitted.yaml"
+    argv = ["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out)]
+    assert main([*argv, "--report", str(tmp_path / "rep")]) == 0
+    fit = load_config(out)
+    (x, y, rate, sigma), *rest = fit.sensor.fixed_sources
+    assert not rest
+    assert abs(x - glow[0]) < 1.0 and abs(y - glow[1]) < 1.0
+    adu_true = glow[2] * TRUTH["sensor"]["exposure_s"] / TRUTH["sensor"]["gain_e_per_adu"]
+    adu_fit = rate * fit.sensor.exposure_s / fit.sensor.gain_e_per_adu
+    assert 0.5 < adu_fit / adu_true < 1.2  # the detected flux: the glow's wings below the threshold are not in it
+    assert 1.0 < sigma < 3.0
+    import json
+
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    assert rec["pixels"]["fixed_sources"][0]["pointings"] == len(rec["solved"]) >= 4  # in every frame solved
+    assert "light fixed on the sensor" in (tmp_path / "rep" / "REPORT.md").read_text()
+    from skygen.render.frame import Renderer
+
+    f = Renderer(load_config(out, overrides=["n_frames=2", "output.full_res=true"])).render(1)
+    assert np.min(np.hypot(f.detections["x_px"] - glow[0], f.detections["y_px"] - glow[1])) < 1.0
 
 
 @pytest.mark.slow

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from skygen.cli import main
-from skygen.config import build_config, load_config
+from skygen.config import build_config, config_dict, load_config
 from skygen.errors import ConfigError, DatasetError
 from skygen.render.frame import Renderer
 from skygen.sky.attitude import attitude_matrices
@@ -94,6 +94,40 @@ def test_level_ranges_are_per_sample_and_applied(det_stream):
     varied = SampleStream(cfg, "detections", level_ranges={"centroid_noise": (0, 2)}).batch(np.arange(200))
     lv = varied.levels["centroid_noise"]
     assert lv.min() < 0.2 and lv.max() > 1.8
+
+
+def test_light_fixed_on_the_sensor_is_in_every_frame_and_sample():
+    """sensor.fixed_sources: a round Gaussian of the given rate at fixed pixels. Rendered frames detect it there
+    with the flux its electrons make, whatever the attitude; the detections stream places it too, with about the
+    same flux, and needs no new detector calibration (the stream adds it, as it adds false stars); the binned
+    renderer, which cannot paint it, is not used; bad sources are refused by name."""
+    src = (800.0, 300.0, 2.0e5, 2.0)  # px, px, e-/s, px
+    cfg = load_config(overrides=[f"sensor.fixed_sources=[{list(src)}]", "n_frames=3", "output.full_res=true"])
+    r = Renderer(cfg)
+    fluxes = []
+    for i in range(3):
+        d = r.render(i).detections
+        k = int(np.argmin(np.hypot(d["x_px"] - src[0], d["y_px"] - src[1])))
+        assert np.hypot(d["x_px"][k] - src[0], d["y_px"][k] - src[1]) < 0.2
+        fluxes.append(float(d["flux_adu"][k]))
+    electrons_adu = src[2] * cfg.sensor.exposure_s / cfg.sensor.gain_e_per_adu
+    assert 0.8 < np.median(fluxes) / electrons_adu <= 1.0  # the detector's footprint holds most of it
+    assert emu.calibration_key(config_dict(cfg)) == emu.calibration_key(config_dict(load_config()))
+    batch = SampleStream(cfg, "detections").batch(np.arange(4))
+    plain = SampleStream(load_config(), "detections").batch(np.arange(4))
+    for j in range(4):
+        d, d0 = batch.sample(j)["detections"], plain.sample(j)["detections"]
+        gap = np.hypot(np.asarray(d["x_px"]) - src[0], np.asarray(d["y_px"]) - src[1])
+        assert gap.min() < 0.5 and len(d["x_px"]) == len(d0["x_px"]) + 1
+        assert 0.8 < float(np.asarray(d["flux_adu"])[np.argmin(gap)]) / np.median(fluxes) < 1.25
+    binned = SampleStream(load_config(overrides=[f"sensor.fixed_sources=[{list(src)}]"]), "frames")
+    assert binned.frames_renderer == "full"
+    with pytest.raises(ConfigError, match=r"sensor.fixed_sources\[0\].*must lie on the"):
+        load_config(overrides=["sensor.fixed_sources=[[5000.0, 1.0, 1.0, 1.0]]"])
+    with pytest.raises(ConfigError, match=r"sensor.fixed_sources\[0\].*sigma"):
+        load_config(overrides=["sensor.fixed_sources=[[5.0, 1.0, 1.0, 0.0]]"])
+    with pytest.raises(ConfigError, match="needs render.backend=numpy"):
+        load_config(overrides=["sensor.fixed_sources=[[5.0, 1.0, 1.0, 1.0]]", "render.backend=torch"])
 
 
 def test_bad_input_is_refused_before_streaming(tmp_path):

@@ -40,7 +40,9 @@
    ``corruptions.stray_light`` (a ramp of the same size, random direction). Where the matched stars span the
    field, their own photometric residuals give the stars' vignetting (:func:`skygen.real.fit_render.star_vignetting`)
    and the background's fall is kept apart as ``optics.sky_vignetting``; the stars' photometric scatter beyond
-   the renders' own becomes ``photometry.star_scatter_mag`` (a fixed offset per star). Frames are then rendered at the
+   the renders' own becomes ``photometry.star_scatter_mag`` (a fixed offset per star); uncatalogued detections
+   that recur at one place from several pointings become ``sensor.fixed_sources`` (:mod:`skygen.real.fit_fixed`:
+   a glow on the sensor, rendered in every frame, and no false star). Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
    the real one (the detector's flux is not a star's whole flux). The renders' background, its noise, the
    star width and the detections per frame are checked against the frames

@@ -34,6 +34,8 @@ def fit_model_terms(
     """Step 6 (module doc). ``px``: :func:`skygen.real.fit_camera.measure_pixels`'s measurements (``meas`` is
     updated in place by a correction). Returns the config, the exposure, the real and rendered statistics
     (start camera, fitted camera), the checks, the correction made (or None) and the warnings."""
+    from skygen.real.fit_fixed import find as find_fixed
+    from skygen.real.fit_fixed import near_any as near_fixed
     from skygen.real.fit_geometry import radec_roll
     from skygen.real.frame_stats import check_renders, median_of
     from skygen.sky.catalog import SkyIndex
@@ -52,7 +54,12 @@ def fit_model_terms(
     # the detections no catalogue star explains, as magnitudes on the frames' zero point: the false stars'
     # brightness is fitted to them (:func:`fit_false_star_shape`)
     meas["sharp_per_frame"] = float(np.mean([r["sharp_sources"] for r in real_stats]))
-    flux = np.concatenate([r.pop("_unexplained_flux") for r in real_stats])
+    # light fixed on the sensor (a glow, a leak): rendered in every frame, and not a false star
+    un = [r.pop("_unexplained") for r in real_stats]
+    meas["fixed_sources"] = find_fixed(un, [g.rotations[k][:, 2] for k in picked], cam.width_px, cam.height_px)
+    flux = np.concatenate(
+        [u["flux_adu"][u["usable"] & ~near_fixed(u["x_px"], u["y_px"], meas["fixed_sources"])] for u in un]
+    )
     faint = (px["zp_real"], flux) if np.isfinite(px["zp_real"]) else None
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     render_zp = _render_stats(cfg, attitudes, table, sat)
@@ -587,6 +594,10 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     if hot["n_static"]:
         d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
     d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), MAX_FALSE_STARS))
+    d["sensor"]["fixed_sources"] = [  # light fixed on the sensor (skygen.real.fit_fixed): e-/s at this exposure
+        [s_["x_px"], s_["y_px"], float(min(s_["flux_adu"] * gain / exposure, 1e12)), s_["sigma_px"]]
+        for s_ in meas.get("fixed_sources", [])
+    ]
     d["photometry"]["star_scatter_mag"] = float(min(meas.get("star_scatter_mag", 0.0), 2.0))
     if "sharp_per_frame" in meas:  # particle hits: as many sharp sources per frame as the frames show
         area_cm2 = cfg0.camera.width_px * cfg0.camera.height_px * (pitch * 1e-4) ** 2
@@ -617,7 +628,15 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     st, det = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
     explained = explained_by(g.camera, g.rotations[k], sky, det["x_px"], det["y_px"])
     st["nonstar_brightest10"] = nonstar_brightest(det["flux_adu"], ~explained)
-    st["_unexplained_flux"] = point_source_flux(det, ~explained, st["background_adu"], sat)
+    # the detections no catalogue star explains (light fixed on the sensor is found among them, the rest are the
+    # false stars'), and which of them have a flux a false star could be drawn with
+    un = ~explained
+    st["_unexplained"] = {k: np.asarray(det[k], np.float64)[un] for k in ("x_px", "y_px", "flux_adu", "peak_adu")}
+    usable = point_source_flags(det, st["background_adu"], sat)
+    st["_unexplained"]["usable"] = usable[un]
+    fl, pk = np.asarray(det["flux_adu"], np.float64), np.asarray(det["peak_adu"], np.float64)
+    stars = explained & usable & (fl > 0)
+    st["_unexplained"]["star_share"] = float(np.median(pk[stars] / fl[stars])) if stars.sum() >= 3 else float("nan")
     st["sharp_sources"] = sharp_sources(det, explained, st["background_adu"], sat)
     m = g.keep[k]
     d = fs.det_index[m]
@@ -631,12 +650,18 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     return {**st, "zero_point_mag": zp, "zero_point_stars": n}
 
 
+def point_source_flags(det: dict, background_adu: float, sat: float) -> np.ndarray:
+    """Flags: the detections that are unsaturated (peak below 80 % of ``sat``). A saturated blob (a planet, the
+    Moon, a glint, a bright star's bloom) has no magnitude a false star could be drawn with, and one of them
+    alone would stretch the fitted brightness range by magnitudes."""
+    peak = np.asarray(det["peak_adu"], dtype=np.float64)
+    return peak + background_adu < 0.8 * sat
+
+
 def point_source_flux(det: dict, flags: np.ndarray, background_adu: float, sat: float) -> np.ndarray:
-    """The fluxes (ADU) of the ``flags``-ed detections that are unsaturated (peak below 80 % of ``sat``): a
-    saturated blob (a planet, the Moon, a glint, a bright star's bloom) has no magnitude a false star could
-    be drawn with, and one of them alone would stretch the fitted brightness range by magnitudes."""
-    flux, peak = np.asarray(det["flux_adu"], dtype=np.float64), np.asarray(det["peak_adu"], dtype=np.float64)
-    return flux[np.asarray(flags, bool) & (peak + background_adu < 0.8 * sat)]
+    """The fluxes (ADU) of the ``flags``-ed detections that are unsaturated (:func:`point_source_flags`)."""
+    flux = np.asarray(det["flux_adu"], dtype=np.float64)
+    return flux[np.asarray(flags, bool) & point_source_flags(det, background_adu, sat)]
 
 
 def sharp_sources(det: dict, explained: np.ndarray, background_adu: float, sat: float) -> int:
@@ -671,6 +696,7 @@ def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_p
 def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
     from skygen.config import build_config, config_dict
+    from skygen.real.fit_fixed import near_any as near_fixed
     from skygen.real.fit_pixels import zero_point
     from skygen.real.frame_stats import frame_stats, nonstar_brightest
     from skygen.render.frame import Renderer
@@ -698,7 +724,9 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         extra = {"nonstar_brightest10": nonstar_brightest(det["flux_adu"], ~star)}
         extra["sharp_sources"] = sharp_sources(det, star, st["background_adu"], sat)
         extra["_detection_limit_mag"] = r.detection_limit_mag
-        extra["_unexplained_flux"] = point_source_flux(det, ~star, st["background_adu"], sat)
+        # the false stars' own brightness: the sources fixed on the sensor (rendered too) are none of them
+        fixed = near_fixed(det["x_px"], det["y_px"], [{"x_px": q[0], "y_px": q[1]} for q in c.sensor.fixed_sources])
+        extra["_unexplained_flux"] = point_source_flux(det, ~star & ~fixed, st["background_adu"], sat)
         w, h = c.camera.width_px, c.camera.height_px  # the catalogue stars on the sensor, found or not
         sx, sy = np.asarray(f.stars["x_px"]), np.asarray(f.stars["y_px"])
         cat = np.flatnonzero((f.stars["hip_id"] >= 0) & (sx >= 3) & (sx <= w - 4) & (sy >= 3) & (sy <= h - 4))

@@ -171,6 +171,15 @@ def markdown(r: dict) -> str:
             + f"corruptions.false_stars {r['config']['corruptions']['false_stars']:.1f} per frame, the number that "
             "gives renders the frames' detections per frame, uniform over 4 mag above the detection limit"
         ),
+        "- light fixed on the sensor (sensor.fixed_sources, skygen.real.fit_fixed): "
+        + (
+            "; ".join(
+                f"at ({q['x_px']:.1f}, {q['y_px']:.1f}) px, {q['flux_adu']:.0f} ADU, sigma {q['sigma_px']:.1f} px, "
+                f"in {q['frames']} frames from {q['pointings']} pointings"
+                for q in px.get("fixed_sources", [])
+            )
+            or "none (no unexplained detection recurs at one place from 3 pointings beyond chance)"
+        ),
         f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
         f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
         "sensor.exposure_s)",

@@ -118,6 +118,8 @@ def unsupported_reason(renderer) -> str | None:
         )
     if f == 1:
         return None
+    if getattr(s, "fixed_sources", ()):
+        return "sensor.fixed_sources: the binned renderer does not paint light fixed on the sensor"
     if getattr(cam, "pixel_aspect", 1.0) != 1.0:
         return f"camera.pixel_aspect={cam.pixel_aspect:g}: the binned renderer paints square pixels only"
     if area_rounding(f) is None:

@@ -419,6 +419,20 @@ class Renderer:
             boxes.append(box)
         return boxes
 
+    def deposit_fixed(self, star_e: np.ndarray) -> list:
+        """Add ``sensor.fixed_sources`` (light fixed on the sensor: a round Gaussian of e-/s each, over the
+        exposure, in pixels whatever the pixel aspect) into ``star_e``; return the boxes touched."""
+        s = self.cfg.sensor
+        boxes = []
+        for x, y, rate, sigma in s.fixed_sources:
+            ((y0, x0, patch),) = gaussian_stamps(
+                np.array([x]), np.array([y]), np.array([rate * s.exposure_s]), float(sigma), 1.0
+            )
+            box = add_patch(star_e, y0, x0, patch)
+            if box is not None:
+                boxes.append(box)
+        return boxes
+
     # ------------------------------------------------------------------ scene
     def scene(self, i: int) -> "Scene":
         """Everything about frame ``i`` except the pixel noise: attitude, light sources,
@@ -481,6 +495,7 @@ class Renderer:
         sh = (cfg.camera.height_px, cfg.camera.width_px)
         star_e = np.zeros(sh, np.float32)
         boxes = self.deposit(scene.stars, star_e)
+        boxes += self.deposit_fixed(star_e)
         charge = None
         if scene.cosmic_rays:
             charge = np.zeros(sh, np.float32)

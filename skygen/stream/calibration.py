@@ -326,6 +326,7 @@ def calibration_config(cfg):
     data = config_dict(cfg)
     for name in STREAM_CORRUPTIONS:
         data["corruptions"][name] = 0.0
+    data["sensor"]["fixed_sources"] = []  # the stream places them itself (STREAM_SOURCES), as it does false stars
     return build_config(data)
 
 
@@ -376,6 +377,11 @@ def calibrate_from_dataset(path: str | Path, max_frames: int | None = None) -> D
                 f"{path}: rendered with detection-level corruptions {bad}; calibrate on a dataset "
                 "without them (the stream applies them itself), or let `skygen calibrate` render "
                 "its own frames"
+            )
+        if config.get("sensor", {}).get("fixed_sources"):
+            raise ConfigError(
+                f"{path}: rendered with sensor.fixed_sources, which the stream places itself; calibrate on a "
+                "dataset without them, or let `skygen calibrate` render its own frames"
             )
         cfg = build_config(config)
         r = Renderer(cfg)

@@ -69,6 +69,9 @@ BANK_ROWS_PER_BIN = 200
 KEY_SECTIONS = ("camera", "optics", "photometry", "sensor", "detection")
 KEY_CORRUPTIONS = ("hotpixels", "cosmic_rays", "motion_blur", "stray_light", "read_noise")
 STREAM_CORRUPTIONS = ("false_stars", "dropout", "centroid_noise", "magnitude_noise")
+# sources the stream places itself, as it does false stars: a calibration is made without them and does not
+# depend on them (skygen.stream.calibration.calibration_config)
+STREAM_SOURCES = ("sensor.fixed_sources",)
 # draw ids of one source (the stream multiplies the source id by DRAWS_PER_SOURCE)
 DRAWS_PER_SOURCE = 8
 _D_DETECT, _D_ROW, _D_BLEND = 0, 1, 2
@@ -88,7 +91,9 @@ def calibration_key(config: dict) -> dict:
     return {
         k: v
         for k, v in key.items()
-        if k not in STORAGE_KEYS and not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])
+        if k not in STORAGE_KEYS
+        and k not in STREAM_SOURCES
+        and not (k in NEUTRAL_DEFAULTS and v == NEUTRAL_DEFAULTS[k])
     }
 
 

@@ -74,6 +74,7 @@ _D_IMAGE = 17  # frames stream (binned): the seed of the image's noise
 _D_SPUR = 1 << 40
 _D_CORR = 1 << 44  # detection-level corruptions: + 4 * source id
 _FALSE_ID = 1 << 30  # source ids of false stars: _FALSE_ID + k (catalog rows are below)
+_FIXED_ID = 1 << 29  # source ids of sensor.fixed_sources: _FIXED_ID + k (above every catalog row, below false stars)
 SOURCE_BASE = 64
 
 
@@ -428,6 +429,21 @@ class SampleStream:
             star = np.concatenate([star, np.full(len(ffr), -1)])
             fr, x, y = np.concatenate([fr, ffr]), np.concatenate([x, fx]), np.concatenate([y, fy])
             e, src_id = np.concatenate([e, fe]), np.concatenate([src_id, fid])
+            hip, mag = np.concatenate([hip, np.full(len(ffr), -1)]), np.concatenate([mag, fmag])
+        # light fixed on the sensor (sensor.fixed_sources): in every sample at its pixels, no catalogue star; the
+        # emulated detector takes it as a point source of its electrons (its width is not emulated)
+        fixed = self.cfg.sensor.fixed_sources
+        if fixed:
+            k_fix = len(fixed)
+            src = np.asarray(fixed, np.float64)
+            ffr = np.repeat(np.arange(B), k_fix)
+            fx, fy = np.tile(src[:, 0], B), np.tile(src[:, 1], B)
+            fe = np.tile(src[:, 2] * self.cfg.sensor.exposure_s, B)
+            ref = float(r.photometry.electrons_per_s(np.array([0.0]), None)[0])  # e-/s of magnitude 0
+            fmag = np.tile(-2.5 * np.log10(np.maximum(src[:, 2], 1e-30) / ref), B)
+            star = np.concatenate([star, np.full(len(ffr), -1)])
+            fr, x, y = np.concatenate([fr, ffr]), np.concatenate([x, fx]), np.concatenate([y, fy])
+            e, src_id = np.concatenate([e, fe]), np.concatenate([src_id, _FIXED_ID + np.tile(np.arange(k_fix), B)])
             hip, mag = np.concatenate([hip, np.full(len(ffr), -1)]), np.concatenate([mag, fmag])
         # true-star table per sample (order: frame, then brightness)
         order = np.lexsort((-e, fr))
