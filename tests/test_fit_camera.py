@@ -140,6 +140,33 @@ def test_light_fixed_on_the_sensor_is_found_and_rendered(tmp_path):
     assert np.min(np.hypot(f.detections["x_px"] - glow[0], f.detections["y_px"] - glow[1])) < 1.0
 
 
+def test_a_glow_detected_in_fragments_is_one_source_with_their_light():
+    """fit_fixed.find on detection tables: a glow seen as three fragments at one place in each of four pointings is
+    one source whose flux is the fragments' sum per frame and whose place is their flux-weighted centre; a
+    place only two pointings share, a sharp (hot-pixel-like) detection recurring in every frame and random
+    uncatalogued detections are none; the same frames from one pointing (a staring camera) give none."""
+    from skygen.real.fit_fixed import find
+
+    rng = np.random.default_rng(4)
+    frames, bores = [], []
+    for f in range(6):
+        rows = [(300.0, 300.0, 900.0, 800.0)]  # x, y, flux, peak: sharp (peak / flux 0.9 > 2 x the stars' 0.1)
+        if f < 4:  # the glow's fragments
+            rows += [(100.0, 200.0, 500.0, 20.0), (103.0, 202.0, 300.0, 15.0), (98.0, 199.0, 200.0, 12.0)]
+        if f < 2:
+            rows += [(400.0, 50.0, 800.0, 60.0)]
+        rows += [(a, b, c, d) for a, b, c, d in zip(*rng.uniform([0, 0, 100, 8], [512, 512, 400, 30], (12, 4)).T)]
+        x, y, fl, pk = (np.array(v) for v in zip(*rows))
+        frames.append({"x_px": x, "y_px": y, "flux_adu": fl, "peak_adu": pk, "star_share": 0.1})
+        bores.append(np.array([np.cos(0.3 * f), np.sin(0.3 * f), 0.0]))
+    (src,) = find(frames, bores, 512, 512)
+    assert src["frames"] == src["pointings"] == 4
+    assert src["flux_adu"] == pytest.approx(1000.0)
+    assert src["x_px"] == pytest.approx((100 * 500 + 103 * 300 + 98 * 200) / 1000)
+    assert src["peak_adu"] == pytest.approx(20.0)
+    assert find(frames[:4], [bores[0]] * 4, 512, 512) == []
+
+
 @pytest.mark.slow
 def test_two_real_frames(tmp_path):
     """Loose tolerances (two frames); the full numbers on eight: results/real-frames/FIT_CAMERA.md."""

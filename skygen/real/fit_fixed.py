@@ -10,9 +10,13 @@ chance of :data:`FIXED_CHANCE` (the test of the solver's defect regions, ``fusio
 at least :data:`FIXED_MIN_POINTINGS` pointings. Sharp detections (a hot pixel, a particle hit) are left to the
 sensor's hot-pixel and cosmic-ray terms.
 
-Each source found is one round Gaussian: its position the median of its detections', its flux (ADU) their
-median detected flux, its width from flux and peak (a Gaussian's peak is flux / (2 pi sigma^2)); the fitted
-camera renders it in every frame (``skygen.render.frame.Renderer.deposit_fixed``).
+Each source found is one round Gaussian: its position the median of its detections' (per frame, the
+flux-weighted centre of its fragments: an extended glow can be detected in pieces), its width from the detected
+flux per frame (the fragments' sum) and peak (a Gaussian's peak is flux / (2 pi sigma^2)). A Gaussian's light
+below the detection threshold is not detected, so the fit renders it, measures it as the frames were measured
+(:func:`detected_near`) and scales its light once so that the renders detect what the frames do
+(``skygen.real.fit_render.fit_model_terms``); the fitted camera renders it in every frame
+(``skygen.render.frame.Renderer.deposit_fixed``).
 """
 
 from __future__ import annotations
@@ -115,19 +119,37 @@ def find(unexplained: list, boresights: list, width_px: int, height_px: int) -> 
         m = np.asarray(members)
         if len(set(point[m].tolist())) < FIXED_MIN_POINTINGS:
             continue
-        fl, pk = flux[m], np.maximum(peak[m], 1e-9)
-        sigma = float(np.clip(np.median(np.sqrt(np.maximum(fl, 0.0) / (2 * math.pi * pk))), 0.5, 20.0))
+        # per frame: an extended glow may be detected as a few fragments; its light is their sum, its place their
+        # flux-weighted centre, its peak the highest of theirs
+        per = []
+        for f in sorted(set(frame[m].tolist())):
+            k = m[frame[m] == f]
+            w = np.maximum(flux[k], 0.0)
+            tot = float(w.sum())
+            cx = float(np.average(x[k], weights=w)) if tot > 0 else float(np.mean(x[k]))
+            cy = float(np.average(y[k], weights=w)) if tot > 0 else float(np.mean(y[k]))
+            per.append((cx, cy, tot, float(peak[k].max())))
+        cx, cy, tot, pk = (np.array(v) for v in zip(*per))
+        fl, top = float(np.median(tot)), max(float(np.median(pk)), 1e-9)
         out.append(
             {
-                "x_px": float(np.median(x[m])),
-                "y_px": float(np.median(y[m])),
-                "flux_adu": float(np.median(fl)),
-                "sigma_px": sigma,
-                "frames": int(len(set(frame[m].tolist()))),
+                "x_px": float(np.median(cx)),
+                "y_px": float(np.median(cy)),
+                "flux_adu": fl,  # detected, per frame (median): what renders of it must detect
+                "peak_adu": top,
+                "sigma_px": float(np.clip(math.sqrt(max(fl, 0.0) / (2 * math.pi * top)), 0.5, 20.0)),
+                "frames": int(len(per)),
                 "pointings": int(len(set(point[m].tolist()))),
             }
         )
     return sorted(out, key=lambda s: -s["flux_adu"])
+
+
+def detected_near(x: np.ndarray, y: np.ndarray, flux: np.ndarray, sources) -> list:
+    """The detected flux within :data:`FIXED_RADIUS_PX` of each source's place (``sources``: (x, y, ...) rows),
+    summed: how a frame shows each one, measured as :func:`find` measures the real frames."""
+    x, y, flux = (np.asarray(a, np.float64) for a in (x, y, flux))
+    return [float(flux[np.hypot(x - s[0], y - s[1]) <= FIXED_RADIUS_PX].sum()) for s in sources]
 
 
 def near_any(x: np.ndarray, y: np.ndarray, sources: list) -> np.ndarray:

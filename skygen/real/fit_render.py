@@ -63,6 +63,13 @@ def fit_model_terms(
     faint = (px["zp_real"], flux) if np.isfinite(px["zp_real"]) else None
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     render_zp = _render_stats(cfg, attitudes, table, sat)
+    if meas["fixed_sources"]:  # once: as much light as makes the renders detect what the frames do
+        for q, got in zip(meas["fixed_sources"], np.median([r["_fixed_flux"] for r in render_zp], axis=0)):
+            q["light_adu"] = q["flux_adu"] * float(np.clip(q["flux_adu"] / max(got, 1e-9), 1.0, 20.0))
+        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
+        render_zp = _render_stats(cfg, attitudes, table, sat)
+        for q, got in zip(meas["fixed_sources"], np.median([r["_fixed_flux"] for r in render_zp], axis=0)):
+            q["rendered_adu"] = float(got)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
     meas["star_scatter_mag"] = meas["star_scatter"]["fitted_mag"]
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
@@ -594,9 +601,11 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
     if hot["n_static"]:
         d["sensor"]["hot_pixel_dark_e_s"] = float(min(hot["excess_adu"] * gain / exposure, 1e9))
     d["corruptions"]["false_stars"] = float(min(meas.get("faint_sources_per_frame", 0.0), MAX_FALSE_STARS))
-    d["sensor"]["fixed_sources"] = [  # light fixed on the sensor (skygen.real.fit_fixed): e-/s at this exposure
-        [s_["x_px"], s_["y_px"], float(min(s_["flux_adu"] * gain / exposure, 1e12)), s_["sigma_px"]]
-        for s_ in meas.get("fixed_sources", [])
+    # light fixed on the sensor (skygen.real.fit_fixed) in e-/s at this exposure: its light as the fit scaled it
+    # to be detected as the frames detect it (fit_model_terms), else its detected flux
+    d["sensor"]["fixed_sources"] = [
+        [q["x_px"], q["y_px"], float(min(q.get("light_adu", q["flux_adu"]) * gain / exposure, 1e12)), q["sigma_px"]]
+        for q in meas.get("fixed_sources", [])
     ]
     d["photometry"]["star_scatter_mag"] = float(min(meas.get("star_scatter_mag", 0.0), 2.0))
     if "sharp_per_frame" in meas:  # particle hits: as many sharp sources per frame as the frames show
@@ -696,6 +705,7 @@ def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_p
 def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
     from skygen.config import build_config, config_dict
+    from skygen.real.fit_fixed import detected_near
     from skygen.real.fit_fixed import near_any as near_fixed
     from skygen.real.fit_pixels import zero_point
     from skygen.real.frame_stats import frame_stats, nonstar_brightest
@@ -727,6 +737,7 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         # the false stars' own brightness: the sources fixed on the sensor (rendered too) are none of them
         fixed = near_fixed(det["x_px"], det["y_px"], [{"x_px": q[0], "y_px": q[1]} for q in c.sensor.fixed_sources])
         extra["_unexplained_flux"] = point_source_flux(det, ~star & ~fixed, st["background_adu"], sat)
+        extra["_fixed_flux"] = detected_near(det["x_px"], det["y_px"], det["flux_adu"], c.sensor.fixed_sources)
         w, h = c.camera.width_px, c.camera.height_px  # the catalogue stars on the sensor, found or not
         sx, sy = np.asarray(f.stars["x_px"]), np.asarray(f.stars["y_px"])
         cat = np.flatnonzero((f.stars["hip_id"] >= 0) & (sx >= 3) & (sx <= w - 4) & (sy >= 3) & (sy <= h - 4))

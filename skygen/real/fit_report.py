@@ -174,8 +174,9 @@ def markdown(r: dict) -> str:
         "- light fixed on the sensor (sensor.fixed_sources, skygen.real.fit_fixed): "
         + (
             "; ".join(
-                f"at ({q['x_px']:.1f}, {q['y_px']:.1f}) px, {q['flux_adu']:.0f} ADU, sigma {q['sigma_px']:.1f} px, "
-                f"in {q['frames']} frames from {q['pointings']} pointings"
+                f"at ({q['x_px']:.1f}, {q['y_px']:.1f}) px, {q['flux_adu']:.0f} ADU detected per frame (renders: "
+                f"{q.get('rendered_adu', float('nan')):.0f}), sigma {q['sigma_px']:.1f} px, in {q['frames']} frames "
+                f"from {q['pointings']} pointings"
                 for q in px.get("fixed_sources", [])
             )
             or "none (no unexplained detection recurs at one place from 3 pointings beyond chance)"
