@@ -224,6 +224,13 @@ def main(argv=None) -> int:
         help="real frames and renders alike: drop detections at defect pixels learned from the other frames "
         "(real_few_star.py --known-defects)",
     )
+    p.add_argument(
+        "--correct-deg",
+        type=float,
+        default=0.1,
+        help="boresight bound of a correct answer (real_few_star.py's; a wide field needs more than 0.1 deg, which "
+        "is 2 px at 51 deg over 1024 px)",
+    )
     p.add_argument("--out", required=True, help="folder for sim_vs_real.json and sim_vs_real.md")
     a = p.parse_args(argv)
     out = Path(a.out)
@@ -234,6 +241,7 @@ def main(argv=None) -> int:
     # with a model, its own camera detects and solves (the camera file still renders the frames)
     cam, kw = (None, {"checkpoint": a.checkpoint}) if a.checkpoint else (a.camera, {})
     kw["known_defects"] = a.known_defects
+    kw["correct_deg"] = a.correct_deg
     real = run(load_frames(a.frames, None, a.channel), cam, a.n, a.solvers, log=log, **kw)
     if not real["frames_kept"]:
         raise SystemExit("sim_vs_real: no real frame has a certain truth attitude: nothing to predict")

@@ -49,6 +49,23 @@ def test_no_detections_on_pure_noise():
     assert n <= 1
 
 
+def test_crushed_blacks_set_no_threshold_below_the_adc_rounding():
+    """An 8-bit JPEG's dark sky is one value (0) with compression speckles of 1-3 ADU: its measured noise is ~0, and
+    a threshold of five times that would make every speckle a source. The noise estimate stops at the rounding's
+    own 1 / sqrt(12) ADU, so the speckles stay below the threshold and the one star is found."""
+    rng = np.random.default_rng(2)
+    img = np.zeros((256, 256), np.float32)
+    spots = rng.integers(0, 256, (300, 2))
+    img[spots[:, 0], spots[:, 1]] = 1.0  # isolated one-ADU speckles
+    img[10:12, 10:12] = 1.0  # a 2 x 2 one: four pixels at 1 ADU
+    y, x = np.mgrid[0:256, 0:256]
+    img += np.round(60 * np.exp(-((x - 128.3) ** 2 + (y - 99.6) ** 2) / (2 * 1.5**2)))
+    bg, sigma = estimate_background(img)
+    assert bg == 0.0 and sigma == pytest.approx(1 / np.sqrt(12))
+    det, _, _ = detect(img, max_detections=200)
+    assert len(det["x_px"]) == 1 and abs(det["x_px"][0] - 128.3) < 0.1 and abs(det["y_px"][0] - 99.6) < 0.1
+
+
 def test_brightest_first_and_match_is_one_to_one():
     img = frame_with_stars([100.0, 300.0, 400.0], [100.0, 300.0, 120.0], 5000.0)
     img2 = frame_with_stars([100.0], [100.0], 50000.0, seed=1)

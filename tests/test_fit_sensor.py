@@ -118,6 +118,25 @@ def test_an_impossible_bias_is_refused_and_the_direct_fit_says_what_it_used():
     assert rec["direct"]["model_sigma_adu"] == pytest.approx(rec["sigma_adu"], rel=0.01)
 
 
+def test_darks_quieter_than_the_adc_rounding_keep_the_start_cameras_gain_and_say_so():
+    """An 8-bit JPEG's crushed blacks: every background box at 0 ADU with no noise. No gain gives a read-out less
+    noisy than its own rounding, so the start camera's gain, read noise and FPN are kept and the line says why
+    (a first run on such frames fitted a gain of 2e6 e-/ADU and stopped on the config's range check)."""
+    from skygen.config import build_config
+
+    n = 200
+    boxes = {k: np.zeros(n) for k in ("level", "variance", "level_noise", "sigma")}
+    start = build_config({}).sensor
+    fit, rec = S.fit_sensor(boxes, start, None, 255, "the start camera's")
+    assert fit.method == "kept" and fit.gain_e_per_adu == start.gain_e_per_adu
+    assert fit.read_noise_e == start.read_noise_e and rec["method"] == "kept"
+    assert "below an ADC's own rounding" in fit.said and "renders will show more background noise" in fit.said
+    build_config({"sensor": {"gain_e_per_adu": fit.gain_e_per_adu}})  # a valid camera
+    # the same through a correction's targets (renders' noise scaled down towards the frames' 0)
+    fit, _ = S.fit_sensor(boxes, start, 0, 255, "as fitted", targets=(0.05, 0.001))
+    assert fit.method == "kept"
+
+
 def test_fixed_pattern_is_the_covariance_frames_share():
     _, imgs = _frames_boxes(20.0, 0.3, 2.0, 3.0, 4, 0.7, 255, n=4)
     bgs = [background(im, 64) for im in imgs]

@@ -37,12 +37,18 @@ _CLIP = 3.0
 _CLIP_STD_FACTOR = 0.98657  # std of a unit Gaussian truncated at +-3 sigma
 
 
+# the least background noise a threshold is set from: an integer read-out's rounding alone (ADU rms). Frames whose
+# darks are clipped to one value (an 8-bit JPEG's crushed blacks) measure ~0, and a threshold of a few times that
+# would detect every compression artefact as a source
+QUANTUM_SIGMA_ADU = 1.0 / np.sqrt(12.0)
+
+
 def estimate_background(image: np.ndarray, stride: int = 8) -> tuple[float, float]:
     """(level, sigma) of the background in ADU from a strided subsample.
 
     Iterative 3-sigma clipping around the median; the clipped standard deviation is
     corrected for the truncation. Unlike the MAD this stays accurate when the noise is
-    only one or two ADU (quantised values).
+    only one or two ADU (quantised values). Never below :data:`QUANTUM_SIGMA_ADU`.
     """
     sub = image[::stride, ::stride].astype(np.float32).ravel()
     level = float(np.median(sub))
@@ -51,7 +57,7 @@ def estimate_background(image: np.ndarray, stride: int = 8) -> tuple[float, floa
         keep = sub[np.abs(sub - level) < _CLIP * sigma]
         level = float(keep.mean())
         sigma = max(float(keep.std()) / _CLIP_STD_FACTOR, 1e-3)
-    return level, sigma
+    return level, max(sigma, QUANTUM_SIGMA_ADU)
 
 
 def background_map(image: np.ndarray, box_px: int = 64) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +139,7 @@ def clipped_stats(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         std = np.sqrt((dev * dev).sum(axis=1, dtype=np.float32) / n)
         level = mean.astype(np.float64)
         sigma = np.maximum(std.astype(np.float64) / _CLIP_STD_FACTOR, 1e-3)
-    return level, sigma
+    return level, np.maximum(sigma, QUANTUM_SIGMA_ADU)
 
 
 def _linear_weights(position: np.ndarray, n: int) -> np.ndarray:

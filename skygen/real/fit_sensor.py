@@ -53,8 +53,9 @@ _CLIP, _CLIP_STD_FACTOR = 3.0, 0.98657  # skygen.instrument.detect.estimate_back
 @dataclasses.dataclass(frozen=True)
 class SensorFit:
     """The fitted sensor: gain (e-/ADU), bias (ADU, an integer as skygen's model has it), read noise (e-),
-    offset FPN (ADU rms); ``method``: "mean-variance" or "direct"; ``refused``: one sentence per term the
-    frames could not give (empty when the line stands); ``said``: the one line that says what was used."""
+    offset FPN (ADU rms); ``method``: "mean-variance", "direct" or "kept" (the start camera's: frames whose
+    background shows less noise than an ADC rounds to); ``refused``: one sentence per term the frames could not
+    give (empty when the line stands); ``said``: the one line that says what was used."""
 
     gain_e_per_adu: float
     bias_adu: int
@@ -239,6 +240,9 @@ def mean_variance(
 
 
 # ----------------------------------------------------------------------------------- the direct fit
+QUANTISATION_SIGMA_ADU = 1 / np.sqrt(12)  # the noise an ADC's rounding alone gives a level that varies (ADU rms)
+
+
 def fit_direct(
     level_adu: float, sigma_adu: float, bias: int, read_e: float, fpn_adu: float, top: int
 ) -> tuple[float, float, float]:
@@ -315,9 +319,25 @@ def fit_sensor(
     fpn0, fpn_from = (
         (s.fpn_adu, start_name) if fpn_measured is None else (fpn_measured, "measured: the pattern frames share")
     )
+    refused = () if mv["ok"] else (f"{mv['term']} not constrained by these frames ({mv['why']})",)
+    if sigma < QUANTISATION_SIGMA_ADU:
+        # no read-out of charge through an ADC shows less noise than its own rounding: these darks were clipped or
+        # smoothed (an 8-bit JPEG's crushed blacks, a denoiser), and no gain reproduces them
+        gain, fpn = float(s.gain_e_per_adu), float(fpn0)
+        lam = max(level - bias + 0.5, 0.0) * gain
+        lv, sg = model_background(lam, gain, s.read_noise_e, bias, fpn, top)
+        used = (
+            f"the background's noise, σ {sigma:.2f} ADU, is below an ADC's own rounding ({QUANTISATION_SIGMA_ADU:.2f} "
+            f"ADU): the frames' darks are clipped or smoothed (8-bit JPEG, a denoiser) and no gain reproduces them; "
+            f"{start_name} gain {gain:.3g} e-/ADU, read noise {s.read_noise_e:.3g} e- and FPN {fpn:.3g} ADU kept, "
+            f"{lam:.3g} e- of background from the level {level:.2f} ADU (bias {bias} ADU, {bias_from}): renders will "
+            f"show more background noise ({sg:.2f} ADU) than these frames"
+        )
+        said = "; ".join(refused) + ": " + used if refused else used
+        fit = SensorFit(gain, bias, s.read_noise_e, fpn, "kept", refused, said)
+        return fit, {**rec, "method": "kept", "said": said}
     gain, lam, fpn = fit_direct(level, sigma, bias, s.read_noise_e, fpn0, top)
     lv, sg = model_background(lam, gain, s.read_noise_e, bias, fpn, top)
-    refused = () if mv["ok"] else (f"{mv['term']} not constrained by these frames ({mv['why']})",)
     used = (
         f"gain {gain:.3g} e-/ADU and {lam:.3g} e- of background fitted to the background's level {level:.2f} ADU "
         f"and σ {sigma:.2f} ADU (model: {lv:.2f}, {sg:.2f}), with bias {bias} ADU ({bias_from}), read noise "
