@@ -533,9 +533,10 @@ SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
             "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
             "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
             "noise (background mean-variance), sky level, gradient and vignetting, PSF (Gaussian or "
-            "Moffat), hot pixels, the photometric zero point (as exposure x throughput) and the "
-            "detector settings. Writes a camera YAML that `skygen render --config` and `fusion predict "
-            "--camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
+            "Moffat), hot pixels, light fixed on the sensor (a glow: sensor.fixed_sources), the photometric "
+            "zero point (as exposure x throughput), the detector settings and the centroid error solvers "
+            "should assume (camera.centroid_sigma_px). Writes a camera YAML that `skygen render --config` "
+            "and `fusion predict --camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
             "already described.",
         ),
         _add_fit_camera,
