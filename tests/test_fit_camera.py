@@ -133,6 +133,8 @@ def test_light_fixed_on_the_sensor_is_found_and_rendered(tmp_path):
 
     rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
     assert rec["pixels"]["fixed_sources"][0]["pointings"] == len(rec["solved"]) >= 4  # in every frame solved
+    q = rec["pixels"]["fixed_sources"][0]
+    assert abs(q["rendered_adu"] / q["flux_adu"] - 1) <= 0.1  # its renders detect what the frames do
     assert "light fixed on the sensor" in (tmp_path / "rep" / "REPORT.md").read_text()
     from skygen.render.frame import Renderer
 

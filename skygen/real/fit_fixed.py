@@ -14,7 +14,8 @@ Each source found is one round Gaussian: its position the median of its detectio
 flux-weighted centre of its fragments: an extended glow can be detected in pieces), its width from the detected
 flux per frame (the fragments' sum) and peak (a Gaussian's peak is flux / (2 pi sigma^2)). A Gaussian's light
 below the detection threshold is not detected, so the fit renders it, measures it as the frames were measured
-(:func:`detected_near`) and scales its light once so that the renders detect what the frames do
+(:func:`detected_near`) and scales its light until the renders detect what the frames do (within 10 %, at most
+three more renders)
 (``skygen.real.fit_render.fit_model_terms``); the fitted camera renders it in every frame
 (``skygen.render.frame.Renderer.deposit_fixed``).
 """

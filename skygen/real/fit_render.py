@@ -63,13 +63,21 @@ def fit_model_terms(
     faint = (px["zp_real"], flux) if np.isfinite(px["zp_real"]) else None
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
     render_zp = _render_stats(cfg, attitudes, table, sat)
-    if meas["fixed_sources"]:  # once: as much light as makes the renders detect what the frames do
-        for q, got in zip(meas["fixed_sources"], np.median([r["_fixed_flux"] for r in render_zp], axis=0)):
-            q["light_adu"] = q["flux_adu"] * float(np.clip(q["flux_adu"] / max(got, 1e-9), 1.0, 20.0))
+    # light fixed on the sensor: as much light as makes the renders detect what the frames do (a Gaussian's light
+    # below the threshold is not detected, and how much of it is depends on the light: scaled until the renders'
+    # detected flux is within FIXED_FLUX_TOL of the frames', at most FIXED_STEPS renders)
+    for step in range(FIXED_STEPS + 1 if meas["fixed_sources"] else 0):
+        got = np.median([r["_fixed_flux"] for r in render_zp], axis=0)
+        for q, g_ in zip(meas["fixed_sources"], got):
+            q["rendered_adu"] = float(g_)
+        near = all(abs(g_ / q["flux_adu"] - 1) <= FIXED_FLUX_TOL for q, g_ in zip(meas["fixed_sources"], got))
+        if near or step == FIXED_STEPS:
+            break
+        for q, g_ in zip(meas["fixed_sources"], got):
+            light = q.get("light_adu", q["flux_adu"]) * q["flux_adu"] / max(float(g_), 1e-9)
+            q["light_adu"] = float(np.clip(light, q["flux_adu"], 20 * q["flux_adu"]))
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
         render_zp = _render_stats(cfg, attitudes, table, sat)
-        for q, got in zip(meas["fixed_sources"], np.median([r["_fixed_flux"] for r in render_zp], axis=0)):
-            q["rendered_adu"] = float(got)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
     meas["star_scatter_mag"] = meas["star_scatter"]["fitted_mag"]
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
@@ -132,6 +140,10 @@ def miss(checks: list) -> float:
 
 #: the most frames whose statistics the renders are checked against (and rendered at)
 CHECK_FRAMES = 16
+#: light fixed on the sensor: its renders' detected flux within this of the frames' (relative), in at most this many
+#: renders of the check frames beyond the first (skygen.real.fit_fixed)
+FIXED_FLUX_TOL = 0.1
+FIXED_STEPS = 3
 
 
 def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, table, sat, start: float, faint=None):
