@@ -287,6 +287,62 @@ def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_fro
         CoarseToFineSolver(tetra, None, then_whole_sky=True, whole_sky_from=2)
 
 
+def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections(renderer, tetra, regions):
+    """With sky_first_from (4, below whole_sky_from), four detections are searched over the whole sky first, the
+    answer the plain whole-sky solver gives, the prior not asked; where the sky refuses (here its work budget is
+    too small for the sky, not for two regions), the prior's regions are searched on their own and give
+    learned + fine's answer. Three detections still go to the prior's regions first."""
+    from fusion.solve.fine import REST_OF_SKY, SKY_FIRST_FROM, CoarseToFineSolver
+    from fusion.solve.priors import OraclePrior, RegionPrior
+
+    class Counting(RegionPrior):
+        def __init__(self, oracle, v, i):
+            self.centroids, self.oracle, self.v, self.i, self.calls = oracle.centroids, oracle, v, i, 0
+
+        def probabilities(self, detections, image=None):
+            self.calls += 1
+            return self.oracle.probabilities_for(self.v, self.i)
+
+    assert SKY_FIRST_FROM == 4
+    cam = renderer.camera
+    seen = {"sky": 0, "regions": 0}
+    for budget in (None, 300):
+        whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02, max_hypotheses=budget)
+        for i in range(6):
+            f = renderer.render(i)
+            prior = Counting(OraclePrior(regions), f.unit_vector, i)
+            kw = dict(top_k=2, focal_tol=0.02, max_hypotheses=budget)
+            chain = CoarseToFineSolver(tetra, prior, then_whole_sky=True, whole_sky_from=6, sky_first_from=4, **kw)
+            alone = CoarseToFineSolver(tetra, prior, name=chain.name, **kw)
+            det = Detections.from_table(f.detections).brightest(4)
+            got, ref = chain.solve(det, cam), whole.solve(det, cam)
+            if isinstance(ref, Solution):
+                assert isinstance(got, Solution) and prior.calls == 0
+                assert np.allclose(got.matrix, ref.matrix) and got.extra["region"] == REST_OF_SKY
+                assert got.extra["order"] == "sky first"
+                seen["sky"] += 1
+            else:
+                assert prior.calls == 1
+                calls = prior.calls
+                own = alone.solve(det, cam)
+                assert type(got) is type(own)
+                if isinstance(got, Solution):
+                    assert np.allclose(got.matrix, own.matrix) and got.extra["region"] != REST_OF_SKY
+                    assert got.extra["order"] == "prior's regions after the sky"
+                    assert boresight_error_deg(attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg), got.matrix) < 0.05
+                    seen["regions"] += 1
+                else:
+                    assert got.status == own.status or ref.status == got.status
+                prior.calls = calls
+            chain.solve(Detections.from_table(f.detections).brightest(3), cam)
+            assert prior.calls >= 1  # three detections: the prior first
+    assert seen["sky"] >= 3 and seen["regions"] >= 2
+    for bad in (dict(sky_first_from=4), dict(then_whole_sky=True, sky_first_from=2),
+                dict(then_whole_sky=True, whole_sky_from=5, sky_first_from=5)):  # fmt: skip
+        with pytest.raises(ValueError, match="sky_first_from"):
+            CoarseToFineSolver(tetra, None, **bad)
+
+
 def test_the_learned_chain_searches_fewer_fine_regions_before_the_sky(renderer, tetra, regions):
     """With a fine-level prior the chain searches 5 regions before the sky (80 for three detections, as many as
     learned+fine's 20 x 4), learned+fine alone 20; --search-k K sets K for both (x 4 for three detections)."""

@@ -82,7 +82,13 @@ not consulted (region index -1) — the prior's coarse
 regions, or, for a checkpoint trained with fine regions, its fine regions (a few degrees
 across, :meth:`fusion.solve.priors.CheckpointPrior.at_level`), which narrow the search
 about ten times more per region searched; the hypothesis count H accumulates, so searching
-more regions demands stronger evidence. The prior is pluggable: any
+more regions demands stronger evidence. With ``sky_first_from`` (the registered chain: :data:`SKY_FIRST_FROM`,
+4), frames of that many detections and fewer than ``whole_sky_from`` search the whole sky first, as the plain
+whole-sky solver does, and only where it refuses the prior's regions (strict pass only: the sky's focal pass held
+them), as a search of their own: its own H, the bar learned + fine answers with, so the chain's chance of a wrong
+answer is at most the two searches' together (``extra["order"]`` says which answered). The cheaper certain answer
+first: at N = 4 the sky answers most frames in ~1.2 ms, the prior's forward and regions cost ~2.2 ms first.
+The prior is pluggable: any
 :class:`fusion.solve.priors.RegionPrior`, or probabilities passed to
 :meth:`CoarseToFineSolver.solve`. Doubtful candidates are :class:`~fusion.solve.base.Refusal`
 values (the reason why, and a status code), never strings.
@@ -201,6 +207,13 @@ REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_wh
 # % clean and at 0.25 mag, 2 points fewer at 0.1 and 0.5 mag (3 of 150 frames), 8 more at 1 mag, and the chain's p99
 # 4-5 times shorter (refused regions no longer precede the sky). At N = 4 the prior adds points (87 against 83 %)
 WHOLE_SKY_FROM = 5
+# the learned chain from this many detections (and fewer than WHOLE_SKY_FROM): the whole sky first, the prior's
+# regions only where it refuses (their own search). Measured (results/benchmark/sky-first, two seeds, 300 frames,
+# clean and 16 corrupted cells at N = 4, both orders interleaved in one process): the same answers in every cell;
+# medians 2.2-2.9 -> 1.2-1.3 ms clean and within 3 ms in 12 of 16 corrupted cells (4-6 before), slower only where
+# the sky refuses most frames (1-4 px of centroid noise, 8 false stars); p99 within 18 ms. At N = 3 the sky answers
+# a third of frames, so the prior stays first there
+SKY_FIRST_FROM = 4
 TRACKING = -2  # Region.index of a tracking hint's region
 FEW_TOP_K_FACTOR = 4  # three detections: this many times top_k regions (see solve)
 
@@ -360,6 +373,7 @@ class CoarseToFineSolver:
         few_top_k_factor: int = FEW_TOP_K_FACTOR,
         then_whole_sky: bool = False,
         whole_sky_from: int | None = None,
+        sky_first_from: int | None = None,
         max_detections: int | None = 24,
         max_hypotheses: int | None = None,
         clustering: bool = True,
@@ -377,6 +391,18 @@ class CoarseToFineSolver:
         if whole_sky_from is not None and (not then_whole_sky or whole_sky_from < 3):
             raise ValueError(f"whole_sky_from={whole_sky_from!r}: at least 3 detections, and only with then_whole_sky")
         self.whole_sky_from = whole_sky_from
+        if sky_first_from is not None and (
+            not then_whole_sky
+            or sky_first_from < 3
+            or (whole_sky_from is not None and sky_first_from >= whole_sky_from)
+        ):
+            raise ValueError(
+                f"sky_first_from={sky_first_from!r}: at least 3 detections, fewer than whole_sky_from "
+                f"({whole_sky_from}), and only with then_whole_sky"
+            )
+        self.sky_first_from = sky_first_from
+        self._stages_cache = None
+        self._strict_only = False  # the prior's regions after the sky (sky_first_from): the sky's focal pass held them
         if max_detections is not None and max_detections < 3:
             raise ValueError(f"max_detections={max_detections}: at least 3, or None (all)")
         self.max_detections = max_detections
@@ -728,6 +754,14 @@ class CoarseToFineSolver:
         every = detections
         if self.max_detections is not None and len(detections) > self.max_detections:
             detections = detections.brightest(self.max_detections)
+        if (
+            self.sky_first_from is not None
+            and probabilities is None
+            and self.prior is not None
+            and len(detections) >= self.sky_first_from
+            and (self.whole_sky_from is None or len(detections) < self.whole_sky_from)
+        ):
+            return self._sky_then_regions(every, camera, image, t0)
         centroids = None
         # from whole_sky_from detections on, the whole sky is searched at once (measured the cheaper certain
         # answer there: the prior's regions first only cost time, and magnitude noise misleads them)
@@ -756,7 +790,7 @@ class CoarseToFineSolver:
         # strict first (the nominal focal length, every region), then within +-focal_tol: a wider
         # search finds more coincidences, so it runs only where the strict one found nothing,
         # and the hypotheses of both count towards H
-        passes = (0.0, self.focal_tol) if self.focal_tol > 0 else (0.0,)
+        passes = (0.0, self.focal_tol) if self.focal_tol > 0 and not self._strict_only else (0.0,)
         # three detections: a prior ranks the true region lower, and each region's search is cheap and counts
         # only its own hypotheses, so it searches few_top_k_factor times as many (20 -> 80 fine regions:
         # 47 -> 51 % at N = 3 on results/benchmark's frames, the true region's own rate)
@@ -846,6 +880,39 @@ class CoarseToFineSolver:
                     if doubtful:
                         break  # this pass's best is doubtful: go on
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried, "work": work}, last.status)
+
+    def _stages(self):
+        """(the whole sky alone, the prior's regions alone): shallow copies of this solver sharing its tables."""
+        if self._stages_cache is None:
+            import copy
+
+            sky, regions = copy.copy(self), copy.copy(self)
+            for stage in (sky, regions):
+                stage.then_whole_sky, stage.whole_sky_from, stage.sky_first_from = False, None, None
+            sky.prior, sky.radii = None, None
+            # the regions lie inside the sky, whose focal pass has searched them already; a region's own focal pass
+            # scans the whole +-focal_tol separation window for its few stars (see sky_focal_only in solve)
+            regions._strict_only = True
+            self._stages_cache = (sky, regions)
+        return self._stages_cache
+
+    def _sky_then_regions(self, detections: Detections, camera, image, t0: float) -> Solution | Refusal:
+        """``sky_first_from``: the whole sky (one search, the budget), then, where it refuses, the prior's regions
+        (a search of their own: its own H and budget). The answer's ``extra["order"]`` says which answered."""
+        sky, regions = self._stages()
+        a = sky.solve(detections, camera)
+        if isinstance(a, Solution):
+            extra = {**a.extra, "region": REST_OF_SKY, "region_probability": 0.0, "order": "sky first"}
+            return dataclasses.replace(a, time_ms=(time.perf_counter() - t0) * 1e3, extra=extra)
+        b = regions.solve(detections, camera, image)
+        ms = (time.perf_counter() - t0) * 1e3
+        if isinstance(b, Solution):
+            extra = {**b.extra, "order": "prior's regions after the sky", "sky_hypotheses": a.extra.get("hypotheses")}
+            return dataclasses.replace(b, time_ms=ms, extra=extra)
+        work = {k: a.extra.get(k, 0) + b.extra.get(k, 0) for k in ("hypotheses", "work")}
+        # the status is the sky's where it ran out of budget (the prior's few regions rarely do), else the regions'
+        status = a.status if a.status == "budget_exhausted" else b.status
+        return Refusal(f"whole sky: {a.reason}; the prior's regions: {b.reason}", self.name, ms, work, status)
 
     def _track(self, detections: Detections, camera, hint: np.ndarray, sigma_deg: float, t0: float, zero_point=None):
         """Tracking with an attitude hint: :func:`fusion.solve.track.track`."""

@@ -35,8 +35,9 @@ Per frame:
    model's regions as prior — by default its fine regions (``--search fine``, the 20 most
    probable, ``--search-k``), and a focal length known to ±2 % (``--focal-tol``; fitted and
    reported as ``focal_factor`` / ``fov_deg``), and the rest of the sky where those regions refuse
-   (``learned+fine>whole-sky``: one search, one false-match budget; from five detections tetra3rs and then the
-   whole sky at once, ``fine.WHOLE_SKY_FROM``); ``--lis-first`` tries tetra3rs
+   (``learned+fine>whole-sky``: one search, one false-match budget; at four detections the whole sky first and
+   those regions where it refuses, ``fine.SKY_FIRST_FROM``; from five tetra3rs and then the whole sky at once,
+   ``fine.WHOLE_SKY_FROM``); ``--lis-first`` tries tetra3rs
    lost-in-space first and the learned path only where it refuses; without a checkpoint, tetra3rs lost-in-space and the
    whole-sky fine stage where it refuses (``tetra3rs>whole-sky``); ``--solver NAME`` picks any registered
    solver (:mod:`fusion.solve.registry`). A full attitude

@@ -10,9 +10,10 @@ A solver is anything with ``name`` and ``solve(detections, camera, image=None, *
 ``learned+fine``           the fine stage searching a learned prior's most probable regions
 ``learned+fine>whole-sky`` learned + fine, and the rest of the sky where the prior's regions refuse
                            (one search: its hypothesis count H, and so its false-match budget, spans
-                           both; ``fusion predict --solve`` with a checkpoint); from
-                           ``fine.WHOLE_SKY_FROM`` (5) detections tetra3rs, then the whole sky
-                           at once, no prior
+                           both; ``fusion predict --solve`` with a checkpoint); at
+                           ``fine.SKY_FIRST_FROM`` (4) detections the whole sky first, the
+                           prior's regions (a search of their own) where it refuses; from
+                           ``fine.WHOLE_SKY_FROM`` (5) tetra3rs, then the whole sky at once, no prior
 ``tetra3rs>learned+fine``  tetra3rs, and learned + fine where it refuses
 ``tetra3rs>learned+fine>whole-sky``  tetra3rs, then learned + fine > whole-sky (``fusion predict --lis-first``)
 ``oracle-prior``           benchmark only: the fine stage with the true region ranked first
@@ -127,11 +128,11 @@ def _learned_fine(ctx: SolverContext):
 @register_solver(
     "learned+fine>whole-sky",
     prior="learned",
-    doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget); from 5 "
-    "detections tetra3rs, then the whole sky at once",
+    doc="learned + fine, then the rest of the sky where the prior's regions refuse (one budget); at 4 "
+    "detections the whole sky first, the prior's regions where it refuses; from 5 tetra3rs, then the whole sky",
 )
 def _learned_fine_whole_sky(ctx: SolverContext):
-    from .fine import FEW_TOP_K_FACTOR, WHOLE_SKY_FROM
+    from .fine import FEW_TOP_K_FACTOR, SKY_FIRST_FROM, WHOLE_SKY_FROM
 
     # fewer regions before the sky (ctx.chain_top_k), but three detections search as many as learned+fine does
     # (top_k x FEW_TOP_K_FACTOR): there the sky search rarely answers, and one set of renders lost a field with fewer
@@ -142,6 +143,7 @@ def _learned_fine_whole_sky(ctx: SolverContext):
         "learned+fine>whole-sky",
         then_whole_sky=True,
         whole_sky_from=WHOLE_SKY_FROM,
+        sky_first_from=SKY_FIRST_FROM,
         top_k=k,
         few_top_k_factor=max(1, round(FEW_TOP_K_FACTOR * ctx.top_k / k)),
     )
