@@ -109,6 +109,27 @@ def test_a_focal_pass_hypothesis_costs_three_units_of_the_budget(renderer, tetra
     assert np.max(np.abs(rotation_vector_deg(_truth(f), res.matrix))) < 0.1
 
 
+def test_a_hypothesis_of_many_detections_costs_more_of_the_budget(renderer, tetra):
+    """A hypothesis scores the detections beyond its anchor pair, so it counts hypothesis_cost(N) units: 1 up to six
+    detections, (N - 2) / 4 beyond (2.5 at twelve). Twelve detections no attitude explains, a budget of B units:
+    refused at it after B / 2.5 hypotheses (not B), work B; six detections of the same set: B hypotheses."""
+    from fusion.solve.fine import COST_REFERENCE_N, CoarseToFineSolver, hypothesis_cost
+
+    assert COST_REFERENCE_N == 6
+    assert [hypothesis_cost(n) for n in (3, 4, 6, 8, 10, 12, 24)] == [1.0, 1.0, 1.0, 1.5, 2.0, 2.5, 5.5]
+    cam = renderer.camera
+    rng = np.random.default_rng(3)
+    noise = Detections(rng.uniform(0, cam.width_px, 12), rng.uniform(0, cam.height_px, 12), np.geomspace(900, 60, 12))
+    budget = 4_000
+    solver = CoarseToFineSolver(tetra, None, focal_tol=0.0, max_hypotheses=budget)
+    twelve, six = solver.solve(noise, cam), solver.solve(noise.brightest(6), cam)
+    for r, n in ((twelve, 12), (six, 6)):
+        assert isinstance(r, Refusal) and r.status == "budget_exhausted", (n, r)
+        assert r.extra["hypotheses"] == budget // hypothesis_cost(n)
+        assert r.extra["work"] == pytest.approx(budget, abs=hypothesis_cost(n))
+    assert "12 detections counting 2.5" in twelve.reason
+
+
 def test_the_budget_reaches_every_fine_stage_solver_from_the_command_line(small_dataset, tmp_path, monkeypatch):
     """--max-hypotheses (fusion benchmark and predict): every registered fine-stage solver gets it, the report
     records it, and a budget below one hypothesis is refused with one line naming the option."""

@@ -95,7 +95,9 @@ values (the reason why, and a status code), never strings.
 
 **Work budget and latency bound.** At most ``max_hypotheses`` units of work per solve, every pass and region
 together: a hypothesis of the strict pass counts 1, one of the focal-length pass :data:`FOCAL_HYPOTHESIS_COST`
-(3: what it costs against a strict one, measured), so the budget bounds time in either pass (default:
+(3: what it costs against a strict one, measured), and with more than :data:`COST_REFERENCE_N` (6) detections
+both count :func:`hypothesis_cost` times that ((N - 2) / 4: a hypothesis's time grows with the detections it
+scores), so the budget bounds time in either pass and at any N (default:
 :data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of pairs); where it runs out
 without an accepted attitude the answer is a refusal with status ``budget_exhausted`` (``extra``: ``hypotheses``,
 the count H, and ``work``, the units spent). A count, not a clock: the same frame gets the same answer on every
@@ -190,10 +192,23 @@ MAX_HYPOTHESES = 200_000
 # (benchmarks/pass_cost.py, data/bench500, whole sky, the compiled loop alone, one core): 41 vs 150 ns per hypothesis
 # at N = 4, 83 vs 286 ns at N = 6, so 3: the budget is a count, the same on every machine, that bounds the time too.
 FOCAL_HYPOTHESIS_COST = 3
+# a hypothesis scores the detections beyond its anchor pair, so its time grows with them: measured per hypothesis
+# of refusals (pure noise and other cameras' detection sets, whole sky, one core; results/benchmark/work-per-n)
+# about 1 : 1.5 : 2 : 2.5 at N = 6 : 8 : 10 : 12, i.e. in proportion to N - 2. The budget was chosen at N <= 6
+# (every correct answer of two seeds' benchmark cells within it), so up to COST_REFERENCE_N detections a hypothesis
+# counts 1 and beyond it (N - 2) / (COST_REFERENCE_N - 2): a refusal of many detections then takes about the time
+# of one of six, not twice or three times it (hypothesis_cost)
+COST_REFERENCE_N = 6
 REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/default-20deg.yaml): 7,113
 NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
 NO_CODES = (False, np.zeros(0, np.int64))  # anchor_hypotheses: scan the rows (no region's list of them)
 PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
+
+
+def hypothesis_cost(n: int) -> float:
+    """Work-budget units of one strict-pass hypothesis scoring ``n`` detections (a focal-pass one: this times
+    :data:`FOCAL_HYPOTHESIS_COST`): 1 up to :data:`COST_REFERENCE_N`, then ``(n - 2) / (COST_REFERENCE_N - 2)``."""
+    return max(1.0, (n - 2) / (COST_REFERENCE_N - 2))
 
 
 #: a refined focal factor this close to the edge of +-focal_tol (as a share of it) is refused: the camera's scale
@@ -808,21 +823,24 @@ class CoarseToFineSolver:
         # needs is dropped at its first detection too many unmatched, and the search stops where no score can
         h_limit = self._h_limit(tier, flux, n)
         best_seen = 0
-        work = 0  # the budget's units: a strict hypothesis 1, a focal one FOCAL_HYPOTHESIS_COST (tried: H, the count)
+        # the budget's units: a strict hypothesis hypothesis_cost(n) (1 up to six detections), a focal one
+        # FOCAL_HYPOTHESIS_COST times that (tried: H, the count)
+        work = 0.0
+        per_hypothesis = hypothesis_cost(n)
         # where the prior's regions end with the rest of the sky, the focal pass searches that alone (it holds the
         # regions): a region's focal pass scans the whole +-focal_tol separation window for a few stars in it (~2,400
         # ns per hypothesis it counts, against ~150 over the sky), and none of 1,744 correct learned-chain answers came
         # from any focal pass on data/bench500 (benchmarks/pass_cost.py, results/benchmark/work-budget)
         sky_focal_only = len(regions) > 1 and regions[-1].index == REST_OF_SKY
         for s in passes:
-            cost = 1 if s == 0 else FOCAL_HYPOTHESIS_COST
+            cost = per_hypothesis * (1 if s == 0 else FOCAL_HYPOTHESIS_COST)
             for region in regions:
                 if s > 0 and sky_focal_only and region.index != REST_OF_SKY:
                     continue
                 rots, ks, scores = np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64)
                 # sequential: decide after every detection pair, with H = every hypothesis tried so far
                 for r, k, sc, t, best, stopped in self._hypotheses(
-                    tier, u, region, s, tables, (self.max_hypotheses - work) // cost, tried, h_limit
+                    tier, u, region, s, tables, int((self.max_hypotheses - work) // cost), tried, h_limit
                 ):
                     tried += t
                     work += t * cost
@@ -841,7 +859,7 @@ class CoarseToFineSolver:
                             f"< {self.min_confidence}",
                             self.name,
                             ms(),
-                            {"hypotheses": tried, "work": work},
+                            {"hypotheses": tried, "work": round(work, 1)},
                             "weak_evidence",
                         )
                     doubtful = False
@@ -869,17 +887,18 @@ class CoarseToFineSolver:
                     if self.max_hypotheses - work < cost:
                         # the work budget: a count of hypotheses, so the same answer on every machine
                         return Refusal(
-                            f"work budget exhausted: {tried} hypotheses ({work} of max_hypotheses={self.max_hypotheses}"
-                            f", a focal-pass hypothesis counting {FOCAL_HYPOTHESIS_COST}) without an accepted "
-                            f"attitude; last: {last.reason}",
+                            f"work budget exhausted: {tried} hypotheses ({work:.0f} of max_hypotheses="
+                            f"{self.max_hypotheses} units, one hypothesis of {n} detections counting "
+                            f"{per_hypothesis:g}, of the focal pass {FOCAL_HYPOTHESIS_COST} times that) without an "
+                            f"accepted attitude; last: {last.reason}",
                             self.name,
                             ms(),
-                            {"hypotheses": tried, "work": work},
+                            {"hypotheses": tried, "work": round(work, 1)},
                             "budget_exhausted",
                         )
                     if doubtful:
                         break  # this pass's best is doubtful: go on
-        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried, "work": work}, last.status)
+        return Refusal(last.reason, self.name, ms(), {"hypotheses": tried, "work": round(work, 1)}, last.status)
 
     def _stages(self):
         """(the whole sky alone, the prior's regions alone): shallow copies of this solver sharing its tables."""
