@@ -54,7 +54,25 @@ def test_a_jpeg_frame_is_read_with_one_line_saying_it_is_lossy(tmp_path):
     out = read_frame(path, log=said.append)
     assert out.shape == img.shape and out.dtype == np.float32
     assert np.abs(out - img).max() <= 3  # quality 100: nearly lossless
-    assert len(said) == 1 and "JPEG" in said[0] and "lossy" in said[0]
+    assert len(said) == 1 and "JPEG" in said[0] and "lossy" in said[0] and "quality 100" in said[0]
+
+
+def test_a_jpeg_s_quality_is_read_from_its_luminance_table(tmp_path):
+    """jpeg_luma_quality: the IJG quality a JPEG was written with, from its quantisation table (OpenCV's libjpeg at
+    30, 75 and 100), said in the line the reader prints; None for a file that is not a JPEG or is cut short."""
+    from skygen.real.frames import jpeg_luma_quality
+
+    img = (np.random.default_rng(0).random((32, 32)) * 255).astype(np.uint8)
+    for q in (30, 75, 100):
+        path = tmp_path / f"q{q}.jpg"
+        cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, q])
+        assert jpeg_luma_quality(path) == pytest.approx(q, abs=1)
+    said = []
+    read_frame(tmp_path / "q75.jpg", log=said.append)
+    assert "quality about 75" in said[0]
+    (tmp_path / "cut.jpg").write_bytes((tmp_path / "q75.jpg").read_bytes()[:10])
+    np.save(tmp_path / "x.npy", img)
+    assert jpeg_luma_quality(tmp_path / "cut.jpg") is None and jpeg_luma_quality(tmp_path / "x.npy") is None
 
 
 # ------------------------------------------------------------------------------ colour and Bayer frames

@@ -70,3 +70,47 @@ def test_the_stars_vignetting_and_scatter_are_recovered():
     s = _stars(0.3, 0.05)
     s["r2"] = s["r2"] * 0.1  # all near the centre: not measurable, so not fitted
     assert star_vignetting(s)["v"] is None
+
+
+def test_a_response_that_is_not_linear_is_measured_and_warned_about():
+    """flux_exponent: detected flux ∝ (catalogue flux)^s recovered from matched stars whatever the zero points,
+    colour term and vignetting (s = 1 for a linear sensor, 1.8 for a steep tone curve); fit-camera's warning
+    fires where the frames' s differs from the renders' by more than RESPONSE_EXPONENT_TOL, and not within it or
+    where either is not measured."""
+    from skygen.real.fit_render import RESPONSE_EXPONENT_TOL, flux_exponent, response_warning
+
+    for s_true in (1.0, 1.8):
+        s = _stars(0.3, 0.05)
+        flux = s["flux_adu"] ** s_true  # a power of the linear flux: the catalogue's to the power s_true
+        got = flux_exponent(flux, s["mag"], s["bv"], s["frame"], s["r2"], 0.3 if s_true == 1.0 else 0.0, 99.0)
+        assert got == pytest.approx(s_true, abs=0.03 if s_true == 1.0 else 0.1)
+    assert np.isnan(flux_exponent(s["flux_adu"][:5], s["mag"][:5], s["bv"][:5], s["frame"][:5], s["r2"][:5], 0, 99))
+    assert response_warning({"flux_exponent_real": 1.8, "flux_exponent_rendered": 1.05}).startswith(
+        "response not linear"
+    )
+    tol = RESPONSE_EXPONENT_TOL
+    assert response_warning({"flux_exponent_real": 1.05 + 1.1 * tol, "flux_exponent_rendered": 1.05})
+    assert response_warning({"flux_exponent_real": 1.05 + 0.9 * tol, "flux_exponent_rendered": 1.05}) is None
+    assert response_warning({"flux_exponent_real": float("nan"), "flux_exponent_rendered": 1.05}) is None
+
+
+def test_the_magnitude_down_to_which_half_the_catalogue_is_detected():
+    """half_detected_mag: where the detected share of catalogue stars falls through one half, interpolated between
+    bins (a step at 4.0 mag -> 4.0 within a bin; a smooth fall centred at 6.3 -> 6.3); NaN where the share never
+    falls below a half or is below it from the brightest bin; fit-camera's warning when the frames' limit is more
+    than HALF_DETECTED_TOL_MAG brighter (a response that drops faint stars) or fainter than the renders'."""
+    from skygen.real.fit_render import HALF_DETECTED_TOL_MAG, half_detected_mag, half_detected_warning
+
+    rng = np.random.default_rng(5)
+    mag = rng.uniform(1, 9, 6000)
+    assert half_detected_mag(mag, mag < 4.0) == pytest.approx(4.0, abs=0.15)
+    smooth = rng.uniform(size=mag.size) < 1 / (1 + np.exp((mag - 6.3) / 0.2))
+    assert half_detected_mag(mag, smooth) == pytest.approx(6.3, abs=0.1)
+    assert np.isnan(half_detected_mag(mag, np.ones(mag.size, bool)))  # every star found: no limit in range
+    assert np.isnan(half_detected_mag(mag, np.zeros(mag.size, bool)))  # none found
+    assert np.isnan(half_detected_mag(mag[:3], mag[:3] < 4))
+    w = half_detected_warning(3.0, 6.6)
+    assert w and "drops faint stars" in w and "3.00" in w
+    assert "fainter stars" in half_detected_warning(7.0, 6.0)
+    assert half_detected_warning(6.6 - 0.9 * HALF_DETECTED_TOL_MAG, 6.6) is None
+    assert half_detected_warning(float("nan"), 6.6) is None

@@ -48,7 +48,12 @@
    star width and the detections per frame are checked against the frames
    (:data:`skygen.real.frame_stats.TOLERANCES`: 10, 15, 10, 25 %); a statistic that is off is corrected
    once where a term fits it directly, and what is still off is a WARNING on the terminal, at the top of
-   the report and in the camera file's header.
+   the report and in the camera file's header. Two more comparisons say why detections can be off: the
+   magnitude down to which half the catalogue stars on the sensor are detected
+   (:func:`skygen.real.fit_render.half_detected_mag`; frames more than 0.5 mag shallower than their renders:
+   a response that drops faint stars, a black clip or tone curve of a camera's processor) and the matched
+   stars' flux exponent (:func:`skygen.real.fit_render.flux_exponent`: a tone curve on the bright stars);
+   either past its tolerance is a warning too.
 7. Write the camera YAML (checked by loading it with :func:`skygen.config.load_config`) and a report
    (``REPORT.md``, ``fit.json``, ``fit.png``): residuals per frame and radial, real against rendered
    statistics for the start camera (when given) and the fitted one.
@@ -709,6 +714,7 @@ def _record(
         "zero_point_mag",
         "nonstar_brightest10",
         "sharp_sources",
+        "half_detected_mag",
     )
     from skygen.real.frame_stats import median_of
 

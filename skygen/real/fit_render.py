@@ -115,6 +115,12 @@ def fit_model_terms(
                 + ("" if correction["kept"] else " -- which missed by more, so the first fit stands")
             )
     warnings = [c["why"] for c in checks if not c["ok"]]
+    nonlinear = response_warning(meas["star_scatter"])
+    if nonlinear:
+        warnings.append(nonlinear)
+    shallow = half_detected_warning(median_of(real_stats, "half_detected_mag"), median_of(after, "half_detected_mag"))
+    if shallow:
+        warnings.append(shallow)
     before = _render_stats(cfg0, attitudes, table, 2**cfg0.sensor.bit_depth - 1) if with_start else None
     return {
         "cfg": cfg,
@@ -126,6 +132,25 @@ def fit_model_terms(
         "correction": correction,
         "warnings": warnings,
     }
+
+
+#: real frames whose matched stars' flux exponent (:func:`flux_exponent`) differs from the renders' by more than
+#: this have a response skygen does not render: a warning
+RESPONSE_EXPONENT_TOL = 0.15
+
+
+def response_warning(scatter: dict) -> str | None:
+    """The warning where the frames' response to star brightness is not the renders' (:data:`RESPONSE_EXPONENT_TOL`),
+    else None."""
+    a, b = scatter.get("flux_exponent_real", float("nan")), scatter.get("flux_exponent_rendered", float("nan"))
+    if not (np.isfinite(a) and np.isfinite(b)) or abs(a - b) <= RESPONSE_EXPONENT_TOL:
+        return None
+    return (
+        f"response not linear: matched stars' detected flux grows as the catalogue flux to the power {a:.2f} on "
+        f"the frames, {b:.2f} on renders (tolerance {RESPONSE_EXPONENT_TOL}): a tone curve or black clip of the "
+        "camera's image processor (JPEG or other processed frames)? skygen renders a linear sensor, so the renders' "
+        "faint stars, detections and photometry will not match; raw frames (PNG, TIFF, FITS read-outs) fit"
+    )
 
 
 def miss(checks: list) -> float:
@@ -448,6 +473,21 @@ def _photometric_residuals(flux_adu, mag, bv, frame, r2, v: float, brightest_mag
     (1 - v r2, as the renderer's), after each frame's zero point and one linear colour term in B-V (a colour
     mismatch between the sensor and the model is not scatter) and one linear term in magnitude; stars no fainter
     than ``brightest_mag`` (the faint ones' shot noise would dominate). None when fewer than 10."""
+    fit = _photometric_fit(flux_adu, mag, bv, frame, r2, v, brightest_mag, default_bv)
+    return None if fit is None else fit[0]
+
+
+def flux_exponent(flux_adu, mag, bv, frame, r2, v: float, brightest_mag: float) -> float:
+    """s of detected flux ∝ (catalogue flux)^s over the matched stars of :func:`_photometric_residuals` (1 + its
+    term in magnitude): ~1 for a linear sensor and skygen's detector (slightly above: a brighter star spreads over
+    more pixels above the threshold), far from 1 where the camera's response is not linear (a tone curve or black
+    clip of a camera's image processor). NaN with fewer than 10 stars."""
+    fit = _photometric_fit(flux_adu, mag, bv, frame, r2, v, brightest_mag)
+    return float("nan") if fit is None else 1.0 + fit[1]
+
+
+def _photometric_fit(flux_adu, mag, bv, frame, r2, v: float, brightest_mag: float, default_bv: float = 0.65):
+    """(residuals, the magnitude term's coefficient) of :func:`_photometric_residuals`; None when too few."""
     flux, mag = np.asarray(flux_adu, dtype=np.float64), np.asarray(mag, dtype=np.float64)
     bv, frame, r2 = np.asarray(bv, dtype=np.float64), np.asarray(frame), np.asarray(r2, dtype=np.float64)
     ok = (flux > 0) & np.isfinite(mag) & (mag <= brightest_mag) & (1 - v * r2 > 0.01)
@@ -462,9 +502,10 @@ def _photometric_residuals(flux_adu, mag, bv, frame, r2, v: float, brightest_mag
     a = np.column_stack([f[:, None] == frames[None, :], c, mag[ok] - np.median(mag[ok])]).astype(np.float64)
     keep = np.ones(len(res), bool)
     for _ in range(2):
-        out = res - a @ np.linalg.lstsq(a[keep], res[keep], rcond=None)[0]
+        coef = np.linalg.lstsq(a[keep], res[keep], rcond=None)[0]
+        out = res - a @ coef
         keep = np.abs(out) <= 3 * 1.4826 * np.median(np.abs(out[keep])) + 1e-9
-    return out
+    return out, float(coef[-1])
 
 
 def photometric_scatter(flux_adu, mag, bv, frame, r2, v: float, brightest_mag: float) -> tuple[float, int]:
@@ -515,14 +556,20 @@ def _star_scatter(real_stars: dict, renders: list, v: float) -> dict:
     frame = np.concatenate([np.full(len(p["mag"]), k) for k, p in enumerate(parts)])
     flux, mag, bv, r2 = (np.concatenate([p[key] for p in parts]) for key in ("flux_adu", "mag", "bv", "r2"))
     sim, n_sim = photometric_scatter(flux, mag, bv, frame, r2, v, cut)
+    # the response: detected flux against catalogue flux, on both (the detector's own slope is in both)
+    s_real = flux_exponent(s["flux_adu"], s["mag"], s["bv"], s["frame"], s["r2"], v, cut)
+    s_sim = flux_exponent(flux, mag, bv, frame, r2, v, cut)
+    response = {"flux_exponent_real": s_real, "flux_exponent_rendered": s_sim}
     if not (np.isfinite(real) and np.isfinite(sim)):
-        return {"fitted_mag": 0.0, "real_mag": real, "rendered_mag": sim, "note": "not measured on both: not fitted"}
+        return {"fitted_mag": 0.0, "real_mag": real, "rendered_mag": sim, "note": "not measured on both: not fitted",
+                **response}  # fmt: skip
     fitted = float(np.sqrt(max(real**2 - sim**2, 0.0)))
     note = (
         f"photometric scatter of matched stars to Hp {cut:.2f} about the zero point and a colour term: real "
         f"{real:.3f} mag ({n_real} stars), renders {sim:.3f} mag ({n_sim}) -> photometry.star_scatter_mag {fitted:.3f}"
+        f"; their flux grows as the catalogue flux to the power {s_real:.2f} on the frames, {s_sim:.2f} on renders"
     )
-    return {"fitted_mag": fitted, "real_mag": real, "rendered_mag": sim, "cut_mag": cut, "note": note}
+    return {"fitted_mag": fitted, "real_mag": real, "rendered_mag": sim, "cut_mag": cut, "note": note, **response}
 
 
 def _explaining_depth(cfg0, cam, meas: dict, exposure: float, pixel_pitch_um, table) -> float:
@@ -659,6 +706,9 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     stars = explained & usable & (fl > 0)
     st["_unexplained"]["star_share"] = float(np.median(pk[stars] / fl[stars])) if stars.sum() >= 3 else float("nan")
     st["sharp_sources"] = sharp_sources(det, explained, st["background_adu"], sat)
+    # how faint the frame still detects catalogue stars: those on the sensor, found within 2 px of a detection
+    smag, sfound = catalogue_found(g.camera, g.rotations[k], sky, det["x_px"], det["y_px"])
+    st["half_detected_mag"] = half_detected_mag(smag, sfound)
     m = g.keep[k]
     d = fs.det_index[m]
     zp, n = zero_point(
@@ -697,6 +747,73 @@ def sharp_sources(det: dict, explained: np.ndarray, background_adu: float, sat: 
         return 0
     limit = max(2.0 * float(np.median(stars)), float(np.quantile(stars, 0.99)))
     return int(np.sum(ok & ~explained & (share > limit)))
+
+
+#: bins (mag) of :func:`half_detected_mag`, and the least stars a bin needs to count
+HALF_BIN_MAG = 0.25
+HALF_MIN_STARS = 5
+#: frames that stop detecting catalogue stars this much brighter (or fainter) than the renders: a warning
+HALF_DETECTED_TOL_MAG = 0.5
+
+
+def half_detected_mag(mags, found) -> float:
+    """The catalogue magnitude at which half the catalogue stars on the sensor are detected: from the brightest
+    bin of :data:`HALF_BIN_MAG` (with at least :data:`HALF_MIN_STARS` stars) the first whose detected share falls
+    below one half, interpolated linearly with the bin before it between bin centres. NaN where no bin falls
+    below a half (the catalogue is shallower than the frames) or none is above it."""
+    m, f = np.asarray(mags, dtype=np.float64), np.asarray(found, bool)
+    if len(m) < HALF_MIN_STARS:
+        return float("nan")
+    edges = np.arange(np.floor(m.min() / HALF_BIN_MAG) * HALF_BIN_MAG, m.max() + HALF_BIN_MAG, HALF_BIN_MAG)
+    idx = np.digitize(m, edges) - 1
+    prev = None  # (centre, share) of the last bin with enough stars
+    for b in range(len(edges) - 1):
+        sel = idx == b
+        if sel.sum() < HALF_MIN_STARS:
+            continue
+        centre, share = edges[b] + HALF_BIN_MAG / 2, float(f[sel].mean())
+        if share < 0.5:
+            if prev is None:
+                return float("nan")
+            (c0, s0) = prev
+            return float(c0 + (s0 - 0.5) / (s0 - share) * (centre - c0))
+        prev = (centre, share)
+    return float("nan")
+
+
+def catalogue_found(cam, R: np.ndarray, sky, x, y, radius_px: float = 2.0, margin_px: float = 3.0):
+    """(magnitudes, found) of the catalogue stars of ``sky`` that camera ``cam`` at attitude ``R`` puts at least
+    ``margin_px`` inside the sensor; found: a detection (``x``, ``y``) lies within ``radius_px``."""
+    from scipy.spatial import cKDTree
+
+    idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
+    sx, sy, front = cam.project(sky.vectors[idx] @ R)
+    ok = front & cam.inside(sx, sy, margin_px=-margin_px)
+    mags = np.asarray(sky.table.mag, dtype=np.float64)[idx[ok]]
+    if not ok.any() or not len(x):
+        return mags, np.zeros(len(mags), bool)
+    d, _ = cKDTree(np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)])).query(
+        np.column_stack([sx[ok], sy[ok]])
+    )
+    return mags, d <= radius_px
+
+
+def half_detected_warning(real: float, rendered: float) -> str | None:
+    """The warning where the frames stop detecting catalogue stars more than :data:`HALF_DETECTED_TOL_MAG` away
+    from where the renders do (:func:`half_detected_mag`, medians over frames), else None."""
+    if not (np.isfinite(real) and np.isfinite(rendered)) or abs(real - rendered) <= HALF_DETECTED_TOL_MAG:
+        return None
+    why = (
+        "the camera's response drops faint stars that its zero point and noise say it should see (a black clip, "
+        "tone curve or denoiser of a camera's image processor: JPEG or other processed frames?); raw read-outs "
+        "(PNG, TIFF, FITS) fit"
+        if real < rendered
+        else "the frames see fainter stars than the fitted camera renders"
+    )
+    return (
+        f"catalogue stars half detected down to {real:.2f} mag on the frames, {rendered:.2f} on renders "
+        f"(tolerance {HALF_DETECTED_TOL_MAG} mag): {why}"
+    )
 
 
 def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_px: float = 2.0) -> np.ndarray:
@@ -755,6 +872,7 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         cat = np.flatnonzero((f.stars["hip_id"] >= 0) & (sx >= 3) & (sx <= w - 4) & (sy >= 3) & (sy <= h - 4))
         extra["_star_mag"] = np.asarray(f.stars["mag"], dtype=np.float64)[cat]
         extra["_star_found"] = np.isin(cat, sidx[ok])
+        extra["half_detected_mag"] = half_detected_mag(extra["_star_mag"], extra["_star_found"])
         zp, n = zero_point(
             det["flux_adu"][ok].astype(float),
             f.stars["mag"][sidx[ok]].astype(float),

@@ -209,12 +209,13 @@ def markdown(r: dict) -> str:
         "zero_point_mag": "zero point (mag)",
         "nonstar_brightest10": "non-catalogue among the brightest 10 (mean)",
         "sharp_sources": "sharp uncatalogued sources / frame (mean)",
+        "half_detected_mag": "catalogue stars half detected down to (mag)",
     }
     verdict = {c["stat"]: c for c in r.get("checks") or []}
     for k, v in r["compare"].items():
         rel = (
             f"{v['fitted'] - v['real']:+.3f} mag"
-            if k == "zero_point_mag"
+            if k in ("zero_point_mag", "half_detected_mag")
             else f"{v['fitted'] - v['real']:+.2f}"
             if k in ("nonstar_brightest10", "sharp_sources")
             else f"{v['fitted'] / v['real']:.3f}"

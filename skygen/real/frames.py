@@ -102,8 +102,17 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
         else:
             img, colour = _read_png_tiff(path, suffix, channel, say)
             if suffix in (".jpg", ".jpeg"):
+                q = jpeg_luma_quality(path)
+                how = (
+                    ""
+                    if q is None
+                    else " (its luminance quantisation is all 1: quality 100, near-lossless; a camera's processing "
+                    "before it, a black level or tone curve, can still erase faint stars)"
+                    if q >= 100
+                    else f" (quality about {q:.0f} by its luminance quantisation table)"
+                )
                 say(
-                    f"{path}: JPEG: 8-bit and lossy; its compression changes faint stars and the background "
+                    f"{path}: JPEG: 8-bit and lossy{how}; its compression changes faint stars and the background "
                     "noise (a camera's raw PNG, TIFF or FITS frames are better)"
                 )
     except FrameError:
@@ -152,6 +161,44 @@ def _read_fits(path: Path) -> np.ndarray:
     if img is None:
         raise FrameError(f"{path}: no image HDU with 2-D data")
     return img
+
+
+#: the IJG (libjpeg) standard luminance quantisation table at quality 50, in zig-zag order as a file stores it
+IJG_LUMA = (
+    16, 11, 12, 14, 12, 10, 16, 14, 13, 14, 18, 17, 16, 19, 24, 40, 26, 24, 22, 22, 24, 49, 35, 37, 29, 40, 58, 51,
+    61, 60, 57, 51, 56, 55, 64, 72, 92, 78, 64, 68, 87, 69, 55, 56, 80, 109, 81, 87, 95, 98, 103, 104, 103, 62, 77,
+    113, 121, 112, 100, 120, 92, 101, 103, 99,
+)  # fmt: skip
+
+
+def jpeg_luma_quality(path) -> float | None:
+    """The IJG quality (1-100) a JPEG's luminance quantisation table (table 0 of its DQT segments) corresponds to:
+    100 where every entry is 1; otherwise from its mean ratio to the standard table (libjpeg's scaling). None
+    where the file holds no readable table."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return None
+    i = 2
+    while i + 4 <= len(data) and data[i] == 0xFF:
+        marker, length = data[i + 1], int.from_bytes(data[i + 2 : i + 4], "big")
+        if marker == 0xDA:  # start of scan: no table before it
+            return None
+        if marker == 0xDB:
+            j, end = i + 4, i + 2 + length
+            while j < end:
+                precision, table = data[j] >> 4, data[j] & 0x0F
+                size = 128 if precision else 64
+                raw = data[j + 1 : j + 1 + size]
+                values = [int.from_bytes(raw[k : k + 2], "big") for k in range(0, 128, 2)] if precision else list(raw)
+                if table == 0 and len(values) == 64:
+                    if max(values) <= 1:
+                        return 100.0
+                    scale = 100.0 * float(np.mean([v / s for v, s in zip(values, IJG_LUMA)]))
+                    return float(np.clip((200.0 - scale) / 2.0 if scale <= 100 else 5000.0 / scale, 1.0, 100.0))
+                j += 1 + size
+        i += 2 + length
+    return None
 
 
 def _read_png_tiff(path: Path, suffix: str, channel: str, say) -> tuple[np.ndarray, bool]:
