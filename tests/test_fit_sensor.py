@@ -170,6 +170,11 @@ def test_check_renders_names_each_statistic_off_and_a_nan_with_its_reason():
     assert checks["noise_adu"]["ok"] and checks["detections"]["ok"]
     assert not checks["star_sigma_px"]["ok"]
     assert checks["star_sigma_px"]["why"].startswith("star width not measured on the renders (no unsaturated")
+    # a background clipped to 0 on the frames: 0 rendered agrees (no ratio needed); anything else is said as is
+    black = [{"background_adu": 0.0, "noise_adu": 0.29, "star_sigma_px": 0.9, "detections": 40}] * 3
+    assert {c["stat"]: c for c in check_renders(black, black)}["background_adu"]["ok"]
+    off = {c["stat"]: c for c in check_renders(black, [{**black[0], "background_adu": 3.0}] * 3)}["background_adu"]
+    assert not off["ok"] and off["why"] == "background 3 rendered vs 0 real"
 
 
 # ------------------------------------------------------------------------------ end to end

@@ -100,12 +100,18 @@ def check_renders(real: list[dict], rendered: list[dict]) -> list[dict]:
     for k, tol in TOLERANCES.items():
         a, b = median_of(real, k), median_of(rendered, k)
         ratio = b / a if np.isfinite(a) and np.isfinite(b) and a != 0 else float("nan")
+        if np.isfinite(a) and a == 0 and b == 0:  # both exactly 0 (a background clipped to black): they agree
+            ratio = 1.0
         ok = bool(np.isfinite(ratio) and abs(ratio - 1) <= tol)
         if ok:
             why = ""
         elif np.isfinite(ratio):
             why = f"{LABELS[k]} {b:.3g} rendered vs {a:.3g} real: {ratio:.2f} x (tolerance {100 * tol:.0f} %)"
         else:
+            if np.isfinite(a) and np.isfinite(b):  # a real 0 and a rendered value: no ratio, both said
+                out.append({"stat": k, "label": LABELS[k], "real": a, "rendered": b, "ratio": ratio, "tolerance": tol,
+                            "ok": False, "why": f"{LABELS[k]} {b:.3g} rendered vs 0 real"})  # fmt: skip
+                continue
             which = "renders" if not np.isfinite(b) else "real frames"
             rows = rendered if which == "renders" else real
             reason = (
