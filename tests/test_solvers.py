@@ -239,28 +239,35 @@ def test_a_chain_ending_with_the_sky_searches_the_focal_length_over_the_sky_only
     assert both >= 3
 
 
+def _counting_prior(oracle, v, i):
+    """The oracle's probabilities for frame i (boresight v), counting how often the prior is asked."""
+    from fusion.solve.priors import RegionPrior
+
+    class Counting(RegionPrior):
+        def __init__(self):
+            self.centroids, self.calls = oracle.centroids, 0
+
+        def probabilities(self, detections, image=None):
+            self.calls += 1
+            return oracle.probabilities_for(v, i)
+
+    return Counting()
+
+
 def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_from_detections(renderer, tetra, regions):
     """learned+fine>whole-sky with whole_sky_from (6 here): six detections or more go to tetra3rs lost in space
     first and, where it refuses, straight to the whole sky (the prior is not asked; region -1), so the answer is
     tetra3rs's or the whole-sky solver's; fewer are searched in the prior's regions first. whole_sky_from needs
     then_whole_sky and at least three detections."""
     from fusion.solve.fine import WHOLE_SKY_FROM, CoarseToFineSolver
-    from fusion.solve.priors import OraclePrior, RegionPrior
-
-    class Counting(RegionPrior):
-        def __init__(self, oracle, v, i):
-            self.centroids, self.oracle, self.v, self.i, self.calls = oracle.centroids, oracle, v, i, 0
-
-        def probabilities(self, detections, image=None):
-            self.calls += 1
-            return self.oracle.probabilities_for(self.v, self.i)
+    from fusion.solve.priors import OraclePrior
 
     assert WHOLE_SKY_FROM == 5
     whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02)
     by = {"tetra": 0, "sky": 0}
     for i in range(6):
         f = renderer.render(i)
-        prior = Counting(OraclePrior(regions), f.unit_vector, i)
+        prior = _counting_prior(OraclePrior(regions), f.unit_vector, i)
         chain = CoarseToFineSolver(tetra, prior, top_k=2, focal_tol=0.02, then_whole_sky=True, whole_sky_from=6)
         det = Detections.from_table(f.detections)
         for n in (6, 7):
@@ -293,15 +300,7 @@ def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections
     too small for the sky, not for two regions), the prior's regions are searched on their own and give
     learned + fine's answer. Three detections still go to the prior's regions first."""
     from fusion.solve.fine import REST_OF_SKY, SKY_FIRST_FROM, CoarseToFineSolver
-    from fusion.solve.priors import OraclePrior, RegionPrior
-
-    class Counting(RegionPrior):
-        def __init__(self, oracle, v, i):
-            self.centroids, self.oracle, self.v, self.i, self.calls = oracle.centroids, oracle, v, i, 0
-
-        def probabilities(self, detections, image=None):
-            self.calls += 1
-            return self.oracle.probabilities_for(self.v, self.i)
+    from fusion.solve.priors import OraclePrior
 
     assert SKY_FIRST_FROM == 4
     cam = renderer.camera
@@ -310,7 +309,7 @@ def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections
         whole = CoarseToFineSolver(tetra, None, name="whole-sky", focal_tol=0.02, max_hypotheses=budget)
         for i in range(6):
             f = renderer.render(i)
-            prior = Counting(OraclePrior(regions), f.unit_vector, i)
+            prior = _counting_prior(OraclePrior(regions), f.unit_vector, i)
             kw = dict(top_k=2, focal_tol=0.02, max_hypotheses=budget)
             chain = CoarseToFineSolver(tetra, prior, then_whole_sky=True, whole_sky_from=6, sky_first_from=4, **kw)
             alone = CoarseToFineSolver(tetra, prior, name=chain.name, **kw)
