@@ -296,7 +296,8 @@ def test_the_learned_chain_goes_to_tetra3rs_and_the_whole_sky_from_whole_sky_fro
 
 def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections(renderer, tetra, regions):
     """With sky_first_from (4, below whole_sky_from), four detections are searched over the whole sky first, the
-    answer the plain whole-sky solver gives, the prior not asked; where the sky refuses (here its work budget is
+    answer the plain whole-sky solver gives, the prior not asked (and with the prior's probabilities given, as
+    fusion predict gives them after reporting the regions); where the sky refuses (here its work budget is
     too small for the sky, not for two regions), the prior's regions are searched on their own and give
     learned + fine's answer. Three detections still go to the prior's regions first."""
     from fusion.solve.fine import REST_OF_SKY, SKY_FIRST_FROM, CoarseToFineSolver
@@ -319,6 +320,10 @@ def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections
                 assert isinstance(got, Solution) and prior.calls == 0
                 assert np.allclose(got.matrix, ref.matrix) and got.extra["region"] == REST_OF_SKY
                 assert got.extra["order"] == "sky first"
+                # the prior's probabilities given (as fusion predict gives them, having reported the regions):
+                # still the sky first
+                given = chain.solve(det, cam, probabilities=OraclePrior(regions).probabilities_for(f.unit_vector, i))
+                assert given.extra["order"] == "sky first" and np.allclose(given.matrix, ref.matrix)
                 seen["sky"] += 1
             else:
                 assert prior.calls == 1

@@ -771,12 +771,11 @@ class CoarseToFineSolver:
             detections = detections.brightest(self.max_detections)
         if (
             self.sky_first_from is not None
-            and probabilities is None
             and self.prior is not None
             and len(detections) >= self.sky_first_from
             and (self.whole_sky_from is None or len(detections) < self.whole_sky_from)
-        ):
-            return self._sky_then_regions(every, camera, image, t0)
+        ):  # the regions' probabilities, where given (fusion predict reports them first), serve the second search
+            return self._sky_then_regions(every, camera, image, t0, probabilities)
         centroids = None
         # from whole_sky_from detections on, the whole sky is searched at once (measured the cheaper certain
         # answer there: the prior's regions first only cost time, and magnitude noise misleads them)
@@ -915,15 +914,16 @@ class CoarseToFineSolver:
             self._stages_cache = (sky, regions)
         return self._stages_cache
 
-    def _sky_then_regions(self, detections: Detections, camera, image, t0: float) -> Solution | Refusal:
+    def _sky_then_regions(self, detections: Detections, camera, image, t0: float, probabilities=None):
         """``sky_first_from``: the whole sky (one search, the budget), then, where it refuses, the prior's regions
-        (a search of their own: its own H and budget). The answer's ``extra["order"]`` says which answered."""
+        (``probabilities``, else the prior's; a search of their own: its own H and budget). The answer's
+        ``extra["order"]`` says which answered."""
         sky, regions = self._stages()
         a = sky.solve(detections, camera)
         if isinstance(a, Solution):
             extra = {**a.extra, "region": REST_OF_SKY, "region_probability": 0.0, "order": "sky first"}
             return dataclasses.replace(a, time_ms=(time.perf_counter() - t0) * 1e3, extra=extra)
-        b = regions.solve(detections, camera, image)
+        b = regions.solve(detections, camera, image, probabilities=probabilities)
         ms = (time.perf_counter() - t0) * 1e3
         if isinstance(b, Solution):
             extra = {**b.extra, "order": "prior's regions after the sky", "sky_hypotheses": a.extra.get("hypotheses")}
