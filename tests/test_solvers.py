@@ -341,6 +341,11 @@ def test_the_learned_chain_searches_the_sky_first_from_sky_first_from_detections
             chain.solve(Detections.from_table(f.detections).brightest(3), cam)
             assert prior.calls >= 1  # three detections: the prior first
     assert seen["sky"] >= 3 and seen["regions"] >= 2
+    # a setting changed on the chain after it has solved (a relaxed bar, as the adversarial calibration sets) holds
+    # in both of its searches
+    chain.min_confidence = 0.5
+    sky, regions = chain._stages()
+    assert sky.min_confidence == regions.min_confidence == 0.5 and sky.prior is None and regions._strict_only
     for bad in (dict(sky_first_from=4), dict(then_whole_sky=True, sky_first_from=2),
                 dict(then_whole_sky=True, whole_sky_from=5, sky_first_from=5)):  # fmt: skip
         with pytest.raises(ValueError, match="sky_first_from"):

@@ -416,7 +416,6 @@ class CoarseToFineSolver:
                 f"({whole_sky_from}), and only with then_whole_sky"
             )
         self.sky_first_from = sky_first_from
-        self._stages_cache = None
         self._strict_only = False  # the prior's regions after the sky (sky_first_from): the sky's focal pass held them
         if max_detections is not None and max_detections < 3:
             raise ValueError(f"max_detections={max_detections}: at least 3, or None (all)")
@@ -900,19 +899,18 @@ class CoarseToFineSolver:
         return Refusal(last.reason, self.name, ms(), {"hypotheses": tried, "work": round(work, 1)}, last.status)
 
     def _stages(self):
-        """(the whole sky alone, the prior's regions alone): shallow copies of this solver sharing its tables."""
-        if self._stages_cache is None:
-            import copy
+        """(the whole sky alone, the prior's regions alone): shallow copies of this solver, made afresh each solve
+        (a few microseconds), so that settings changed on it since (a relaxed bar, a budget) hold in both."""
+        import copy
 
-            sky, regions = copy.copy(self), copy.copy(self)
-            for stage in (sky, regions):
-                stage.then_whole_sky, stage.whole_sky_from, stage.sky_first_from = False, None, None
-            sky.prior, sky.radii = None, None
-            # the regions lie inside the sky, whose focal pass has searched them already; a region's own focal pass
-            # scans the whole +-focal_tol separation window for its few stars (see sky_focal_only in solve)
-            regions._strict_only = True
-            self._stages_cache = (sky, regions)
-        return self._stages_cache
+        sky, regions = copy.copy(self), copy.copy(self)
+        for stage in (sky, regions):
+            stage.then_whole_sky, stage.whole_sky_from, stage.sky_first_from = False, None, None
+        sky.prior, sky.radii = None, None
+        # the regions lie inside the sky, whose focal pass has searched them already; a region's own focal pass
+        # scans the whole +-focal_tol separation window for its few stars (see sky_focal_only in solve)
+        regions._strict_only = True
+        return sky, regions
 
     def _sky_then_regions(self, detections: Detections, camera, image, t0: float, probabilities=None):
         """``sky_first_from``: the whole sky (one search, the budget), then, where it refuses, the prior's regions
