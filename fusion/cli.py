@@ -572,7 +572,8 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
         "--lis-first",
         action="store_true",
         help="--solve with a checkpoint: try tetra3rs lost-in-space first (~0.1 ms; enough with 8+ clean "
-        "stars) and the learned chain (the prior's fine regions, then the whole sky) only where it refuses; "
+        "stars) and the learned chain (the prior's fine regions, then the whole sky; at four detections the sky "
+        "first) only where it refuses; "
         "`solver` says which answered",
     )
     p.add_argument(
