@@ -114,3 +114,26 @@ def test_the_magnitude_down_to_which_half_the_catalogue_is_detected():
     assert "fainter stars" in half_detected_warning(7.0, 6.0)
     assert half_detected_warning(6.6 - 0.9 * HALF_DETECTED_TOL_MAG, 6.6) is None
     assert half_detected_warning(float("nan"), 6.6) is None
+
+
+def test_the_zero_point_leaves_out_detections_far_brighter_than_their_star():
+    """zero_point_rows: 45 stars (Hp 2-8, zero point 10.0 +- 0.1 mag, the faintest 0.4 mag above that, as noise
+    lifts stars near the detection limit) and 55 detections paired by position with stars of Hp 8-10 they are
+    3.5 mag brighter than (non-stars beside faint stars in a wide field): the zero point is the stars' (the plain
+    median of all would be ZERO_POINT_CLIP_MAG off and more), the 55 flagged out, the lifted faint stars kept;
+    detections fainter than their stars are kept whatever the offset; saturated ones never count."""
+    from skygen.real.fit_pixels import ZERO_POINT_CLIP_MAG, zero_point, zero_point_rows
+
+    rng = np.random.default_rng(1)
+    mag = np.r_[rng.uniform(2, 8, 45), rng.uniform(8, 10, 55)]
+    zp = np.r_[10.0 + rng.normal(0, 0.1, 45) + np.where(mag[:45] > 7.5, 0.4, 0.0), 13.5 + rng.normal(0, 0.3, 55)]
+    flux = 10 ** (0.4 * (zp - mag))
+    peak, level = flux / 10, np.zeros(100)
+    got, rows = zero_point_rows(flux, mag, peak, level, 1e9)
+    assert got == pytest.approx(10.0, abs=0.1) and rows[:45].all() and not rows[45:].any()
+    assert np.median(zp) > 10.0 + ZERO_POINT_CLIP_MAG  # what the plain median would have said
+    short = flux.copy()
+    short[45:] = 10 ** (0.4 * (7.0 - mag[45:]))  # the same 55 measured 3 mag short of their stars: kept
+    assert zero_point_rows(short, mag, peak, level, 1e9)[1].all()
+    peak[:3] = 1e6  # saturated: left out
+    assert zero_point(flux, mag, peak, level, 1e6)[1] == 42

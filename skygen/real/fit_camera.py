@@ -573,7 +573,7 @@ def sensor_boxes(bgs: list) -> dict:
 
 def _zero_point_real(solved, g, bgs, sat):
     """Zero point of the real frames and the matched unsaturated stars (flux ADU, Hp, B-V)."""
-    from skygen.real.fit_pixels import zero_point
+    from skygen.real.fit_pixels import zero_point_rows
 
     flux, mag, bv, peak, lev, frame, r2 = [], [], [], [], [], [], []
     cam = g.camera
@@ -591,15 +591,16 @@ def _zero_point_real(solved, g, bgs, sat):
     flux, mag, bv, peak, lev, frame, r2 = (
         np.concatenate(a).astype(float) for a in (flux, mag, bv, peak, lev, frame, r2)
     )
-    zp, n = zero_point(flux, mag, peak, lev, sat)
-    ok = (flux > 0) & (peak + lev < 0.8 * sat)
+    # the photometric fits (vignetting, scatter, false stars) take the matches the zero point keeps: a detection
+    # far brighter than the faint star it was paired with is not that star
+    zp, ok = zero_point_rows(flux, mag, peak, lev, sat)
     return zp, {
         "flux_adu": flux[ok],
         "mag": mag[ok],
         "bv": bv[ok],
         "frame": frame[ok].astype(int),
         "r2": r2[ok],
-        "n": n,
+        "n": int(ok.sum()),
     }
 
 

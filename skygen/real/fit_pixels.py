@@ -264,11 +264,40 @@ def hot_pixels(images, levels, sigmas, k_sigma: float = 8.0) -> dict:
     }
 
 
+#: matches whose own zero point is this much (mag) above the brighter stars' are not their stars' light
+#: (zero_point_rows)
+ZERO_POINT_CLIP_MAG = 2.5
+ZERO_POINT_ANCHOR_SHARE = 1 / 3  # the brightest third of the matches anchors that clip
+ZERO_POINT_MIN_STARS = 5
+
+
 def zero_point(
     flux_adu: np.ndarray, mag: np.ndarray, peak_adu: np.ndarray, level_adu: np.ndarray, saturation: float
 ) -> tuple[float, int]:
-    """(median of Hp + 2.5 log10 flux over unsaturated stars with positive flux, number used)."""
-    ok = (flux_adu > 0) & (peak_adu + level_adu < 0.8 * saturation) & np.isfinite(mag)
+    """(median of Hp + 2.5 log10 flux over the unsaturated stars with positive flux that
+    :func:`zero_point_rows` keeps, number used)."""
+    zp, rows = zero_point_rows(flux_adu, mag, peak_adu, level_adu, saturation)
+    return zp, int(rows.sum())
+
+
+def zero_point_rows(
+    flux_adu: np.ndarray, mag: np.ndarray, peak_adu: np.ndarray, level_adu: np.ndarray, saturation: float
+) -> tuple[float, np.ndarray]:
+    """(zero point, flags of the matches it is the median over). Unsaturated matches with positive flux, less
+    those whose own zero point (Hp + 2.5 log10 flux) lies more than :data:`ZERO_POINT_CLIP_MAG` above the median
+    of the brightest :data:`ZERO_POINT_ANCHOR_SHARE` of them (by catalogue magnitude, at least
+    :data:`ZERO_POINT_MIN_STARS`): a detection that much brighter than the catalogue star it was paired with by
+    position (a non-star or a blend beside a faint star, frequent in a wide field, where a pixel holds many faint
+    stars) is not that star's light, and its zero point, magnitudes too faint, would pull the median with it. A
+    detection fainter than its star (clipped by an edge, split) stays: it is that star's light, measured short."""
+    flux_adu, mag = np.asarray(flux_adu, dtype=np.float64), np.asarray(mag, dtype=np.float64)
+    ok = (flux_adu > 0) & (np.asarray(peak_adu) + np.asarray(level_adu) < 0.8 * saturation) & np.isfinite(mag)
     if not ok.any():
-        return float("nan"), 0
-    return float(np.median(mag[ok] + 2.5 * np.log10(flux_adu[ok]))), int(ok.sum())
+        return float("nan"), ok
+    zp = np.full(len(mag), np.nan)
+    zp[ok] = mag[ok] + 2.5 * np.log10(flux_adu[ok])
+    rows = np.flatnonzero(ok)
+    take = max(ZERO_POINT_MIN_STARS, int(np.ceil(ZERO_POINT_ANCHOR_SHARE * len(rows))))
+    anchor = float(np.median(zp[rows[np.argsort(mag[rows], kind="stable")[:take]]]))
+    ok &= np.where(ok, zp, anchor) - anchor <= ZERO_POINT_CLIP_MAG
+    return float(np.median(zp[ok])), ok
