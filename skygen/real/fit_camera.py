@@ -45,7 +45,8 @@
    a glow on the sensor, rendered in every frame, and no false star). Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
    the real one (the detector's flux is not a star's whole flux; the zero point is the median over matched
-   stars less the pairs far brighter than their star, :func:`skygen.real.fit_pixels.zero_point_rows`). The renders' background, its noise, the
+   stars less the pairs far brighter than their star, :func:`skygen.real.fit_pixels.zero_point_rows`). The
+   renders' background, its noise, the
    star width and the detections per frame are checked against the frames
    (:data:`skygen.real.frame_stats.TOLERANCES`: 10, 15, 10, 25 %); a statistic that is off is corrected
    once where a term fits it directly, and what is still off is a WARNING on the terminal, at the top of
