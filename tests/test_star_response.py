@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from fusion.testing import benchmark_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("star_response", ROOT / "benchmarks" / "star_response.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["star_response"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_script("star_response")
 
 
 def test_peaks_and_box_sums_are_measured_above_the_frame_median():

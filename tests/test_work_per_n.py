@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
+
+from fusion.testing import benchmark_script
 
 pytest.importorskip("tetra3rs")
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _script():
-    spec = importlib.util.spec_from_file_location("work_per_n", ROOT / "benchmarks" / "work_per_n.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["work_per_n"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_script("work_per_n")
 
 
 def test_both_variants_per_n_and_the_shipped_cost_restored(tmp_path, capsys):
