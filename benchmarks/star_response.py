@@ -58,8 +58,8 @@ def main(argv=None) -> int:
 
     from skygen.config import build_config
     from skygen.instrument.camera import Camera
+    from skygen.real.fit_render import renderer_at
     from skygen.real.frames import read_frame
-    from skygen.render.frame import Renderer
     from skygen.runtime import hardware_line
     from skygen.sky.attitude import attitude_matrix
 
@@ -70,15 +70,9 @@ def main(argv=None) -> int:
         p.error(f"{fit_json}: no solved frame")
     pick = np.unique(np.linspace(0, len(solved) - 1, min(a.n, len(solved))).round().astype(int))
     rows = [solved[k] for k in pick]
-    d = fit["config"]
-    listed = {k: tuple(r[k] for r in rows) for k in ("ra_deg", "dec_deg", "roll_deg")}
-    d["attitude"] = {**d["attitude"], "mode": "list", **listed}
-    d["n_frames"] = len(rows)
-    d["output"] = {**d["output"], "full_res": True}
-    d["render"] = {**d["render"], "backend": "numpy", "device": "cpu"}
-    cfg = build_config(d)
-    renderer = Renderer(cfg)
-    cam = Camera.from_config(cfg.camera)
+    attitudes = [(r["ra_deg"], r["dec_deg"], r["roll_deg"]) for r in rows]
+    renderer = renderer_at(build_config(fit["config"]), attitudes)
+    cam = Camera.from_config(renderer.cfg.camera)
     sky = renderer.sky
     mags_all = np.asarray(sky.table.mag, dtype=np.float64)
     got = {"mag": [], "real_peak": [], "real_sum": [], "sim_peak": [], "sim_sum": []}

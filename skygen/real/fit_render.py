@@ -836,13 +836,10 @@ def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_p
     return d <= radius_px
 
 
-def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
-    """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
+def renderer_at(cfg, attitudes, table=None):
+    """A NumPy renderer of ``cfg`` whose frame i is at ``attitudes[i]`` (ra, dec, roll, deg), full-resolution
+    read-outs kept: the fitted camera seen where the real frames were."""
     from skygen.config import build_config, config_dict
-    from skygen.real.fit_fixed import detected_near
-    from skygen.real.fit_fixed import near_any as near_fixed
-    from skygen.real.fit_pixels import zero_point
-    from skygen.real.frame_stats import frame_stats, nonstar_brightest
     from skygen.render.frame import Renderer
 
     d = config_dict(cfg)
@@ -851,8 +848,18 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
     d["n_frames"] = len(attitudes)
     d["output"] = {**d["output"], "full_res": True}
     d["render"] = {**d["render"], "backend": "numpy", "device": "cpu"}
-    c = build_config(d)
-    r = Renderer(c, catalog=table)
+    return Renderer(build_config(d), catalog=table)
+
+
+def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
+    """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones."""
+    from skygen.real.fit_fixed import detected_near
+    from skygen.real.fit_fixed import near_any as near_fixed
+    from skygen.real.fit_pixels import zero_point
+    from skygen.real.frame_stats import frame_stats, nonstar_brightest
+
+    r = renderer_at(cfg, attitudes, table)
+    c = r.cfg
     det_cfg = c.detection
     rows = []
     for i in range(len(attitudes)):
