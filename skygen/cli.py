@@ -326,6 +326,14 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "G = 10 merged with Hipparcos, for cameras that see fainter than Hipparcos is complete (Hp ~ 8-9)",
     )
     p.add_argument(
+        "--black-level",
+        type=int,
+        metavar="ADU",
+        help="the level the camera's processor subtracts before clipping at 0 (sensor.black_level_adu), given "
+        "instead of fitted; 0: none. Default: fitted where the frames' background sits at 0 ADU and they lose faint "
+        "stars their renders keep (processed frames, e.g. JPEGs of a Raspberry Pi camera)",
+    )
+    p.add_argument(
         "--report",
         metavar="DIR",
         help="write the report here: DIR/REPORT.md, DIR/fit.json, DIR/fit.png (default: beside --out, OUT-report/)",
@@ -349,6 +357,7 @@ def _run_fit_camera(args: argparse.Namespace) -> int:
         epoch_yr=args.epoch,
         channel=args.channel,
         catalog=args.catalog,
+        black_level=args.black_level,
         report_dir=report,
         command=command,
         log=lambda m: print(m, file=sys.stderr),
@@ -533,7 +542,8 @@ SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
             "them at once: focal length, pixel aspect, principal point and radial distortion (terms the "
             "frames cannot constrain are fixed and named), and from the pixels: bias, gain and read "
             "noise (background mean-variance), sky level, gradient and vignetting, PSF (Gaussian or "
-            "Moffat), hot pixels, light fixed on the sensor (a glow: sensor.fixed_sources), the photometric "
+            "Moffat), hot pixels, light fixed on the sensor (a glow: sensor.fixed_sources), a processor's black "
+            "level (sensor.black_level_adu, where the frames' darks are crushed to 0), the photometric "
             "zero point (as exposure x throughput), the detector settings and the centroid error solvers "
             "should assume (camera.centroid_sigma_px). Writes a camera YAML that `skygen render --config` "
             "and `fusion predict --camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "

@@ -153,6 +153,15 @@ class SensorConfig:
     gain_e_per_adu: float = param(3.3, lo=0, lo_open=True, hi=1000, doc="conversion gain, e-/ADU")
     read_noise_e: float = param(5.0, lo=0, hi=1000, doc="read noise, e- rms (Gaussian, zero mean)")
     bias_adu: int = param(100, lo=0, hi=60000, doc="bias (offset) level, ADU")
+    black_level_adu: int = param(
+        0,
+        lo=0,
+        hi=60000,
+        doc="ADU a camera's image processor subtracts from every read-out (bias included) before clipping at 0: "
+        "set above the sky it crushes the background to 0 and takes that much off every star pixel, so faint "
+        "stars vanish (processed frames, e.g. a Raspberry Pi's JPEGs); raw read-outs: 0. skygen fit-camera fits it "
+        "where the frames' background sits at 0 and they lose faint stars their renders keep",
+    )
     fpn_adu: float = param(
         1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel"
     )

@@ -53,6 +53,7 @@ NEUTRAL_DEFAULTS = {
     "optics.sky_vignetting": None,
     "camera.centroid_sigma_px": None,
     "sensor.fixed_sources": [],
+    "sensor.black_level_adu": 0,
 }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -37,11 +38,12 @@ TRUTH = {
 }
 
 
-def _write_truth(folder: Path, n: int = 5, sensor: dict | None = None) -> Path:
+def _write_truth(folder: Path, n: int = 5, sensor: dict | None = None, corruptions: dict | None = None) -> Path:
     from skygen.config import build_config
     from skygen.render.frame import Renderer
 
     truth = {**TRUTH, "sensor": {**TRUTH["sensor"], **(sensor or {})}}
+    truth["corruptions"] = {**TRUTH["corruptions"], **(corruptions or {})}
     cfg = build_config({**truth, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
@@ -257,6 +259,8 @@ def test_fov_range_and_pixel_pitch_bounds(tmp_path, capsys):
         main(["fit-camera", f, "--fov-range", "10", "20", "--pixel-pitch", "0", "--out", str(tmp_path / "c.yaml")]) == 2
     )
     assert "--pixel-pitch 0" in capsys.readouterr().err
+    assert main(["fit-camera", f, "--black-level", "-3", "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "--black-level -3" in capsys.readouterr().err and not (tmp_path / "c.yaml").exists()
 
 
 @pytest.mark.slow
@@ -454,3 +458,85 @@ def test_unwritable_outputs_are_refused_before_any_frame_is_solved(tmp_path, cap
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "cannot write there" in err[0] and argv[-2] in err[0]
     assert not (tmp_path / "ok.yaml").exists()
+
+
+def test_a_wide_lens_distortion_is_found_from_the_centre_outwards():
+    """A 50 deg lens whose distortion puts its outer stars ~10 px from where a pinhole puts them (SPEL's Raspberry
+    Pi camera had 12 px half-way to the corner): matched at 6 px from the start they never pair, the distortion
+    is not seen and chance pairs stand in for them; fitted from the centre outwards (grow_matches) it is."""
+    from skygen.instrument.camera import Camera
+    from skygen.real import fit_geometry as G
+    from skygen.sky.attitude import attitude_matrix
+    from skygen.sky.catalog import SkyIndex, open_catalog
+
+    f_px = 512 / np.tan(np.radians(25.0))
+    truth = Camera(width_px=1024, height_px=1024, f_px=f_px, cx_px=511.5, cy_px=511.5, k1=0.25)
+    sky = SkyIndex(open_catalog("hipparcos", None), 2016.0, 5.0)
+    rng = np.random.default_rng(5)
+    frames = []
+    for i in range(8):
+        R = attitude_matrix(rng.uniform(0, 360), rng.uniform(-60, 60), rng.uniform(0, 360))
+        idx = sky.cone(R[:, 2], truth.corner_radius_rad() + 0.01)
+        x, y, front = truth.project(sky.vectors[idx] @ R)
+        ok = front & truth.inside(x, y, -3.0) & (sky.table.mag[idx] < 4.5)
+        det = {"x_px": x[ok] + rng.normal(0, 0.3, ok.sum()), "y_px": y[ok] + rng.normal(0, 0.3, ok.sum())}
+        frames.append(G.FrameSolution(f"f{i}", det, R=R))
+    start = dataclasses.replace(truth, k1=0.0)
+    r_half = 0.5 * np.hypot(512, 512)
+    assert truth.k1 * (r_half / f_px) ** 2 * r_half > 8  # half-way to the corner the pinhole is > 8 px off
+
+    own = [fs.R.copy() for fs in frames]
+    straight = G.fit_geometry(frames, G.fit_geometry(frames, start, sky, 6.0).camera, sky, 2.5)
+    for fs, R in zip(frames, own):
+        fs.R = R
+    grown = G.fit_geometry(frames, G.grow_matches(frames, start, sky, 6.0), sky, 2.5)
+    assert abs(straight.camera.k1 - truth.k1) > 0.03  # the outer stars never paired
+    assert grown.camera.k1 == pytest.approx(truth.k1, rel=0.05)
+    assert grown.rms_px < 0.6 and sum(len(r) for r in grown.residuals) > 1.3 * sum(len(r) for r in straight.residuals)
+
+
+def test_a_black_level_is_fitted_to_the_depth_the_frames_detect_stars_to():
+    """fit_black_level: bisection on the renders' half-detected magnitude (which falls as the level rises; NaN
+    where no star is detected at all) to the frames'; none where the renders are already as shallow."""
+    from skygen.real.fit_render import BLACK_STEPS, BLACK_TOL_MAG, black_level_gate, fit_black_level
+
+    seen = []
+
+    def measure(b):  # renders at level b: stars half detected down to 4 - 0.1 b mag, none from 60 ADU on
+        seen.append(b)
+        return (float("nan") if b >= 60 else 4.0 - 0.1 * b), 1.0 + b, {"psf": "gaussian", "at": b}
+
+    out = fit_black_level(measure, 2.5, 255)
+    assert abs((4.0 - 0.1 * out["adu"]) - 2.5) <= BLACK_TOL_MAG and out["psf"]["at"] == out["adu"]
+    assert out["exposure_s"] == 1.0 + out["adu"] and len(seen) <= BLACK_STEPS and seen[0] == 0
+    assert "sensor.black_level_adu" in out["note"]
+    assert fit_black_level(measure, 3.8, 255)["adu"] == 0  # within 0.5 mag already: nothing to fit
+    assert fit_black_level(measure, float("nan"), 255)["adu"] == 0
+    assert black_level_gate([{"background_adu": 0.0}, {"background_adu": 0.1}])[0]
+    assert not black_level_gate([{"background_adu": 12.0}])[0]
+
+
+def test_a_black_level_is_recovered_from_frames_rendered_with_one(tmp_path):
+    """Frames of a camera whose processor subtracts a level 29 ADU above the sky (background crushed to 0, faint
+    stars gone): fit-camera sees the background at the floor and its renders without a level detecting stars ~3
+    mag deeper than the frames, and fits the level (in its own camera's terms: the fitted background sits near 0)."""
+    from skygen.config import build_config
+    from skygen.render.frame import Renderer
+
+    flat = {"stray_light": 0.0}
+    r = Renderer(build_config({**TRUTH, "corruptions": {**TRUTH["corruptions"], **flat}, "n_frames": 1}))
+    above = r.cfg.sensor.bias_adu + r.background_e / r.cfg.sensor.gain_e_per_adu
+    folder = _write_truth(tmp_path, sensor={"black_level_adu": int(above) + 29}, corruptions=flat)
+    out = tmp_path / "fitted.yaml"
+    argv = ["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out)]
+    assert main([*argv, "--report", str(tmp_path / "rep")]) == 0
+    import json
+
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    assert load_config(out).sensor.black_level_adu == rec["pixels"]["black_level"]["adu"]
+    # 29 in the truth's terms; the fit stops within BLACK_TOL_MAG of the frames' depth, which a few ADU either side
+    # of the truth also reach (24 and 28 ADU for truths of 139 and 140)
+    assert 21 <= rec["pixels"]["black_level"]["adu"] <= 37
+    half = rec["compare"]["half_detected_mag"]
+    assert abs(half["fitted"] - half["real"]) < 0.5 and half["real"] < rec["pixels"]["black_level"]["trace"][0][1] - 2
+    assert rec["compare"]["detections"]["fitted"] == pytest.approx(rec["compare"]["detections"]["real"], rel=0.25)

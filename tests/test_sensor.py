@@ -133,3 +133,39 @@ def test_dead_pixels_read_bias_level():
     img, _ = read_out(Exposure(star, None, [(0, H, 0, W)], 5.0), s, m, np.random.default_rng(8))
     dead = img.ravel()[m.dead_index].astype(float)
     assert len(dead) > 10 and np.all(np.abs(dead - s.bias_adu) < 6 * s.read_noise_e / s.gain_e_per_adu)
+
+
+@pytest.mark.parametrize("sampler", ["fast", "exact"])
+def test_a_black_level_above_the_sky_crushes_the_background_and_erases_faint_stars(sampler):
+    """sensor.black_level_adu (a camera's processor): every read-out less it, clipped at 0. Set above the sky the
+    background reads 0 everywhere, a star keeps its light above the level, and one whose peak is below it is gone."""
+    s = quiet_sensor(sampler=sampler, bias_adu=10, gain_e_per_adu=1.0, read_noise_e=1.0, full_well_e=1e6)
+    black = 30  # 20 ADU above bias + sky (a 5 e- sky)
+    star = np.zeros((H, W), np.float32)
+    star[40, 40] = 200.0  # a bright star's peak: 200 e- above the sky
+    star[80, 80] = 15.0  # a faint one: its peak reads ~25 ADU, below the level
+    exp = Exposure(star, None, [(39, 42, 39, 42), (79, 82, 79, 82)], 5.0)
+    crushed = dataclasses.replace(s, black_level_adu=black)
+    maps = sensor_maps(H, W, s.sensor_seed, 0.0, 0.0, s.bias_adu - black, 0.0, s.hot_pixel_dark_e_s, 0.0)
+    img, _ = read_out(exp, crushed, maps, np.random.default_rng(2))
+    linear, _ = read_out(exp, s, maps_for(s), np.random.default_rng(2))
+    assert (linear[100:, 100:] > 0).all() and (img[100:, 100:] == 0).all()  # the background: all 0
+    assert img[80, 80] == 0 and linear[80, 80] > 20  # the faint star: gone
+    assert img[40, 40] == pytest.approx(float(linear[40, 40]) - black, abs=1)  # the bright one: less the level
+
+
+def test_the_renderer_draws_the_black_level_and_its_detection_limit_knows_it():
+    """The renderer's read-outs carry sensor.black_level_adu (its sensor maps' offset) and its detection limit
+    needs a star's peak to clear the level first: brighter by the light the level takes."""
+    from skygen.config import build_config
+    from skygen.render.frame import Renderer
+
+    base = {"camera": {"width_px": 256, "height_px": 256, "fov_deg": 12.0}, "output": {"image_size_px": 128}}
+    plain = Renderer(build_config(base))
+    s = plain.cfg.sensor
+    sky_adu = s.bias_adu + plain.background_e / s.gain_e_per_adu
+    crushed = Renderer(build_config({**base, "sensor": {"black_level_adu": int(sky_adu) + 20}}))
+    assert int(crushed.maps.offset_adu.min()) < 0
+    assert crushed.detection_limit_mag < plain.detection_limit_mag - 0.5
+    f = crushed.render(0)
+    assert np.median(f.image_full if f.image_full is not None else f.image) == 0

@@ -71,7 +71,8 @@ class FrameGeometry:
             w,
             s,
             w // s,
-            float(config["sensor"]["bias_adu"]),
+            # the dark level of the read-outs: the bias less a processor's black level (none in older datasets)
+            float(max(int(config["sensor"]["bias_adu"]) - int(config["sensor"].get("black_level_adu", 0)), 0)),
             float(2 ** int(config["sensor"]["bit_depth"]) - 1),
             float(config["optics"]["psf_sigma_px"]),
             h,

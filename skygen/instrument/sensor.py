@@ -48,7 +48,7 @@ class SensorMaps:
     """Static per-pixel maps of one physical sensor (same for every frame)."""
 
     prnu: np.ndarray  # float32 (H, W), mean 1
-    offset_adu: np.ndarray  # int32 (H, W): bias + integer FPN
+    offset_adu: np.ndarray  # int32 (H, W): bias (less a processor's black level) + integer FPN
     hot_index: np.ndarray  # flat indices of hot pixels
     hot_dark_e_s: np.ndarray  # their extra dark current, e-/s
     dead_index: np.ndarray  # flat indices of dead pixels

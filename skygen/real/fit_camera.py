@@ -15,7 +15,9 @@
    with the solver's reason.
 3. Geometry (:mod:`skygen.real.fit_geometry`): detections matched to skygen's catalogue (Hipparcos-2 at the
    epoch); focal length, pixel aspect, principal point, k1 (k2) and every frame's attitude fitted
-   together by least squares; terms the data cannot constrain are fixed, and the report says why. Frames
+   together by least squares, matched from the centre outwards first (:func:`skygen.real.fit_geometry.grow_matches`:
+   a wide lens's outer stars lie beyond the match radius until its distortion is fitted); terms the data cannot
+   constrain are fixed, and the report says why. Frames
    the fitted camera does not explain (their own solved field over 3 % from the others', fewer than 4
    matched stars, or residuals over 3 x the fit's rms) are dropped with the reason and the fit made
    again without them; when they are half the solved frames or more, the fit is refused (frames of
@@ -42,7 +44,9 @@
    and the background's fall is kept apart as ``optics.sky_vignetting``; the stars' photometric scatter beyond
    the renders' own becomes ``photometry.star_scatter_mag`` (a fixed offset per star); uncatalogued detections
    that recur at one place from several pointings become ``sensor.fixed_sources`` (:mod:`skygen.real.fit_fixed`:
-   a glow on the sensor, rendered in every frame, and no false star). Frames are then rendered at the
+   a glow on the sensor, rendered in every frame, and no false star). Where the frames' background sits at the
+   ADC's floor, a processor's black level (``sensor.black_level_adu``) is fitted to the depth down to which they
+   detect catalogue stars (:func:`skygen.real.fit_render.fit_black_level`). Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
    the real one (the detector's flux is not a star's whole flux; the zero point is the median over matched
    stars less the pairs far brighter than their star, :func:`skygen.real.fit_pixels.zero_point_rows`). The
@@ -200,10 +204,14 @@ def fit_camera(
     log=print,
     channel: str = "luminance",
     catalog: str | None = None,
+    black_level: int | None = None,
 ) -> dict:
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
-    ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`)."""
+    ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`). ``black_level``: the
+    processor's black level given (ADU; 0: none) instead of fitted."""
+    if black_level is not None and not 0 <= black_level <= 60000:
+        raise ConfigError(f"--black-level {black_level}: a level in ADU from 0 (none) to 60000")
     from skygen.real.fit_render import fit_model_terms
     from skygen.runtime import check_output_file, check_output_folder
     from skygen.sky.catalog import SkyIndex, open_catalog
@@ -226,7 +234,17 @@ def fit_camera(
     t_geom = time.perf_counter() - t0
     px = measure_pixels(fr, solved, g, cfg0, sky, log, camera_file=camera is not None)
     model = fit_model_terms(
-        cfg0, g, px, solved, fr, table, epoch, pixel_pitch_um, with_start=camera is not None, log=log
+        cfg0,
+        g,
+        px,
+        solved,
+        fr,
+        table,
+        epoch,
+        pixel_pitch_um,
+        with_start=camera is not None,
+        log=log,
+        black_level=black_level,
     )
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
     record = _record(
@@ -461,6 +479,7 @@ def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):
     if fov_range is not None:  # the field the solver found is the fit's start
         fov = float(np.median([fs.fov_deg for fs in majority_field(solved)]))
         start_cam = dataclasses.replace(cam0, f_px=cam0.width_px / 2 / np.tan(np.radians(fov) / 2))
+    start_cam = G.grow_matches(solved, start_cam, sky, 6.0)  # from the centre outwards: a wide lens's distortion
     g = G.fit_geometry(solved, start_cam, sky, 6.0, log=lambda m: None)
     for fs, R in zip(solved, g.rotations):
         fs.R = R

@@ -35,6 +35,13 @@ RULES = {
     "min_edge_fraction": 0.7,
     "max_corner_sigma_px": 0.3,
 }
+#: the rules of :func:`grow_matches`'s inner stages: distortion fitted from stars short of the corner, its
+#: uncertainty there allowed to be large (the next, wider stage refines it; the final fit applies RULES)
+GROWING_RULES = {**RULES, "min_edge_fraction": 0.0, "max_corner_sigma_px": 50.0}
+#: the stages' reach (share of the centre-to-corner distance matched)
+GROWING_REACH = (0.5, 0.7, 0.85, 1.0)
+#: a frame's attitude is taken from a stage only where that stage matched at least this many of its stars
+GROWING_MIN_MATCHES = 4
 
 
 @dataclass
@@ -103,8 +110,9 @@ def solve_frame(
     return np.asarray(res.rotation_matrix_icrs_to_camera).T.copy(), float(res.fov_deg), ""
 
 
-def match_catalogue(fs: FrameSolution, camera: Camera, sky, radius_px: float) -> None:
-    """Pair each detection with the nearest catalogue star projected through ``fs.R`` (each star once)."""
+def match_catalogue(fs: FrameSolution, camera: Camera, sky, radius_px: float, reach: float = 1.0) -> None:
+    """Pair each detection with the nearest catalogue star projected through ``fs.R`` (each star once); with
+    ``reach`` < 1 only the detections within that share of the centre-to-corner distance."""
     from scipy.spatial import cKDTree
 
     idx = sky.cone(fs.R[:, 2], camera.corner_radius_rad() + 0.01)
@@ -118,7 +126,12 @@ def match_catalogue(fs: FrameSolution, camera: Camera, sky, radius_px: float) ->
         fs.star_mag, fs.star_bv, fs.star_hip = np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
         return
     d, j = cKDTree(np.column_stack([x, y])).query(np.column_stack([fs.det["x_px"], fs.det["y_px"]]))
-    good = np.flatnonzero(d <= radius_px)
+    inner = True
+    if reach < 1.0:
+        r_max = np.hypot(camera.width_px / 2, camera.height_px * camera.aspect / 2)
+        r = np.hypot(fs.det["x_px"] - camera.cx_px, (fs.det["y_px"] - camera.cy_px) * camera.aspect)
+        inner = r <= reach * r_max
+    good = np.flatnonzero((d <= radius_px) & inner)
     # each catalogue star claimed once: by its nearest detection
     order = good[np.argsort(d[good], kind="stable")]
     _, first = np.unique(j[order], return_index=True)
@@ -192,9 +205,16 @@ def _corner_effect(term: str, cam: Camera) -> float:
 
 
 def fit_geometry(
-    frames: list[FrameSolution], start: Camera, sky, radius_px: float, rules: dict = RULES, log=lambda m: None
+    frames: list[FrameSolution],
+    start: Camera,
+    sky,
+    radius_px: float,
+    rules: dict = RULES,
+    log=lambda m: None,
+    reach: float = 1.0,
 ) -> GeometryFit:
-    """The joint fit (see module doc) over the solved ``frames`` (matched already)."""
+    """The joint fit (see module doc) over the solved ``frames``, matched here at ``radius_px`` (``reach``:
+    :func:`match_catalogue`)."""
     from scipy.optimize import least_squares
 
     n_frames = len(frames)
@@ -210,7 +230,7 @@ def fit_geometry(
     fixed: dict = {}
     cam = start
     for fs in frames:
-        match_catalogue(fs, cam, sky, radius_px)
+        match_catalogue(fs, cam, sky, radius_px, reach)
     n_stars = sum(len(fs.det_index) for fs in frames)
     r_max = np.sqrt(((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2))
     reach = (
@@ -311,3 +331,20 @@ def fit_geometry(
     allr = np.concatenate(resid) if resid else np.zeros((0, 2))
     rms = float(np.sqrt(np.mean(np.sum(allr**2, axis=1)))) if len(allr) else float("nan")
     return GeometryFit(cam, rots, names, fixed, sig, resid, posn, masks, rms)
+
+
+def grow_matches(frames: list[FrameSolution], start: Camera, sky, radius_px: float, reach=GROWING_REACH) -> Camera:
+    """A start for the joint fit on a lens whose distortion moves its outer stars beyond the match radius (a wide
+    lens: 12 px at half the way to the corner on a 51 deg one, so those stars never match and the distortion is
+    never seen): fitted from the centre outwards, matching at ``radius_px`` only the detections within each
+    ``reach`` of the centre-to-corner distance (:data:`GROWING_REACH`) under :data:`GROWING_RULES`, each stage's
+    camera and attitudes (``fs.R``, updated where the stage matched :data:`GROWING_MIN_MATCHES` of the frame's
+    stars) the next one's start. Returns the last stage's camera."""
+    cam = start
+    for r in reach:
+        g = fit_geometry(frames, cam, sky, radius_px, rules=GROWING_RULES, reach=r)
+        for fs, R, res in zip(frames, g.rotations, g.residuals):
+            if len(res) >= GROWING_MIN_MATCHES:  # a frame with fewer stars this far in keeps its attitude
+                fs.R = R
+        cam = g.camera
+    return cam

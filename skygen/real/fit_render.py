@@ -25,15 +25,27 @@ import dataclasses
 
 import numpy as np
 
+from skygen.errors import ConfigError
 from skygen.instrument.camera import Camera
 
 
 def fit_model_terms(
-    cfg0, g, px: dict, solved: list, fr, table, epoch_yr: float, pixel_pitch_um, with_start: bool, log
+    cfg0,
+    g,
+    px: dict,
+    solved: list,
+    fr,
+    table,
+    epoch_yr: float,
+    pixel_pitch_um,
+    with_start: bool,
+    log,
+    black_level: int | None = None,
 ) -> dict:
     """Step 6 (module doc). ``px``: :func:`skygen.real.fit_camera.measure_pixels`'s measurements (``meas`` is
-    updated in place by a correction). Returns the config, the exposure, the real and rendered statistics
-    (start camera, fitted camera), the checks, the correction made (or None) and the warnings."""
+    updated in place by a correction); ``black_level``: the processor's, given (ADU) instead of fitted. Returns the
+    config, the exposure, the real and rendered statistics (start camera, fitted camera), the checks, the correction
+    made (or None) and the warnings."""
     from skygen.real.fit_fixed import find as find_fixed
     from skygen.real.fit_fixed import near_any as near_fixed
     from skygen.real.fit_geometry import radec_roll
@@ -76,6 +88,30 @@ def fit_model_terms(
         for q, g_ in zip(meas["fixed_sources"], got):
             light = q.get("light_adu", q["flux_adu"]) * q["flux_adu"] / max(float(g_), 1e-9)
             q["light_adu"] = float(np.clip(light, q["flux_adu"], 20 * q["flux_adu"]))
+        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
+        render_zp = _render_stats(cfg, attitudes, table, sat)
+    # a processor's black level above the sky (crushed darks that lose faint stars): fitted to the depth the
+    # frames detect catalogue stars to, where their background sits at the floor (fit_black_level)
+    floor, why = black_level_gate(real_stats)
+    meas["black_level"] = {"adu": 0, "note": f"none: {why}"}
+    real_width = median_of(real_stats, "star_sigma_px")
+
+    def measure(b: int) -> tuple:
+        meas["black_level_adu"] = b
+        return _at_black_level(cfg0, cam, meas, exposure, pixel_pitch_um, attitudes, table, sat, px, real_width)
+
+    if black_level is not None:
+        meas["black_level"] = {"adu": int(black_level), "note": f"sensor.black_level_adu {black_level}: given"}
+        if black_level:
+            _, meas["black_level"]["exposure_s"], meas["black_level"]["psf"] = measure(int(black_level))
+    elif floor:
+        meas["black_level"] = fit_black_level(measure, median_of(real_stats, "half_detected_mag"), int(sat))
+    meas["black_level_adu"] = meas["black_level"]["adu"]
+    fitted_exposure, fitted_psf = meas["black_level"].pop("exposure_s", None), meas["black_level"].pop("psf", None)
+    if black_level is not None or floor:
+        log(f"fit-camera: {meas['black_level']['note']}")
+    if meas["black_level_adu"]:  # its exposure and PSF; the photometric scatter and zero point below from renders
+        exposure, meas["psf"] = fitted_exposure, fitted_psf
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
         render_zp = _render_stats(cfg, attitudes, table, sat)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
@@ -134,6 +170,106 @@ def fit_model_terms(
     }
 
 
+#: a processor's black level (``sensor.black_level_adu``) is looked for only where the frames' background sits at
+#: the ADC's floor (median level at most this, ADU): a black level below the sky takes nothing off a star
+BLACK_FLOOR_ADU = 0.5
+#: its search: doubling then bisection over whole ADU from 0 to the saturation level, at most BLACK_STEPS levels,
+#: stopping where the renders' half-detected magnitude is within BLACK_TOL_MAG of the frames'
+BLACK_STEPS = 10
+BLACK_TOL_MAG = 0.05
+
+
+def black_level_gate(real_stats: list[dict]) -> tuple[bool, str]:
+    """(whether a black level is looked for on these frames: their background sits at the ADC's floor, why)."""
+    from skygen.real.frame_stats import median_of
+
+    level = median_of(real_stats, "background_adu")
+    if not (np.isfinite(level) and level <= BLACK_FLOOR_ADU):
+        return False, f"the frames' background sits at {level:.2f} ADU, above the floor: no black level crushes it"
+    return True, f"the frames' background sits at the floor ({level:.2f} ADU)"
+
+
+def _at_black_level(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px, real_width: float) -> tuple:
+    """(renders' half-detected magnitude, exposure, PSF) of the fitted camera at ``meas["black_level_adu"]``: a black
+    level takes light off every star pixel, the wings first, so the frames' zero point and star width (measured
+    after it) are refitted with it: :data:`BLACK_PASSES` renders, the exposure scaled to the zero point and the PSF's
+    width to the star width after each but the last. ``meas["psf"]`` is restored; the PSF fitted is returned."""
+    from skygen.real.frame_stats import median_of
+
+    psf0 = meas["psf"]
+    psf = dict(psf0)
+    key = "moffat_sigma_px" if psf.get("psf") == "moffat" else "gaussian_sigma_px"
+    try:
+        for i in range(BLACK_PASSES):
+            meas["psf"] = psf
+            try:
+                rows = _render_stats(build_fitted(cfg0, cam, meas, exposure, pitch), attitudes, table, sat)
+            except ConfigError:  # the renderer refuses a camera that detects no star: a level far too high
+                return float("nan"), exposure, psf
+            if i == BLACK_PASSES - 1:
+                break
+            zp, width = median_of(rows, "zero_point_mag"), median_of(rows, "star_sigma_px")
+            if np.isfinite(zp) and np.isfinite(px["zp_real"]):
+                exposure *= 10 ** (0.4 * (px["zp_real"] - zp))
+            if psf.get("ok") and np.isfinite(width) and width > 0 and np.isfinite(real_width):
+                psf = {**psf, key: float(psf[key] * np.clip(real_width / width, 0.5, 2.0))}
+    finally:
+        meas["psf"] = psf0
+    return median_of(rows, "half_detected_mag"), exposure, psf
+
+
+#: renders per black level tried (:func:`_at_black_level`): the zero point and star width refitted twice
+BLACK_PASSES = 3
+
+
+def fit_black_level(measure, real_half: float, top: int, steps: int = BLACK_STEPS, tol: float = BLACK_TOL_MAG) -> dict:
+    """The black level (whole ADU, 0 to ``top``) whose renders detect catalogue stars down to the magnitude the
+    frames do (``real_half``, :func:`half_detected_mag`'s median over frames). ``measure(b)`` -> (the renders'
+    half-detected magnitude, the exposure it was measured at); it falls as ``b`` grows (NaN: no catalogue star
+    detected at all, too high). Bisection, at most ``steps`` measurements; b = 0 is measured first and kept where
+    the renders are not deeper than the frames by more than :data:`HALF_DETECTED_TOL_MAG` (nothing to fit).
+    Returns {adu, exposure_s, psf, trace: [[b, mag], ...], note}."""
+    out = {"adu": 0, "exposure_s": None, "psf": None, "trace": []}
+    if not np.isfinite(real_half):
+        out["note"] = "none: the frames' catalogue stars have no half-detected magnitude to fit one to"
+        return out
+    m0, e0, p0 = measure(0)
+    out["trace"].append([0, m0])
+    out["exposure_s"], out["psf"] = e0, p0
+    if not (np.isfinite(m0) and m0 - real_half > HALF_DETECTED_TOL_MAG):
+        out["note"] = (
+            f"none: the frames' background sits at the floor, but renders without one detect catalogue stars down "
+            f"to {m0:.2f} mag against the frames' {real_half:.2f}"
+        )
+        return out
+    lo, hi, best = 0, int(top), (m0 - real_half, 0, e0, p0)
+    doubling = True  # 1, 2, 4, ... until a level is too high (levels span orders of magnitude), then halving
+    for _ in range(steps - 1):
+        if hi - lo <= 1:
+            break
+        b = min(2 * lo if lo else 1, hi - 1) if doubling else (lo + hi) // 2
+        m, e, p = measure(b)
+        out["trace"].append([b, m])
+        if not np.isfinite(m) or m < real_half:
+            hi, doubling = b, False  # too high: the renders lose stars the frames keep (or every star)
+        else:
+            lo = b
+        if np.isfinite(m) and abs(m - real_half) < abs(best[0]):
+            best = (m - real_half, b, e, p)
+        if abs(best[0]) <= tol:
+            break
+    gap, b, e, p = best
+    out.update(adu=int(b), exposure_s=e, psf=p)
+    out["note"] = (
+        f"sensor.black_level_adu {b}: the frames' background sits at the floor and their catalogue stars are half "
+        f"detected down to {real_half:.2f} mag, renders without a black level to {m0:.2f}; with it to "
+        f"{real_half + gap:.2f} (a camera's processor subtracting a level above the sky, which takes that much off "
+        f"every star pixel; {len(out['trace'])} levels tried, the exposure and PSF width refitted to the zero point "
+        "and star width at each)"
+    )
+    return out
+
+
 #: real frames whose matched stars' flux exponent (:func:`flux_exponent`) differs from the renders' by more than
 #: this have a response skygen does not render: a warning
 RESPONSE_EXPONENT_TOL = 0.15
@@ -148,8 +284,9 @@ def response_warning(scatter: dict) -> str | None:
     return (
         f"response not linear: matched stars' detected flux grows as the catalogue flux to the power {a:.2f} on "
         f"the frames, {b:.2f} on renders (tolerance {RESPONSE_EXPONENT_TOL}): a tone curve or black clip of the "
-        "camera's image processor (JPEG or other processed frames)? skygen renders a linear sensor, so the renders' "
-        "faint stars, detections and photometry will not match; raw frames (PNG, TIFF, FITS read-outs) fit"
+        "camera's image processor (JPEG or other processed frames)? skygen renders a linear sensor (less a black "
+        "level, where one is fitted), so the renders' faint stars, detections and photometry will not match; raw "
+        "frames (PNG, TIFF, FITS read-outs) fit"
     )
 
 
@@ -626,6 +763,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "gain_e_per_adu": float(gain),
             "read_noise_e": float(meas["read_noise_e"]),
             "bias_adu": int(round(meas["bias_adu"])),
+            "black_level_adu": int(meas.get("black_level_adu", 0)),
             "fpn_adu": float(meas.get("fpn_adu", s.fpn_adu)),
             "bit_depth": int(bits),
             "full_well_e": float(max(s.full_well_e, gain * (2**bits - 1))),

@@ -143,7 +143,7 @@ class Renderer:
             s.sensor_seed,
             s.prnu_frac,
             s.fpn_adu,
-            s.bias_adu,
+            s.bias_adu - s.black_level_adu,  # a processor's black level: the read-out less it, clipped at 0
             cfg.corruptions.hotpixels,
             s.hot_pixel_dark_e_s,
             s.dead_pixel_fraction,
@@ -235,9 +235,11 @@ class Renderer:
     def _detection_limit(self, extra_read_e: float | None = None) -> float:
         """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold
         (``extra_read_e``: as :meth:`noise_e`)."""
-        o = self.cfg.optics
+        o, s = self.cfg.optics, self.cfg.sensor
         peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
-        e_needed = self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e) / peak
+        # a processor's black level above the background takes that much light off the peak first
+        crushed_e = max((s.black_level_adu - s.bias_adu) * s.gain_e_per_adu - self.background_e, 0.0)
+        e_needed = (self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e) + crushed_e) / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
 
     def sparse_warning(self) -> str | None:
@@ -278,7 +280,7 @@ class Renderer:
         """A sentence when the background alone (dark current + sky) fills the full well or the ADC
         in every pixel, so no star can be seen; None otherwise."""
         s = self.cfg.sensor
-        adu = s.bias_adu + self.background_e / s.gain_e_per_adu
+        adu = s.bias_adu - s.black_level_adu + self.background_e / s.gain_e_per_adu
         top = 2**s.bit_depth - 1
         if self.background_e >= s.full_well_e or adu >= top:
             return (

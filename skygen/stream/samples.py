@@ -354,7 +354,7 @@ class SampleStream:
         det_fr, det = self._emulated(key, idx, fr, row, row, x, y, e, hip, levels)
         det_off = np.concatenate([[0], np.cumsum(np.bincount(det_fr, minlength=B))])
         s = self.cfg.sensor
-        bg_adu = s.bias_adu + r.background_e / s.gain_e_per_adu
+        bg_adu = max(s.bias_adu - s.black_level_adu + r.background_e / s.gain_e_per_adu, 0.0)
         noise_adu = r.noise_e() / s.gain_e_per_adu
         frames = []
         for j, (sc, img, true, lv) in enumerate(zip(scenes, images, trues, per)):
