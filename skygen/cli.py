@@ -545,7 +545,8 @@ SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
             "Moffat), hot pixels, light fixed on the sensor (a glow: sensor.fixed_sources), a processor's black "
             "level (sensor.black_level_adu, where the frames' darks are crushed to 0), the photometric "
             "zero point (as exposure x throughput), the detector settings and the centroid error solvers "
-            "should assume (camera.centroid_sigma_px). Writes a camera YAML that `skygen render --config` "
+            "should assume (camera.centroid_sigma_px; its part beyond the renders' own is drawn: "
+            "optics.star_jitter_px). Writes a camera YAML that `skygen render --config` "
             "and `fusion predict --camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
             "already described.",
         ),

@@ -110,6 +110,15 @@ class OpticsConfig:
         doc="the diffuse background's loss at the corner where it differs from the stars' (sensor shading, a sky "
         "that is not flat: skygen fit-camera measures both); None: optics.vignetting",
     )
+    star_jitter_px: float = param(
+        0.0,
+        lo=0,
+        hi=20,
+        doc="each star's image drawn this far (px rms per axis, fresh in every frame) from where the camera model "
+        "puts it, its labels left there: the centroid scatter a real camera shows beyond the renders' own (a "
+        "processed colour frame's chroma, optics beyond the model); NumPy backend. skygen fit-camera sets it "
+        "from the geometry fit's residual",
+    )
 
 
 @dataclass(frozen=True)
@@ -351,6 +360,8 @@ def check_consistency(cfg: RenderConfig) -> None:
             raise ConfigError(
                 f"sensor.fixed_sources[{k}]: rate {rate:g} e-/s must be >= 0 and sigma {sigma:g} px in (0, 100]"
             )
+    if cfg.optics.star_jitter_px > 0 and r.backend == "torch":
+        raise ConfigError("optics.star_jitter_px needs render.backend=numpy (the torch backend does not draw it)")
     if cfg.sensor.fixed_sources and r.backend == "torch":
         raise ConfigError("sensor.fixed_sources needs render.backend=numpy (the torch backend does not draw them)")
     for key in ("principal_x_px", "principal_y_px"):

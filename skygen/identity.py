@@ -54,6 +54,7 @@ NEUTRAL_DEFAULTS = {
     "camera.centroid_sigma_px": None,
     "sensor.fixed_sources": [],
     "sensor.black_level_adu": 0,
+    "optics.star_jitter_px": 0.0,
 }
 
 

@@ -540,3 +540,31 @@ def test_a_black_level_is_recovered_from_frames_rendered_with_one(tmp_path):
     half = rec["compare"]["half_detected_mag"]
     assert abs(half["fitted"] - half["real"]) < 0.5 and half["real"] < rec["pixels"]["black_level"]["trace"][0][1] - 2
     assert rec["compare"]["detections"]["fitted"] == pytest.approx(rec["compare"]["detections"]["real"], rel=0.25)
+
+
+def test_the_frames_centroid_scatter_beyond_the_renders_is_drawn():
+    """star_jitter: the frames' per-axis centroid scatter beyond the renders' own, in quadrature, where it exceeds
+    it by the ratio and the floor; none otherwise."""
+    from skygen.real.fit_render import STAR_JITTER_MIN_PX, centroid_scatter, star_jitter
+
+    assert star_jitter(0.95, 0.043)["px"] == pytest.approx(np.sqrt(0.95**2 - 0.043**2))
+    assert star_jitter(0.10, 0.09)["px"] == 0.0  # within the ratio
+    assert star_jitter(0.12, 0.05)["px"] == 0.0 or star_jitter(0.12, 0.05)["px"] >= STAR_JITTER_MIN_PX
+    assert star_jitter(None, 0.05)["px"] == 0.0 and star_jitter(0.5, float("nan"))["px"] == 0.0
+    rng = np.random.default_rng(1)
+    dx, dy = rng.normal(0, 0.3, 400), rng.normal(0, 0.3, 400)
+    dx[:4] = 40.0  # mismatches: left out as the geometry fit leaves them out
+    assert centroid_scatter(dx, dy) == pytest.approx(0.3, rel=0.1)
+
+
+def test_the_report_says_whether_the_residual_is_a_scatter_or_a_field():
+    """neighbour_correlation: residuals drawn afresh per star correlate ~0 between neighbours, a smooth field the
+    model misses (a rotation about the centre) ~1."""
+    from skygen.real.fit_camera import neighbour_correlation
+
+    rng = np.random.default_rng(4)
+    pos = [rng.uniform(0, 1000, (40, 2)) for _ in range(10)]
+    scatter = [rng.normal(0, 1.0, (40, 2)) for _ in range(10)]
+    field = [0.002 * np.column_stack([-(p[:, 1] - 500), p[:, 0] - 500]) + rng.normal(0, 0.05, (40, 2)) for p in pos]
+    assert abs(neighbour_correlation(scatter, pos)["corr"]) < 0.1
+    assert neighbour_correlation(field, pos)["corr"] > 0.5

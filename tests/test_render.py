@@ -46,6 +46,29 @@ def test_true_stars_are_where_the_detector_finds_them():
     assert len(e) > 30 and np.median(e) < 0.1
 
 
+def test_star_jitter_moves_each_star_image_but_not_its_label():
+    """optics.star_jitter_px: the detector finds each bright star about that far (per axis) from its label, the
+    labels are those of the same frame without jitter, and the draw is a pure function of seed and frame."""
+    from skygen.config import ConfigError, build_config
+
+    plain, jit = Renderer(load_config()), Renderer(load_config(overrides=["optics.star_jitter_px=0.8"]))
+    d = []
+    for i in range(8):
+        a, f = plain.render(i), jit.render(i)
+        np.testing.assert_array_equal(a.stars["x_px"], f.stars["x_px"])
+        ok = f.detections["star_index"] >= 0
+        s = f.detections["star_index"][ok]
+        bright = f.stars["mag"][s] < jit.detection_limit_mag - 1.5
+        d.append(f.detections["x_px"][ok][bright] - f.stars["x_px"][s][bright])
+        d.append(f.detections["y_px"][ok][bright] - f.stars["y_px"][s][bright])
+    d = np.concatenate(d)
+    assert len(d) > 60 and 0.65 < np.sqrt(np.mean(d**2)) < 0.95  # 0.8 px drawn, the detector's own ~0.05
+    np.testing.assert_array_equal(jit.render(3).image, Renderer(jit.cfg).render(3).image)
+    assert jit.render(2).log["star_jitter"]["rms_px"] > 0
+    with pytest.raises(ConfigError, match="star_jitter_px needs render.backend=numpy"):
+        build_config({"optics": {"star_jitter_px": 1.0}, "render": {"backend": "torch"}})
+
+
 def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     cfg = load_config(overrides=CLEAN + ["corruptions.motion_blur=1.0"])
     r = Renderer(cfg)

@@ -46,7 +46,9 @@
    that recur at one place from several pointings become ``sensor.fixed_sources`` (:mod:`skygen.real.fit_fixed`:
    a glow on the sensor, rendered in every frame, and no false star). Where the frames' background sits at the
    ADC's floor, a processor's black level (``sensor.black_level_adu``) is fitted to the depth down to which they
-   detect catalogue stars (:func:`skygen.real.fit_render.fit_black_level`). Frames are then rendered at the
+   detect catalogue stars (:func:`skygen.real.fit_render.fit_black_level`), and the centroid scatter the geometry
+   fit leaves beyond the renders' own becomes ``optics.star_jitter_px`` (:func:`skygen.real.fit_render.star_jitter`).
+   Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
    the real one (the detector's flux is not a star's whole flux; the zero point is the median over matched
    stars less the pairs far brighter than their star, :func:`skygen.real.fit_pixels.zero_point_rows`). The
@@ -88,6 +90,8 @@ BOXES = (0, BOX_PX)
 FIELD_TOLERANCE = 0.03
 MIN_MATCHED = 4
 RMS_FACTOR = 3.0
+#: the report's neighbour correlation of geometry residuals (:func:`neighbour_correlation`): pairs within this many px
+NEIGHBOUR_PX = 200.0
 
 
 class FitError(SkygenError):
@@ -671,6 +675,23 @@ def choose_detector(solved, imgs, cam, rotations, sky, box_maps: list | None = N
     return {**best, "min_area_px": DETECT["min_area_px"], "grid": rows}
 
 
+def neighbour_correlation(residuals: list, positions: list, within_px: float = NEIGHBOUR_PX) -> dict:
+    """{n, corr}: over pairs of matched stars of one frame within ``within_px`` of each other, the mean dot product
+    of their residual vectors over the mean squared residual: ~0 for a centroid scatter drawn afresh per star, ~1 for
+    a field the camera model misses (distortion beyond its terms)."""
+    dots, sq = [], []
+    for r, p in zip(residuals, positions):
+        if len(r) < 2:
+            continue
+        sq.append(np.sum(r**2, 1))
+        i, j = np.triu_indices(len(r), 1)
+        near = np.hypot(*(p[i] - p[j]).T) < within_px
+        dots.append(np.sum(r[i[near]] * r[j[near]], 1))
+    d = np.concatenate(dots) if dots else np.zeros(0)
+    v = float(np.mean(np.concatenate(sq))) if sq else float("nan")
+    return {"within_px": within_px, "n": int(d.size), "corr": float(d.mean() / v) if d.size and v > 0 else float("nan")}
+
+
 def _record(
     names,
     dropped,
@@ -728,6 +749,14 @@ def _record(
                 "rms_px": float(np.sqrt(np.mean(np.sum(allr[sel] ** 2, 1)))) if sel.any() else float("nan"),
             }
         )
+    # is the residual random per star (a centroid scatter renders can draw: optics.star_jitter_px) or a field the
+    # model misses? By catalogue magnitude, and the correlation of two stars' residuals in one frame
+    mags = np.concatenate([fs.star_mag[m] for fs, m in zip(solved, g.keep)])
+    by_mag = []
+    for lo in np.arange(np.floor(mags.min()), np.ceil(mags.max()), 1.0) if len(mags) else []:
+        sel = (mags >= lo) & (mags < lo + 1)
+        if sel.sum() >= 5:
+            by_mag.append({"mag_lo": float(lo), "n": int(sel.sum()), "rms_px": float(np.sqrt(np.mean(allr[sel] ** 2)))})
     keys = (
         "background_adu",
         "noise_adu",
@@ -784,6 +813,8 @@ def _record(
             "rms_px": g.rms_px,
             "n_matched": int(len(allr)),
             "radial": radial,
+            "by_magnitude": by_mag,
+            "neighbour_correlation": neighbour_correlation(g.residuals, g.positions),
         },
         "sensor": {k: v for k, v in mv.items() if k != "mean_variance"},
         "mean_variance": mv["mean_variance"],

@@ -114,6 +114,14 @@ def fit_model_terms(
         exposure, meas["psf"] = fitted_exposure, fitted_psf
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
         render_zp = _render_stats(cfg, attitudes, table, sat)
+    # the centroid scatter the frames show beyond the renders' own (the geometry fit's residual per axis against the
+    # renders' detections' offsets from their true places): drawn as optics.star_jitter_px
+    meas["star_jitter"] = star_jitter(meas.get("centroid_sigma_px"), median_of(render_zp, "centroid_sigma_px"))
+    meas["star_jitter_px"] = meas["star_jitter"]["px"]
+    if meas["star_jitter_px"]:
+        log(f"fit-camera: {meas['star_jitter']['note']}")
+        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
+        render_zp = _render_stats(cfg, attitudes, table, sat)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
     meas["star_scatter_mag"] = meas["star_scatter"]["fitted_mag"]
     cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
@@ -216,6 +224,33 @@ def _at_black_level(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px,
     finally:
         meas["psf"] = psf0
     return median_of(rows, "half_detected_mag"), exposure, psf
+
+
+#: the frames' centroid scatter is rendered (optics.star_jitter_px) where it exceeds the renders' own by more than
+#: this factor (the tolerance of the star width's check, a statistic of the same pixels) and by STAR_JITTER_MIN_PX
+STAR_JITTER_RATIO = 1.25
+STAR_JITTER_MIN_PX = 0.1
+
+
+def star_jitter(real_px, own_px) -> dict:
+    """{px, note}: the per-axis centroid scatter the frames show (``real_px``, the geometry fit's residual rms / sqrt 2)
+    beyond the renders' own (``own_px``), added in quadrature; 0 where it is within :data:`STAR_JITTER_RATIO` of it or
+    under :data:`STAR_JITTER_MIN_PX`."""
+    if real_px is None or not (np.isfinite(real_px) and np.isfinite(own_px)):
+        return {"px": 0.0, "note": "not measured"}
+    extra = float(np.sqrt(max(real_px**2 - own_px**2, 0.0)))
+    said = (
+        f"centroid scatter per axis {real_px:.3f} px on the frames (the geometry fit's residual), {own_px:.3f} on "
+        "renders"
+    )
+    if real_px <= STAR_JITTER_RATIO * own_px or extra < STAR_JITTER_MIN_PX:
+        return {"px": 0.0, "note": f"{said}: none added", "real_px": real_px, "rendered_px": own_px}
+    return {
+        "px": extra,
+        "note": f"{said}: optics.star_jitter_px {extra:.3f} (each star drawn that far from its place, per axis)",
+        "real_px": real_px,
+        "rendered_px": own_px,
+    }
 
 
 #: renders per black level tried (:func:`_at_black_level`): the zero point and star width refitted twice
@@ -805,6 +840,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
         for q in meas.get("fixed_sources", [])
     ]
     d["photometry"]["star_scatter_mag"] = float(min(meas.get("star_scatter_mag", 0.0), 2.0))
+    d["optics"]["star_jitter_px"] = float(min(meas.get("star_jitter_px", 0.0), 20.0))
     if "sharp_per_frame" in meas:  # particle hits: as many sharp sources per frame as the frames show
         area_cm2 = cfg0.camera.width_px * cfg0.camera.height_px * (pitch * 1e-4) ** 2
         d["corruptions"]["cosmic_rays"] = float(min(meas["sharp_per_frame"] / (area_cm2 * exposure), 1e5))
@@ -1023,6 +1059,9 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         extra["_star_mag"] = np.asarray(f.stars["mag"], dtype=np.float64)[cat]
         extra["_star_found"] = np.isin(cat, sidx[ok])
         extra["half_detected_mag"] = half_detected_mag(extra["_star_mag"], extra["_star_found"])
+        extra["centroid_sigma_px"] = centroid_scatter(  # the detector's own, against the true places
+            det["x_px"][star] - f.stars["x_px"][sidx[star]], det["y_px"][star] - f.stars["y_px"][sidx[star]]
+        )
         zp, n = zero_point(
             det["flux_adu"][ok].astype(float),
             f.stars["mag"][sidx[ok]].astype(float),
@@ -1041,6 +1080,16 @@ def _render_stats(cfg, attitudes, table, sat) -> list[dict]:
         extra["_tenth_mag"] = float(mags[9]) if len(mags) >= 10 else float("nan")
         rows.append({**st, **extra, "zero_point_mag": zp, "zero_point_stars": n, "_image": img if i == 0 else None})
     return rows
+
+
+def centroid_scatter(dx: np.ndarray, dy: np.ndarray) -> float:
+    """Per-axis rms of centroid offsets (px), those beyond 3.5 robust sigma left out as the geometry fit leaves
+    them out of its residual (:func:`skygen.real.fit_geometry.fit_geometry`); NaN with fewer than 3."""
+    r = np.hypot(np.asarray(dx, np.float64), np.asarray(dy, np.float64))
+    if r.size < 3:
+        return float("nan")
+    keep = r < max(3.5 * np.median(r) / 1.1774, 0.5)
+    return float(np.sqrt(np.mean(r[keep] ** 2) / 2))
 
 
 def image_size(w: int, h: int, want: int = 256) -> int:

@@ -135,6 +135,22 @@ def markdown(r: dict) -> str:
             f"{b['r_lo_px']:.0f}–{b['r_hi_px']:.0f} px: {_fmt(b['rms_px'], 3)} ({b['n']})" for b in g["radial"]
         ),
         "",
+        "By catalogue magnitude (rms per axis, px): "
+        + (
+            ", ".join(
+                f"{b['mag_lo']:.0f}–{b['mag_lo'] + 1:.0f}: {_fmt(b['rms_px'], 3)} ({b['n']})"
+                for b in g.get("by_magnitude", [])
+            )
+            or "–"
+        )
+        + (
+            f". Residuals of two stars within {g['neighbour_correlation']['within_px']:.0f} px in one frame correlate "
+            f"{_fmt(g['neighbour_correlation']['corr'], 2)} ({g['neighbour_correlation']['n']} pairs; 0: a scatter "
+            "drawn per star, 1: a field the camera model misses)"
+            if "neighbour_correlation" in g
+            else ""
+        ),
+        "",
         "## Pixels",
         "",
     ]
@@ -182,6 +198,7 @@ def markdown(r: dict) -> str:
             or "none (no unexplained detection recurs at one place from 3 pointings beyond chance)"
         ),
         f"- a processor's black level: {px.get('black_level', {}).get('note', 'not looked for')}",
+        f"- {px.get('star_jitter', {}).get('note', 'centroid scatter: not measured')}",
         f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
         f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
         "sensor.exposure_s)",

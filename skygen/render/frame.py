@@ -496,7 +496,8 @@ class Renderer:
         cfg = self.cfg
         sh = (cfg.camera.height_px, cfg.camera.width_px)
         star_e = np.zeros(sh, np.float32)
-        boxes = self.deposit(scene.stars, star_e)
+        stars, log = self.jittered(scene)
+        boxes = self.deposit(stars, star_e)
         boxes += self.deposit_fixed(star_e)
         charge = None
         if scene.cosmic_rays:
@@ -512,8 +513,23 @@ class Renderer:
             corr.stage_rng(cfg.seed, scene.rng_key, "noise" + self.rng_tag),
             self.levels["read_noise"],
         )
-        log = {"blooming": {"columns": info["bloomed_columns"]}} if info["bloomed_columns"] else {}
+        if info["bloomed_columns"]:
+            log["blooming"] = {"columns": info["bloomed_columns"]}
         return full, log
+
+    def jittered(self, scene: "Scene") -> tuple[dict, dict]:
+        """``scene.stars`` where each star's image is drawn (``optics.star_jitter_px`` > 0: moved by a Gaussian draw
+        per axis, fresh in every frame; its labels stay where the camera puts it), and a log."""
+        j, stars = self.cfg.optics.star_jitter_px, scene.stars
+        n = len(stars["x_px"])
+        if j <= 0 or not n:
+            return stars, {}
+        d = corr.stage_rng(self.cfg.seed, scene.rng_key, "star_jitter" + self.rng_tag).normal(0.0, j, size=(2, n))
+        out = {**stars, "x_px": stars["x_px"] + d[0], "y_px": stars["y_px"] + d[1]}
+        if stars.get("paths") is not None:  # a streak moves as a whole
+            xs, ys = stars["paths"]  # (n_sources, n_substeps)
+            out["paths"] = (np.asarray(xs) + d[0][:, None], np.asarray(ys) + d[1][:, None])
+        return out, {"star_jitter": {"rms_px": float(np.sqrt((d**2).mean()))}}
 
     @contextlib.contextmanager
     def with_levels(self, levels: dict | None):
