@@ -87,6 +87,7 @@ def run(
     checkpoint: str | Path | None = None,
     search_k: int | None = None,
     known_defects: bool = False,
+    mask_fixed_sources: bool = False,
     log=print,
 ) -> dict:
     """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``, or for the camera of
@@ -107,7 +108,7 @@ def run(
             )
     if (camera is None) == (checkpoint is None):
         raise SystemExit("give --camera CAMERA.yaml or --checkpoint CK (a model: its own camera), exactly one")
-    pred = Predictor(checkpoint, camera=camera, background_box=background_box)
+    pred = Predictor(checkpoint, camera=camera, background_box=background_box, mask_fixed_sources=mask_fixed_sources)
     cam = pred.camera
     t0 = time.perf_counter()
     ctx = make_context(cam, prior=pred.prior, search_k=search_k)
@@ -266,6 +267,7 @@ def run(
         },
         "solvers": list(solvers),
         "known_defects": bool(known_defects),
+        "mask_fixed_sources": bool(mask_fixed_sources),
         "n_values": [int(n) for n in n_values],
         "truth_rule": f"all-detection tetra3rs solve with false-positive probability <= {truth_max_fpp:g} "
         f"and >= {truth_min_matched} matched stars (rendered frames: the rendered attitude)",
@@ -393,6 +395,12 @@ def main(argv=None) -> int:
         help="drop detections at the sensor's defect pixels first: each frame's map learned from the other frames' "
         "detections no truth solve matched, recurring at one pixel at 3+ pointings (fusion.solve.defects)",
     )
+    p.add_argument(
+        "--mask-fixed-sources",
+        action="store_true",
+        help="drop the detections of the camera file's sensor.fixed_sources at detection, before the brightest N "
+        "are taken (fusion predict --mask-fixed-sources): what a tracker that knows its glow is given",
+    )
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="folder for real_few_star.json and real_few_star.md")
     a = p.parse_args(argv)
@@ -412,6 +420,7 @@ def main(argv=None) -> int:
         checkpoint=a.checkpoint,
         search_k=a.search_k,
         known_defects=a.known_defects,
+        mask_fixed_sources=a.mask_fixed_sources,
         log=lambda s: print(s, file=sys.stderr),
     )
     res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])

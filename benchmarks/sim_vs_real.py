@@ -225,6 +225,12 @@ def main(argv=None) -> int:
         "(real_few_star.py --known-defects)",
     )
     p.add_argument(
+        "--mask-fixed-sources",
+        action="store_true",
+        help="real frames and renders alike: drop the detections of the camera file's sensor.fixed_sources at "
+        "detection (real_few_star.py --mask-fixed-sources)",
+    )
+    p.add_argument(
         "--correct-deg",
         type=float,
         default=0.1,
@@ -241,6 +247,7 @@ def main(argv=None) -> int:
     # with a model, its own camera detects and solves (the camera file still renders the frames)
     cam, kw = (None, {"checkpoint": a.checkpoint}) if a.checkpoint else (a.camera, {})
     kw["known_defects"] = a.known_defects
+    kw["mask_fixed_sources"] = a.mask_fixed_sources
     kw["correct_deg"] = a.correct_deg
     real = run(load_frames(a.frames, None, a.channel), cam, a.n, a.solvers, log=log, **kw)
     if not real["frames_kept"]:
@@ -259,6 +266,7 @@ def main(argv=None) -> int:
         "checkpoint": a.checkpoint,
         "renders": a.renders,
         "known_defects": a.known_defects,
+        "mask_fixed_sources": a.mask_fixed_sources,
         "per_attitude": a.per_attitude,
         "seed": a.seed,
         "rows": compare(real, at_truth, random_sky, a.solvers, a.n),

@@ -563,6 +563,12 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
         help="--solve without the detections at these defect pixels and regions (hot pixels, a wandering glow; "
         "written by fusion defects)",
     )
+    p.add_argument(
+        "--mask-fixed-sources",
+        action="store_true",
+        help="drop the detections of the light the camera file knows is fixed on its sensor (sensor.fixed_sources, "
+        "a glow skygen fit-camera found) before anything reads them, as a tracker drops its calibrated defects",
+    )
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)
     p.add_argument("--overlay", metavar="DIR", help="write DIR/<frame>.png with the detections drawn")
@@ -643,6 +649,7 @@ def _run_predict(args: argparse.Namespace) -> int:
         track_deg=args.track,
         max_hypotheses=args.max_hypotheses,
         defects=args.defects,
+        mask_fixed_sources=args.mask_fixed_sources,
     )
     return 1 if failed else 0
 

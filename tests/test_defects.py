@@ -171,3 +171,43 @@ def test_a_defect_that_wanders_along_a_band_is_a_region_and_stars_are_not():
     assert back.region_min == dmap.region_min and len(back.region_xy) == len(dmap.region_xy)
     probe = Detections(np.array([4.0, 500.0]), np.array([470.0, 300.0]), np.ones(2))
     assert back.flags(probe).tolist() == dmap.flags(probe).tolist() == [True, False]
+
+
+def test_a_camera_files_fixed_sources_are_dropped_at_detection(tmp_path):
+    """--mask-fixed-sources: the light a fitted camera knows is fixed on its sensor (sensor.fixed_sources) loses its
+    detections in Predictor.detect, before anything takes the brightest N; a camera without any is refused."""
+    import yaml
+
+    from fusion.solve.predict import Predictor
+    from skygen.config import build_config
+    from skygen.render.frame import Renderer
+
+    glow = [300.0, 120.0, 3.0e5, 3.0]  # x, y px, e-/s, sigma px
+    cam = {
+        "camera": {"width_px": 512, "height_px": 256, "pixel_pitch_um": 5.5, "fov_deg": 12.0},
+        "output": {"image_size_px": 128},
+    }
+    path = tmp_path / "glow.yaml"
+    path.write_text(yaml.safe_dump({**cam, "sensor": {"fixed_sources": [glow]}}))
+    img = (
+        Renderer(
+            build_config(
+                {**cam, "sensor": {"fixed_sources": [glow]}, "output": {"image_size_px": 128, "full_res": True}}
+            )
+        )
+        .render(0)
+        .image_full
+    )
+    near = lambda det: np.hypot(det.x_px - glow[0], det.y_px - glow[1]) < 5  # noqa: E731
+    plain, _, _ = Predictor(camera=path).detect(img)
+    masked, _, _ = Predictor(camera=path, mask_fixed_sources=True).detect(img)
+    assert near(plain).any() and not near(masked).any()
+    assert len(plain) - len(masked) == int(DefectMap.from_fixed_sources([glow]).flags(plain).sum()) >= 1
+    assert (
+        DefectMap.from_fixed_sources([glow]).radius_px == 9.0
+        and DefectMap.from_fixed_sources([[1, 1, 1, 1]]).radius_px == 8.0
+    )
+    bare = tmp_path / "bare.yaml"
+    bare.write_text(yaml.safe_dump(cam))
+    with pytest.raises(ConfigError, match="no sensor.fixed_sources"):
+        Predictor(camera=bare, mask_fixed_sources=True)

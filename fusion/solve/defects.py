@@ -29,6 +29,7 @@ DEFECT_RADIUS_PX = 1.0  # a detection this close to a mapped pixel is that pixel
 #   scatter by a fraction of a pixel with the noise under them)
 DEFECT_MIN_FRAMES = 3  # unexplained detections at one pixel in this many frames: a defect, not a coincidence
 #   (two stars of frames at unrelated attitudes land within a pixel of each other rarely; three, far more rarely)
+FIXED_SOURCE_SIGMAS = 3.0  # a camera file's fixed source flags detections within this many of its sigmas
 DEFECT_REGION_PX = 8.0  # a defect region: unexplained detections of other frames crowd within this radius ...
 DEFECT_REGION_P = 1e-6  # ... more than chance allows (Poisson, at this probability), from DEFECT_MIN_FRAMES pointings
 
@@ -80,6 +81,15 @@ class DefectMap:
             return det, 0
         keep = ~bad
         return Detections(det.x_px[keep], det.y_px[keep], det.flux_adu[keep]), int(bad.sum())
+
+    @classmethod
+    def from_fixed_sources(cls, sources, sigmas: float = FIXED_SOURCE_SIGMAS) -> "DefectMap":
+        """The map of a camera file's ``sensor.fixed_sources`` ([x, y, e-/s, sigma_px] each: light fixed on the sensor):
+        a detection within ``sigmas`` times the widest source's sigma (at least :data:`DEFECT_REGION_PX`, the distance
+        a glow's detections wander by) of a source's centre is that source."""
+        xy = np.asarray([[q[0], q[1]] for q in sources], np.float64).reshape(-1, 2)
+        width = max((float(q[3]) for q in sources), default=0.0)
+        return cls(xy, radius_px=max(sigmas * width, DEFECT_REGION_PX))
 
     def to_json(self, path) -> None:
         data = {"radius_px": self.radius_px, "pixels_xy": np.round(self.xy, 2).tolist()}

@@ -135,6 +135,7 @@ class Predictor:
         log=None,
         fov_range: tuple[float, float] | None = None,
         max_hypotheses: int | None = None,
+        mask_fixed_sources: bool = False,
     ):
         from .priors import load_prior
         from .registry import build_solver, check_search_options
@@ -197,6 +198,19 @@ class Predictor:
                 f"--background-box {background_box}: 0 (one background per frame) or a box of at least 8 px, e.g. 64"
             )
         self.background_box = int(background_box)
+        # light fixed on the sensor that the camera file knows (a glow skygen fit-camera found): its detections are no
+        # stars, dropped at detection as a tracker drops its calibrated defects
+        self.fixed_mask = None
+        if mask_fixed_sources:
+            from .defects import DefectMap
+
+            sources = self.cfg.sensor.fixed_sources
+            if not sources:
+                raise ConfigError(
+                    "--mask-fixed-sources: the camera has no sensor.fixed_sources (skygen fit-camera writes them where "
+                    "it finds light fixed on the sensor; without them there is nothing to drop)"
+                )
+            self.fixed_mask = DefectMap.from_fixed_sources(sources)
         check_search_options(focal_tol, search_k, max_hypotheses=max_hypotheses)
         self.solver, self.search_level = None, None
         if solve:
@@ -279,7 +293,10 @@ class Predictor:
             }
             return Detections.from_table(table), float(res.background_mean), float(res.background_sigma)
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, d.max_detections, self.background_box)
-        return Detections.from_table(det), bg, sigma
+        out = Detections.from_table(det)
+        if self.fixed_mask is not None:
+            out = self.fixed_mask.remove(out)[0]
+        return out, bg, sigma
 
     def no_detections_reason(self, extra: dict) -> str:
         """Why a frame without detections gets no prediction, with what to check."""
@@ -467,13 +484,15 @@ def predict(
     track_deg=None,
     max_hypotheses=None,
     defects=None,
+    mask_fixed_sources=False,
 ) -> tuple[list[dict], int]:
     """Run the pipeline on every frame; returns (records, number of failed frames). Colour frame files
     become one plane (``channel``: luminance, r, g, b or sum). ``track_deg`` (with ``solve``): the frames are
     a sequence; each solved attitude is the next frame's hint with that 1-sigma error (degrees), and the
     median zero point of the last :data:`TRACK_ZERO_POINTS` solved frames its ``hint_zero_point``. ``defects``
     (with ``solve``): a defect-map JSON file (:mod:`fusion.solve.defects`, written by ``fusion defects``) whose
-    detections are dropped before solving."""
+    detections are dropped before solving. ``mask_fixed_sources``: the camera file's ``sensor.fixed_sources`` (light
+    fixed on the sensor) drop their detections at detection (:meth:`Predictor.detect`)."""
     err = err or (lambda m: print(m, file=sys.stderr))
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: give at least 1 (or leave it out for every frame)")
@@ -511,6 +530,7 @@ def predict(
         solver=solver,
         log=lambda m: err(m),
         fov_range=fov_range,
+        mask_fixed_sources=mask_fixed_sources,
         max_hypotheses=max_hypotheses,
     )
     if overlay_dir:
