@@ -398,8 +398,9 @@ def main(argv=None) -> int:
     p.add_argument(
         "--mask-fixed-sources",
         action="store_true",
-        help="drop the detections of the camera file's sensor.fixed_sources at detection, before the brightest N "
-        "are taken (fusion predict --mask-fixed-sources): what a tracker that knows its glow is given",
+        help="drop the detections of the camera's sensor.fixed_sources (--camera's, or the checkpoint's) at "
+        "detection, before the brightest N are taken (fusion predict --mask-fixed-sources): what a tracker that knows "
+        "its glow is given",
     )
     p.add_argument("--title", default=None)
     p.add_argument("--out", required=True, help="folder for real_few_star.json and real_few_star.md")

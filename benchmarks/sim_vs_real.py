@@ -227,8 +227,8 @@ def main(argv=None) -> int:
     p.add_argument(
         "--mask-fixed-sources",
         action="store_true",
-        help="real frames and renders alike: drop the detections of the camera file's sensor.fixed_sources at "
-        "detection (real_few_star.py --mask-fixed-sources)",
+        help="real frames and renders alike: drop the detections of the camera's sensor.fixed_sources (--camera's, "
+        "or the checkpoint's) at detection (real_few_star.py --mask-fixed-sources)",
     )
     p.add_argument(
         "--correct-deg",

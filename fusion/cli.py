@@ -566,8 +566,9 @@ def _add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mask-fixed-sources",
         action="store_true",
-        help="drop the detections of the light the camera file knows is fixed on its sensor (sensor.fixed_sources, "
-        "a glow skygen fit-camera found) before anything reads them, as a tracker drops its calibrated defects",
+        help="drop the detections of the light the camera knows is fixed on its sensor (sensor.fixed_sources of "
+        "--camera, or of the checkpoint's camera: a glow skygen fit-camera found) before anything reads them, as a "
+        "tracker drops its calibrated defects",
     )
     p.add_argument("--top-k", type=int, default=3, help="regions (of the model's K) reported, at least 1 (default 3)")
     add_search_arguments(p)

@@ -2,10 +2,11 @@
 
     python scripts/camera_shift.py OLD.yaml NEW.yaml [--steps 8]
 
-For directions along the sensor's diagonals at growing angles from the boresight (the same attitude for both),
-prints the distance from the sensor centre under NEW and how far OLD puts the same direction from where NEW does
-(px; radial and across). Two fits of one lens that differ this much cannot both match the stars: it says how far
-a star sits from one camera's prediction when the other camera is right (results/real-frames/wide-lens).
+For directions along the lines from the sensor's centre to its corners, at growing angles from the boresight (the
+same attitude for both), prints the distance from the sensor centre under NEW and how far OLD puts the same
+direction from where NEW does (px; radial and across). Two fits of one lens that differ this much cannot both match
+the stars: it says how far a star sits from one camera's prediction when the other camera is right
+(results/real-frames/wide-lens).
 """
 
 from __future__ import annotations
@@ -22,16 +23,16 @@ def shifts(old: Camera, new: Camera, steps: int = 8) -> list[dict]:
     """Rows {r_px, shift_px, radial_px, across_px}, medians over the four diagonals, at ``steps`` distances from the
     centre to 95 % of the way to NEW's corner."""
     rows = []
-    corner = np.hypot(new.width_px / 2, new.height_px * new.aspect / 2)
+    hw, hh = new.width_px / 2, new.height_px * new.aspect / 2  # centre to corner, in square pixels
+    corner = np.hypot(hw, hh)
     for frac in np.linspace(1.0 / steps, 0.95, steps):
         got = []
         for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-            r = frac * corner / np.sqrt(2)
-            x, y = new.cx_px + sx * r, new.cy_px + sy * r / new.aspect
+            x, y = new.cx_px + sx * frac * hw, new.cy_px + sy * frac * hh / new.aspect
             v = new.unproject(np.array([x]), np.array([y]))
             xo, yo, _ = old.project(v)
             d = np.array([xo[0] - x, (yo[0] - y) * new.aspect])
-            u = np.array([sx, sy]) / np.sqrt(2)
+            u = np.array([sx * hw, sy * hh]) / corner
             got.append((np.hypot(*d), d @ u, u[0] * d[1] - u[1] * d[0]))
         g = np.median(np.array(got), axis=0)
         rows.append({"r_px": float(frac * corner), "shift_px": g[0], "radial_px": g[1], "across_px": g[2]})

@@ -330,7 +330,9 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         type=int,
         metavar="ADU",
         help="the level the camera's processor subtracts before clipping at 0 (sensor.black_level_adu), given "
-        "instead of fitted; 0: none. Default: fitted where the frames' background sits at 0 ADU and they lose faint "
+        "instead of fitted; 0: none. In the fitted camera's terms: ADU of the frames as read (after the scale they "
+        "carry) above the fitted bias, which is 0 where the darks are crushed, so a datasheet's raw black level "
+        "does not carry over. Default: fitted where the frames' background sits at 0 ADU and they lose faint "
         "stars their renders keep (processed frames, e.g. JPEGs of a Raspberry Pi camera)",
     )
     p.add_argument(

@@ -549,7 +549,8 @@ def test_the_frames_centroid_scatter_beyond_the_renders_is_drawn():
 
     assert star_jitter(0.95, 0.043)["px"] == pytest.approx(np.sqrt(0.95**2 - 0.043**2))
     assert star_jitter(0.10, 0.09)["px"] == 0.0  # within the ratio
-    assert star_jitter(0.12, 0.05)["px"] == 0.0 or star_jitter(0.12, 0.05)["px"] >= STAR_JITTER_MIN_PX
+    assert star_jitter(0.12, 0.05)["px"] == pytest.approx(np.sqrt(0.12**2 - 0.05**2))  # 0.109 px: above the floor
+    assert star_jitter(0.105, 0.05)["px"] == 0.0 and np.sqrt(0.105**2 - 0.05**2) < STAR_JITTER_MIN_PX
     assert star_jitter(None, 0.05)["px"] == 0.0 and star_jitter(0.5, float("nan"))["px"] == 0.0
     rng = np.random.default_rng(1)
     dx, dy = rng.normal(0, 0.3, 400), rng.normal(0, 0.3, 400)

@@ -273,6 +273,8 @@ class Predictor:
 
     def detect(self, img: np.ndarray) -> tuple[Detections, float, float]:
         d = self.cfg.detection
+        # with a mask, the detector keeps more than max_detections so that the glow's fragments take no star's place
+        keep = d.max_detections if self.fixed_mask is None else 2 * d.max_detections
         if self.detector == "tetra3rs":
             # tetra3rs's extractor (local background, matched filter): centroids relative to the image centre;
             # skygen pixel = centroid + (size - 1) / 2 (checked against rendered true positions to 0.004 px)
@@ -282,7 +284,7 @@ class Predictor:
                 np.ascontiguousarray(img, np.float32),
                 sigma_threshold=d.threshold_sigma,
                 min_pixels=d.min_area_px,
-                max_centroids=d.max_detections,
+                max_centroids=keep,
             )
             c = res.centroids
             h, w = img.shape
@@ -291,12 +293,18 @@ class Predictor:
                 "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
                 "flux_adu": np.array([p.brightness or 0.0 for p in c]),
             }
-            return Detections.from_table(table), float(res.background_mean), float(res.background_sigma)
-        det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, d.max_detections, self.background_box)
-        out = Detections.from_table(det)
-        if self.fixed_mask is not None:
-            out = self.fixed_mask.remove(out)[0]
-        return out, bg, sigma
+            return self._unmasked(Detections.from_table(table)), float(res.background_mean), float(res.background_sigma)
+        det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, keep, self.background_box)
+        return self._unmasked(Detections.from_table(det)), bg, sigma
+
+    def _unmasked(self, det: Detections) -> Detections:
+        """``det`` without the detections of the camera's fixed sources (``mask_fixed_sources``), at most
+        ``detection.max_detections`` of them, brightest first."""
+        if self.fixed_mask is None:
+            return det
+        det = self.fixed_mask.remove(det)[0]
+        n = self.cfg.detection.max_detections
+        return det.brightest(n) if len(det) > n else det
 
     def no_detections_reason(self, extra: dict) -> str:
         """Why a frame without detections gets no prediction, with what to check."""

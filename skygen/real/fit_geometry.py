@@ -233,7 +233,7 @@ def fit_geometry(
         match_catalogue(fs, cam, sky, radius_px, reach)
     n_stars = sum(len(fs.det_index) for fs in frames)
     r_max = np.sqrt(((cam.width_px / 2) ** 2 + (cam.height_px / 2) ** 2))
-    reach = (
+    edge = (  # how far towards the corner the matched stars reach
         max(
             (
                 np.max(np.hypot(fs.det["x_px"][fs.det_index] - cam.cx_px, fs.det["y_px"][fs.det_index] - cam.cy_px))
@@ -250,8 +250,8 @@ def fit_geometry(
             f"{rules['min_frames_distortion']} frames and {rules['min_stars_distortion']} stars"
         )
         fixed.update({"k1": why, "k2": why, "cx": why, "cy": why})
-    elif reach < rules["min_edge_fraction"]:
-        why = f"matched stars reach only {100 * reach:.0f} % of the way to the corner"
+    elif edge < rules["min_edge_fraction"]:
+        why = f"matched stars reach only {100 * edge:.0f} % of the way to the corner"
         fixed.update({"k1": why, "k2": why, "cx": why, "cy": why})
     elif n_stars < rules["min_stars_k2"]:
         fixed["k2"] = f"{n_stars} matched stars: k2 needs at least {rules['min_stars_k2']}"
@@ -339,12 +339,19 @@ def grow_matches(frames: list[FrameSolution], start: Camera, sky, radius_px: flo
     never seen): fitted from the centre outwards, matching at ``radius_px`` only the detections within each
     ``reach`` of the centre-to-corner distance (:data:`GROWING_REACH`) under :data:`GROWING_RULES`, each stage's
     camera and attitudes (``fs.R``, updated where the stage matched :data:`GROWING_MIN_MATCHES` of the frame's
-    stars) the next one's start. Returns the last stage's camera."""
+    stars; a frame with fewer sits the stage out, and a stage that half the frames would sit out is skipped) the next
+    one's start. Returns the last stage's camera."""
     cam = start
     for r in reach:
-        g = fit_geometry(frames, cam, sky, radius_px, rules=GROWING_RULES, reach=r)
-        for fs, R, res in zip(frames, g.rotations, g.residuals):
-            if len(res) >= GROWING_MIN_MATCHES:  # a frame with fewer stars this far in keeps its attitude
+        # a frame with fewer stars this far in sits the stage out (its attitude unconstrained there), keeping its own
+        for fs in frames:
+            match_catalogue(fs, cam, sky, radius_px, r)
+        used = [fs for fs in frames if len(fs.det_index) >= GROWING_MIN_MATCHES]
+        if len(used) < max(1, (len(frames) + 1) // 2):  # too few frames this far in for a camera: the next stage
+            continue
+        g = fit_geometry(used, cam, sky, radius_px, rules=GROWING_RULES, reach=r)
+        for fs, R, res in zip(used, g.rotations, g.residuals):
+            if len(res) >= GROWING_MIN_MATCHES:
                 fs.R = R
         cam = g.camera
     return cam

@@ -94,6 +94,8 @@ def fit_model_terms(
     # frames detect catalogue stars to, where their background sits at the floor (fit_black_level)
     floor, why = black_level_gate(real_stats)
     meas["black_level"] = {"adu": 0, "note": f"none: {why}"}
+    # (light fixed on the sensor was scaled above at no black level; a camera with both would render it a little
+    # fainter than detected)
     real_width = median_of(real_stats, "star_sigma_px")
 
     def measure(b: int) -> tuple:
@@ -260,9 +262,10 @@ BLACK_PASSES = 3
 def fit_black_level(measure, real_half: float, top: int, steps: int = BLACK_STEPS, tol: float = BLACK_TOL_MAG) -> dict:
     """The black level (whole ADU, 0 to ``top``) whose renders detect catalogue stars down to the magnitude the
     frames do (``real_half``, :func:`half_detected_mag`'s median over frames). ``measure(b)`` -> (the renders'
-    half-detected magnitude, the exposure it was measured at); it falls as ``b`` grows (NaN: no catalogue star
-    detected at all, too high). Bisection, at most ``steps`` measurements; b = 0 is measured first and kept where
-    the renders are not deeper than the frames by more than :data:`HALF_DETECTED_TOL_MAG` (nothing to fit).
+    half-detected magnitude, the exposure and the PSF it was measured with); the magnitude falls as ``b`` grows
+    (NaN: no catalogue star detected at all, too high). b = 0 is measured first and kept where the renders are not
+    deeper than the frames by more than :data:`HALF_DETECTED_TOL_MAG` (nothing to fit); then levels 1, 2, 4, ...
+    until one is too high, then bisection, at most ``steps`` measurements in all, stopping within ``tol``.
     Returns {adu, exposure_s, psf, trace: [[b, mag], ...], note}."""
     out = {"adu": 0, "exposure_s": None, "psf": None, "trace": []}
     if not np.isfinite(real_half):

@@ -130,7 +130,7 @@ def markdown(r: dict) -> str:
         )
     lines += [
         "",
-        "Radial residuals: "
+        "Radial residuals (rms of the 2-D offset, px): "
         + ", ".join(
             f"{b['r_lo_px']:.0f}–{b['r_hi_px']:.0f} px: {_fmt(b['rms_px'], 3)} ({b['n']})" for b in g["radial"]
         ),

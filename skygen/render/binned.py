@@ -116,12 +116,12 @@ def unsupported_reason(renderer) -> str | None:
             f"stored size {cfg.output.image_size_px} is not an integer binning of the "
             f"{cam.width_px} x {cam.height_px} sensor"
         )
-    if f == 1:
-        return None
     if getattr(cfg.optics, "star_jitter_px", 0.0) > 0:
         return "optics.star_jitter_px: the binned renderer draws stars where the camera puts them"
     if getattr(s, "fixed_sources", ()):
         return "sensor.fixed_sources: the binned renderer does not paint light fixed on the sensor"
+    if f == 1:
+        return None
     if getattr(cam, "pixel_aspect", 1.0) != 1.0:
         return f"camera.pixel_aspect={cam.pixel_aspect:g}: the binned renderer paints square pixels only"
     if area_rounding(f) is None:
