@@ -187,6 +187,8 @@ BLACK_FLOOR_ADU = 0.5
 #: stopping where the renders' half-detected magnitude is within BLACK_TOL_MAG of the frames'
 BLACK_STEPS = 10
 BLACK_TOL_MAG = 0.05
+#: renders per black level tried (:func:`_at_black_level`): the zero point and star width refitted twice
+BLACK_PASSES = 3
 
 
 def black_level_gate(real_stats: list[dict]) -> tuple[bool, str]:
@@ -253,10 +255,6 @@ def star_jitter(real_px, own_px) -> dict:
         "real_px": real_px,
         "rendered_px": own_px,
     }
-
-
-#: renders per black level tried (:func:`_at_black_level`): the zero point and star width refitted twice
-BLACK_PASSES = 3
 
 
 def fit_black_level(measure, real_half: float, top: int, steps: int = BLACK_STEPS, tol: float = BLACK_TOL_MAG) -> dict:
