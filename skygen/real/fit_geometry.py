@@ -40,7 +40,7 @@ RULES = {
 GROWING_RULES = {**RULES, "min_edge_fraction": 0.0, "max_corner_sigma_px": 50.0}
 #: the stages' reach (share of the centre-to-corner distance matched)
 GROWING_REACH = (0.5, 0.7, 0.85, 1.0)
-#: a frame's attitude is taken from a stage only where that stage matched at least this many of its stars
+#: a frame takes part in a stage (and takes its attitude from it) only where the stage matches this many of its stars
 GROWING_MIN_MATCHES = 4
 
 
