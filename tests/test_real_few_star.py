@@ -134,3 +134,16 @@ def test_learned_solvers_run_beside_the_prior_free_ones_with_a_checkpoint(tmp_pa
         mod.run(frames, CAMERA, solvers=("whole-sky",), checkpoint=run_dir / "best.pt", log=lambda s: None)
     with pytest.raises(SystemExit, match="need --checkpoint"):
         mod.run(frames, CAMERA, solvers=("learned+fine>whole-sky",), log=lambda s: None)
+
+
+def test_mask_fixed_sources_reaches_the_detector_and_the_record():
+    """--mask-fixed-sources: the benchmark's Predictor drops the camera's fixed sources at detection, the result says
+    it was on, and a camera without any is refused with the reason."""
+    from fusion.errors import ConfigError
+
+    mod = _script()
+    glow_cam = ROOT / "results" / "real-frames" / "centroid-scatter" / "creusot-16mm" / "creusot-16mm-fitted.yaml"
+    res = mod.run([], glow_cam, n_values=(4,), solvers=("tetra3rs",), mask_fixed_sources=True, log=lambda s: None)
+    assert res["mask_fixed_sources"] is True and res["frames_kept"] == 0
+    with pytest.raises(ConfigError, match="no sensor.fixed_sources"):
+        mod.run([], CAMERA, n_values=(4,), solvers=("tetra3rs",), mask_fixed_sources=True, log=lambda s: None)
