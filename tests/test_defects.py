@@ -203,6 +203,15 @@ def test_a_camera_files_fixed_sources_are_dropped_at_detection(tmp_path):
     masked, _, _ = Predictor(camera=path, mask_fixed_sources=True).detect(img)
     assert near(plain).any() and not near(masked).any()
     assert len(plain) - len(masked) == int(DefectMap.from_fixed_sources([glow]).flags(plain).sum()) >= 1
+    # fusion predict: the record says how many it dropped
+    from fusion.cli import main
+
+    np.save(tmp_path / "frame.npy", img)
+    out = tmp_path / "pred.jsonl"
+    argv = ["predict", str(tmp_path / "frame.npy"), "--camera", str(path), "--out", str(out)]
+    assert main([*argv, "--mask-fixed-sources"]) == 0
+    rec = json.loads(out.read_text().splitlines()[0])
+    assert rec["fixed_sources_removed"] == len(plain) - len(masked) and rec["n_detections"] == len(masked)
     assert (
         DefectMap.from_fixed_sources([glow]).radius_px == 9.0
         and DefectMap.from_fixed_sources([[1, 1, 1, 1]]).radius_px == 8.0

@@ -60,6 +60,10 @@ space as without ``--track``; the record says ``"tracking": {"hint_sigma_deg", "
 identification's stars to the brightness the camera gives them. A refused or failed frame leaves the next
 without a hint.
 
+``--mask-fixed-sources``: the light a fitted camera knows is fixed on its sensor (``sensor.fixed_sources``, a glow
+``skygen fit-camera`` found) loses its detections at detection, before the model, the solver or anything taking the
+brightest N reads them (:meth:`Predictor.detect`); the record says ``"fixed_sources_removed"``.
+
 ``--defects FILE`` (with ``--solve``): a sensor defect map (``fusion defects``, :mod:`fusion.solve.defects`);
 detections at its pixels (static hot pixels) are dropped before the model and the solver read them; the record
 keeps every detection, says ``"defects_removed"``, and the solution's matched rows index the record's
@@ -200,7 +204,7 @@ class Predictor:
         self.background_box = int(background_box)
         # light fixed on the sensor that the camera file knows (a glow skygen fit-camera found): its detections are no
         # stars, dropped at detection as a tracker drops its calibrated defects
-        self.fixed_mask = None
+        self.fixed_mask, self.fixed_sources_removed = None, 0
         if mask_fixed_sources:
             from .defects import DefectMap
 
@@ -302,7 +306,7 @@ class Predictor:
         ``detection.max_detections`` of them, brightest first."""
         if self.fixed_mask is None:
             return det
-        det = self.fixed_mask.remove(det)[0]
+        det, self.fixed_sources_removed = self.fixed_mask.remove(det)
         n = self.cfg.detection.max_detections
         return det.brightest(n) if len(det) > n else det
 
@@ -568,7 +572,9 @@ def predict(
                         "bad_pixels": bad,
                     }
                 else:
-                    det, extra = Detections.from_table(table), {"detections_from": "dataset"}
+                    det, extra = pred._unmasked(Detections.from_table(table)), {"detections_from": "dataset"}
+                if pred.fixed_mask is not None:  # the camera's own glow, dropped at detection
+                    extra["fixed_sources_removed"] = pred.fixed_sources_removed
                 hint = previous if track_deg is not None else None
                 zp = float(np.median(zero_points)) if hint is not None and zero_points else None
                 rec = pred.run(source, det, stored, extra, hint, track_deg or 1.0, zp, defects)
