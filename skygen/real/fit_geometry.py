@@ -204,6 +204,12 @@ def _corner_effect(term: str, cam: Camera) -> float:
     ]
 
 
+def residual_cut(rr: np.ndarray) -> float:
+    """The radius (px) beyond which a match's residual is left out: 3.5 sigma of the residuals' radii (the median of
+    a 2-D Gaussian's radius is 1.1774 sigma), at least 0.5 px."""
+    return max(3.5 * float(np.median(rr)) / 1.1774, 0.5)
+
+
 def fit_geometry(
     frames: list[FrameSolution],
     start: Camera,
@@ -277,12 +283,12 @@ def fit_geometry(
             theta = res.x
             r = res.fun.reshape(-1, 2)
             rr = np.hypot(r[:, 0], r[:, 1])
-            cut = 3.5 * np.median(rr) / 1.1774  # 3.5 sigma; the median of a 2-D Gaussian radius is 1.1774 sigma
+            cut = residual_cut(rr)
             new, pos = [], 0
             for fs, m in zip(frames, masks):
                 k = int(m.sum())
                 mm = m.copy()
-                mm[np.flatnonzero(m)] = rr[pos : pos + k] < max(cut, 0.5)
+                mm[np.flatnonzero(m)] = rr[pos : pos + k] < cut
                 pos += k
                 new.append(mm)
             if all((a == b).all() for a, b in zip(new, masks)):

@@ -1089,7 +1089,9 @@ def centroid_scatter(dx: np.ndarray, dy: np.ndarray) -> float:
     r = np.hypot(np.asarray(dx, np.float64), np.asarray(dy, np.float64))
     if r.size < 3:
         return float("nan")
-    keep = r < max(3.5 * np.median(r) / 1.1774, 0.5)
+    from skygen.real.fit_geometry import residual_cut
+
+    keep = r < residual_cut(r)
     return float(np.sqrt(np.mean(r[keep] ** 2) / 2))
 
 
