@@ -177,6 +177,28 @@ def test_check_renders_names_each_statistic_off_and_a_nan_with_its_reason():
     assert not off["ok"] and off["why"] == "background 3 rendered vs 0 real"
 
 
+def test_the_check_says_how_much_of_a_ratio_is_the_renders_own_noise():
+    """Renders of each frame in passes (fit_render.check_stats): the verdict rests on the median over all of them,
+    and says each pass's ratio alone, so that a ratio at the tolerance's edge is seen to be the renders' noise."""
+    from skygen.real.frame_stats import repeat_ratios
+
+    real = [{"background_adu": 2.0, "noise_adu": 1.5, "star_sigma_px": 1.3, "detections": 40}] * 5
+    base = {"background_adu": 2.0, "noise_adu": 1.5, "star_sigma_px": 1.3}
+    per_pass = {0: [44, 46, 48, 50, 52], 1: [50, 52, 54, 56, 58], 2: [54, 56, 58, 60, 62]}  # medians 48, 54, 58
+    rendered = [{**base, "detections": d, "render_pass": p} for p, ds in per_pass.items() for d in ds]
+    assert repeat_ratios(real, rendered, "detections") == pytest.approx([1.2, 1.35, 1.45])
+    det = {c["stat"]: c for c in check_renders(real, rendered)}["detections"]
+    assert det["ratio"] == pytest.approx(54 / 40) and not det["ok"]  # the median over all 15 renders
+    assert det["passes"] == pytest.approx([1.2, 1.35, 1.45])
+    assert det["why"].endswith("(tolerance 25 %; 3 renders of each frame, one by one 1.20-1.45 x)")
+    # one render per frame (no passes, as benchmarks give them): nothing to say about it
+    assert (
+        repeat_ratios(real, rendered[:5], "detections") == []
+        and "one by one"
+        not in check_renders(real, [{k: v for k, v in r.items() if k != "render_pass"} for r in rendered])[3]["why"]
+    )
+
+
 # ------------------------------------------------------------------------------ end to end
 FAINT = {
     "camera": {"width_px": 640, "height_px": 480, "pixel_pitch_um": 5.5, "fov_deg": 16.0},
@@ -245,8 +267,14 @@ def test_a_faint_8_bit_camera_is_fitted_to_its_background(faint_frames, tmp_path
     assert cmp["noise_adu"]["fitted"] == pytest.approx(cmp["noise_adu"]["real"], rel=0.15)
     assert cmp["star_sigma_px"]["fitted"] == pytest.approx(cmp["star_sigma_px"]["real"], rel=0.10)
     assert cmp["detections"]["fitted"] == pytest.approx(cmp["detections"]["real"], rel=0.25)
+    # the check renders each of the four frames four times (fit_render.CHECK_RENDERS), each pass with its own noise
+    passes = [r["render_pass"] for r in rec["fitted_stats"]]
+    assert passes == [0] * 4 + [1] * 4 + [2] * 4 + [3] * 4
+    assert len({r["noise_adu"] for r in rec["fitted_stats"][::4]}) == 4
+    assert cmp["catalogue_detections"]["fitted"] <= cmp["detections"]["fitted"]
     rep = (tmp_path / "rep" / "REPORT.md").read_text()
     assert "gain, bias and read noise not constrained by these frames" in rep and "WARNING" not in rep
+    assert "each rendered 4 times" in rep and "| of which catalogue stars |" in rep
     # the camera file's bias 100 ADU (skygen's default) is above this background: 0 was used, and said
     assert "the camera file's 100 ADU is above the darkest background" in rep
 
@@ -269,7 +297,7 @@ def test_a_camera_whose_renders_contradict_its_frames_is_written_with_a_warning(
     assert _fit(faint_frames, tmp_path) == 0
     err = capsys.readouterr().err
     warn = [m for m in err.splitlines() if m.startswith("fit-camera: WARNING: renders of this camera contradict")]
-    assert len(warn) == 1 and "background " in warn[0] and "(tolerance 10 %)" in warn[0]
+    assert len(warn) == 1 and "background " in warn[0] and "(tolerance 10 %; 4 renders of each frame" in warn[0]
     rep = (tmp_path / "rep" / "REPORT.md").read_text().splitlines()
     block = [n for n, m in enumerate(rep) if m.startswith("> **WARNING")]
     assert block and block[0] < 6 and any(m.startswith("> - background ") for m in rep)

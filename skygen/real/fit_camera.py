@@ -761,6 +761,7 @@ def _record(
         "background_adu",
         "noise_adu",
         "detections",
+        "catalogue_detections",
         "star_sigma_px",
         "zero_point_mag",
         "nonstar_brightest10",

@@ -214,7 +214,12 @@ def markdown(r: dict) -> str:
         "",
         "## Real against rendered (medians over frames; renders at the fitted attitudes)",
         "",
-        f"{len(r['real_stats'])} frames compared (at most 16, spread evenly over the solved ones).",
+        f"{len(r['real_stats'])} frames compared (at most 16, spread evenly over the solved ones)"
+        + (
+            f", each rendered {passes} times (a ratio's range over the passes in brackets: the renders' own noise)."
+            if (passes := len({s.get("render_pass", 0) for s in r.get("fitted_stats") or []})) > 1
+            else "."
+        ),
         "",
         "| quantity | real | start camera | fitted camera | fitted / real | tolerance |",
         "|---|---|---|---|---|---|",
@@ -223,6 +228,7 @@ def markdown(r: dict) -> str:
         "background_adu": "background (ADU)",
         "noise_adu": "noise σ (ADU)",
         "detections": "detections / frame",
+        "catalogue_detections": "of which catalogue stars",
         "star_sigma_px": "star width σ (px)",
         "zero_point_mag": "zero point (mag)",
         "nonstar_brightest10": "non-catalogue among the brightest 10 (mean)",
@@ -241,6 +247,8 @@ def markdown(r: dict) -> str:
             else "–"
         )
         c = verdict.get(k)
+        if c and c.get("passes"):  # the renders' own noise: each pass of renders over the frames alone
+            rel += f" ({min(c['passes']):.3f}–{max(c['passes']):.3f})"
         tol = f"±{100 * c['tolerance']:.0f} % {'✓' if c['ok'] else '**✗**'}" if c else ""
         lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} | {tol} |")
     corr = r.get("correction")

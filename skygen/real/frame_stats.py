@@ -93,9 +93,21 @@ def median_of(rows: list[dict], key: str) -> float:
     return float(np.median(v)) if v.size else float("nan")
 
 
+def repeat_ratios(real: list[dict], rendered: list[dict], key: str) -> list[float]:
+    """Rendered over real medians of ``key``, one per pass of renders over the frames (rows' ``render_pass``, as
+    :func:`skygen.real.fit_render.check_stats` gives them): how much the verdict's ratio owes to the renders' own
+    noise. Empty with fewer than two passes."""
+    passes = sorted({r["render_pass"] for r in rendered if "render_pass" in r})
+    a = median_of(real, key)
+    if len(passes) < 2 or not (np.isfinite(a) and a != 0):
+        return []
+    return [median_of([r for r in rendered if r.get("render_pass") == p], key) / a for p in passes]
+
+
 def check_renders(real: list[dict], rendered: list[dict]) -> list[dict]:
     """One verdict per statistic of :data:`TOLERANCES`: {stat, label, real, rendered, ratio, tolerance, ok,
-    why}. ``why`` says how far off a statistic is, or why it could not be measured (a nan is off)."""
+    why, passes}. ``why`` says how far off a statistic is, or why it could not be measured (a nan is off);
+    ``passes``: the ratio of each pass of renders over the frames alone (:func:`repeat_ratios`), said in ``why``."""
     out = []
     for k, tol in TOLERANCES.items():
         a, b = median_of(real, k), median_of(rendered, k)
@@ -103,14 +115,18 @@ def check_renders(real: list[dict], rendered: list[dict]) -> list[dict]:
         if np.isfinite(a) and a == 0 and b == 0:  # both exactly 0 (a background clipped to black): they agree
             ratio = 1.0
         ok = bool(np.isfinite(ratio) and abs(ratio - 1) <= tol)
+        passes = repeat_ratios(real, rendered, k)
         if ok:
             why = ""
         elif np.isfinite(ratio):
             why = f"{LABELS[k]} {b:.3g} rendered vs {a:.3g} real: {ratio:.2f} x (tolerance {100 * tol:.0f} %)"
+            if passes:
+                one = f"{min(passes):.2f}-{max(passes):.2f} x"
+                why = why[:-1] + f"; {len(passes)} renders of each frame, one by one {one})"
         else:
             if np.isfinite(a) and np.isfinite(b):  # a real 0 and a rendered value: no ratio, both said
                 out.append({"stat": k, "label": LABELS[k], "real": a, "rendered": b, "ratio": ratio, "tolerance": tol,
-                            "ok": False, "why": f"{LABELS[k]} {b:.3g} rendered vs 0 real"})  # fmt: skip
+                            "ok": False, "why": f"{LABELS[k]} {b:.3g} rendered vs 0 real", "passes": []})  # fmt: skip
                 continue
             which = "renders" if not np.isfinite(b) else "real frames"
             rows = rendered if which == "renders" else real
@@ -132,6 +148,7 @@ def check_renders(real: list[dict], rendered: list[dict]) -> list[dict]:
                 "tolerance": tol,
                 "ok": ok,
                 "why": why,
+                "passes": passes,
             }
         )
     return out
