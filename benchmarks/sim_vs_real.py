@@ -4,6 +4,7 @@
                                      [--renders 60] [--per-attitude 5] [--n 3 4 5 6 8]
                                      [--solvers whole-sky tetra3rs>whole-sky] [--seed 0] [--work DIR]
                                      [--checkpoint CK --solvers whole-sky learned+fine>whole-sky]
+                                     [--fit-report FIT_REPORT_DIR]
 
 Three columns for every N and solver, each the share of frames solved correctly from the brightest N detections
 (``benchmarks/real_few_star.py``'s cells and scoring, the camera's own detection settings):
@@ -11,7 +12,8 @@ Three columns for every N and solver, each the share of frames solved correctly 
 * **real**: the frames, truth from each frame's all-detection tetra3rs solve (frames without a certain one are
   left out and named);
 * **renders, real attitudes**: the camera rendered at every real frame's truth attitude, ``--per-attitude``
-  noise realisations each: the sensor model alone, the sky held as the frames saw it;
+  noise realisations each: the sensor model alone, the sky held as the frames saw it; with ``--fit-report`` (the
+  camera's fit-camera report) each at its frame's own exposure, where the frames were taken at several;
 * **renders, random sky**: ``--renders`` frames of the camera at uniformly drawn attitudes: what a user of this
   camera should expect over the sky (the real frames may point at richer or poorer fields than average).
 
@@ -32,6 +34,8 @@ import math
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_few_star import load_frames, run  # noqa: E402  (a sibling script: the same cells and scoring)
@@ -54,13 +58,14 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def render(camera: str, out: Path, n: int, seed: int, attitudes=None) -> Path:
+def render(camera: str, out: Path, n: int, seed: int, attitudes=None, exposure_scale: float = 1.0) -> Path:
     """Full-resolution renders of ``camera`` into ``out``: ``n`` uniform attitudes, or the (ra, dec, roll) list
-    ``attitudes`` (every entry once per frame, in order)."""
+    ``attitudes`` (every entry once per frame, in order); ``exposure_scale`` times its exposure."""
     from skygen.config import build_config, config_dict, load_config
     from skygen.datasets.build import render_dataset
 
     d = config_dict(load_config(camera))
+    d["sensor"] = {**d["sensor"], "exposure_s": float(d["sensor"]["exposure_s"]) * float(exposure_scale)}
     d["seed"] = int(seed)
     d["n_frames"] = int(n if attitudes is None else len(attitudes))
     d["output"] = {**d["output"], "full_res": True}
@@ -69,6 +74,32 @@ def render(camera: str, out: Path, n: int, seed: int, attitudes=None) -> Path:
         d["attitude"] = {**d["attitude"], "mode": "list", "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
     render_dataset(build_config(d), out, workers=1, force=True, progress=False)
     return out
+
+
+def exposure_scales(report: Path, frames: list[dict]) -> list[float]:
+    """Each real frame's exposure relative to the fitted camera's (``skygen fit-camera``'s fit.json in ``report``,
+    ``solved[k].exposure_scale``, matched by file name); 1 for a frame the fit has none for (not solved there)."""
+    fit_json = Path(report) / "fit.json"
+    if not fit_json.is_file():
+        raise SystemExit(
+            f"sim_vs_real: --fit-report {report}: no fit.json (the folder skygen fit-camera --report wrote)"
+        )
+    known = {r["frame"]: r.get("exposure_scale") for r in json.loads(fit_json.read_text())["solved"]}
+    out = []
+    for f in frames:
+        v = known.get(Path(str(f["frame"])).name)
+        out.append(float(v) if v is not None and np.isfinite(v) and v > 0 else 1.0)
+    return out
+
+
+def group_by_exposure(scales: list[float], step_mag: float = 0.02) -> dict[float, list[int]]:
+    """Frame indices by exposure scale, scales within ``step_mag`` of each other rendered as one (their group's
+    scale: the first's rounded to the step)."""
+    groups: dict[float, list[int]] = {}
+    for k, v in enumerate(scales):
+        key = round(round(2.5 * np.log10(v) / step_mag) * step_mag, 6)
+        groups.setdefault(key, []).append(k)
+    return {float(10 ** (0.4 * key)): ks for key, ks in groups.items()}
 
 
 def _rates(res: dict) -> dict:
@@ -120,7 +151,9 @@ def _cell(c: dict | None, real: bool = False) -> str:
     return txt
 
 
-def per_frame(real: dict, at_truth: dict | None, per_attitude: int, solver: str, n_values) -> list[dict]:
+def per_frame(
+    real: dict, at_truth: dict | None, per_attitude: int, solver: str, n_values, origin: dict | None = None
+) -> list[dict]:
     """Per real frame, for ``solver``: its outcome in each N cell beside how many of its renders (the
     ``per_attitude`` renders at its truth attitude, in order) were correct, and how many of its brightest N its
     all-detection solve did not match: which frames the renders get wrong, and whether non-star detections are
@@ -128,7 +161,9 @@ def per_frame(real: dict, at_truth: dict | None, per_attitude: int, solver: str,
     rendered: dict[int, list] = {}
     if at_truth is not None and per_attitude > 0:
         for f in at_truth["frames"]:
-            k = int(str(f["frame"]).rsplit("#", 1)[-1]) // per_attitude
+            folder, index = str(f["frame"]).rsplit("#", 1)
+            # renders of several exposures sit in one folder each, with the real frames they stand for (origin)
+            k = origin[folder][int(index)] if origin else int(index) // per_attitude
             rendered.setdefault(k, []).append(f.get("outcomes", {}).get(solver, {}))
     rows = []
     for k, f in enumerate(real["frames"]):
@@ -162,7 +197,14 @@ def agreement(rows: list[dict]) -> tuple[int, int]:
 def markdown(res: dict) -> str:
     lines = [
         f"Camera `{res['camera']}`; real frames: {res['real']['frames_kept']} of {res['real']['frames_given']} with a "
-        f"certain truth; renders at the real attitudes: {res['per_attitude']} per frame; renders over the sky: "
+        f"certain truth; renders at the real attitudes: {res['per_attitude']} per frame"
+        + (
+            f" (each at its frame's own exposure, x {min(res['exposure_scales']):.2f} to "
+            f"x {max(res['exposure_scales']):.2f} the camera's: --fit-report)"
+            if res.get("exposure_scales")
+            else ""
+        )
+        + "; renders over the sky: "
         f"{res['renders']} (seed {res['seed']}). Cells: correct share (correct/frames, 95 % interval), wrong "
         f"answers if any, and the renders' distance to the real: ✓ within {TARGET_POINTS:g} points, ≈ outside "
         "but the 95 % intervals overlap, ✗ they do not.",
@@ -237,6 +279,13 @@ def main(argv=None) -> int:
         help="boresight bound of a correct answer (real_few_star.py's; a wide field needs more than 0.1 deg, which "
         "is 2 px at 51 deg over 1024 px)",
     )
+    p.add_argument(
+        "--fit-report",
+        type=Path,
+        default=None,
+        help="the folder skygen fit-camera --report wrote for --camera: renders at each real attitude take that "
+        "frame's own exposure (fit.json's exposure_scale: frames of other exposures or gains than the camera's)",
+    )
     p.add_argument("--out", required=True, help="folder for sim_vs_real.json and sim_vs_real.md")
     a = p.parse_args(argv)
     out = Path(a.out)
@@ -252,11 +301,20 @@ def main(argv=None) -> int:
     real = run(load_frames(a.frames, None, a.channel), cam, a.n, a.solvers, log=log, **kw)
     if not real["frames_kept"]:
         raise SystemExit("sim_vs_real: no real frame has a certain truth attitude: nothing to predict")
-    at_truth = random_sky = None
-    if a.per_attitude > 0:
+    at_truth = random_sky = origin = None
+    scales = exposure_scales(a.fit_report, real["frames"]) if a.fit_report else None
+    if a.per_attitude > 0 and scales is None:
         atts = [f["truth_radec_roll_deg"] for f in real["frames"] for _ in range(a.per_attitude)]
         folder = render(a.camera, work / "at-truth", 0, a.seed, atts)
         at_truth = run(load_frames([str(folder)]), cam, a.n, a.solvers, log=log, **kw)
+    elif a.per_attitude > 0:  # each frame at its own exposure: one render folder per exposure (0.02 mag steps)
+        origin, folders = {}, []
+        for j, (scale, ks) in enumerate(sorted(group_by_exposure(scales).items())):
+            atts = [real["frames"][k]["truth_radec_roll_deg"] for k in ks for _ in range(a.per_attitude)]
+            folder = render(a.camera, work / "at-truth" / f"exposure-{j:02d}", 0, a.seed, atts, scale)
+            origin[str(folder)] = [k for k in ks for _ in range(a.per_attitude)]
+            folders.append(str(folder))
+        at_truth = run(load_frames(folders), cam, a.n, a.solvers, log=log, **kw)
     if a.renders > 0:
         folder = render(a.camera, work / "random-sky", a.renders, a.seed)
         random_sky = run(load_frames([str(folder)]), cam, a.n, a.solvers, log=log, **kw)
@@ -268,11 +326,13 @@ def main(argv=None) -> int:
         "known_defects": a.known_defects,
         "mask_fixed_sources": a.mask_fixed_sources,
         "per_attitude": a.per_attitude,
+        "fit_report": str(a.fit_report) if a.fit_report else None,
+        "exposure_scales": scales,  # each real frame's renders at its own exposure (None: the camera's)
         "seed": a.seed,
         "rows": compare(real, at_truth, random_sky, a.solvers, a.n),
         "per_frame_solver": "whole-sky" if "whole-sky" in a.solvers else a.solvers[0],
         "per_frame": per_frame(
-            real, at_truth, a.per_attitude, "whole-sky" if "whole-sky" in a.solvers else a.solvers[0], a.n
+            real, at_truth, a.per_attitude, "whole-sky" if "whole-sky" in a.solvers else a.solvers[0], a.n, origin
         ),
         "real": {k: v for k, v in real.items() if k != "cells"},
         "wall_s": time.perf_counter() - t0,

@@ -569,3 +569,23 @@ def test_the_report_says_whether_the_residual_is_a_scatter_or_a_field():
     field = [0.002 * np.column_stack([-(p[:, 1] - 500), p[:, 0] - 500]) + rng.normal(0, 0.05, (40, 2)) for p in pos]
     assert abs(neighbour_correlation(scatter, pos)["corr"]) < 0.1
     assert neighbour_correlation(field, pos)["corr"] > 0.5
+
+
+def test_each_frames_zero_point_and_the_line_for_frames_of_different_exposures():
+    """frame_zero_points: the median per frame of the pooled fit's stars (NaN under 5 stars); exposure_note says
+    when they span more than 0.5 mag, naming the extremes and the exposure factors renders would need."""
+    import numpy as np
+
+    from skygen.real.fit_camera import exposure_note, frame_zero_points
+
+    rng = np.random.default_rng(3)
+    mag = rng.uniform(4, 7, 60)
+    frame = np.repeat([0, 1, 2], 20)
+    zp = np.array([12.2, 13.0, 12.0])[frame] + rng.normal(0, 0.03, 60)  # three exposures
+    stars = {"mag": mag, "flux_adu": 10 ** (0.4 * (zp - mag)), "frame": frame, "n": 60}
+    got = frame_zero_points(stars, 4)
+    assert np.allclose(got[:3], [12.2, 13.0, 12.0], atol=0.03) and np.isnan(got[3])  # frame 3: no star
+    line = exposure_note(got, 12.5, ["a/f0.jpg", "a/f1.jpg", "a/f2.jpg", "a/f3.jpg"])
+    assert line.startswith("frames of different exposures or gains: their own zero points span 12.0")
+    assert "(f2.jpg) to 13.00 mag (f1.jpg), 1.00 mag" in line and "(x 0.63 to x 1.59 for these frames" in line
+    assert exposure_note([12.2, 12.3, float("nan")], 12.25, ["a", "b", "c"]) is None  # within 0.5 mag

@@ -199,6 +199,32 @@ def test_the_check_says_how_much_of_a_ratio_is_the_renders_own_noise():
     )
 
 
+def test_renders_whose_stars_miss_the_width_take_the_other_fitted_profile_where_its_wings_fit():
+    """correct_once on a star width that is off: the Moffat fitted to the same stars where a Gaussian's renders are
+    too narrow and the Moffat has wings (beta < WING_BETA), the Gaussian where a Moffat's renders are too wide;
+    otherwise (a Moffat no wider than a Gaussian) the width is scaled, as before."""
+    from skygen.real.fit_render import correct_once
+
+    def off(ratio):
+        return [{"stat": "star_sigma_px", "ratio": ratio, "ok": False, "real": 2.0, "rendered": 2.0 * ratio}]
+
+    fitted = {"ok": True, "gaussian_sigma_px": 1.8, "moffat_sigma_px": 1.633, "moffat_beta": 1.54}
+    meas = {"psf": {**fitted, "psf": "gaussian"}}
+    changed, exposure = correct_once(off(0.87), meas, {}, 1.0, None, 255)
+    assert meas["psf"] == {**fitted, "psf": "moffat"} and exposure == 1.0
+    assert changed == [
+        "PSF profile moffat (as fitted to the stars: σ(FWHM) 1.633 px, β 1.54) for the wider stars of the frames"
+    ]
+    meas = {"psf": {**fitted, "psf": "moffat"}}  # renders too wide with a Moffat: the Gaussian
+    correct_once(off(1.2), meas, {}, 1.0, None, 255)
+    assert meas["psf"]["psf"] == "gaussian" and meas["psf"]["gaussian_sigma_px"] == 1.8
+    narrow_wings = {**fitted, "moffat_beta": 5.8, "psf": "gaussian"}  # openstartracker's: no wing to gain
+    meas = {"psf": dict(narrow_wings)}
+    changed, _ = correct_once(off(0.8), meas, {}, 1.0, None, 255)
+    assert meas["psf"]["psf"] == "gaussian" and meas["psf"]["gaussian_sigma_px"] == pytest.approx(1.8 / 0.8)
+    assert changed == ["PSF σ 2.250 px (scaled by 1.250)"]
+
+
 # ------------------------------------------------------------------------------ end to end
 FAINT = {
     "camera": {"width_px": 640, "height_px": 480, "pixel_pitch_um": 5.5, "fov_deg": 16.0},

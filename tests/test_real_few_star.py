@@ -97,6 +97,32 @@ def test_sim_vs_real_per_frame_pairs_each_real_frame_with_its_own_renders():
     assert mod.agreement(rows) == (0, 2) and "in 0 of 2 (frame, N) cells" in md  # a: 1 of 3 solved; b: 2 of 3
 
 
+def test_sim_vs_real_renders_each_frame_at_its_own_exposure_from_the_fit_report(tmp_path):
+    """--fit-report: fit.json's exposure_scale per frame (by file name; 1 where the fit has none), frames within
+    0.02 mag rendered as one group, and per_frame pairs each real frame with its renders in their group's folder."""
+    import json
+
+    mod = _script("sim_vs_real")
+    scale = {"a": 1.0, "b": 2.0, "c": 2.01, "d": float("nan")}
+    solved = [{"frame": f"{n}.png", "exposure_scale": v} for n, v in scale.items()]
+    (tmp_path / "fit.json").write_text(json.dumps({"solved": solved}))
+    frames = [{"frame": f"/data/{n}.png"} for n in "abcde"]
+    scales = mod.exposure_scales(tmp_path, frames)
+    assert scales == [1.0, 2.0, 2.01, 1.0, 1.0]  # d: no finite scale, e: not in the fit
+    groups = mod.group_by_exposure(scales)
+    assert sorted(groups.values()) == [[0, 3, 4], [1, 2]]
+    assert min(groups) == 1.0 and max(groups) == pytest.approx(2.0, rel=0.01)
+    with pytest.raises(SystemExit, match="no fit.json"):
+        mod.exposure_scales(tmp_path / "nowhere", frames)
+    real = {"frames": [{"frame": f"{n}.png", "outcomes": {"whole-sky": {"4": "correct"}}} for n in "ab"]}
+    origin = {"/r/exposure-00": [1, 1], "/r/exposure-01": [0, 0]}  # folder -> the real frame of each render
+    at = {"frames": [{"frame": f"{d}#{j}", "outcomes": {"whole-sky": {"4": o}}}
+                     for d, outs in (("/r/exposure-00", ["correct", "correct"]), ("/r/exposure-01", ["x", "correct"]))
+                     for j, o in enumerate(outs)]}  # fmt: skip
+    rows = mod.per_frame(real, at, 2, "whole-sky", [4], origin)
+    assert [(r["cells"]["4"]["renders_correct"], r["cells"]["4"]["renders"]) for r in rows] == [(1, 2), (2, 2)]
+
+
 def test_learned_solvers_run_beside_the_prior_free_ones_with_a_checkpoint(tmp_path):
     """--checkpoint: the camera is the model's own, the learned chain is scored in the same cells as the
     prior-free solvers (here on full-resolution renders of the smoke camera, truth their rendered attitude),

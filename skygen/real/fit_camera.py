@@ -274,6 +274,10 @@ def fit_camera(
         timing,
         epoch,
     )
+    exposures = exposure_note(px["meas"]["frame_zero_points"], px["zp_real"], [fs.name for fs in solved])
+    if exposures:
+        log(f"fit-camera: {exposures}")
+        notes = [*notes, exposures]
     record["notes"] = notes
     record["start"]["dark_current_e_s"] = cfg0.sensor.dark_current_e_s
     record["checks"] = model["checks"]
@@ -581,8 +585,48 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
         "settings": settings,
         # per axis: the geometry fit's residual over every matched star (its rms is radial, sqrt(dx^2 + dy^2))
         "centroid_sigma_px": float(g.rms_px / np.sqrt(2.0)),
+        # each frame's own zero point: frames taken at other exposures (or gains) than the others
+        "frame_zero_points": frame_zero_points(stars, len(solved)),
     }
     return {"mv": sensor_rec, "meas": meas, "zp_real": zp_real, "stars": stars, "boxes": boxes, "sensor": sensor}
+
+
+#: a frame's zero point needs this many matched unsaturated stars (NaN with fewer)
+FRAME_ZP_MIN_STARS = 5
+#: the frames' zero points "differ" (frames of other exposures or gains, said in the report and on the terminal)
+#: where the brightest and faintest frame's are this far apart (mag)
+FRAME_ZP_SPREAD_MAG = 0.5
+
+
+def frame_zero_points(stars: dict, n_frames: int) -> list[float]:
+    """Per solved frame, the median of Hp + 2.5 log10 flux over its matched stars that the pooled zero point
+    keeps (:func:`_zero_point_real`'s ``stars``), NaN where fewer than :data:`FRAME_ZP_MIN_STARS`."""
+    out = []
+    zp = stars["mag"] + 2.5 * np.log10(np.maximum(stars["flux_adu"], 1e-12)) if stars["n"] else np.zeros(0)
+    for k in range(n_frames):
+        sel = stars["frame"] == k if stars["n"] else np.zeros(0, bool)
+        out.append(float(np.median(zp[sel])) if sel.sum() >= FRAME_ZP_MIN_STARS else float("nan"))
+    return out
+
+
+def exposure_note(zps: list[float], pooled: float, names: list[str]) -> str | None:
+    """The line saying that the frames' own zero points spread beyond :data:`FRAME_ZP_SPREAD_MAG` (None where
+    they do not): the camera renders one exposure, the pooled one; each frame's exposure relative to it is in
+    fit.json (``solved[k].exposure_scale``), which ``benchmarks/sim_vs_real.py --fit-report`` renders with."""
+    z = np.asarray(zps, dtype=np.float64)
+    ok = np.isfinite(z)
+    if ok.sum() < 2 or not np.isfinite(pooled) or np.ptp(z[ok]) <= FRAME_ZP_SPREAD_MAG:
+        return None
+    lo, hi = int(np.nanargmin(z)), int(np.nanargmax(z))
+    return (
+        f"frames of different exposures or gains: their own zero points span {z[lo]:.2f} ({Path(names[lo]).name}) "
+        f"to {z[hi]:.2f} mag ({Path(names[hi]).name}), {np.ptp(z[ok]):.2f} mag, more than the "
+        f"{FRAME_ZP_SPREAD_MAG} mag frames of one exposure are taken to span; the camera renders one exposure, the "
+        f"pooled zero point's {pooled:.2f} mag (x {10 ** (0.4 * (z[lo] - pooled)):.2f} to "
+        f"x {10 ** (0.4 * (z[hi] - pooled)):.2f} "
+        "for these frames: fit.json's exposure_scale per frame; sim_vs_real.py --fit-report renders each frame "
+        "at its own)"
+    )
 
 
 def sensor_boxes(bgs: list) -> dict:
@@ -719,7 +763,8 @@ def _record(
     from skygen.runtime import hardware
 
     per_frame = []
-    for fs, r, p, R in zip(solved, g.residuals, g.positions, g.rotations):
+    zps = meas.get("frame_zero_points") or [float("nan")] * len(solved)
+    for fs, r, p, R, zp in zip(solved, g.residuals, g.positions, g.rotations, zps):
         from skygen.real.fit_geometry import radec_roll
 
         ra, dec, roll = radec_roll(R)
@@ -732,6 +777,9 @@ def _record(
                 "ra_deg": ra,
                 "dec_deg": dec,
                 "roll_deg": roll,
+                # the frame's own zero point, and its exposure relative to the camera's (the pooled zero point)
+                "zero_point_mag": zp,
+                "exposure_scale": float(10 ** (0.4 * (zp - zp_real))) if np.isfinite(zp - zp_real) else float("nan"),
             }
         )
     allr = np.concatenate(g.residuals)

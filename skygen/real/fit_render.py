@@ -11,9 +11,10 @@ camera at the frames' attitudes, and the check that the renders reproduce the fr
   point is the real one; the detections the catalogue lacks become ``corruptions.false_stars``; then the
   four statistics of :data:`skygen.real.frame_stats.TOLERANCES` are checked
   (:func:`skygen.real.frame_stats.check_renders`). A statistic that is off is corrected once where a term
-  fits it directly (:func:`correct_once`: the background's level and noise through the sensor fit, the PSF
-  width by the ratio, the faint sources by the difference) and rendered again; what is still off is returned
-  as warnings, which ``skygen fit-camera`` prints and writes at the top of the report and the camera file.
+  fits it directly (:func:`correct_once`: the background's level and noise through the sensor fit, the star
+  width through the other fitted PSF profile (:func:`other_profile`) or the PSF width by the ratio, the exposure
+  then refitted to the zero point, the faint sources by the difference) and rendered again; what is still off is
+  returned as warnings, which ``skygen fit-camera`` prints and writes at the top of the report and the camera file.
 
 Units: ADU of the frames (after their value scale), electrons through the fitted gain, pixels.
 """
@@ -142,7 +143,15 @@ def fit_model_terms(
     correction = None
     if any(not c["ok"] for c in checks):
         first = (cfg, after, checks, exposure, copy.deepcopy(meas), px["mv"])
+        psf_before = dict(meas["psf"])
         changed, exposure = correct_once(checks, meas, px, exposure, cfg0.sensor, int(round(sat)))
+        if changed and meas["psf"] != psf_before and np.isfinite(px["zp_real"]):
+            # another PSF puts another share of a star's light above the threshold: the zero point again
+            zp_sim = median_of(_render_stats(build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um), attitudes,
+                                             table, sat), "zero_point_mag")  # fmt: skip
+            if np.isfinite(zp_sim):
+                exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim))
+                changed.append(f"exposure refitted to the zero point ({zp_sim:.2f} -> {px['zp_real']:.2f} mag)")
         if changed:
             missed = "; ".join(c["why"] for c in checks if not c["ok"])
             faint_n = meas["faint_sources_per_frame"]
@@ -585,6 +594,31 @@ def fit_false_star_shape(
     return {"slope": slope, "span_mag": span, "per_frame": per_frame, "n": n_used, "note": note}
 
 
+#: a Moffat profile of this beta or more has no more wing than a Gaussian within the star width's 9 x 9 px
+WING_BETA = 4.0
+
+
+def other_profile(psf: dict, ratio: float) -> str | None:
+    """The PSF profile to render instead where the renders' star width is ``ratio`` x the frames' (off): both
+    profiles were fitted to the same stars (:func:`skygen.real.fit_pixels.psf_fit`), and the choice between them by
+    squared residual weighs the cores, where a star's second moment also weighs its wings. Renders too narrow with
+    a Gaussian take the fitted Moffat where it has wings (beta under :data:`WING_BETA`; the held-out Amalthea
+    camera's stars: beta 1.54, residual ratio 0.97, a Gaussian chosen, star width 0.87 x); renders too wide with a
+    Moffat take the Gaussian. None: scale the width instead."""
+    kind = psf.get("psf")
+    if ratio < 1 and kind == "gaussian" and psf.get("moffat_beta", np.inf) < WING_BETA:
+        return "moffat"
+    if ratio > 1 and kind == "moffat" and np.isfinite(psf.get("gaussian_sigma_px", np.nan)):
+        return "gaussian"
+    return None
+
+
+def profile_words(psf: dict) -> str:
+    if psf.get("psf") == "moffat":
+        return f"σ(FWHM) {psf['moffat_sigma_px']:.3f} px, β {psf['moffat_beta']:.2f}"
+    return f"σ {psf['gaussian_sigma_px']:.3f} px"
+
+
 def correct_once(checks: list, meas: dict, px: dict, exposure: float, start_sensor, top: int) -> tuple[list, float]:
     """One correction of the terms fitted directly, for each statistic off in ``checks``; updates ``meas``.
     Returns (what changed, one sentence each; the exposure, scaled with the gain so that a star's ADU stay).
@@ -593,7 +627,8 @@ def correct_once(checks: list, meas: dict, px: dict, exposure: float, start_sens
       bias kept (the mean-variance line's gain is what missed, when it was that), to a box level shifted by
       (real - rendered) and a box noise of the present sensor's (its model's, at the frames' median box
       level) times real / rendered: renders relate to the model as the frames relate to their boxes;
-    * star width: the PSF's width scaled by real / rendered;
+    * star width: the other fitted profile where it has the wings (or lacks those) the frames' width asks for
+      (:func:`other_profile`), else the PSF's width scaled by real / rendered;
     * detections: left to the faint sources (:func:`_faint_sources` runs after this)."""
     from skygen.real.fit_sensor import electrons_at, fit_sensor, model_background
 
@@ -619,13 +654,20 @@ def correct_once(checks: list, meas: dict, px: dict, exposure: float, start_sens
             f"gain {old_gain:.3g} -> {sensor.gain_e_per_adu:.3g} e-/ADU and background {meas['background_e']:.3g} e- "
             f"fitted to a level of {targets[0]:.2f} ADU and σ {targets[1]:.2f} ADU"
         )
-    if "star_sigma_px" in off:
+    if "star_sigma_px" in off and meas["psf"].get("ok"):
         psf = dict(meas["psf"])
-        key = "moffat_sigma_px" if psf.get("psf") == "moffat" else "gaussian_sigma_px"
-        if psf.get("ok"):
-            psf[key] = psf[key] / off["star_sigma_px"]["ratio"]
+        ratio = off["star_sigma_px"]["ratio"]
+        other = other_profile(psf, ratio)
+        if other:
+            psf["psf"] = other
             meas["psf"] = psf
-            changed.append(f"PSF σ {meas['psf'][key]:.3f} px (scaled by {1 / off['star_sigma_px']['ratio']:.3f})")
+            changed.append(f"PSF profile {other} (as fitted to the stars: {profile_words(psf)}) for the "
+                           f"{'narrower' if ratio > 1 else 'wider'} stars of the frames")  # fmt: skip
+        else:
+            key = "moffat_sigma_px" if psf.get("psf") == "moffat" else "gaussian_sigma_px"
+            psf[key] = psf[key] / ratio
+            meas["psf"] = psf
+            changed.append(f"PSF σ {meas['psf'][key]:.3f} px (scaled by {1 / ratio:.3f})")
     det = off.get("detections")
     if det and not changed and (det["rendered"] < det["real"] or meas.get("faint_sources_per_frame", 0) > 0):
         changed.append("faint sources fitted again to the detections")

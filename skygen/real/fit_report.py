@@ -120,13 +120,14 @@ def markdown(r: dict) -> str:
         lines.append(f"- {k} fixed: {v}")
     lines += [
         "",
-        "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll |",
-        "|---|---|---|---|---|---|---|",
+        "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll | zero point (mag) | exposure × |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for f in r["solved"]:
         lines.append(
             f"| {f['frame']} | {f['solved_fov_deg']:.4f} | {f['matched']} | {f['rms_px']:.3f} | "
-            f"{f['ra_deg']:.4f} | {f['dec_deg']:.4f} | {f['roll_deg']:.3f} |"
+            f"{f['ra_deg']:.4f} | {f['dec_deg']:.4f} | {f['roll_deg']:.3f} | {_fmt(f.get('zero_point_mag'))} | "
+            f"{_fmt(f.get('exposure_scale'))} |"
         )
     lines += [
         "",
