@@ -31,30 +31,6 @@ if str(ROOT) not in sys.path:
 STATS = ("background_adu", "noise_adu", "star_sigma_px", "detections", "catalogue_detections")
 
 
-def split_detections(cfg, attitudes) -> list[tuple[int, int, int]]:
-    """Per frame rendered with ``cfg`` at ``attitudes``: (catalogue stars, false stars, other) detected, each
-    detection paired with the brightest rendered source within 2 px (fit-camera's pairing)."""
-    from skygen.instrument.detect import match
-    from skygen.real.fit_render import renderer_at
-    from skygen.real.frame_stats import frame_stats
-
-    r = renderer_at(cfg, attitudes)
-    d = r.cfg.detection
-    top = 2**r.cfg.sensor.bit_depth - 1
-    out = []
-    for i in range(len(attitudes)):
-        f = r.render(i)
-        _, det = frame_stats(
-            f.image_full.astype(np.float32), d.threshold_sigma, d.min_area_px, d.background_box_px, top
-        )
-        sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
-        ok = sidx >= 0
-        cat = np.zeros(len(sidx), bool)
-        cat[ok] = f.stars["hip_id"][sidx[ok]] >= 0
-        out.append((int(cat.sum()), int((ok & ~cat).sum()), int((~ok).sum())))
-    return out
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("frames", help="the folder of real frames the camera was fitted on (named in the report)")
@@ -90,13 +66,15 @@ def main(argv=None) -> int:
     def real_median(k: str) -> float:  # reports older than a statistic lack it
         return median_of(real, k) if all(k in r for r in real) else float("nan")
 
-    split = []
+    split = []  # per seed, means over frames: catalogue stars, false stars, the rest (hot pixels, fixed light, blends)
     for seed in range(a.seeds):
-        c = dataclasses.replace(cfg, seed=seed)
-        rows = _render_stats(c, attitudes, None, sat)
+        rows = _render_stats(dataclasses.replace(cfg, seed=seed), attitudes, None, sat)
         for k in STATS:
             ratios[k].append(ratio(median_of(rows, k), real_median(k)))
-        split.append(np.mean(split_detections(c, attitudes), axis=0))
+        cat, false, det = (
+            np.mean([r[k] for r in rows]) for k in ("catalogue_detections", "false_star_detections", "detections")
+        )
+        split.append((cat, false, det - cat - false))
     lines = [
         f"{len(attitudes)} frames of {a.frames} (fit {a.report}), rendered with the fitted camera at their attitudes "
         f"with dataset seeds 0-{a.seeds - 1}; {hardware_line()}",

@@ -1095,6 +1095,7 @@ def _render_stats(cfg, attitudes, table, sat, skip: int = 0) -> list[dict]:
         star[ok] = f.stars["hip_id"][sidx[ok]] >= 0  # a false star is no catalogue star
         extra = {"nonstar_brightest10": nonstar_brightest(det["flux_adu"], ~star)}
         extra["catalogue_detections"] = int(star.sum())
+        extra["false_star_detections"] = int((ok & ~star).sum())  # the fitted corruptions.false_stars detected
         extra["sharp_sources"] = sharp_sources(det, star, st["background_adu"], sat)
         extra["_detection_limit_mag"] = r.detection_limit_mag
         # the false stars' own brightness: the sources fixed on the sensor (rendered too) are none of them
