@@ -1,0 +1,50 @@
+"""benchmarks/bright_neighbours.py: which of the brightest detections are non-stars, and where they sit."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    if str(ROOT / "benchmarks") not in sys.path:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("bright_neighbours", ROOT / "benchmarks" / "bright_neighbours.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _blob(img, x, y, flux, sigma=1.2):
+    yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+    img += flux / (2 * np.pi * sigma**2) * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma**2))
+
+
+def test_a_displaced_star_and_a_false_star_are_told_apart_by_their_distances():
+    """Catalogue: a bright star (Hp 1) at (100, 100) and a fainter one (Hp 4) at (300, 200). On the image: the bright
+    one where it should be, the fainter one 4 px off its catalogue place, and a source at (250, 50) with no star.
+    Non-stars within 2 px: the displaced star (its catalogue star 4 px away, 206 px from the bright star) and the false
+    one (no catalogue star within 6 px); the bright star is a star."""
+    mod = _script()
+    rng = np.random.default_rng(1)
+    img = rng.normal(10.0, 1.0, (300, 400))
+    _blob(img, 100, 100, 5000)
+    _blob(img, 304, 200, 2000)
+    _blob(img, 250, 50, 1500)
+    det_cfg = SimpleNamespace(threshold_sigma=5.0, min_area_px=3, background_box_px=0)
+    x, y, mags = np.array([100.0, 300.0]), np.array([100.0, 200.0]), np.array([1.0, 4.0])
+    got = mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 3.0, 10, 2.0)
+    got = got[np.argsort(got[:, 0])]
+    assert got.shape == (2, 2)
+    assert got[0, 0] == pytest.approx(np.hypot(150, 50), abs=0.5) and got[0, 1] > 6  # the false star
+    assert got[1, 0] == pytest.approx(np.hypot(204, 100), abs=0.5) and got[1, 1] == pytest.approx(4.0, abs=0.3)
+    # with a 5 px radius the displaced star is a star again; with no bright star on the sensor, inf
+    assert len(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 3.0, 10, 5.0)) == 1
+    assert np.isinf(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 0.5, 10, 2.0)[:, 0]).all()
