@@ -30,25 +30,33 @@ if str(ROOT) not in sys.path:
 BINS_PX = (0.0, 20.0, 50.0, 150.0, np.inf)
 
 
+#: the columns :func:`nonstars` returns per non-star
+COLUMNS = ("bright_px", "nearest_px", "x_px", "y_px", "dx_px", "dy_px", "nearest_mag", "area_px")
+
+
 def nonstars(img, det_cfg, sat: float, x, y, mags, bright_mag: float, brightest: int, radius: float) -> np.ndarray:
-    """Per non-star (no catalogue star within ``radius``) among the ``brightest`` detections of ``img``: (distance to
-    the nearest catalogue star brighter than ``bright_mag``, inf without one; distance to the nearest catalogue star
-    of any magnitude), px: catalogue stars at (``x``, ``y``) with ``mags``."""
+    """One row per non-star (no catalogue star within ``radius``) among the ``brightest`` detections of ``img``, the
+    columns of :data:`COLUMNS`: distance to the nearest catalogue star brighter than ``bright_mag`` (inf without one),
+    distance to the nearest catalogue star of any magnitude, the detection's place, that star's place less it (px),
+    the star's magnitude and the detection's area (px): catalogue stars at (``x``, ``y``) with ``mags``."""
     from scipy.spatial import cKDTree
 
     from skygen.real.frame_stats import frame_stats
 
     _, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)
     top = np.argsort(-np.asarray(det["flux_adu"], np.float64), kind="stable")[:brightest]
-    pos = np.column_stack([det["x_px"][top], det["y_px"][top]])
-    if not len(pos):
-        return np.zeros((0, 2))
-    near, _ = cKDTree(np.column_stack([x, y])).query(pos) if len(x) else (np.full(len(pos), np.inf), None)
-    far, pos = near[near > radius], pos[near > radius]
+    pos = np.column_stack([det["x_px"][top], det["y_px"][top]]).astype(np.float64)
+    if not len(pos) or not len(x):
+        return np.zeros((0, len(COLUMNS)))
+    near, j = cKDTree(np.column_stack([x, y])).query(pos)
+    keep = near > radius
+    pos, near, j, area = pos[keep], near[keep], j[keep], np.asarray(det["area_px"], np.float64)[top][keep]
     bright = mags <= bright_mag
-    if not bright.any() or not len(pos):
-        return np.column_stack([np.full(len(pos), np.inf), far])
-    return np.column_stack([cKDTree(np.column_stack([x[bright], y[bright]])).query(pos)[0], far])
+    to_bright = (
+        cKDTree(np.column_stack([x[bright], y[bright]])).query(pos)[0] if bright.any() and len(pos) else
+        np.full(len(pos), np.inf)
+    )  # fmt: skip
+    return np.column_stack([to_bright, near, pos, x[j] - pos[:, 0], y[j] - pos[:, 1], mags[j], area])
 
 
 def main(argv=None) -> int:
@@ -116,13 +124,33 @@ def main(argv=None) -> int:
         "|---|---|" + "---|" * (len(labels) + 2),
     ]
     for key in ("real", "renders"):
-        d = np.concatenate(got[key]) if got[key] else np.zeros((0, 2))
+        d = np.concatenate(got[key]) if got[key] else np.zeros((0, len(COLUMNS)))
         counts = np.histogram(d[np.isfinite(d[:, 0]), 0], bins=np.asarray(BINS_PX))[0]
         lines.append(
             f"| {key} | {len(d) / len(rows):.2f} | "
             + " | ".join(str(int(c)) for c in counts)
             + f" | {int(np.sum(~np.isfinite(d[:, 0])))} | {int(np.sum(d[:, 1] <= 3 * radius))} |"
         )
+    # the real non-stars one by one: where they are, and which way the nearest catalogue star lies (its radial part:
+    # positive where the camera puts the star farther from the principal point than the frame shows it)
+    real = np.concatenate(got["real"]) if got["real"] else np.zeros((0, len(COLUMNS)))
+    if len(real):
+        lines += [
+            "",
+            "Real non-stars one by one (nearest catalogue star's place less the detection's; radial: along the line "
+            f"from the principal point ({cam.cx_px:.1f}, {cam.cy_px:.1f}), positive outwards):",
+            "",
+            "| x, y (px) | from the principal point (px) | nearest star: Hp, distance (px) | dx, dy (px) | radial (px) "
+            "| area (px) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in real[np.argsort(-np.hypot(real[:, 2] - cam.cx_px, real[:, 3] - cam.cy_px))]:
+            u = np.array([r[2] - cam.cx_px, r[3] - cam.cy_px])
+            rad = float(np.dot(u, r[4:6]) / max(np.hypot(*u), 1e-9))
+            lines.append(
+                f"| {r[2]:.1f}, {r[3]:.1f} | {np.hypot(*u):.0f} | {r[6]:.2f}, {r[1]:.1f} | {r[4]:+.1f}, {r[5]:+.1f} "
+                f"| {rad:+.1f} | {r[7]:.0f} |"
+            )
     text = "\n".join(lines)
     print(text)
     if a.out:

@@ -42,9 +42,13 @@ def test_a_displaced_star_and_a_false_star_are_told_apart_by_their_distances():
     x, y, mags = np.array([100.0, 300.0]), np.array([100.0, 200.0]), np.array([1.0, 4.0])
     got = mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 3.0, 10, 2.0)
     got = got[np.argsort(got[:, 0])]
-    assert got.shape == (2, 2)
+    assert got.shape == (2, len(mod.COLUMNS))
     assert got[0, 0] == pytest.approx(np.hypot(150, 50), abs=0.5) and got[0, 1] > 6  # the false star
     assert got[1, 0] == pytest.approx(np.hypot(204, 100), abs=0.5) and got[1, 1] == pytest.approx(4.0, abs=0.3)
+    # the displaced star: detected at (304, 200), its catalogue star (Hp 4) 4 px to the left of it
+    x_px, y_px, dx, dy, mag, area = got[1, 2:]
+    assert (x_px, y_px) == pytest.approx((304, 200), abs=0.3) and (dx, dy) == pytest.approx((-4, 0), abs=0.3)
+    assert mag == 4.0 and area >= 3
     # with a 5 px radius the displaced star is a star again; with no bright star on the sensor, inf
     assert len(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 3.0, 10, 5.0)) == 1
     assert np.isinf(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 0.5, 10, 2.0)[:, 0]).all()
