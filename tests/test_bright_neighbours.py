@@ -52,3 +52,18 @@ def test_a_displaced_star_and_a_false_star_are_told_apart_by_their_distances():
     # with a 5 px radius the displaced star is a star again; with no bright star on the sensor, inf
     assert len(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 3.0, 10, 5.0)) == 1
     assert np.isinf(mod.nonstars(img, det_cfg, 65535.0, x, y, mags, 0.5, 10, 2.0)[:, 0]).all()
+
+
+def test_centroid_shift_splits_each_offset_along_the_line_from_the_principal_point():
+    """benchmarks/centroid_shift.py: a star detected 2 px farther out than the camera puts it has a radial offset of
+    -2 px, one 1 px sideways 0, and a star with no detection within the match radius is left out."""
+    if str(ROOT / "benchmarks") not in sys.path:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("centroid_shift", ROOT / "benchmarks" / "centroid_shift.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    x, y, mags = np.array([200.0, 100.0, 400.0]), np.array([100.0, 300.0, 400.0]), np.array([3.0, 6.0, 5.0])
+    det = {"x_px": np.array([202.0, 101.0]), "y_px": np.array([100.0, 300.0])}  # centre (100, 100)
+    got = mod.radial_offsets(det, x, y, mags, 100.0, 100.0, 8.0)
+    assert got.shape == (2, 3)
+    assert got[0] == pytest.approx([3.0, 100.0, -2.0]) and got[1] == pytest.approx([6.0, 200.0, 0.0])
