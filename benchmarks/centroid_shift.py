@@ -17,7 +17,6 @@ this table does not. Writes nothing else and renders nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -54,25 +53,25 @@ def main(argv=None) -> int:
     p.add_argument("--match-px", type=float, default=8.0, help="a detection this close to a catalogue star is it (px)")
     p.add_argument("--out", type=Path, help="also write the table here (Markdown)")
     a = p.parse_args(argv)
-    fit_json = a.report / "fit.json"
-    if not fit_json.is_file():
-        p.error(f"--report {a.report}: no fit.json (give the folder skygen fit-camera --report wrote)")
 
     from skygen.config import build_config
+    from skygen.errors import ConfigError
     from skygen.instrument.camera import Camera
     from skygen.real.fit_render import renderer_at
+    from skygen.real.fit_report import read_fit
     from skygen.real.frame_stats import frame_stats
     from skygen.real.frames import read_frame
     from skygen.runtime import hardware_line
     from skygen.sky.attitude import attitude_matrix
 
-    fit = json.loads(fit_json.read_text())
+    try:
+        fit = read_fit(a.report)
+    except ConfigError as e:
+        p.error(str(e))
     scale = float(fit.get("value_scale") or 1.0)
     cfg = build_config(fit["config"])
     cam = Camera.from_config(cfg.camera)
     sat = float(fit.get("saturation_adu") or 2**cfg.sensor.bit_depth - 1)
-    if not fit["solved"]:
-        p.error(f"{fit_json}: no solved frame")
     first = fit["solved"][0]
     sky = renderer_at(cfg, [(first["ra_deg"], first["dec_deg"], first["roll_deg"])]).sky  # the renders' catalogue
     mags = np.asarray(sky.table.mag, dtype=np.float64)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -38,23 +37,23 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, default=8, help="dataset seeds: passes of renders over the frames")
     p.add_argument("--out", type=Path, help="also write the tables here (Markdown)")
     a = p.parse_args(argv)
-    fit_json = a.report / "fit.json"
-    if not fit_json.is_file():
-        p.error(f"--report {a.report}: no fit.json (give the folder skygen fit-camera --report wrote)")
     if a.seeds < 2:
         p.error(f"--seeds {a.seeds}: at least 2 (a spread needs two passes)")
 
     from skygen.config import build_config
-    from skygen.real.fit_render import CHECK_FRAMES, _render_stats
+    from skygen.errors import ConfigError
+    from skygen.real.fit_render import CHECK_FRAMES, _render_stats, spread_evenly
+    from skygen.real.fit_report import read_fit
     from skygen.real.frame_stats import TOLERANCES, median_of
     from skygen.runtime import hardware_line
 
-    fit = json.loads(fit_json.read_text())
+    try:
+        fit = read_fit(a.report)
+    except ConfigError as e:
+        p.error(str(e))
     solved, real = fit["solved"], fit["real_stats"]
-    if not solved or not real:
-        p.error(f"{fit_json}: no solved frame")
     # the frames fit-camera compared: at most CHECK_FRAMES, spread evenly over the solved ones (fit_model_terms)
-    pick = np.unique(np.linspace(0, len(solved) - 1, min(len(solved), CHECK_FRAMES)).round().astype(int))
+    pick = spread_evenly(len(solved), CHECK_FRAMES)
     attitudes = [(solved[k]["ra_deg"], solved[k]["dec_deg"], solved[k]["roll_deg"]) for k in pick]
     cfg = build_config(fit["config"])
     sat = float(fit.get("saturation_adu") or 2**cfg.sensor.bit_depth - 1)

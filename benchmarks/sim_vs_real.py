@@ -79,12 +79,13 @@ def render(camera: str, out: Path, n: int, seed: int, attitudes=None, exposure_s
 def exposure_scales(report: Path, frames: list[dict]) -> list[float]:
     """Each real frame's exposure relative to the fitted camera's (``skygen fit-camera``'s fit.json in ``report``,
     ``solved[k].exposure_scale``, matched by file name); 1 for a frame the fit has none for (not solved there)."""
-    fit_json = Path(report) / "fit.json"
-    if not fit_json.is_file():
-        raise SystemExit(
-            f"sim_vs_real: --fit-report {report}: no fit.json (the folder skygen fit-camera --report wrote)"
-        )
-    known = {r["frame"]: r.get("exposure_scale") for r in json.loads(fit_json.read_text())["solved"]}
+    from skygen.errors import ConfigError
+    from skygen.real.fit_report import read_fit
+
+    try:
+        known = {r["frame"]: r.get("exposure_scale") for r in read_fit(report, "--fit-report")["solved"]}
+    except ConfigError as e:
+        raise SystemExit(f"sim_vs_real: {e}") from None
     out = []
     for f in frames:
         v = known.get(Path(str(f["frame"])).name)

@@ -18,7 +18,6 @@ flux: where, and how steeply, is what a model of that processing must reproduce.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -52,23 +51,23 @@ def main(argv=None) -> int:
     p.add_argument("--faintest", type=float, default=8.0, help="stars to this catalogue magnitude")
     p.add_argument("--out", type=Path, help="also write the table here (Markdown)")
     a = p.parse_args(argv)
-    fit_json = a.report / "fit.json"
-    if not fit_json.is_file():
-        p.error(f"--report {a.report}: no fit.json (give the folder skygen fit-camera --report wrote)")
 
     from skygen.config import build_config
+    from skygen.errors import ConfigError
     from skygen.instrument.camera import Camera
-    from skygen.real.fit_render import renderer_at
+    from skygen.real.fit_render import renderer_at, spread_evenly
+    from skygen.real.fit_report import read_fit
     from skygen.real.frames import read_frame
     from skygen.runtime import hardware_line
     from skygen.sky.attitude import attitude_matrix
 
-    fit = json.loads(fit_json.read_text())
+    try:
+        fit = read_fit(a.report)
+    except ConfigError as e:
+        p.error(str(e))
     scale = float(fit.get("value_scale") or 1.0)  # the frames' values over the ADU they carry (12-bit data x 16)
     solved = fit["solved"]
-    if not solved:
-        p.error(f"{fit_json}: no solved frame")
-    pick = np.unique(np.linspace(0, len(solved) - 1, min(a.n, len(solved))).round().astype(int))
+    pick = spread_evenly(len(solved), a.n)
     rows = [solved[k] for k in pick]
     attitudes = [(r["ra_deg"], r["dec_deg"], r["roll_deg"]) for r in rows]
     renderer = renderer_at(build_config(fit["config"]), attitudes)

@@ -58,7 +58,7 @@ def fit_model_terms(
     exposure = _exposure_from_stars(cfg0, px["stars"], meas["gain_e_per_adu"])
     # the renders are compared with at most CHECK_FRAMES frames, spread evenly over the solved ones: medians and
     # counts per frame need no more, and renders at every attitude of 100 frames took most of a fit's time
-    picked = np.unique(np.linspace(0, len(solved) - 1, min(len(solved), CHECK_FRAMES)).round().astype(int))
+    picked = spread_evenly(len(solved), CHECK_FRAMES)
     attitudes = [radec_roll(g.rotations[k]) for k in picked]
     sky = SkyIndex(table, epoch_yr, _explaining_depth(cfg0, cam, meas, exposure, pixel_pitch_um, table))
     real_stats = [
@@ -349,6 +349,14 @@ def miss(checks: list) -> float:
 
 #: the most frames whose statistics the renders are checked against (and rendered at)
 CHECK_FRAMES = 16
+
+
+def spread_evenly(n_total: int, n: int) -> np.ndarray:
+    """Indices of at most ``n`` of ``n_total`` items spread evenly from the first to the last (the frames a check
+    compares; the benchmarks that re-render a fit pick the same)."""
+    return np.unique(np.linspace(0, n_total - 1, min(n_total, n)).round().astype(int))
+
+
 #: light fixed on the sensor: its renders' detected flux within this of the frames' (relative), in at most this many
 #: renders of the check frames beyond the first (skygen.real.fit_fixed)
 FIXED_FLUX_TOL = 0.1

@@ -13,6 +13,23 @@ import numpy as np
 SECTIONS = ("camera", "optics", "photometry", "sensor", "corruptions", "detection", "catalog", "output")
 
 
+def read_fit(folder, option: str = "--report") -> dict:
+    """The record ``skygen fit-camera --report FOLDER`` wrote (``FOLDER/fit.json``), with at least one solved frame;
+    a :class:`skygen.errors.ConfigError` naming ``option`` and what to give otherwise (the benchmarks that re-render
+    a fit)."""
+    import json
+
+    from skygen.errors import ConfigError
+
+    path = Path(folder) / "fit.json"
+    if not path.is_file():
+        raise ConfigError(f"{option} {folder}: no fit.json (give the folder skygen fit-camera --report wrote)")
+    fit = json.loads(path.read_text())
+    if not fit.get("solved"):
+        raise ConfigError(f"{path}: no solved frame")
+    return fit
+
+
 def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     """The fitted camera as a camera file (checked by loading it back)."""
     import yaml
