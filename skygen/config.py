@@ -91,6 +91,24 @@ class CameraConfig:
         "assumes, since the few stars of one solve cannot measure errors shared across the field (residual "
         "distortion); None: 0.03 px (fusion.solve.base.CENTROID_FLOOR_PX). Changes no rendered pixel",
     )
+    bright_shift_px: float = param(
+        0.0,
+        lo=-20,
+        hi=20,
+        doc="a star's detected centroid lies this much farther from the principal point (px at the farthest corner, "
+        "growing in proportion to the distance from the principal point) per decade of its detected flux beyond "
+        "camera.bright_shift_from: the brightness-dependent outward shift of an asymmetric star image (coma, lateral "
+        "colour) that no distortion term fits. skygen fit-camera measures it (0: none found); renders draw it "
+        "(NumPy backend; labels stay where the camera puts the star) and fusion's Predictor takes it back off "
+        "every detection before solving",
+    )
+    bright_shift_from: float = param(
+        1.5,
+        lo=-3,
+        hi=8,
+        doc="log10 of a detection's flux over the background's noise sigma (both ADU) beyond which "
+        "camera.bright_shift_px grows",
+    )
 
 
 @dataclass(frozen=True)
@@ -362,6 +380,8 @@ def check_consistency(cfg: RenderConfig) -> None:
             )
     if cfg.optics.star_jitter_px > 0 and r.backend == "torch":
         raise ConfigError("optics.star_jitter_px needs render.backend=numpy (the torch backend does not draw it)")
+    if cam.bright_shift_px != 0 and r.backend == "torch":
+        raise ConfigError("camera.bright_shift_px needs render.backend=numpy (the torch backend does not draw it)")
     if cfg.sensor.fixed_sources and r.backend == "torch":
         raise ConfigError("sensor.fixed_sources needs render.backend=numpy (the torch backend does not draw them)")
     for key in ("principal_x_px", "principal_y_px"):

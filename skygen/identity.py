@@ -55,6 +55,8 @@ NEUTRAL_DEFAULTS = {
     "sensor.fixed_sources": [],
     "sensor.black_level_adu": 0,
     "optics.star_jitter_px": 0.0,
+    "camera.bright_shift_px": 0.0,
+    "camera.bright_shift_from": 1.5,
 }
 
 

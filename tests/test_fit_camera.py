@@ -38,12 +38,15 @@ TRUTH = {
 }
 
 
-def _write_truth(folder: Path, n: int = 5, sensor: dict | None = None, corruptions: dict | None = None) -> Path:
+def _write_truth(
+    folder: Path, n: int = 5, sensor: dict | None = None, corruptions: dict | None = None, camera: dict | None = None
+) -> Path:
     from skygen.config import build_config
     from skygen.render.frame import Renderer
 
     truth = {**TRUTH, "sensor": {**TRUTH["sensor"], **(sensor or {})}}
     truth["corruptions"] = {**TRUTH["corruptions"], **(corruptions or {})}
+    truth["camera"] = {**TRUTH["camera"], **(camera or {})}
     cfg = build_config({**truth, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
@@ -101,11 +104,31 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
     # the per-axis centroid error a solver's covariance assumes for this camera: the fit's residual / sqrt 2
     assert c.centroid_sigma_px == pytest.approx(rec["geometry"]["rms_px"] / np.sqrt(2), rel=1e-6)
     assert Camera.from_config(c).centroid_sigma_px == c.centroid_sigma_px
+    # no brightness-dependent shift was rendered, and none is fitted (skygen.real.fit_shift)
+    assert c.bright_shift_px == 0.0 and rec["bright_shift"]["note"].startswith("bright-star shift: ")
     cmp = rec["compare"]
     assert cmp["background_adu"]["fitted"] == pytest.approx(cmp["background_adu"]["real"], rel=0.1)
     assert cmp["zero_point_mag"]["fitted"] == pytest.approx(cmp["zero_point_mag"]["real"], abs=0.2)
     assert cmp["star_sigma_px"]["fitted"] == pytest.approx(cmp["star_sigma_px"]["real"], rel=0.15)
     assert cmp["detections"]["fitted"] == pytest.approx(cmp["detections"]["real"], rel=0.25)
+
+
+@pytest.mark.slow
+def test_a_bright_star_shift_rendered_is_found_and_taken_off_before_the_geometry_fit(tmp_path):
+    """Frames rendered with camera.bright_shift_px: fit-camera finds a shift of that sign and about that size, and
+    fits the distortion to where the stars are (the residual falls when it is taken off)."""
+    folder = _write_truth(tmp_path, n=10, camera={"bright_shift_px": 3.0, "bright_shift_from": 1.75})
+    out = tmp_path / "fitted.yaml"
+    args = ["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out)]
+    assert main(args + ["--report", str(tmp_path / "rep")]) == 0
+    c = load_config(out).camera
+    import json
+
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    # the sign and the size (the slope and where it starts trade off on ~100 paired stars: 2.2 from 10^0.5 here)
+    assert 1.5 < c.bright_shift_px < 4.5, rec["bright_shift"]["note"]
+    before, after = rec["bright_shift"]["geometry_rms_px"]
+    assert after < 0.7 * before  # the distortion fitted to where the stars are
 
 
 def _listed():

@@ -69,6 +69,40 @@ def test_star_jitter_moves_each_star_image_but_not_its_label():
         build_config({"optics": {"star_jitter_px": 1.0}, "render": {"backend": "torch"}})
 
 
+def test_bright_shift_moves_bright_stars_outward_and_leaves_faint_ones_and_labels():
+    """camera.bright_shift_px: a star's image is drawn outward from the principal point by the camera's shift for
+    its brightness (its electrons over the background noise), growing with the distance from the principal point;
+    stars fainter than camera.bright_shift_from are not moved, labels never; the torch backend refuses it."""
+    from skygen.config import ConfigError, build_config
+
+    shift = ["camera.bright_shift_px=4.0", "camera.bright_shift_from=1.8"]
+    plain, moved = Renderer(load_config(overrides=CLEAN)), Renderer(load_config(overrides=CLEAN + shift))
+    cam = moved.camera
+    rows = []
+    for i in range(12):
+        a, f = plain.render(i), moved.render(i)
+        np.testing.assert_array_equal(a.stars["x_px"], f.stars["x_px"])
+        ok = f.detections["star_index"] >= 0
+        s = f.detections["star_index"][ok]
+        x, y = f.stars["x_px"][s], f.stars["y_px"][s]
+        ux, uy = x - cam.cx_px, y - cam.cy_px
+        r = np.hypot(ux, uy)
+        radial = ((f.detections["x_px"][ok] - x) * ux + (f.detections["y_px"][ok] - y) * uy) / np.maximum(r, 1e-9)
+        q = np.log10(f.stars["electrons"][s] / moved.noise_e())
+        want = 4.0 * np.maximum(q - 1.8, 0) * r / cam.far_corner_px
+        rows.append(np.column_stack([q, r, radial, want]))
+    g = np.concatenate(rows)
+    bright = (g[:, 0] > 2.2) & (g[:, 1] > 250)
+    faint = g[:, 0] < 1.75
+    assert bright.sum() >= 20 and faint.sum() >= 15
+    assert np.median(np.abs(g[bright, 2] - g[bright, 3])) < 0.15  # drawn where the camera's shift says
+    assert np.median(g[bright, 2]) > 0.5  # outward
+    assert abs(np.median(g[faint, 2])) < 0.1
+    assert moved.render(1).log["bright_shift"]["max_px"] > 0
+    with pytest.raises(ConfigError, match="bright_shift_px needs render.backend=numpy"):
+        build_config({"camera": {"bright_shift_px": 1.0}, "render": {"backend": "torch"}})
+
+
 def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     cfg = load_config(overrides=CLEAN + ["corruptions.motion_blur=1.0"])
     r = Renderer(cfg)

@@ -29,7 +29,10 @@ def iter_inputs(paths: list[str], max_frames: int | None, channel: str = "lumina
 
             with open_dataset(path) as ds:
                 for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
-                    yield f"{path}#{int(ds.frames['index'][pos])}", None, ds.detections(pos), ds.image(pos), None
+                    table = ds.detections(pos)
+                    if "noise_adu" in ds.frames:  # the frame's noise: what camera.bright_shift_px is relative to
+                        table = {**table, "noise_adu": float(ds.frames["noise_adu"][pos])}
+                    yield f"{path}#{int(ds.frames['index'][pos])}", None, table, ds.image(pos), None
             continue
         if path.is_dir():
             files = frame_files(path)

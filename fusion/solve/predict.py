@@ -297,9 +297,23 @@ class Predictor:
                 "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
                 "flux_adu": np.array([p.brightness or 0.0 for p in c]),
             }
-            return self._unmasked(Detections.from_table(table)), float(res.background_mean), float(res.background_sigma)
+            sigma = float(res.background_sigma)
+            return (
+                self._unshifted(self._unmasked(Detections.from_table(table)), sigma),
+                float(res.background_mean),
+                sigma,
+            )
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, keep, self.background_box)
-        return self._unmasked(Detections.from_table(det)), bg, sigma
+        return self._unshifted(self._unmasked(Detections.from_table(det)), sigma), bg, sigma
+
+    def _unshifted(self, det: Detections, sigma: float) -> Detections:
+        """``det`` moved back by the camera's brightness-dependent centroid shift (``camera.bright_shift_px``,
+        :meth:`skygen.instrument.camera.Camera.bright_shift`), to where the camera puts their stars: what a solver
+        matches against the catalogue. Unchanged where the camera has none."""
+        if not self.camera.bright_shift_px or not len(det):
+            return det
+        x, y = self.camera.unshift(det.x_px, det.y_px, det.flux_adu, sigma)
+        return Detections(x, y, det.flux_adu)
 
     def _unmasked(self, det: Detections) -> Detections:
         """``det`` without the detections of the camera's fixed sources (``mask_fixed_sources``), at most
@@ -572,7 +586,10 @@ def predict(
                         "bad_pixels": bad,
                     }
                 else:
-                    det, extra = pred._unmasked(Detections.from_table(table)), {"detections_from": "dataset"}
+                    det = pred._unmasked(Detections.from_table(table))
+                    if "noise_adu" in table:  # renders of a camera with a bright-star shift draw it: taken back off
+                        det = pred._unshifted(det, table["noise_adu"])
+                    extra = {"detections_from": "dataset"}
                 if pred.fixed_mask is not None:  # the camera's own glow, dropped at detection
                     extra["fixed_sources_removed"] = pred.fixed_sources_removed
                 hint = previous if track_deg is not None else None

@@ -41,6 +41,10 @@ class Camera:
     # per-axis centroid error of a matched star measured on real frames (camera.centroid_sigma_px), px; None: unknown.
     # The attitude covariance's floor (fusion.solve.base.attitude_covariance); nothing here depends on it
     centroid_sigma_px: float | None = None
+    # a detection's outward centroid shift per decade of flux/noise beyond bright_shift_from, px at the farthest
+    # corner (camera.bright_shift_px; see :meth:`bright_shift`)
+    bright_shift_px: float = 0.0
+    bright_shift_from: float = 1.5
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -63,6 +67,8 @@ class Camera:
             cfg.p2,
             float(getattr(cfg, "pixel_aspect", 1.0)),
             getattr(cfg, "centroid_sigma_px", None),
+            float(getattr(cfg, "bright_shift_px", 0.0)),
+            float(getattr(cfg, "bright_shift_from", 1.5)),
         )
 
     @property
@@ -139,6 +145,42 @@ class Camera:
         a centred sensor (the radius ``optics.vignetting`` is defined on)."""
         dx, dy = np.asarray(x, dtype=np.float64) - self.cx_px, np.asarray(y, dtype=np.float64) - self.cy_px
         return (dx * dx + dy * dy) / ((self.width_px / 2) ** 2 + (self.height_px / 2) ** 2)
+
+    @property
+    def far_corner_px(self) -> float:
+        """Distance from the principal point to the farthest sensor corner, px (along x and y as stored)."""
+        return float(
+            np.hypot(
+                max(self.cx_px + 0.5, self.width_px - 0.5 - self.cx_px),
+                max(self.cy_px + 0.5, self.height_px - 0.5 - self.cy_px),
+            )
+        )
+
+    def bright_shift(
+        self, x: np.ndarray, y: np.ndarray, log_flux_over_sigma: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(dx, dy) px by which a source of this brightness at (x, y) is detected away from where the camera puts
+        it: outward from the principal point by ``bright_shift_px * rho * max(q - bright_shift_from, 0)``, ``rho``
+        the distance from the principal point over :attr:`far_corner_px`, ``q`` the log10 of its detected flux over
+        the background's noise sigma (ADU). Zero where ``bright_shift_px`` is 0."""
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        if not self.bright_shift_px:
+            return np.zeros_like(x), np.zeros_like(y)
+        ux, uy = x - self.cx_px, y - self.cy_px
+        excess = np.maximum(np.asarray(log_flux_over_sigma, np.float64) - self.bright_shift_from, 0.0)
+        k = self.bright_shift_px * excess / self.far_corner_px  # shift / distance from the principal point
+        return k * ux, k * uy
+
+    def unshift(self, x: np.ndarray, y: np.ndarray, flux_adu: np.ndarray, sigma_adu: float) -> tuple:
+        """Detections at (x, y) of these fluxes on a frame of background noise ``sigma_adu`` (ADU), moved back by
+        :meth:`bright_shift` to where the camera puts their stars (exactly: the shift is ``k`` times the offset from
+        the principal point, ``k`` set by the brightness alone). Unchanged where ``bright_shift_px`` is 0."""
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        if not self.bright_shift_px or not x.size:
+            return x, y
+        q = np.log10(np.maximum(np.asarray(flux_adu, np.float64), 1e-12) / max(float(sigma_adu), 1e-12))
+        k = self.bright_shift_px * np.maximum(q - self.bright_shift_from, 0.0) / self.far_corner_px
+        return self.cx_px + (x - self.cx_px) / (1.0 + k), self.cy_px + (y - self.cy_px) / (1.0 + k)
 
     def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         return (

@@ -22,6 +22,9 @@
    matched stars, or residuals over 3 x the fit's rms) are dropped with the reason and the fit made
    again without them; when they are half the solved frames or more, the fit is refused (frames of
    more than one camera?). Their pixels are left out of steps 4-6 too.
+3b. Bright stars' shift (:mod:`skygen.real.fit_shift`): where the frames show bright stars farther from the centre
+   than faint ones at the same place (an asymmetric star image: coma, lateral colour), by a significant amount, the
+   camera gets ``camera.bright_shift_px`` and the geometry is fitted again with every detection moved back by it.
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
    pixels, the photometric zero point. The sensor (:mod:`skygen.real.fit_sensor`): gain, bias and read
    noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
@@ -235,6 +238,7 @@ def fit_camera(
     solved, cfg0, cam0 = solve_frames(fr, cfg0, fov_range, log, search_aspect=pixel_aspect is None)
     t_solve = time.perf_counter() - t0
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
+    g, shift = fit_shift_step(g, solved, cam0, fov_range, sky, fr, log)
     t_geom = time.perf_counter() - t0
     px = measure_pixels(fr, solved, g, cfg0, sky, log, camera_file=camera is not None)
     model = fit_model_terms(
@@ -279,6 +283,7 @@ def fit_camera(
         log(f"fit-camera: {exposures}")
         notes = [*notes, exposures]
     record["notes"] = notes
+    record["bright_shift"] = shift
     record["start"]["dark_current_e_s"] = cfg0.sensor.dark_current_e_s
     record["checks"] = model["checks"]
     record["correction"] = model["correction"]
@@ -476,6 +481,31 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
     for fs in kept:
         fs.R = own[fs.name]
     return _fit_two_radii(kept, cam0, fov_range, sky, log), kept
+
+
+def fit_shift_step(g, solved: list, cam0: Camera, fov_range, sky, fr: Frames, log) -> tuple:
+    """Step 3b: the brightness-dependent outward shift of the star images (:mod:`skygen.real.fit_shift`). Where one
+    is found, the geometry is fitted again with every detection moved back by it (bright stars no longer pull the
+    distortion), and the fitted camera carries it. Returns (the geometry fit, the shift's record)."""
+    from skygen.real import fit_shift as S
+
+    noise = [fr.background_of(fs.name)["noise_adu"] for fs in solved]
+    shift = S.fit_bright_shift(S.shift_rows(solved, g.camera, g.rotations, sky, noise))
+    log(f"fit-camera: {shift['note']}")
+    if not shift["px"]:
+        return g, shift
+    start = dataclasses.replace(cam0, bright_shift_px=shift["px"], bright_shift_from=shift["from"])
+    raw = S.unshift_frames(solved, start, noise)
+    try:
+        g2 = _fit_two_radii(solved, start, fov_range, sky, lambda m: None)
+    finally:
+        for fs, det in zip(solved, raw):
+            fs.det = det
+    shift["geometry_rms_px"] = [float(g.rms_px), float(g2.rms_px)]
+    log(
+        f"fit-camera: geometry fitted again with the shift taken off: residual rms {g.rms_px:.3f} -> {g2.rms_px:.3f} px"
+    )
+    return g2, shift
 
 
 def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):

@@ -830,6 +830,8 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "k2": float(cam.k2),
             "pixel_aspect": float(cam.aspect),
             "centroid_sigma_px": meas.get("centroid_sigma_px"),
+            "bright_shift_px": float(cam.bright_shift_px),
+            "bright_shift_from": float(cam.bright_shift_from),
         }
     )
     psf = meas["psf"]
@@ -921,7 +923,9 @@ def _measure_real(img, settings, sat, fs, g, k, sky) -> dict:
     from skygen.real.frame_stats import frame_stats, nonstar_brightest
 
     st, det = frame_stats(img, settings["threshold_sigma"], settings["min_area_px"], settings["background_box_px"], sat)
-    explained = explained_by(g.camera, g.rotations[k], sky, det["x_px"], det["y_px"])
+    # a camera with a bright-star shift: its bright stars are looked for where the camera puts them
+    x, y = g.camera.unshift(det["x_px"], det["y_px"], det["flux_adu"], st["noise_adu"])
+    explained = explained_by(g.camera, g.rotations[k], sky, x, y)
     st["nonstar_brightest10"] = nonstar_brightest(det["flux_adu"], ~explained)
     st["catalogue_detections"] = int(explained.sum())  # against the renders': depth, not the sources it lacks
     # the detections no catalogue star explains (light fixed on the sensor is found among them, the rest are the
@@ -1097,7 +1101,8 @@ def _render_stats(cfg, attitudes, table, sat, skip: int = 0) -> list[dict]:
         st, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)
         from skygen.instrument.detect import match
 
-        sidx = match(det["x_px"], det["y_px"], f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
+        mx, my = r.camera.unshift(det["x_px"], det["y_px"], det["flux_adu"], st["noise_adu"])  # as the real frames'
+        sidx = match(mx, my, f.stars["x_px"], f.stars["y_px"], f.stars["electrons"], 2.0)
         ok = sidx >= 0
         star = np.zeros(len(sidx), bool)
         star[ok] = f.stars["hip_id"][sidx[ok]] >= 0  # a false star is no catalogue star

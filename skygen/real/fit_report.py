@@ -59,6 +59,11 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
         "OUT-report/ beside this file.",
     ]
     head += [f"# note: {n}." for n in record.get("notes", [])]
+    if (record.get("bright_shift") or {}).get("px"):
+        head.append(
+            f"# {record['bright_shift']['note']} (fusion predict takes it off every detection before solving; "
+            "renders draw it)."
+        )
     said = record.get("sensor", {}).get("said")
     if said:
         head.append(f"# sensor: {said}.")
@@ -135,6 +140,13 @@ def markdown(r: dict) -> str:
     ]
     for k, v in g["fixed"].items():
         lines.append(f"- {k} fixed: {v}")
+    shift = r.get("bright_shift")
+    if shift:  # skygen.real.fit_shift: bright stars detected farther out than faint ones
+        rms = shift.get("geometry_rms_px")
+        lines.append(
+            f"- {shift['note']}"
+            + (f"; the geometry fitted again with it taken off ({rms[0]:.3f} -> {rms[1]:.3f} px rms)" if rms else "")
+        )
     lines += [
         "",
         "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll | zero point (mag) | exposure × |",

@@ -518,18 +518,34 @@ class Renderer:
         return full, log
 
     def jittered(self, scene: "Scene") -> tuple[dict, dict]:
-        """``scene.stars`` where each star's image is drawn (``optics.star_jitter_px`` > 0: moved by a Gaussian draw
-        per axis, fresh in every frame; its labels stay where the camera puts it), and a log."""
+        """``scene.stars`` where each star's image is drawn, and a log; its labels stay where the camera puts it.
+
+        * ``camera.bright_shift_px`` != 0: moved outward from the principal point by
+          :meth:`skygen.instrument.camera.Camera.bright_shift`, with the star's electrons over the background's noise
+          (e-) for the detected flux over sigma that the camera's shift is measured in (a detection holds most, not
+          all, of its star's light: the renders' shift is a little smaller than the frames' where the PSF's wings
+          are wide);
+        * ``optics.star_jitter_px`` > 0: then moved by a Gaussian draw per axis, fresh in every frame."""
         j, stars = self.cfg.optics.star_jitter_px, scene.stars
         n = len(stars["x_px"])
-        if j <= 0 or not n:
+        shift = self.camera.bright_shift_px != 0
+        if (j <= 0 and not shift) or not n:
             return stars, {}
-        d = corr.stage_rng(self.cfg.seed, scene.rng_key, "star_jitter" + self.rng_tag).normal(0.0, j, size=(2, n))
+        log = {}
+        d = np.zeros((2, n))
+        if shift:
+            q = np.log10(np.maximum(np.asarray(stars["electrons"], np.float64), 1e-12) / self.noise_e())
+            d += np.array(self.camera.bright_shift(stars["x_px"], stars["y_px"], q))
+            log["bright_shift"] = {"max_px": float(np.hypot(d[0], d[1]).max())}
+        if j > 0:
+            drawn = corr.stage_rng(self.cfg.seed, scene.rng_key, "star_jitter" + self.rng_tag).normal(0.0, j, (2, n))
+            d += drawn
+            log["star_jitter"] = {"rms_px": float(np.sqrt((drawn**2).mean()))}
         out = {**stars, "x_px": stars["x_px"] + d[0], "y_px": stars["y_px"] + d[1]}
         if stars.get("paths") is not None:  # a streak moves as a whole
             xs, ys = stars["paths"]  # (n_sources, n_substeps)
             out["paths"] = (np.asarray(xs) + d[0][:, None], np.asarray(ys) + d[1][:, None])
-        return out, {"star_jitter": {"rms_px": float(np.sqrt((d**2).mean()))}}
+        return out, log
 
     @contextlib.contextmanager
     def with_levels(self, levels: dict | None):
@@ -573,7 +589,9 @@ class Renderer:
         det, bg, sigma = detect(full, d.threshold_sigma, d.min_area_px, d.max_detections, d.background_box_px)
         inside = self.camera.inside(stars["x_px"], stars["y_px"])
         true = {k: v[inside] for k, v in stars.items() if k != "paths"}
-        sidx = match(det["x_px"], det["y_px"], true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
+        # a camera with a bright-star shift draws bright stars outward: matched where the camera puts them
+        mx, my = self.camera.unshift(det["x_px"], det["y_px"], det["flux_adu"], sigma)
+        sidx = match(mx, my, true["x_px"], true["y_px"], true["electrons"], d.match_radius_px)
         det["star_index"] = sidx
         hip = true["hip_id"][np.maximum(sidx, 0)] if len(true["hip_id"]) else np.full(len(sidx), -1)
         det["hip_id"] = np.where(sidx >= 0, hip, -1).astype(np.int64)  # (a frame may hold no true star)

@@ -1,0 +1,169 @@
+"""The brightness-dependent outward shift of a camera's star images (``camera.bright_shift_px``), from its frames.
+
+Some lenses draw a star as an asymmetric image whose tail points away from the centre (coma; lateral colour on a colour
+sensor). The detector's threshold centroid then takes in more of the tail the brighter the star, so bright stars are
+detected farther out than faint ones at the same place, by more the farther from the centre. No distortion term can
+fit that (distortion moves every star at one place alike), and a solver that matches within a few pixels loses
+exactly the brightest stars, the ones a few-star solve is given (``benchmarks/centroid_shift.py`` measures it by
+magnitude; on the Amalthea camera the brightest stars sit up to 5 px out at the corners).
+
+The model (:meth:`skygen.instrument.camera.Camera.bright_shift`)::
+
+    shift = bright_shift_px * rho * max(q - bright_shift_from, 0)      outward, px
+
+``rho``: distance from the principal point over the distance to the farthest corner; ``q``: log10 of the detection's
+flux over the frame's background noise sigma (both ADU: no zero point or exposure needed, the same on every frame of
+a camera whatever its exposure).
+
+The fit (:func:`fit_bright_shift`): every detection of the solved frames paired with the catalogue star the fitted
+camera puts nearest (within :data:`MATCH_PX`, each the other's nearest, no second star that close, stars no fainter
+than the geometry fit matched), and its radial offset regressed on ``rho``, ``rho^3`` (what the distortion left) and
+``rho * max(q - q0, 0)`` for a grid of ``q0``, with 3.5 sigma clipping. The shift is kept only where it is
+significant (:data:`MIN_T`) and moves the brightest stars at the corner by at least :data:`MIN_CORNER_PX`; otherwise
+the camera has none (0) and the fit says so. ``skygen fit-camera`` then fits the geometry again with the detections
+moved back (:func:`unshift_frames`), so the distortion is fitted to where the stars are, not to a mix of shifted
+bright and unshifted faint ones.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: a detection and a catalogue star this close (px) may be a pair (bright stars sit up to ~7 px out on Amalthea)
+MATCH_PX = 8.0
+#: the shift is kept where its coefficient is this many standard errors from 0
+MIN_T = 5.0
+#: ... and where it moves the brightest 5 % of the paired stars at the farthest corner by at least this much (px)
+MIN_CORNER_PX = 1.0
+#: pairs beyond q0 needed to fit a shift at q0
+MIN_BRIGHT = 15
+#: the grid of q0 (log10 flux / sigma) the fit tries
+FROM_GRID = tuple(np.round(np.arange(0.5, 4.01, 0.25), 2))
+CLIP = 3.5
+
+
+def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, match_px: float = MATCH_PX) -> np.ndarray:
+    """Rows (rho, q, radial offset px) of every detection of ``frames`` (raw detections of
+    :class:`skygen.real.fit_geometry.FrameSolution`) paired with a catalogue star (see module doc). The offset is
+    the star's place less the detection's along the outward line: negative where the frame shows the star farther
+    out than ``camera`` puts it."""
+    from scipy.spatial import cKDTree
+
+    mags = np.concatenate([fs.star_mag for fs in frames if len(fs.star_mag)] or [np.zeros(0)])
+    if not len(mags):
+        return np.zeros((0, 3))
+    faintest = float(np.percentile(mags, 95))
+    table_mag = np.asarray(sky.table.mag, np.float64)
+    corner = camera.far_corner_px
+    rows = []
+    for fs, R, noise in zip(frames, rotations, noise_adu):
+        det = fs.det
+        x, y = np.asarray(det["x_px"], np.float64), np.asarray(det["y_px"], np.float64)
+        if len(x) < 2:
+            continue
+        idx = sky.cone(R[:, 2], camera.corner_radius_rad() + 0.01)
+        idx = idx[table_mag[idx] <= faintest]
+        sx, sy, front = camera.project(sky.vectors[idx] @ R)
+        on = front & camera.inside(sx, sy, margin_px=match_px)
+        sx, sy = sx[on], sy[on]
+        if len(sx) < 2:
+            continue
+        stars = cKDTree(np.column_stack([sx, sy]))
+        d2, j2 = stars.query(np.column_stack([x, y]), k=2)
+        back = cKDTree(np.column_stack([x, y])).query(np.column_stack([sx, sy]))[1]
+        ok = (d2[:, 0] <= match_px) & (d2[:, 1] > match_px) & (back[j2[:, 0]] == np.arange(len(x)))
+        k, j = np.flatnonzero(ok), j2[ok, 0]
+        ux, uy = sx[j] - camera.cx_px, sy[j] - camera.cy_px
+        r = np.hypot(ux, uy)
+        off = ((sx[j] - x[k]) * ux + (sy[j] - y[k]) * uy) / np.maximum(r, 1e-9)
+        q = np.log10(np.maximum(np.asarray(det["flux_adu"], np.float64)[k], 1e-12) / max(float(noise), 1e-12))
+        rows.append(np.column_stack([r / corner, q, off]))
+    return np.concatenate(rows) if rows else np.zeros((0, 3))
+
+
+def _clipped_fit(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least squares of ``b`` on ``A`` with 3.5 sigma clipping: (coefficients, kept mask, residual rms of the kept)."""
+    keep = np.ones(len(b), bool)
+    coef = np.zeros(A.shape[1])
+    for _ in range(5):
+        coef = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        res = b - A @ coef
+        s = 1.4826 * float(np.median(np.abs(res[keep] - np.median(res[keep])))) or 1e-9
+        new = np.abs(res) <= CLIP * s
+        if new.sum() < A.shape[1] + 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    res = b - A @ coef
+    return coef, keep, float(np.sqrt(np.mean(res[keep] ** 2)))
+
+
+def fit_bright_shift(rows: np.ndarray) -> dict:
+    """The camera's ``bright_shift_px`` and ``bright_shift_from`` from :func:`shift_rows`' rows (see module doc),
+    with what was measured: ``px`` 0 where no significant shift is found, and a ``note`` saying which."""
+    rho, q, off = rows[:, 0], rows[:, 1], rows[:, 2]
+    out = {"px": 0.0, "from": 1.5, "stars": int(len(rows))}
+    if len(rows) < 3 * MIN_BRIGHT:
+        out["note"] = f"bright-star shift: not measured ({len(rows)} paired stars, fewer than {3 * MIN_BRIGHT})"
+        return out
+    base = np.column_stack([rho, rho**3])
+    _, keep0, rms0 = _clipped_fit(base, off)
+    scale = rms0 or 1e-9
+    best = None
+    for q0 in FROM_GRID:
+        excess = np.maximum(q - q0, 0.0)
+        if int((excess > 0.3).sum()) < MIN_BRIGHT:
+            continue
+        A = np.column_stack([base, rho * excess])
+        coef, keep, _ = _clipped_fit(A, off)
+        res = off - A @ coef
+        cost = float(np.sum(np.minimum(res**2, (CLIP * scale) ** 2)))  # one robust cost across the grid
+        if best is None or cost < best[0]:
+            best = (cost, float(q0), coef, keep, A)
+    if best is None:
+        out["note"] = "bright-star shift: not measured (too few bright stars)"
+        return out
+    _, q0, coef, keep, A = best
+    res = off - A @ coef
+    dof = max(int(keep.sum()) - A.shape[1], 1)
+    cov = np.linalg.pinv(A[keep].T @ A[keep]) * float(np.sum(res[keep] ** 2)) / dof
+    se = float(np.sqrt(max(cov[2, 2], 0.0)))
+    shift = -float(coef[2])  # outward, px per decade at the farthest corner
+    top = float(np.percentile(q, 95)) - q0
+    corner_px = shift * max(top, 0.0)
+    t = abs(shift) / se if se > 0 else float("inf")
+    out.update(
+        {
+            "from": q0,
+            "fitted_px": shift,
+            "se_px": se,
+            "t": t,
+            "corner_px_brightest": corner_px,
+            "bright_stars": int((q > q0).sum()),
+            "rms_px": float(np.sqrt(np.mean(res[keep] ** 2))),
+            "rms_px_without": rms0,
+        }
+    )
+    if t >= MIN_T and abs(corner_px) >= MIN_CORNER_PX:
+        out["px"] = shift
+        out["note"] = (
+            f"bright-star shift: detections {shift:+.2f} px farther out per decade of flux / noise beyond "
+            f"10^{q0:g}, at the farthest corner ({corner_px:+.1f} px for the brightest 5 % of {len(rows)} paired "
+            f"stars; {t:.0f} standard errors): camera.bright_shift_px {shift:.3f}, bright_shift_from {q0:g}"
+        )
+    else:
+        out["note"] = (
+            f"bright-star shift: none ({shift:+.2f} ± {se:.2f} px per decade, {corner_px:+.2f} px at the corner for "
+            f"the brightest stars; kept from {MIN_T:g} standard errors and {MIN_CORNER_PX:g} px)"
+        )
+    return out
+
+
+def unshift_frames(frames: list, camera, noise_adu: list) -> list[dict]:
+    """Each frame's detections moved back by ``camera``'s shift (:meth:`skygen.instrument.camera.Camera.unshift`) in
+    place of its own; returns the raw detections, to put back after the geometry fit."""
+    raw = []
+    for fs, noise in zip(frames, noise_adu):
+        raw.append(fs.det)
+        x, y = camera.unshift(fs.det["x_px"], fs.det["y_px"], fs.det["flux_adu"], noise)
+        fs.det = {**fs.det, "x_px": x, "y_px": y}
+    return raw

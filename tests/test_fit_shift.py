@@ -1,0 +1,73 @@
+"""camera.bright_shift_px: fitted from paired stars where it is there and only there, taken off by the Predictor."""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+
+from skygen.real.fit_shift import FROM_GRID, fit_bright_shift
+
+
+def _rows(shift_px: float, q0: float, n: int = 1500, noise_px: float = 0.6, seed: int = 0) -> np.ndarray:
+    """Paired stars of a camera whose detections lie ``shift_px`` per decade beyond ``q0`` farther out, with a
+    distortion residual (what a geometry fit on shifted bright stars leaves) and a per-star scatter."""
+    rng = np.random.default_rng(seed)
+    rho = np.sqrt(rng.uniform(0, 1, n))  # stars spread evenly over the sensor
+    q = 1.0 + rng.exponential(0.45, n)  # most stars faint, a tail of bright ones
+    off = 0.4 * rho - 0.6 * rho**3 - shift_px * rho * np.maximum(q - q0, 0) + rng.normal(0, noise_px, n)
+    bad = rng.random(n) < 0.02  # a few wrong pairs
+    off[bad] = rng.uniform(-8, 8, bad.sum())
+    return np.column_stack([rho, q, off])
+
+
+def test_a_shift_is_found_where_bright_stars_sit_farther_out():
+    fit = fit_bright_shift(_rows(4.0, 2.0))
+    assert abs(fit["px"] - 4.0) < 0.6 and abs(fit["from"] - 2.0) <= 0.25
+    assert fit["t"] > 10 and "camera.bright_shift_px" in fit["note"]
+    assert fit["rms_px"] < fit["rms_px_without"]
+
+
+def test_no_shift_is_fitted_where_there_is_none():
+    for seed in range(4):
+        fit = fit_bright_shift(_rows(0.0, 2.0, seed=seed))
+        assert fit["px"] == 0.0 and fit["note"].startswith("bright-star shift: none"), fit["note"]
+
+
+def test_too_few_stars_say_so():
+    fit = fit_bright_shift(_rows(4.0, 2.0, n=30))
+    assert fit["px"] == 0.0 and "not measured" in fit["note"]
+    assert 2.0 in FROM_GRID
+
+
+def test_unshift_undoes_the_drawn_shift_and_the_predictor_takes_it_off(tmp_path):
+    """A star drawn where Camera.bright_shift puts it is moved back exactly; the Predictor of a camera file with the
+    shift moves bright detections, not faint ones; a camera without it leaves detections alone."""
+    from fusion.solve.base import Detections
+    from fusion.solve.predict import Predictor
+    from skygen.config import build_config
+    from skygen.instrument.camera import Camera
+
+    shifted = {"bright_shift_px": 4.0, "bright_shift_from": 1.5, "focal_length_mm": 16.0, "fov_deg": None}
+    cam = Camera.from_config(build_config({"camera": shifted}).camera)
+    x, y = np.array([30.0, 900.0, 512.0]), np.array([40.0, 1000.0, 300.0])
+    q = np.array([3.5, 3.0, 1.2])
+    dx, dy = cam.bright_shift(x, y, q)
+    assert np.all(np.hypot(dx, dy)[:2] > 2.0) and dx[2] == dy[2] == 0.0
+    # outward: away from the principal point
+    assert np.all(
+        ((x + dx - cam.cx_px) ** 2 + (y + dy - cam.cy_px) ** 2)[:2] > ((x - cam.cx_px) ** 2 + (y - cam.cy_px) ** 2)[:2]
+    )
+    sigma = 3.0
+    flux = sigma * 10**q
+    bx, by = cam.unshift(x + dx, y + dy, flux, sigma)
+    assert np.max(np.hypot(bx - x, by - y)) < 1e-9
+    f = tmp_path / "shifted.yaml"
+    base = {"width_px": 1024, "height_px": 1024, "pixel_pitch_um": 5.5, "focal_length_mm": 16.0}
+    f.write_text(yaml.safe_dump({"camera": {**base, "bright_shift_px": 4.0, "bright_shift_from": 1.5}}))
+    pred = Predictor(camera=f)
+    det = pred._unshifted(Detections(x + dx, y + dy, flux), sigma)
+    np.testing.assert_allclose(np.column_stack([det.x_px, det.y_px]), np.column_stack([bx, by]))
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(yaml.safe_dump({"camera": base}))
+    same = Predictor(camera=plain)._unshifted(Detections(x, y, flux), sigma)
+    np.testing.assert_array_equal(same.x_px, x)
