@@ -500,7 +500,7 @@ def add_search_arguments(p: argparse.ArgumentParser, k_flag: str = "--search-k")
         help="fine stage: its work budget per solve, every region and pass together, in hypotheses (one of the "
         "focal-length pass counts 3: it costs about three; with N > 6 detections each counts (N - 2) / 4 times "
         "that, as its time grows with N); a frame that runs out is refused (budget_exhausted). "
-        "Default 200,000 for the 20 deg camera, scaled up for denser catalogue cuts; a count, not a clock, so the "
+        "Default 200,000 on every camera; a count, not a clock, so the "
         "same answer on every machine",
     )
 

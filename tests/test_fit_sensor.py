@@ -377,3 +377,18 @@ def test_box_statistics_at_once_equal_the_per_box_ones(shape):
     np.testing.assert_allclose(got["box_clip_sigma"], ref[:, 1], rtol=1e-5)
     np.testing.assert_allclose(got["box_sigma"], [P._difference_sigma(b[1::2]) for b in boxes], rtol=1e-12)
     assert np.all(np.abs(got["box_sigma"] - 2.5) < 0.4)  # the star is clipped from the noise
+
+
+def test_frame_noise_is_the_noise_the_detector_thresholds_on():
+    """A sky-glow gradient is not noise where the detector takes a local background: frame_stats' noise_adu is then
+    the boxes' median sigma (~ the pixel noise drawn), and the frame's clipped sigma only without boxes."""
+    from skygen.real.frame_stats import frame_stats
+
+    rng = np.random.default_rng(5)
+    h, w = 480, 640
+    glow = 12.0 * (np.arange(w)[None, :] / w) ** 2 * np.ones((h, 1))  # a curved glow, 12 ADU edge to edge
+    img = (40.0 + glow + rng.normal(0.0, 1.5, (h, w))).astype(np.float32)
+    local, _ = frame_stats(img, 5.0, 3, 64, 255.0)
+    whole, _ = frame_stats(img, 5.0, 3, 0, 255.0)
+    assert local["noise_adu"] == pytest.approx(1.5, rel=0.08)
+    assert whole["noise_adu"] > 1.3 * local["noise_adu"]  # the glow counted as noise by a global sigma

@@ -98,7 +98,7 @@ together: a hypothesis of the strict pass counts 1, one of the focal-length pass
 (3: what it costs against a strict one, measured), and with more than :data:`COST_REFERENCE_N` (6) detections
 both count :func:`hypothesis_cost` times that ((N - 2) / 4: a hypothesis's time grows with the detections it
 scores), so the budget bounds time in either pass and at any N (default:
-:data:`MAX_HYPOTHESES` for the 20 deg camera, scaled up with the catalogue's density of pairs); where it runs out
+:data:`MAX_HYPOTHESES` on every camera); where it runs out
 without an accepted attitude the answer is a refusal with status ``budget_exhausted`` (``extra``: ``hypotheses``,
 the count H, and ``work``, the units spent). A count, not a clock: the same frame gets the same answer on every
 machine. The time of a solve is bounded by that count times the cost of one hypothesis (at most one partner scan
@@ -180,12 +180,14 @@ from .pairs import load_or_build
 # 5 of 14,129 correct answers needed the focal pass at all, while refusals spent about a third of their hypotheses
 # (and two thirds of their time) there; 200,000 keeps every answer of seed 11 and of a held-out seed (41: the
 # costliest 192,032) and bounds a refusal's time by the strict pass's cost. (Until 2026-11-27: 150,000 hypotheses
-# of either pass.) A camera whose
-# catalogue cut holds more pairs per separation window (a narrower field, a finer pixel) tries more
-# hypotheses for the same frame, so the default (max_hypotheses=None) is scaled by its mean number of
-# catalogue pairs in one detection pair's +-2 tol_px window, relative to that of the 20 deg camera
-# above (REFERENCE_WINDOW_PAIRS); never below MAX_HYPOTHESES. The fitted Blackfly camera (11.5 deg, 25,273
-# stars in the cut): x 5.0, 749,000 (its 8 real frames need 6,500-22,000 at N = 4-6).
+# of either pass.) The same count on every camera: until 2026-11-28 the default grew with the catalogue cut's pairs
+# per separation window (x 5.0 for the fitted Blackfly camera, x 4.0 for skysolve's, x 13.8 for openstartracker's),
+# which kept a few hard answers and made refusals 4-14 times longer. On renders of the fitted Blackfly camera
+# (300 frames, seed 41, 38 cells) the fixed budget gave the same answers in 35 of 38 cells (1 px of centroid noise at
+# N = 6: 81 -> 67 %; 2 px: 8.7 -> 4.3 %; at N = 4 one frame) and p99 over 20 ms in 13 cells instead of 29 (the worst
+# 129 -> 38 ms); on the real frames of seven cameras the same answers, skysolve's N = 5 p99 65 -> 18 ms
+# (results/benchmark/dense-budget). A hypothesis costs about the same on any camera, so the count bounds the time
+# alike, beside the partner tables a denser cut makes longer (~4 ms a solve on the fitted Blackfly's).
 MAX_HYPOTHESES = 200_000
 # what one hypothesis of the focal-length pass costs against one of the strict pass, in the work budget: its wider
 # tolerances test each detection on the sky grid (rotation, cube-map lookup) rather than in a partner table. Measured
@@ -477,10 +479,10 @@ class CoarseToFineSolver:
         row_of = {int(x): r for r, x in enumerate(self.tiers[0].ids)}
         self._bright_rows = np.array([row_of.get(int(x), -1) for x in self.tiers[-1].ids], np.int64)
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
-        if max_hypotheses is None:  # the budget scales with the catalogue's density of pairs (see MAX_HYPOTHESES)
-            window = len(self.tiers[0].pairs.sep) * 4 * self.tol_rad / max_sep
-            max_hypotheses = int(round(MAX_HYPOTHESES * max(1.0, window / REFERENCE_WINDOW_PAIRS)))
-        self.max_hypotheses = max_hypotheses
+        # the catalogue cut's pairs per separation window, relative to the 20 deg camera's (what makes a denser cut try
+        # more hypotheses for the same frame; the budget does not follow it: see MAX_HYPOTHESES)
+        self.window_density = len(self.tiers[0].pairs.sep) * 4 * self.tol_rad / max_sep / REFERENCE_WINDOW_PAIRS
+        self.max_hypotheses = MAX_HYPOTHESES if max_hypotheses is None else max_hypotheses
 
     # ---------------------------------------------------------------- regions
     def regions(self, probs: np.ndarray | None, centroids: np.ndarray | None, top_k: int | None = None) -> list[Region]:

@@ -289,8 +289,8 @@ def build_solver(
     context : SolverContext, optional
         Shares one tetra3rs database and already-built solvers between calls.
     max_hypotheses : int, optional
-        The fine stage's work budget per solve (default: :data:`fusion.solve.fine.MAX_HYPOTHESES`, scaled with
-        the catalogue's density of pairs); ignored when ``context`` is given (the context's own).
+        The fine stage's work budget per solve (default: :data:`fusion.solve.fine.MAX_HYPOTHESES` on every
+        camera); ignored when ``context`` is given (the context's own).
 
     Returns
     -------
