@@ -91,6 +91,14 @@ class CameraConfig:
         "assumes, since the few stars of one solve cannot measure errors shared across the field (residual "
         "distortion); None: 0.03 px (fusion.solve.base.CENTROID_FLOOR_PX). Changes no rendered pixel",
     )
+    match_tol_px: Optional[float] = param(
+        None,
+        lo=0.25,
+        hi=20,
+        doc="how close (px) a few-star solver's fine stage matches a detection to a catalogue star on this camera "
+        "(skygen fit-camera sets it from how far its frames' brightest detections lie from their stars: 1.5 times "
+        "their 95th percentile, within 1-2 px); None: 2 px (fusion.solve.fine.TOL_PX). Changes no rendered pixel",
+    )
     bright_shift_px: float = param(
         0.0,
         lo=-20,

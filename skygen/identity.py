@@ -37,6 +37,7 @@ STORAGE_KEYS = (
     "output.full_res",
     "output.split_fractions",
     "camera.centroid_sigma_px",  # what a solver assumes of the real camera's centroids, not how frames are rendered
+    "camera.match_tol_px",  # how closely a solver matches on this camera, likewise
 )
 
 
@@ -56,6 +57,7 @@ NEUTRAL_DEFAULTS = {
     "sensor.black_level_adu": 0,
     "optics.star_jitter_px": 0.0,
     "camera.bright_shift_px": 0.0,
+    "camera.match_tol_px": None,
     "camera.bright_shift_from": 1.5,
 }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import yaml
 
 from skygen.real.fit_shift import FROM_GRID, fit_bright_shift
@@ -71,3 +72,36 @@ def test_unshift_undoes_the_drawn_shift_and_the_predictor_takes_it_off(tmp_path)
     plain.write_text(yaml.safe_dump({"camera": base}))
     same = Predictor(camera=plain)._unshifted(Detections(x, y, flux), sigma)
     np.testing.assert_array_equal(same.x_px, x)
+
+
+def test_the_match_tolerance_follows_the_bright_stars_scatter_within_1_to_2_px():
+    from skygen.real.fit_shift import TOL_FACTOR, match_tolerance
+
+    rng = np.random.default_rng(1)
+    tight = match_tolerance(rng.normal(0, 0.15, (200, 2)))
+    assert tight["px"] == 1.0 and tight["p95_px"] < 0.5  # a precise camera: the floor
+    mid = match_tolerance(rng.normal(0, 0.4, (400, 2)))
+    assert 1.0 < mid["px"] < 2.0 and mid["px"] == pytest.approx(TOL_FACTOR * mid["p95_px"])
+    loose = match_tolerance(rng.normal(0, 1.0, (200, 2)))
+    assert loose["px"] == 2.0  # never wider than the rendered benchmarks' 2 px
+    assert match_tolerance(rng.normal(0, 0.1, (10, 2)))["px"] is None
+
+
+def test_the_fine_stage_takes_the_cameras_match_tolerance():
+    """camera.match_tol_px sets the fine stage's window where no tol_px is given; 2 px without one."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from fusion.solve import fine
+    from skygen.config import build_config
+    from skygen.instrument.camera import Camera
+
+    cam = Camera.from_config(build_config({}).camera)
+    fitted = dataclasses.replace(cam, match_tol_px=1.2)
+    assert fine.tolerance_of(SimpleNamespace(camera=cam), None) == fine.TOL_PX == 2.0
+    assert fine.tolerance_of(SimpleNamespace(camera=fitted), None) == 1.2
+    assert fine.tolerance_of(SimpleNamespace(camera=fitted), 3.0) == 3.0  # given explicitly: that
+    with pytest.raises(ValueError, match="tol_px"):
+        fine.tolerance_of(SimpleNamespace(camera=cam), -1.0)
+    c = build_config({"camera": {"match_tol_px": 1.3}})
+    assert Camera.from_config(c.camera).match_tol_px == 1.3

@@ -189,6 +189,9 @@ from .pairs import load_or_build
 # (results/benchmark/dense-budget). A hypothesis costs about the same on any camera, so the count bounds the time
 # alike, beside the partner tables a denser cut makes longer (~4 ms a solve on the fitted Blackfly's).
 MAX_HYPOTHESES = 200_000
+# the match tolerance (px) of a camera that does not give its own (camera.match_tol_px, which skygen fit-camera sets
+# from how far its frames' brightest detections lie from their stars: skygen.real.fit_shift.match_tolerance)
+TOL_PX = 2.0
 # what one hypothesis of the focal-length pass costs against one of the strict pass, in the work budget: its wider
 # tolerances test each detection on the sky grid (rotation, cube-map lookup) rather than in a partner table. Measured
 # (benchmarks/pass_cost.py, data/bench500, whole sky, the compiled loop alone, one core): 41 vs 150 ns per hypothesis
@@ -205,6 +208,16 @@ REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/
 NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
 NO_CODES = (False, np.zeros(0, np.int64))  # anchor_hypotheses: scan the rows (no region's list of them)
 PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
+
+
+def tolerance_of(tetra, tol_px: float | None) -> float:
+    """The match tolerance (px): ``tol_px`` where given, else the camera's own (``camera.match_tol_px``, which
+    skygen fit-camera sets from its frames' brightest detections), else :data:`TOL_PX`."""
+    if tol_px is None:
+        tol_px = getattr(tetra.camera, "match_tol_px", None) or TOL_PX
+    if not tol_px > 0:
+        raise ValueError(f"tol_px={tol_px!r}: a positive match tolerance (px)")
+    return float(tol_px)
 
 
 def hypothesis_cost(n: int) -> float:
@@ -373,7 +386,7 @@ class CoarseToFineSolver:
         *,
         name: str = "coarse-to-fine",
         top_k: int = 3,
-        tol_px: float = 2.0,
+        tol_px: float | None = None,
         stars_per_fov: float = 60.0,
         max_pair_detections: int = 5,
         min_matches: int = 3,
@@ -398,6 +411,7 @@ class CoarseToFineSolver:
         if not 0.0 <= focal_tol < 0.2:
             raise ValueError(f"focal_tol={focal_tol}: the relative focal-length uncertainty must be in [0, 0.2)")
         self.tetra, self.prior, self.name = tetra, prior, name
+        tol_px = tolerance_of(tetra, tol_px)
         self.focal_tol = float(focal_tol)
         if anchor_order not in ("fewest", "brightest"):
             raise ValueError(f"anchor_order={anchor_order!r}: 'fewest' or 'brightest'")

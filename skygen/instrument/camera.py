@@ -45,6 +45,8 @@ class Camera:
     # corner (camera.bright_shift_px; see :meth:`bright_shift`)
     bright_shift_px: float = 0.0
     bright_shift_from: float = 1.5
+    # the few-star solver's match tolerance on this camera (camera.match_tol_px), px; None: its default
+    match_tol_px: float | None = None
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -69,6 +71,7 @@ class Camera:
             getattr(cfg, "centroid_sigma_px", None),
             float(getattr(cfg, "bright_shift_px", 0.0)),
             float(getattr(cfg, "bright_shift_from", 1.5)),
+            getattr(cfg, "match_tol_px", None),
         )
 
     @property

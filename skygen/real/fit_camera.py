@@ -486,26 +486,33 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
 def fit_shift_step(g, solved: list, cam0: Camera, fov_range, sky, fr: Frames, log) -> tuple:
     """Step 3b: the brightness-dependent outward shift of the star images (:mod:`skygen.real.fit_shift`). Where one
     is found, the geometry is fitted again with every detection moved back by it (bright stars no longer pull the
-    distortion), and the fitted camera carries it. Returns (the geometry fit, the shift's record)."""
+    distortion), and the fitted camera carries it; then the few-star solver's match tolerance from the brightest
+    detections' offsets (``camera.match_tol_px``). Returns (the geometry fit, the record of both)."""
     from skygen.real import fit_shift as S
 
     noise = [fr.background_of(fs.name)["noise_adu"] for fs in solved]
     shift = S.fit_bright_shift(S.shift_rows(solved, g.camera, g.rotations, sky, noise))
     log(f"fit-camera: {shift['note']}")
-    if not shift["px"]:
-        return g, shift
-    start = dataclasses.replace(cam0, bright_shift_px=shift["px"], bright_shift_from=shift["from"])
-    raw = S.unshift_frames(solved, start, noise)
-    try:
-        g2 = _fit_two_radii(solved, start, fov_range, sky, lambda m: None)
-    finally:
-        for fs, det in zip(solved, raw):
-            fs.det = det
-    shift["geometry_rms_px"] = [float(g.rms_px), float(g2.rms_px)]
-    log(
-        f"fit-camera: geometry fitted again with the shift taken off: residual rms {g.rms_px:.3f} -> {g2.rms_px:.3f} px"
-    )
-    return g2, shift
+    if shift["px"]:
+        start = dataclasses.replace(cam0, bright_shift_px=shift["px"], bright_shift_from=shift["from"])
+        raw = S.unshift_frames(solved, start, noise)
+        try:
+            g2 = _fit_two_radii(solved, start, fov_range, sky, lambda m: None)
+        finally:
+            for fs, det in zip(solved, raw):
+                fs.det = det
+        shift["geometry_rms_px"] = [float(g.rms_px), float(g2.rms_px)]
+        log(
+            "fit-camera: geometry fitted again with the shift taken off: residual rms "
+            f"{g.rms_px:.3f} -> {g2.rms_px:.3f} px"
+        )
+        g = g2
+    # how far the brightest detections lie from their stars sets the few-star solver's match tolerance
+    tol = S.match_tolerance(S.bright_offsets(solved, g.camera, g.rotations, sky, noise))
+    shift["match_tolerance"] = tol
+    log(f"fit-camera: {tol['note']}")
+    g.camera = dataclasses.replace(g.camera, match_tol_px=tol["px"])
+    return g, shift
 
 
 def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):

@@ -830,6 +830,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "k2": float(cam.k2),
             "pixel_aspect": float(cam.aspect),
             "centroid_sigma_px": meas.get("centroid_sigma_px"),
+            "match_tol_px": cam.match_tol_px,
             "bright_shift_px": float(cam.bright_shift_px),
             "bright_shift_from": float(cam.bright_shift_from),
         }

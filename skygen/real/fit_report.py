@@ -64,6 +64,9 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
             f"# {record['bright_shift']['note']} (fusion predict takes it off every detection before solving; "
             "renders draw it)."
         )
+    tol = (record.get("bright_shift") or {}).get("match_tolerance") or {}
+    if tol.get("px"):
+        head.append(f"# camera.match_tol_px: {tol['note']}.")
     said = record.get("sensor", {}).get("said")
     if said:
         head.append(f"# sensor: {said}.")
@@ -141,12 +144,14 @@ def markdown(r: dict) -> str:
     for k, v in g["fixed"].items():
         lines.append(f"- {k} fixed: {v}")
     shift = r.get("bright_shift")
-    if shift:  # skygen.real.fit_shift: bright stars detected farther out than faint ones
+    if shift:  # skygen.real.fit_shift: bright stars detected farther out than faint ones, and how far they scatter
         rms = shift.get("geometry_rms_px")
         lines.append(
             f"- {shift['note']}"
             + (f"; the geometry fitted again with it taken off ({rms[0]:.3f} -> {rms[1]:.3f} px rms)" if rms else "")
         )
+        if shift.get("match_tolerance"):
+            lines.append(f"- {shift['match_tolerance']['note']} (camera.match_tol_px: the few-star solvers' window)")
     lines += [
         "",
         "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll | zero point (mag) | exposure × |",

@@ -167,3 +167,65 @@ def unshift_frames(frames: list, camera, noise_adu: list) -> list[dict]:
         x, y = camera.unshift(fs.det["x_px"], fs.det["y_px"], fs.det["flux_adu"], noise)
         fs.det = {**fs.det, "x_px": x, "y_px": y}
     return raw
+
+
+#: the detections a few-star solve is given: each frame's brightest this many
+BRIGHTEST = 8
+#: a bright detection this close to a catalogue star (px, after the shift is taken off) is that star's
+BRIGHT_PAIR_PX = 5.0
+#: the fine stage's match tolerance is this many times the 95th percentile of those offsets, within TOL_RANGE_PX
+TOL_FACTOR = 1.5
+#: 2 px (fusion.solve.fine.TOL_PX) is what the rendered benchmarks were tuned at, and a wider window weakened
+#: SPEL's evidence (session 29); below 1 px is untested
+TOL_RANGE_PX = (1.0, 2.0)
+
+
+def bright_offsets(frames: list, camera, rotations: list, sky, noise_adu: list, n: int = BRIGHTEST) -> np.ndarray:
+    """(dx, dy) px of each frame's ``n`` brightest detections (moved back by ``camera``'s shift) from the catalogue star
+    ``camera`` puts nearest, where one lies within :data:`BRIGHT_PAIR_PX`: the centroid errors a few-star solve meets,
+    unclipped (a geometry fit's 3.5 sigma cut drops the bright stars that saturate, bloom or blend)."""
+    from scipy.spatial import cKDTree
+
+    table_mag = np.asarray(sky.table.mag, np.float64)
+    out = []
+    for fs, R, noise in zip(frames, rotations, noise_adu):
+        det = fs.det
+        flux = np.asarray(det["flux_adu"], np.float64)
+        if not len(flux):
+            continue
+        k = np.argsort(-flux, kind="stable")[:n]
+        x, y = camera.unshift(np.asarray(det["x_px"])[k], np.asarray(det["y_px"])[k], flux[k], noise)
+        idx = sky.cone(R[:, 2], camera.corner_radius_rad() + 0.01)
+        idx = idx[table_mag[idx] <= 9.0]
+        sx, sy, front = camera.project(sky.vectors[idx] @ R)
+        on = front & camera.inside(sx, sy, margin_px=BRIGHT_PAIR_PX)
+        if not on.any():
+            continue
+        d, j = cKDTree(np.column_stack([sx[on], sy[on]])).query(np.column_stack([x, y]))
+        ok = d <= BRIGHT_PAIR_PX
+        out.append(np.column_stack([x[ok] - sx[on][j[ok]], y[ok] - sy[on][j[ok]]]))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def match_tolerance(offsets: np.ndarray) -> dict:
+    """The fine stage's match tolerance for this camera (``camera.match_tol_px``) from :func:`bright_offsets`:
+    :data:`TOL_FACTOR` times their radii's 95th percentile, within :data:`TOL_RANGE_PX`; None with fewer than 20."""
+    r = np.hypot(offsets[:, 0], offsets[:, 1]) if len(offsets) else np.zeros(0)
+    if len(r) < 20:
+        return {
+            "px": None,
+            "stars": int(len(r)),
+            "note": f"match tolerance: the solvers' default ({len(r)} bright stars)",
+        }
+    p95 = float(np.percentile(r, 95))
+    tol = float(np.clip(TOL_FACTOR * p95, *TOL_RANGE_PX))
+    return {
+        "px": tol,
+        "stars": int(len(r)),
+        "p95_px": p95,
+        "rms_px_per_axis": float(np.sqrt(np.mean(offsets**2))),
+        "note": (
+            f"match tolerance {tol:.2f} px: the brightest {BRIGHTEST} detections of each frame lie within {p95:.2f} px "
+            f"of their stars in 95 % of {len(r)} (x {TOL_FACTOR:g}, within {TOL_RANGE_PX[0]:g}-{TOL_RANGE_PX[1]:g} px)"
+        ),
+    }
