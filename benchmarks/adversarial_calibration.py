@@ -925,6 +925,14 @@ def main(argv=None) -> int:
         print_table(rebuild(a.out))
         return 0
     st = settings_from_args(a)
+    if a.config is not None:  # a bad config file is said here, not as a broken process pool from the workers
+        from skygen.config import load_config
+        from skygen.errors import ConfigError
+
+        try:
+            load_config(a.config)
+        except ConfigError as e:
+            p.error(str(e))
     report = run(st)
     print_table(report)
     return 0
