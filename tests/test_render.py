@@ -46,6 +46,17 @@ def test_true_stars_are_where_the_detector_finds_them():
     assert len(e) > 30 and np.median(e) < 0.1
 
 
+def _matched_offsets(plain: Renderer, other: Renderer, n: int):
+    """Frames 0..n-1 of ``other``, checked to have ``plain``'s labels: (frame, matched star rows, and each matched
+    detection's x and y offset from its star's label)."""
+    for i in range(n):
+        a, f = plain.render(i), other.render(i)
+        np.testing.assert_array_equal(a.stars["x_px"], f.stars["x_px"])
+        ok = f.detections["star_index"] >= 0
+        s = f.detections["star_index"][ok]
+        yield f, s, f.detections["x_px"][ok] - f.stars["x_px"][s], f.detections["y_px"][ok] - f.stars["y_px"][s]
+
+
 def test_star_jitter_moves_each_star_image_but_not_its_label():
     """optics.star_jitter_px: the detector finds each bright star about that far (per axis) from its label, the
     labels are those of the same frame without jitter, and the draw is a pure function of seed and frame."""
@@ -53,14 +64,9 @@ def test_star_jitter_moves_each_star_image_but_not_its_label():
 
     plain, jit = Renderer(load_config()), Renderer(load_config(overrides=["optics.star_jitter_px=0.8"]))
     d = []
-    for i in range(8):
-        a, f = plain.render(i), jit.render(i)
-        np.testing.assert_array_equal(a.stars["x_px"], f.stars["x_px"])
-        ok = f.detections["star_index"] >= 0
-        s = f.detections["star_index"][ok]
+    for f, s, dx, dy in _matched_offsets(plain, jit, 8):
         bright = f.stars["mag"][s] < jit.detection_limit_mag - 1.5
-        d.append(f.detections["x_px"][ok][bright] - f.stars["x_px"][s][bright])
-        d.append(f.detections["y_px"][ok][bright] - f.stars["y_px"][s][bright])
+        d += [dx[bright], dy[bright]]
     d = np.concatenate(d)
     assert len(d) > 60 and 0.65 < np.sqrt(np.mean(d**2)) < 0.95  # 0.8 px drawn, the detector's own ~0.05
     np.testing.assert_array_equal(jit.render(3).image, Renderer(jit.cfg).render(3).image)
@@ -79,15 +85,10 @@ def test_bright_shift_moves_bright_stars_outward_and_leaves_faint_ones_and_label
     plain, moved = Renderer(load_config(overrides=CLEAN)), Renderer(load_config(overrides=CLEAN + shift))
     cam = moved.camera
     rows = []
-    for i in range(12):
-        a, f = plain.render(i), moved.render(i)
-        np.testing.assert_array_equal(a.stars["x_px"], f.stars["x_px"])
-        ok = f.detections["star_index"] >= 0
-        s = f.detections["star_index"][ok]
-        x, y = f.stars["x_px"][s], f.stars["y_px"][s]
-        ux, uy = x - cam.cx_px, y - cam.cy_px
+    for f, s, dx, dy in _matched_offsets(plain, moved, 12):
+        ux, uy = f.stars["x_px"][s] - cam.cx_px, f.stars["y_px"][s] - cam.cy_px
         r = np.hypot(ux, uy)
-        radial = ((f.detections["x_px"][ok] - x) * ux + (f.detections["y_px"][ok] - y) * uy) / np.maximum(r, 1e-9)
+        radial = (dx * ux + dy * uy) / np.maximum(r, 1e-9)
         q = np.log10(f.stars["electrons"][s] / moved.noise_e())
         want = 4.0 * np.maximum(q - 1.8, 0) * r / cam.far_corner_px
         rows.append(np.column_stack([q, r, radial, want]))
