@@ -169,10 +169,13 @@ class Camera:
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
         if not self.bright_shift_px:
             return np.zeros_like(x), np.zeros_like(y)
-        ux, uy = x - self.cx_px, y - self.cy_px
+        k = self._shift_factor(log_flux_over_sigma)
+        return k * (x - self.cx_px), k * (y - self.cy_px)
+
+    def _shift_factor(self, log_flux_over_sigma) -> np.ndarray:
+        """:meth:`bright_shift` over the distance from the principal point: set by the brightness alone."""
         excess = np.maximum(np.asarray(log_flux_over_sigma, np.float64) - self.bright_shift_from, 0.0)
-        k = self.bright_shift_px * excess / self.far_corner_px  # shift / distance from the principal point
-        return k * ux, k * uy
+        return self.bright_shift_px * excess / self.far_corner_px
 
     def unshift(self, x: np.ndarray, y: np.ndarray, flux_adu: np.ndarray, sigma_adu: float) -> tuple:
         """Detections at (x, y) of these fluxes on a frame of background noise ``sigma_adu`` (ADU), moved back by
@@ -181,8 +184,9 @@ class Camera:
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
         if not self.bright_shift_px or not x.size:
             return x, y
-        q = np.log10(np.maximum(np.asarray(flux_adu, np.float64), 1e-12) / max(float(sigma_adu), 1e-12))
-        k = self.bright_shift_px * np.maximum(q - self.bright_shift_from, 0.0) / self.far_corner_px
+        k = self._shift_factor(
+            np.log10(np.maximum(np.asarray(flux_adu, np.float64), 1e-12) / max(float(sigma_adu), 1e-12))
+        )
         return self.cx_px + (x - self.cx_px) / (1.0 + k), self.cy_px + (y - self.cy_px) / (1.0 + k)
 
     def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:

@@ -1019,7 +1019,7 @@ def catalogue_found(cam, R: np.ndarray, sky, x, y, radius_px: float = 2.0, margi
     ``margin_px`` inside the sensor; found: a detection (``x``, ``y``) lies within ``radius_px``."""
     from scipy.spatial import cKDTree
 
-    idx, sx, sy = _projected(cam, R, sky, -margin_px)
+    idx, sx, sy = projected(cam, R, sky, -margin_px)
     mags = np.asarray(sky.table.mag, dtype=np.float64)[idx]
     if not len(idx) or not len(x):
         return mags, np.zeros(len(mags), bool)
@@ -1029,7 +1029,7 @@ def catalogue_found(cam, R: np.ndarray, sky, x, y, radius_px: float = 2.0, margi
     return mags, d <= radius_px
 
 
-def _projected(cam, R: np.ndarray, sky, margin_px: float):
+def projected(cam, R: np.ndarray, sky, margin_px: float):
     """(rows of ``sky``, x, y) of its stars that camera ``cam`` at attitude ``R`` (camera -> sky) puts on the sensor
     grown by ``margin_px`` (negative: shrunk)."""
     idx = sky.cone(R[:, 2], cam.corner_radius_rad() + 0.01)
@@ -1062,7 +1062,7 @@ def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_p
     from scipy.spatial import cKDTree
 
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    idx, sx, sy = _projected(cam, R, sky, radius_px)
+    idx, sx, sy = projected(cam, R, sky, radius_px)
     if not len(idx) or not len(x):
         return np.zeros(len(x), bool)
     d, _ = cKDTree(np.column_stack([sx, sy])).query(np.column_stack([x, y]))

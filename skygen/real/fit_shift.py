@@ -53,7 +53,6 @@ def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, matc
     if not len(mags):
         return np.zeros((0, 3))
     faintest = float(np.percentile(mags, 95))
-    table_mag = np.asarray(sky.table.mag, np.float64)
     corner = camera.far_corner_px
     rows = []
     for fs, R, noise in zip(frames, rotations, noise_adu):
@@ -61,11 +60,7 @@ def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, matc
         x, y = np.asarray(det["x_px"], np.float64), np.asarray(det["y_px"], np.float64)
         if len(x) < 2:
             continue
-        idx = sky.cone(R[:, 2], camera.corner_radius_rad() + 0.01)
-        idx = idx[table_mag[idx] <= faintest]
-        sx, sy, front = camera.project(sky.vectors[idx] @ R)
-        on = front & camera.inside(sx, sy, margin_px=match_px)
-        sx, sy = sx[on], sy[on]
+        sx, sy = _stars_on(camera, R, sky, faintest, match_px)
         if len(sx) < 2:
             continue
         stars = cKDTree(np.column_stack([sx, sy]))
@@ -79,6 +74,16 @@ def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, matc
         q = np.log10(np.maximum(np.asarray(det["flux_adu"], np.float64)[k], 1e-12) / max(float(noise), 1e-12))
         rows.append(np.column_stack([r / corner, q, off]))
     return np.concatenate(rows) if rows else np.zeros((0, 3))
+
+
+def _stars_on(camera, R: np.ndarray, sky, faintest_mag: float, margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of the catalogue stars to ``faintest_mag`` that ``camera`` at attitude ``R`` puts on the sensor grown
+    by ``margin_px``."""
+    from skygen.real.fit_render import projected
+
+    idx, sx, sy = projected(camera, R, sky, margin_px)
+    keep = np.asarray(sky.table.mag, np.float64)[idx] <= faintest_mag
+    return sx[keep], sy[keep]
 
 
 def _clipped_fit(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -186,24 +191,18 @@ def bright_offsets(frames: list, camera, rotations: list, sky, noise_adu: list, 
     unclipped (a geometry fit's 3.5 sigma cut drops the bright stars that saturate, bloom or blend)."""
     from scipy.spatial import cKDTree
 
-    table_mag = np.asarray(sky.table.mag, np.float64)
     out = []
     for fs, R, noise in zip(frames, rotations, noise_adu):
         det = fs.det
         flux = np.asarray(det["flux_adu"], np.float64)
-        if not len(flux):
+        sx, sy = _stars_on(camera, R, sky, 9.0, BRIGHT_PAIR_PX)
+        if not len(flux) or not len(sx):
             continue
         k = np.argsort(-flux, kind="stable")[:n]
         x, y = camera.unshift(np.asarray(det["x_px"])[k], np.asarray(det["y_px"])[k], flux[k], noise)
-        idx = sky.cone(R[:, 2], camera.corner_radius_rad() + 0.01)
-        idx = idx[table_mag[idx] <= 9.0]
-        sx, sy, front = camera.project(sky.vectors[idx] @ R)
-        on = front & camera.inside(sx, sy, margin_px=BRIGHT_PAIR_PX)
-        if not on.any():
-            continue
-        d, j = cKDTree(np.column_stack([sx[on], sy[on]])).query(np.column_stack([x, y]))
+        d, j = cKDTree(np.column_stack([sx, sy])).query(np.column_stack([x, y]))
         ok = d <= BRIGHT_PAIR_PX
-        out.append(np.column_stack([x[ok] - sx[on][j[ok]], y[ok] - sy[on][j[ok]]]))
+        out.append(np.column_stack([x[ok] - sx[j[ok]], y[ok] - sy[j[ok]]]))
     return np.concatenate(out) if out else np.zeros((0, 2))
 
 
