@@ -25,6 +25,8 @@
 3b. Bright stars' shift (:mod:`skygen.real.fit_shift`): where the frames show bright stars farther from the centre
    than faint ones at the same place (an asymmetric star image: coma, lateral colour), by a significant amount, the
    camera gets ``camera.bright_shift_px`` and the geometry is fitted again with every detection moved back by it.
+   Then how far each frame's brightest 8 detections lie from their stars (unclipped) sets the few-star solvers'
+   match window, ``camera.match_tol_px`` (1.5 x their 95th percentile, within 1-2 px).
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
    pixels, the photometric zero point. The sensor (:mod:`skygen.real.fit_sensor`): gain, bias and read
    noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
