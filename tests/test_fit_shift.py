@@ -105,3 +105,17 @@ def test_the_fine_stage_takes_the_cameras_match_tolerance():
         fine.tolerance_of(SimpleNamespace(camera=cam), -1.0)
     c = build_config({"camera": {"match_tol_px": 1.3}})
     assert Camera.from_config(c.camera).match_tol_px == 1.3
+
+
+def test_a_datasets_detections_carry_their_frames_noise_for_the_shift():
+    """fusion predict on a dataset: each frame's stored noise comes with its detections, so a camera's bright-star
+    shift can be taken off them as off a frame's own (Predictor._unshifted needs the noise)."""
+    from pathlib import Path
+
+    from fusion.solve.frames import iter_inputs
+
+    folder = Path(__file__).parent / "data" / "schema1-dataset"
+    rows = list(iter_inputs([str(folder)], 2))
+    assert len(rows) == 2
+    for _, img, table, _, err in rows:
+        assert img is None and err is None and table["noise_adu"] > 0 and len(table["x_px"]) == len(table["flux_adu"])
