@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     from skygen.real.fit_render import renderer_at, spread_evenly
     from skygen.real.fit_report import read_fit
     from skygen.real.frames import read_frame
-    from skygen.runtime import hardware_line
+    from skygen.runtime import hardware_line, print_and_write
     from skygen.sky.attitude import attitude_matrix
 
     try:
@@ -151,10 +151,7 @@ def main(argv=None) -> int:
                 f"| {rad:+.1f} | {r[7]:.0f} |"
             )
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(text + "\n")
+    print_and_write(text, a.out)
     return 0
 
 

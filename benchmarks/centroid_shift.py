@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     from skygen.real.fit_report import read_fit
     from skygen.real.frame_stats import frame_stats
     from skygen.real.frames import read_frame
-    from skygen.runtime import hardware_line
+    from skygen.runtime import hardware_line, print_and_write
     from skygen.sky.attitude import attitude_matrix
 
     try:
@@ -107,10 +107,7 @@ def main(argv=None) -> int:
             )
         lines.append(f"| {lo:.0f}–{hi:.0f} | " + " | ".join(cells) + " |")
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(text + "\n")
+    print_and_write(text, a.out)
     return 0
 
 

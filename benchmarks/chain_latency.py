@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     from fusion.solve.base import Solution, boresight_error_deg, roll_error_deg
     from fusion.solve.benchmark import DETECTION_CORRUPTIONS, corrupt, grid, load_benchmark_prior, load_frames
     from fusion.solve.registry import get, make_context
-    from skygen.runtime import hardware_line
+    from skygen.runtime import hardware_line, print_and_write
 
     cells = []
     for c in a.cells:
@@ -154,10 +154,7 @@ def main(argv=None) -> int:
             f"{each} | {p99:.1f} |"
         )
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(text + "\n")
+    print_and_write(text, a.out)
     return 0
 
 

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     from skygen.real.fit_render import CHECK_FRAMES, _render_stats, spread_evenly
     from skygen.real.fit_report import read_fit
     from skygen.real.frame_stats import TOLERANCES, median_of
-    from skygen.runtime import hardware_line
+    from skygen.runtime import hardware_line, print_and_write
 
     try:
         fit = read_fit(a.report)
@@ -104,10 +104,7 @@ def main(argv=None) -> int:
         f"{s[:, 1].mean():.1f} | {s[:, 2].mean():.1f} | {s.sum(1).mean():.1f} |",
     ]
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(text + "\n")
+    print_and_write(text, a.out)
     return 0
 
 

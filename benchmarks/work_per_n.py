@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     import fusion.solve.fine as fine
     from fusion.solve.base import Solution
     from fusion.solve.registry import get, make_context
-    from skygen.runtime import hardware_line
+    from skygen.runtime import hardware_line, print_and_write
 
     shipped = fine.COST_REFERENCE_N
     maker = CaseMaker(None, a.seed, a.families, a.n_min, a.n_max)
@@ -124,10 +124,7 @@ def main(argv=None) -> int:
             sig = "–" if not cov else " / ".join(f"{x:.0f}" for x in cov)
             lines.append(f"| {name} | {c['case']} | {c['family']} | {c['n']} | {err} | {sc['p']:.2g} | {sig} |")
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(text + "\n")
+    print_and_write(text, a.out)
     return 0
 
 

@@ -78,6 +78,15 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
+def print_and_write(text: str, out: str | Path | None) -> None:
+    """Print a table (a benchmark's Markdown) and, where ``out`` is given, write it there too: its folder made,
+    the file written whole or not at all."""
+    print(text)
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out, text + "\n")
+
+
 def atomic_save_numpy(path: str | Path, array: np.ndarray) -> None:
     buf = io.BytesIO()
     np.save(buf, array)
