@@ -378,8 +378,8 @@ def main(argv=None) -> int:
         type=int,
         default=None,
         metavar="H",
-        help="the fine stage's work budget per solve (fusion benchmark --max-hypotheses; default: scaled with the "
-        "camera's catalogue density)",
+        help="the fine stage's work budget per solve (fusion benchmark --max-hypotheses; default: "
+        "fusion.solve.fine.MAX_HYPOTHESES, the same on every camera)",
     )
     p.add_argument("--n", type=int, nargs="+", default=[3, 4, 5, 6, 8], help="brightest-N cells")
     p.add_argument(

@@ -549,7 +549,8 @@ SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
             "zero point (as exposure x throughput), the detector settings and the centroid error solvers "
             "should assume (camera.centroid_sigma_px; its part beyond the renders' own is drawn: "
             "optics.star_jitter_px), a bright-star centroid shift where bright stars are detected farther out "
-            "than faint ones (camera.bright_shift_px: rendered, and taken off by fusion predict --camera) and the "
+            "than faint ones or one way across the sensor (camera.bright_shift_px, bright_shift_x_px, "
+            "bright_shift_y_px: rendered, and taken off by fusion predict --camera) and the "
             "few-star solvers' match window (camera.match_tol_px). Writes a camera YAML that `skygen render --config` "
             "and `fusion predict --camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
             "already described.",

@@ -115,7 +115,19 @@ class CameraConfig:
         lo=-3,
         hi=8,
         doc="log10 of a detection's flux over the background's noise sigma (both ADU) beyond which "
-        "camera.bright_shift_px grows",
+        "camera.bright_shift_px, bright_shift_x_px and bright_shift_y_px grow",
+    )
+    bright_shift_x_px: float = param(
+        0.0,
+        lo=-20,
+        hi=20,
+        doc="a star's detected centroid lies this much farther along +x (px, the same everywhere on the sensor) per "
+        "decade of its detected flux beyond camera.bright_shift_from: an asymmetric star image whose tail points one "
+        "way across the sensor (a tilted or decentred lens, a processor's filtering). skygen fit-camera measures it "
+        "(0: none found); rendered and taken off like camera.bright_shift_px",
+    )
+    bright_shift_y_px: float = param(
+        0.0, lo=-20, hi=20, doc="the same along +y (rows, downwards): see camera.bright_shift_x_px"
     )
 
 
@@ -388,8 +400,9 @@ def check_consistency(cfg: RenderConfig) -> None:
             )
     if cfg.optics.star_jitter_px > 0 and r.backend == "torch":
         raise ConfigError("optics.star_jitter_px needs render.backend=numpy (the torch backend does not draw it)")
-    if cam.bright_shift_px != 0 and r.backend == "torch":
-        raise ConfigError("camera.bright_shift_px needs render.backend=numpy (the torch backend does not draw it)")
+    for key in ("bright_shift_px", "bright_shift_x_px", "bright_shift_y_px"):
+        if getattr(cam, key) != 0 and r.backend == "torch":
+            raise ConfigError(f"camera.{key} needs render.backend=numpy (the torch backend does not draw it)")
     if cfg.sensor.fixed_sources and r.backend == "torch":
         raise ConfigError("sensor.fixed_sources needs render.backend=numpy (the torch backend does not draw them)")
     for key in ("principal_x_px", "principal_y_px"):

@@ -59,6 +59,8 @@ NEUTRAL_DEFAULTS = {
     "camera.bright_shift_px": 0.0,
     "camera.match_tol_px": None,
     "camera.bright_shift_from": 1.5,
+    "camera.bright_shift_x_px": 0.0,
+    "camera.bright_shift_y_px": 0.0,
 }
 
 

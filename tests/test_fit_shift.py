@@ -1,4 +1,5 @@
-"""camera.bright_shift_px: fitted from paired stars where it is there and only there, taken off by the Predictor."""
+"""camera.bright_shift_px (and _x_px / _y_px): fitted from paired stars where it is there and only there, taken off by
+the Predictor."""
 
 from __future__ import annotations
 
@@ -9,16 +10,24 @@ import yaml
 from skygen.real.fit_shift import FROM_GRID, fit_bright_shift
 
 
-def _rows(shift_px: float, q0: float, n: int = 1500, noise_px: float = 0.6, seed: int = 0) -> np.ndarray:
-    """Paired stars of a camera whose detections lie ``shift_px`` per decade beyond ``q0`` farther out, with a
-    distortion residual (what a geometry fit on shifted bright stars leaves) and a per-star scatter."""
+def _rows(
+    shift_px: float, q0: float, n: int = 1500, noise_px: float = 0.6, seed: int = 0, uniform=(0.0, 0.0)
+) -> np.ndarray:
+    """Paired stars (:func:`skygen.real.fit_shift.shift_rows`' columns) of a camera whose detections lie
+    ``shift_px`` per decade beyond ``q0`` farther out and ``uniform`` (px per decade along x, y) away, with a
+    distortion residual (what a geometry fit on shifted bright stars leaves) and a per-star scatter per axis."""
     rng = np.random.default_rng(seed)
     rho = np.sqrt(rng.uniform(0, 1, n))  # stars spread evenly over the sensor
+    phi = rng.uniform(0, 2 * np.pi, n)
+    ex, ey = np.cos(phi), np.sin(phi)
     q = 1.0 + rng.exponential(0.45, n)  # most stars faint, a tail of bright ones
-    off = 0.4 * rho - 0.6 * rho**3 - shift_px * rho * np.maximum(q - q0, 0) + rng.normal(0, noise_px, n)
+    h = np.maximum(q - q0, 0)
+    radial = 0.4 * rho - 0.6 * rho**3 - shift_px * rho * h  # the star's place less the detection's, outward
+    dx = ex * radial - uniform[0] * h + rng.normal(0, noise_px, n)
+    dy = ey * radial - uniform[1] * h + rng.normal(0, noise_px, n)
     bad = rng.random(n) < 0.02  # a few wrong pairs
-    off[bad] = rng.uniform(-8, 8, bad.sum())
-    return np.column_stack([rho, q, off])
+    dx[bad], dy[bad] = rng.uniform(-8, 8, bad.sum()), rng.uniform(-8, 8, bad.sum())
+    return np.column_stack([rho, q, dx * ex + dy * ey, ex, ey, dx, dy])
 
 
 def test_a_shift_is_found_where_bright_stars_sit_farther_out():
@@ -32,6 +41,20 @@ def test_no_shift_is_fitted_where_there_is_none():
     for seed in range(4):
         fit = fit_bright_shift(_rows(0.0, 2.0, seed=seed))
         assert fit["px"] == 0.0 and fit["note"].startswith("bright-star shift: none"), fit["note"]
+
+
+def test_a_uniform_shift_is_found_beside_the_radial_one_or_alone():
+    """Bright detections moved one way across the whole sensor (a tilted lens, a processor's filtering): the fit finds
+    the vector, with or without a radial shift, and nothing of it where there is none."""
+    both = fit_bright_shift(_rows(4.0, 2.0, uniform=(-0.8, 0.5)))
+    assert abs(both["px"] - 4.0) < 0.6 and abs(both["from"] - 2.0) <= 0.25
+    assert abs(both["x_px"] + 0.8) < 0.25 and abs(both["y_px"] - 0.5) < 0.25, both["uniform"]["note"]
+    alone = fit_bright_shift(_rows(0.0, 2.0, uniform=(0.0, -1.0), seed=3))
+    assert alone["px"] == 0.0 and abs(alone["y_px"] + 1.0) < 0.4 and abs(alone["x_px"]) < 0.25
+    assert abs(alone["from"] - 2.0) <= 0.5 and "bright_shift_y_px" in alone["note"]
+    for seed in range(4):
+        none = fit_bright_shift(_rows(4.0, 2.0, seed=seed))
+        assert none["x_px"] == none["y_px"] == 0.0 and "uniform shift: none" in none["note"], none["note"]
 
 
 def test_too_few_stars_say_so():
@@ -48,7 +71,14 @@ def test_unshift_undoes_the_drawn_shift_and_the_predictor_takes_it_off(tmp_path)
     from skygen.config import build_config
     from skygen.instrument.camera import Camera
 
-    shifted = {"bright_shift_px": 4.0, "bright_shift_from": 1.5, "focal_length_mm": 16.0, "fov_deg": None}
+    shifted = {
+        "bright_shift_px": 4.0,
+        "bright_shift_from": 1.5,
+        "bright_shift_x_px": -0.7,
+        "bright_shift_y_px": 0.4,
+        "focal_length_mm": 16.0,
+        "fov_deg": None,
+    }
     cam = Camera.from_config(build_config({"camera": shifted}).camera)
     x, y = np.array([30.0, 900.0, 512.0]), np.array([40.0, 1000.0, 300.0])
     q = np.array([3.5, 3.0, 1.2])
@@ -64,7 +94,7 @@ def test_unshift_undoes_the_drawn_shift_and_the_predictor_takes_it_off(tmp_path)
     assert np.max(np.hypot(bx - x, by - y)) < 1e-9
     f = tmp_path / "shifted.yaml"
     base = {"width_px": 1024, "height_px": 1024, "pixel_pitch_um": 5.5, "focal_length_mm": 16.0}
-    f.write_text(yaml.safe_dump({"camera": {**base, "bright_shift_px": 4.0, "bright_shift_from": 1.5}}))
+    f.write_text(yaml.safe_dump({"camera": {**base, **{k: v for k, v in shifted.items() if k.startswith("bright")}}}))
     pred = Predictor(camera=f)
     det = pred._unshifted(Detections(x + dx, y + dy, flux), sigma)
     np.testing.assert_allclose(np.column_stack([det.x_px, det.y_px]), np.column_stack([bx, by]))

@@ -104,6 +104,27 @@ def test_bright_shift_moves_bright_stars_outward_and_leaves_faint_ones_and_label
         build_config({"camera": {"bright_shift_px": 1.0}, "render": {"backend": "torch"}})
 
 
+def test_a_uniform_bright_shift_moves_bright_stars_one_way_everywhere():
+    """camera.bright_shift_x_px / _y_px alone (no radial part): bright stars' images drawn the same way across the
+    sensor, by the camera's shift for their brightness; faint ones not; the torch backend refuses it."""
+    from skygen.config import ConfigError, build_config
+
+    shift = ["camera.bright_shift_x_px=-0.8", "camera.bright_shift_y_px=0.5", "camera.bright_shift_from=1.8"]
+    plain, moved = Renderer(load_config(overrides=CLEAN)), Renderer(load_config(overrides=CLEAN + shift))
+    rows = []
+    for f, s, dx, dy in _matched_offsets(plain, moved, 6):
+        h = np.maximum(np.log10(f.stars["electrons"][s] / moved.noise_e()) - 1.8, 0)
+        rows.append(np.column_stack([h, dx, dy]))
+    g = np.concatenate(rows)
+    bright, faint = g[:, 0] > 0.4, g[:, 0] == 0
+    assert bright.sum() >= 15 and faint.sum() >= 15
+    np.testing.assert_allclose(np.median(g[bright, 1] / g[bright, 0]), -0.8, atol=0.1)
+    np.testing.assert_allclose(np.median(g[bright, 2] / g[bright, 0]), 0.5, atol=0.1)
+    assert np.all(np.abs(np.median(g[faint, 1:], axis=0)) < 0.1)  # faint stars: not moved (the detector's own bias)
+    with pytest.raises(ConfigError, match="bright_shift_y_px needs render.backend=numpy"):
+        build_config({"camera": {"bright_shift_y_px": 1.0}, "render": {"backend": "torch"}})
+
+
 def test_motion_blur_conserves_flux_and_keeps_truth_at_mid_exposure():
     cfg = load_config(overrides=CLEAN + ["corruptions.motion_blur=1.0"])
     r = Renderer(cfg)

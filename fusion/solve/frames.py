@@ -30,7 +30,9 @@ def iter_inputs(paths: list[str], max_frames: int | None, channel: str = "lumina
             with open_dataset(path) as ds:
                 for pos in range(len(ds) if max_frames is None else min(max_frames, len(ds))):
                     table = ds.detections(pos)
-                    if "noise_adu" in ds.frames:  # the frame's noise: what camera.bright_shift_px is relative to
+                    if (
+                        "noise_adu" in ds.frames
+                    ):  # the frame's noise: what camera.bright_shift_px (_x_px, _y_px) is relative to
                         table = {**table, "noise_adu": float(ds.frames["noise_adu"][pos])}
                     yield f"{path}#{int(ds.frames['index'][pos])}", None, table, ds.image(pos), None
             continue

@@ -308,9 +308,9 @@ class Predictor:
 
     def _unshifted(self, det: Detections, sigma: float) -> Detections:
         """``det`` moved back by the camera's brightness-dependent centroid shift (``camera.bright_shift_px``,
-        :meth:`skygen.instrument.camera.Camera.bright_shift`), to where the camera puts their stars: what a solver
-        matches against the catalogue. Unchanged where the camera has none."""
-        if not self.camera.bright_shift_px or not len(det):
+        ``_x_px``, ``_y_px``: :meth:`skygen.instrument.camera.Camera.bright_shift`), to where the camera puts their
+        stars: what a solver matches against the catalogue. Unchanged where the camera has none."""
+        if not self.camera.has_bright_shift or not len(det):
             return det
         x, y = self.camera.unshift(det.x_px, det.y_px, det.flux_adu, sigma)
         return Detections(x, y, det.flux_adu)

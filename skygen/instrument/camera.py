@@ -47,6 +47,10 @@ class Camera:
     bright_shift_from: float = 1.5
     # the few-star solver's match tolerance on this camera (camera.match_tol_px), px; None: its default
     match_tol_px: float | None = None
+    # a detection's shift along +x / +y per decade of flux/noise beyond bright_shift_from, px, the same everywhere on
+    # the sensor (camera.bright_shift_x_px / _y_px; see :meth:`bright_shift`)
+    bright_shift_x_px: float = 0.0
+    bright_shift_y_px: float = 0.0
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -72,7 +76,14 @@ class Camera:
             float(getattr(cfg, "bright_shift_px", 0.0)),
             float(getattr(cfg, "bright_shift_from", 1.5)),
             getattr(cfg, "match_tol_px", None),
+            float(getattr(cfg, "bright_shift_x_px", 0.0)),
+            float(getattr(cfg, "bright_shift_y_px", 0.0)),
         )
+
+    @property
+    def has_bright_shift(self) -> bool:
+        """Whether bright stars are detected away from where the camera puts them (:meth:`bright_shift`)."""
+        return any((self.bright_shift_px, self.bright_shift_x_px, self.bright_shift_y_px))
 
     @property
     def has_distortion(self) -> bool:
@@ -163,31 +174,35 @@ class Camera:
         self, x: np.ndarray, y: np.ndarray, log_flux_over_sigma: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """(dx, dy) px by which a source of this brightness at (x, y) is detected away from where the camera puts
-        it: outward from the principal point by ``bright_shift_px * rho * max(q - bright_shift_from, 0)``, ``rho``
-        the distance from the principal point over :attr:`far_corner_px`, ``q`` the log10 of its detected flux over
-        the background's noise sigma (ADU). Zero where ``bright_shift_px`` is 0."""
+        it, growing with ``h = max(q - bright_shift_from, 0)``, ``q`` the log10 of its detected flux over the
+        background's noise sigma (ADU): outward from the principal point by ``bright_shift_px * rho * h`` (``rho`` the
+        distance from the principal point over :attr:`far_corner_px`: an image whose tail points away from the centre,
+        coma or lateral colour), plus ``(bright_shift_x_px, bright_shift_y_px) * h`` the same everywhere (a tail of
+        one direction across the sensor: a tilted or decentred lens, a processor's asymmetric filtering). Zero
+        where the camera has neither (:attr:`has_bright_shift`)."""
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-        if not self.bright_shift_px:
+        if not self.has_bright_shift:
             return np.zeros_like(x), np.zeros_like(y)
-        k = self._shift_factor(log_flux_over_sigma)
-        return k * (x - self.cx_px), k * (y - self.cy_px)
+        h = self._excess(log_flux_over_sigma)
+        k = self.bright_shift_px * h / self.far_corner_px
+        return k * (x - self.cx_px) + self.bright_shift_x_px * h, k * (y - self.cy_px) + self.bright_shift_y_px * h
 
-    def _shift_factor(self, log_flux_over_sigma) -> np.ndarray:
-        """:meth:`bright_shift` over the distance from the principal point: set by the brightness alone."""
-        excess = np.maximum(np.asarray(log_flux_over_sigma, np.float64) - self.bright_shift_from, 0.0)
-        return self.bright_shift_px * excess / self.far_corner_px
+    def _excess(self, log_flux_over_sigma) -> np.ndarray:
+        """``max(q - bright_shift_from, 0)``: the decades of brightness the shift grows with."""
+        return np.maximum(np.asarray(log_flux_over_sigma, np.float64) - self.bright_shift_from, 0.0)
 
     def unshift(self, x: np.ndarray, y: np.ndarray, flux_adu: np.ndarray, sigma_adu: float) -> tuple:
         """Detections at (x, y) of these fluxes on a frame of background noise ``sigma_adu`` (ADU), moved back by
-        :meth:`bright_shift` to where the camera puts their stars (exactly: the shift is ``k`` times the offset from
-        the principal point, ``k`` set by the brightness alone). Unchanged where ``bright_shift_px`` is 0."""
+        :meth:`bright_shift` to where the camera puts their stars (exactly: the radial part is ``k`` times the offset
+        from the principal point and the uniform part ``h`` times a fixed vector, ``k`` and ``h`` set by the brightness
+        alone). Unchanged where the camera has no shift."""
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-        if not self.bright_shift_px or not x.size:
+        if not self.has_bright_shift or not x.size:
             return x, y
-        k = self._shift_factor(
-            np.log10(np.maximum(np.asarray(flux_adu, np.float64), 1e-12) / max(float(sigma_adu), 1e-12))
-        )
-        return self.cx_px + (x - self.cx_px) / (1.0 + k), self.cy_px + (y - self.cy_px) / (1.0 + k)
+        h = self._excess(np.log10(np.maximum(np.asarray(flux_adu, np.float64), 1e-12) / max(float(sigma_adu), 1e-12)))
+        k = self.bright_shift_px * h / self.far_corner_px
+        x0, y0 = x - self.bright_shift_x_px * h, y - self.bright_shift_y_px * h
+        return self.cx_px + (x0 - self.cx_px) / (1.0 + k), self.cy_px + (y0 - self.cy_px) / (1.0 + k)
 
     def inside(self, x: np.ndarray, y: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         return (

@@ -24,7 +24,8 @@
    more than one camera?). Their pixels are left out of steps 4-6 too.
 3b. Bright stars' shift (:mod:`skygen.real.fit_shift`): where the frames show bright stars farther from the centre
    than faint ones at the same place (an asymmetric star image: coma, lateral colour), by a significant amount, the
-   camera gets ``camera.bright_shift_px`` and the geometry is fitted again with every detection moved back by it.
+   camera gets ``camera.bright_shift_px`` (and ``_x_px`` / ``_y_px`` for a part the same everywhere) and the geometry
+   is fitted again with every detection moved back by it.
    Then how far each frame's brightest 8 detections lie from their stars (unclipped) sets the few-star solvers'
    match window, ``camera.match_tol_px`` (1.5 x their 95th percentile, within 1-2 px).
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
@@ -495,8 +496,14 @@ def fit_shift_step(g, solved: list, cam0: Camera, fov_range, sky, fr: Frames, lo
     noise = [fr.background_of(fs.name)["noise_adu"] for fs in solved]
     shift = S.fit_bright_shift(S.shift_rows(solved, g.camera, g.rotations, sky, noise))
     log(f"fit-camera: {shift['note']}")
-    if shift["px"]:
-        start = dataclasses.replace(cam0, bright_shift_px=shift["px"], bright_shift_from=shift["from"])
+    if shift["px"] or shift["x_px"] or shift["y_px"]:
+        start = dataclasses.replace(
+            cam0,
+            bright_shift_px=shift["px"],
+            bright_shift_from=shift["from"],
+            bright_shift_x_px=shift["x_px"],
+            bright_shift_y_px=shift["y_px"],
+        )
         raw = S.unshift_frames(solved, start, noise)
         try:
             g2 = _fit_two_radii(solved, start, fov_range, sky, lambda m: None)

@@ -833,6 +833,8 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "match_tol_px": cam.match_tol_px,
             "bright_shift_px": float(cam.bright_shift_px),
             "bright_shift_from": float(cam.bright_shift_from),
+            "bright_shift_x_px": float(cam.bright_shift_x_px),
+            "bright_shift_y_px": float(cam.bright_shift_y_px),
         }
     )
     psf = meas["psf"]

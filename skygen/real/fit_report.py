@@ -59,7 +59,7 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
         "OUT-report/ beside this file.",
     ]
     head += [f"# note: {n}." for n in record.get("notes", [])]
-    if (record.get("bright_shift") or {}).get("px"):
+    if any((record.get("bright_shift") or {}).get(k) for k in ("px", "x_px", "y_px")):
         head.append(
             f"# {record['bright_shift']['note']} (fusion predict takes it off every detection before solving; "
             "renders draw it)."

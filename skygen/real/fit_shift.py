@@ -1,4 +1,5 @@
-"""The brightness-dependent outward shift of a camera's star images (``camera.bright_shift_px``), from its frames.
+"""The brightness-dependent shift of a camera's star images (``camera.bright_shift_px``, ``_x_px``, ``_y_px``), from its
+frames.
 
 Some lenses draw a star as an asymmetric image whose tail points away from the centre (coma; lateral colour on a colour
 sensor). The detector's threshold centroid then takes in more of the tail the brighter the star, so bright stars are
@@ -23,6 +24,13 @@ significant (:data:`MIN_T`) and moves the brightest stars at the corner by at le
 the camera has none (0) and the fit says so. ``skygen fit-camera`` then fits the geometry again with the detections
 moved back (:func:`unshift_frames`), so the distortion is fitted to where the stars are, not to a mix of shifted
 bright and unshifted faint ones.
+
+A second part is the same everywhere on the sensor: ``(bright_shift_x_px, bright_shift_y_px) * max(q - q0, 0)``, a
+star image whose tail points one way across the whole field (a tilted or decentred lens; a processor's asymmetric
+filtering). It moves a few-star solve's bright stars together, so the attitude they give is off from the one every
+star gives by more than its covariance says (the RPi HQ frames of githubdoe/skysolve: the brightest five detections
+0.2 px off their stars, the faint ones not). :func:`_fit_uniform` fits it to what the radial part leaves of each
+pair's offset along x and y, at the radial part's ``q0`` where there is one.
 """
 
 from __future__ import annotations
@@ -40,13 +48,17 @@ MIN_BRIGHT = 15
 #: the grid of q0 (log10 flux / sigma) the fit tries
 FROM_GRID = tuple(np.round(np.arange(0.5, 4.01, 0.25), 2))
 CLIP = 3.5
+#: a uniform shift is kept where it moves the brightest 5 % of the paired stars by at least this share of the pairs'
+#: own centroid scatter per axis: less would not move a few-star attitude beyond its stated error
+MIN_UNIFORM_SHARE = 0.5
 
 
 def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, match_px: float = MATCH_PX) -> np.ndarray:
-    """Rows (rho, q, radial offset px) of every detection of ``frames`` (raw detections of
+    """Rows (rho, q, radial offset px, ex, ey, dx, dy) of every detection of ``frames`` (raw detections of
     :class:`skygen.real.fit_geometry.FrameSolution`) paired with a catalogue star (see module doc). The offset is
     the star's place less the detection's along the outward line: negative where the frame shows the star farther
-    out than ``camera`` puts it."""
+    out than ``camera`` puts it; (ex, ey) that line's unit vector and (dx, dy) the star's place less the detection's
+    along x and y."""
     from scipy.spatial import cKDTree
 
     mags = np.concatenate([fs.star_mag for fs in frames if len(fs.star_mag)] or [np.zeros(0)])
@@ -70,10 +82,11 @@ def shift_rows(frames: list, camera, rotations: list, sky, noise_adu: list, matc
         k, j = np.flatnonzero(ok), j2[ok, 0]
         ux, uy = sx[j] - camera.cx_px, sy[j] - camera.cy_px
         r = np.hypot(ux, uy)
-        off = ((sx[j] - x[k]) * ux + (sy[j] - y[k]) * uy) / np.maximum(r, 1e-9)
+        ex, ey = ux / np.maximum(r, 1e-9), uy / np.maximum(r, 1e-9)
+        dx, dy = sx[j] - x[k], sy[j] - y[k]
         q = np.log10(np.maximum(np.asarray(det["flux_adu"], np.float64)[k], 1e-12) / max(float(noise), 1e-12))
-        rows.append(np.column_stack([r / corner, q, off]))
-    return np.concatenate(rows) if rows else np.zeros((0, 3))
+        rows.append(np.column_stack([r / corner, q, dx * ex + dy * ey, ex, ey, dx, dy]))
+    return np.concatenate(rows) if rows else np.zeros((0, 7))
 
 
 def _stars_on(camera, R: np.ndarray, sky, faintest_mag: float, margin_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -103,10 +116,11 @@ def _clipped_fit(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 def fit_bright_shift(rows: np.ndarray) -> dict:
-    """The camera's ``bright_shift_px`` and ``bright_shift_from`` from :func:`shift_rows`' rows (see module doc),
-    with what was measured: ``px`` 0 where no significant shift is found, and a ``note`` saying which."""
+    """The camera's ``bright_shift_px``, ``bright_shift_from``, ``bright_shift_x_px`` and ``_y_px`` (``px``, ``from``,
+    ``x_px``, ``y_px``) from :func:`shift_rows`' rows (see module doc), with what was measured: 0 where no significant
+    shift is found, and a ``note`` saying which."""
     rho, q, off = rows[:, 0], rows[:, 1], rows[:, 2]
-    out = {"px": 0.0, "from": 1.5, "stars": int(len(rows))}
+    out = {"px": 0.0, "from": 1.5, "x_px": 0.0, "y_px": 0.0, "stars": int(len(rows))}
     if len(rows) < 3 * MIN_BRIGHT:
         out["note"] = f"bright-star shift: not measured ({len(rows)} paired stars, fewer than {3 * MIN_BRIGHT})"
         return out
@@ -148,7 +162,14 @@ def fit_bright_shift(rows: np.ndarray) -> dict:
             "rms_px_without": rms0,
         }
     )
-    if t >= MIN_T and abs(corner_px) >= MIN_CORNER_PX:
+    radial = t >= MIN_T and abs(corner_px) >= MIN_CORNER_PX
+    # what the radial model leaves of each pair's offset, along x and y: the uniform part is fitted to that (with a
+    # significant radial shift taken off even where it is too small to keep: the few bright stars' directions do not
+    # average it out)
+    significant = t >= MIN_T
+    model = A @ coef if significant else base @ np.linalg.lstsq(base[keep0], off[keep0], rcond=None)[0]
+    uniform = _fit_uniform(rows, q0 if significant else None, model)
+    if radial:
         out["px"] = shift
         out["note"] = (
             f"bright-star shift: detections {shift:+.2f} px farther out per decade of flux / noise beyond "
@@ -160,6 +181,66 @@ def fit_bright_shift(rows: np.ndarray) -> dict:
             f"bright-star shift: none ({shift:+.2f} ± {se:.2f} px per decade, {corner_px:+.2f} px at the corner for "
             f"the brightest stars; kept from {MIN_T:g} standard errors and {MIN_CORNER_PX:g} px)"
         )
+    out["uniform"] = uniform
+    if uniform["kept"]:
+        out["x_px"], out["y_px"] = uniform["x_px"], uniform["y_px"]
+        if not radial:
+            out["from"] = uniform["from"]
+    out["note"] += "; " + uniform["note"]
+    return out
+
+
+def _fit_uniform(rows: np.ndarray, q0: float | None, radial_model: np.ndarray) -> dict:
+    """The uniform part of the shift (``camera.bright_shift_x_px`` / ``_y_px``): each pair's offset along x and y, less
+    what the radial model (``radial_model``, px outward per pair) explains, regressed on ``[1, max(q - q0, 0)]`` with
+    3.5 sigma clipping, at ``q0`` (the radial shift's, where it has one) or the ``q0`` of :data:`FROM_GRID` that fits
+    best. Kept at :data:`MIN_T` standard errors (the two axes together) where it moves the brightest 5 % of the pairs
+    by at least :data:`MIN_UNIFORM_SHARE` of the pairs' own scatter per axis."""
+    q, ex, ey, dx, dy = rows[:, 1], rows[:, 3], rows[:, 4], rows[:, 5], rows[:, 6]
+    rx, ry = dx - ex * radial_model, dy - ey * radial_model
+    one = np.ones((len(rows), 1))
+    scale = [_clipped_fit(one, r)[2] or 1e-9 for r in (rx, ry)]
+    best = None
+    for g in (q0,) if q0 is not None else FROM_GRID:
+        excess = np.maximum(q - g, 0.0)
+        if int((excess > 0.3).sum()) < MIN_BRIGHT:
+            continue
+        A = np.column_stack([one, excess])
+        fits = [_clipped_fit(A, r) for r in (rx, ry)]
+        cost = sum(
+            float(np.sum(np.minimum((r - A @ c) ** 2, (CLIP * sc) ** 2)))
+            for (c, _, _), r, sc in zip(fits, (rx, ry), scale)
+        )
+        if best is None or cost < best[0]:
+            best = (cost, float(g), A, fits)
+    if best is None:
+        return {"kept": False, "x_px": 0.0, "y_px": 0.0, "note": "uniform shift: not measured (too few bright stars)"}
+    _, g, A, fits = best
+    b, se, rms = [], [], []
+    for (c, keep, _), r in zip(fits, (rx, ry)):
+        res = r - A @ c
+        dof = max(int(keep.sum()) - 2, 1)
+        cov = np.linalg.pinv(A[keep].T @ A[keep]) * float(np.sum(res[keep] ** 2)) / dof
+        b.append(-float(c[1]))  # the detection's place less the star's, px per decade
+        se.append(float(np.sqrt(max(cov[1, 1], 0.0))) or 1e-12)
+        rms.append(float(np.sqrt(np.mean(res[keep] ** 2))))
+    t = float(np.hypot(b[0] / se[0], b[1] / se[1]))
+    top = float(np.mean(np.maximum(q[q >= np.percentile(q, 95)] - g, 0.0)))  # the brightest 5 %'s mean excess
+    moved = float(np.hypot(*b)) * top
+    bar = MIN_UNIFORM_SHARE * float(np.mean(rms))
+    kept = t >= MIN_T and moved >= bar
+    out = {"kept": bool(kept), "from": g, "fitted_x_px": b[0], "fitted_y_px": b[1], "se_px": se, "t": t}
+    out.update(
+        {"moved_px_brightest": moved, "bar_px": bar, "x_px": b[0] if kept else 0.0, "y_px": b[1] if kept else 0.0}
+    )
+    size = f"({b[0]:+.3f}, {b[1]:+.3f}) px per decade beyond 10^{g:g}, {moved:.2f} px on the brightest 5 % (mean)"
+    out["note"] = (
+        f"uniform shift: bright detections moved {size} ({t:.0f} standard errors): camera.bright_shift_x_px "
+        f"{b[0]:.3f}, bright_shift_y_px {b[1]:.3f}"
+        if kept
+        else f"uniform shift: none ({size}, {t:.1f} standard errors; kept from {MIN_T:g} and {bar:.2f} px, "
+        f"{MIN_UNIFORM_SHARE:g} of the pairs' scatter)"
+    )
     return out
 
 

@@ -118,8 +118,8 @@ def unsupported_reason(renderer) -> str | None:
         )
     if getattr(cfg.optics, "star_jitter_px", 0.0) > 0:
         return "optics.star_jitter_px: the binned renderer draws stars where the camera puts them"
-    if getattr(cam, "bright_shift_px", 0.0):
-        return "camera.bright_shift_px: the binned renderer draws stars where the camera puts them"
+    if getattr(cam, "has_bright_shift", False):
+        return "camera.bright_shift_px (_x_px, _y_px): the binned renderer draws stars where the camera puts them"
     if getattr(s, "fixed_sources", ()):
         return "sensor.fixed_sources: the binned renderer does not paint light fixed on the sensor"
     if f == 1:

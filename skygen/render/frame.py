@@ -520,15 +520,15 @@ class Renderer:
     def jittered(self, scene: "Scene") -> tuple[dict, dict]:
         """``scene.stars`` where each star's image is drawn, and a log; its labels stay where the camera puts it.
 
-        * ``camera.bright_shift_px`` != 0: moved outward from the principal point by
-          :meth:`skygen.instrument.camera.Camera.bright_shift`, with the star's electrons over the background's noise
-          (e-) for the detected flux over sigma that the camera's shift is measured in (a detection holds most, not
-          all, of its star's light: the renders' shift is a little smaller than the frames' where the PSF's wings
-          are wide);
+        * ``camera.bright_shift_px`` (``_x_px``, ``_y_px``) != 0: moved outward from the principal point (and along
+          a fixed direction) by :meth:`skygen.instrument.camera.Camera.bright_shift`, with the star's electrons over
+          the background's noise (e-) for the detected flux over sigma that the camera's shift is measured in (a
+          detection holds most, not all, of its star's light: the renders' shift is a little smaller than the
+          frames' where the PSF's wings are wide);
         * ``optics.star_jitter_px`` > 0: then moved by a Gaussian draw per axis, fresh in every frame."""
         j, stars = self.cfg.optics.star_jitter_px, scene.stars
         n = len(stars["x_px"])
-        shift = self.camera.bright_shift_px != 0
+        shift = self.camera.has_bright_shift
         if (j <= 0 and not shift) or not n:
             return stars, {}
         log = {}
