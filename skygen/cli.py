@@ -282,13 +282,19 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "frames",
         nargs="+",
         metavar="FRAME",
-        help="frame files (PNG, TIFF 8/16 bit, FITS, .npy; one "
-        "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF read as one plane, see "
-        "--channel) or folders of them",
+        help="frame files (PNG, TIFF 8/16 bit, FITS, .npy, JPEG (lossy: said); one "
+        "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF/JPEG read as one plane, "
+        "see --channel) or folders of them",
     )
     add_channel_argument(p)
     p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="camera file to write")
-    p.add_argument("--camera", metavar="START.yaml", help="camera file to start from (size must match the frames)")
+    p.add_argument(
+        "--camera",
+        metavar="START.yaml",
+        help="camera file to start from (size must match the frames; a camera section with width_px, height_px, "
+        "pixel_pitch_um and fov_deg or focal_length_mm is enough): the way for fields too narrow for a --fov-range "
+        "search",
+    )
     p.add_argument(
         "--fov-range",
         nargs=2,

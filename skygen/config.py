@@ -7,6 +7,7 @@ exposure); ``README.md`` shows the stars-per-frame histogram they give.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,9 +70,16 @@ class CameraConfig:
     )
     principal_x_px: Optional[float] = param(None, doc="principal point x (None: sensor centre)")
     principal_y_px: Optional[float] = param(None, doc="principal point y (None: sensor centre)")
-    k1: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^2 coefficient")
-    k2: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^4 coefficient")
-    k3: float = param(0.0, lo=-1, hi=1, doc="radial distortion r^6 coefficient")
+    k1: float = param(
+        0.0,
+        lo=-1e6,
+        hi=1e6,
+        doc="radial distortion r^2 coefficient (r: the distance from the principal point over the focal length, so a "
+        "narrow field's coefficients are large); the three radial terms together may move the farthest corner by at "
+        "most a tenth of its distance from the centre",
+    )
+    k2: float = param(0.0, lo=-1e9, hi=1e9, doc="radial distortion r^4 coefficient (see camera.k1)")
+    k3: float = param(0.0, lo=-1e12, hi=1e12, doc="radial distortion r^6 coefficient (see camera.k1)")
     p1: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p1")
     p2: float = param(0.0, lo=-0.1, hi=0.1, doc="tangential distortion p2")
     pixel_aspect: float = param(
@@ -341,6 +349,32 @@ class RenderConfig:
     render: BackendConfig = section(BackendConfig)
 
 
+#: the radial distortion may move the farthest sensor corner by at most this share of its distance from the centre
+#: (the fitted cameras' strongest, SPEL's 50 deg lens, moves it by about 4 %)
+MAX_CORNER_DISTORTION = 0.1
+
+
+def _check_distortion(cam) -> None:
+    """camera.k1, k2, k3 together within :data:`MAX_CORNER_DISTORTION` at the farthest corner: the coefficients'
+    own ranges are wide because they scale with the field (r is over the focal length)."""
+    if not (cam.k1 or cam.k2 or cam.k3):
+        return
+    f_px = (
+        (cam.width_px / 2.0) / math.tan(math.radians(cam.fov_deg) / 2.0)
+        if cam.fov_deg is not None
+        else cam.focal_length_mm * 1000.0 / cam.pixel_pitch_um
+    )
+    r2 = ((cam.width_px / 2.0) ** 2 + (cam.height_px * cam.pixel_aspect / 2.0) ** 2) / f_px**2
+    moved = abs(cam.k1) * r2 + abs(cam.k2) * r2**2 + abs(cam.k3) * r2**3
+    if moved > MAX_CORNER_DISTORTION:
+        raise ConfigError(
+            f"camera.k1 {cam.k1:g}, k2 {cam.k2:g}, k3 {cam.k3:g}: they move the farthest corner by up to "
+            f"{100 * moved:.0f} % of its distance from the centre on this {cam.width_px} x {cam.height_px} px camera "
+            f"(r^2 = {r2:.3g} there); at most {100 * MAX_CORNER_DISTORTION:g} % is modelled. r is over the focal "
+            "length, so a narrow field's coefficients are large and a wide one's small"
+        )
+
+
 def check_consistency(cfg: RenderConfig) -> None:
     """Checks that involve several keys (single keys are checked on construction)."""
     a = cfg.attitude
@@ -359,6 +393,7 @@ def check_consistency(cfg: RenderConfig) -> None:
             f"output.image_size_px ({out.image_size_px}) must divide camera.width_px "
             f"({cam.width_px}) so that frames are area-averaged by an integer factor"
         )
+    _check_distortion(cam)
     factor = cam.width_px // out.image_size_px
     if cam.height_px % factor:
         raise ConfigError(

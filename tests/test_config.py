@@ -242,3 +242,14 @@ def test_faint_but_useful_configs_still_render():
     # a narrow camera whose field holds under 0.5 catalogue stars of any magnitude: the catalogue's thinness,
     # not these keys' fault
     Renderer(load_config(overrides=["camera.fov_deg=0.3"]))
+
+
+def test_distortion_is_bounded_at_the_corner_not_per_coefficient():
+    """camera.k1..k3 scale with the field (r is over the focal length): a 2.6 deg telescope's k1 of 4.5 moves its
+    corner by 0.35 % and is taken; the same k1 on the default 20 deg camera moves it by 28 % and is refused, naming
+    the share."""
+    narrow = {"width_px": 2256, "height_px": 1504, "pixel_pitch_um": 9.885, "fov_deg": 2.64, "k1": 4.45}
+    assert load_config(overrides=[f"camera.{k}={v}" for k, v in narrow.items()] + ["output.image_size_px=141"])
+    with pytest.raises(ConfigError, match="move the farthest corner by up to 28 %"):
+        load_config(overrides=["camera.k1=4.45"])
+    assert load_config(overrides=["camera.k1=0.5"]).camera.k1 == 0.5

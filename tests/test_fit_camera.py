@@ -616,3 +616,27 @@ def test_each_frames_zero_point_and_the_line_for_frames_of_different_exposures()
     assert line.startswith("frames of different exposures or gains: their own zero points span 12.0")
     assert "(f2.jpg) to 13.00 mag (f1.jpg), 1.00 mag" in line and "(x 0.63 to x 1.59 for these frames" in line
     assert exposure_note([12.2, 12.3, float("nan")], 12.25, ["a", "b", "c"]) is None  # within 0.5 mag
+
+
+def test_a_start_camera_file_of_any_size_and_the_notes_on_field_and_catalogue(tmp_path):
+    """A start file that gives only the geometry of a 2256 x 1504 sensor (256 does not divide it) is taken, with a
+    stored size it divides into; a field outside --fov-range and a catalogue that explains few detections are said
+    (the Canon 450D frames of results/real-frames/held-out-canon450d met all three)."""
+    from skygen.real.fit_camera import catalogue_note, field_note, start_config
+
+    f = tmp_path / "start.yaml"
+    f.write_text(
+        yaml.safe_dump({"camera": {"width_px": 2256, "height_px": 1504, "pixel_pitch_um": 9.885, "fov_deg": 2.64}})
+    )
+    cfg = start_config(f, None, None, None, (1504, 2256))
+    assert cfg.camera.width_px % cfg.output.image_size_px == 0 and cfg.camera.fov_deg == 2.64
+    with pytest.raises(Exception, match="camera is 2256 x 1504 px but the frames are 2000 x 1504"):
+        start_config(f, None, None, None, (1504, 2000))
+    line = field_note(13.37, (15.0, 35.0), 773)
+    assert "13.37 deg, lies outside --fov-range 15 35: 773 matched stars" in line
+    assert field_note(20.0, (15.0, 35.0), 773) == "" and field_note(13.0, None, 10) == ""
+    hip = load_config()
+    assert "--catalog gaia" in catalogue_note(hip, [{"detections": 189, "catalogue_detections": 12}])
+    assert catalogue_note(hip, [{"detections": 244, "catalogue_detections": 185}]) == ""
+    gaia = load_config(overrides=["catalog.source=gaia"])
+    assert catalogue_note(gaia, [{"detections": 189, "catalogue_detections": 12}]) == ""

@@ -150,7 +150,11 @@ def usable(img: np.ndarray, saturation: float) -> str:
 
 
 def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
-    """The start config: the camera file, or a camera of the frames' size with the range's middle field."""
+    """The start config: the camera file, or a camera of the frames' size with the range's middle field. A camera file
+    without storage settings (``output.image_size_px``) gets a stored size its sensor divides into, as
+    :func:`skygen.real.fit_render.image_size` picks: fit-camera stores nothing, and the default 256 would refuse a
+    2256 px wide sensor."""
+    from skygen import configlib
     from skygen.config import build_config, load_config
     from skygen.real.fit_render import image_size
 
@@ -158,7 +162,14 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
     if camera is not None:
         if fov_range is not None:
             raise ConfigError("give --camera START.yaml or --fov-range LO HI, not both")
-        cfg = load_config(camera)
+        data = configlib.read_yaml(camera)
+        out = data.get("output") if isinstance(data, dict) else None
+        cam = (data.get("camera") if isinstance(data, dict) else None) or {}
+        size = []
+        cw, ch = (cam.get("width_px", w), cam.get("height_px", h)) if isinstance(cam, dict) else (w, h)
+        if not (isinstance(out, dict) and "image_size_px" in out) and isinstance(cw, int) and isinstance(ch, int):
+            size = [f"output.image_size_px={image_size(cw, ch)}"] if cw > 0 and ch > 0 else []
+        cfg = load_config(camera, size)
         if pixel_aspect is not None:
             cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, pixel_aspect=pixel_aspect))
         if (cfg.camera.width_px, cfg.camera.height_px) != (w, h):
@@ -282,9 +293,14 @@ def fit_camera(
         epoch,
     )
     exposures = exposure_note(px["meas"]["frame_zero_points"], px["zp_real"], [fs.name for fs in solved])
-    if exposures:
-        log(f"fit-camera: {exposures}")
-        notes = [*notes, exposures]
+    for note in (
+        exposures,
+        field_note(g.camera.fov_deg[0], fov_range, record["geometry"]["n_matched"]),
+        catalogue_note(model["cfg"], model["real_stats"]),
+    ):
+        if note:
+            log(f"fit-camera: {note}")
+            notes = [*notes, note]
     record["notes"] = notes
     record["bright_shift"] = shift
     record["start"]["dark_current_e_s"] = cfg0.sensor.dark_current_e_s
@@ -329,6 +345,39 @@ class Frames:
     def drop(self, name: str, why: str, log) -> None:
         self.dropped.append((name, why))
         log(f"fit-camera: dropped {name}: {why}")
+
+
+def field_note(fov_deg: float, fov_range, matched: int) -> str:
+    """'' or a line saying the fitted field lies outside ``--fov-range`` (the solver's search reaches a little beyond
+    it): the stars decide the field, but a user who gave the range from a lens's label should know it is not that."""
+    if fov_range is None or fov_range[0] <= fov_deg <= fov_range[1]:
+        return ""
+    return (
+        f"the field found, {fov_deg:.2f} deg, lies outside --fov-range {fov_range[0]:g} {fov_range[1]:g}: "
+        f"{matched} matched stars fix it, so the lens or the frames' scaling is not what the range assumed"
+    )
+
+
+#: catalogue_note speaks where the detections the catalogue does not explain outnumber those it does this many times
+UNEXPLAINED_RATIO = 2.0
+
+
+def catalogue_note(cfg, real_stats: list) -> str:
+    """'' or a line suggesting ``--catalog gaia`` where the frames' uncatalogued detections outnumber their catalogue
+    stars (:data:`UNEXPLAINED_RATIO`) with Hipparcos: the renders then place those as false stars at random, where a
+    deeper catalogue's would move with the attitude as real ones do."""
+    from skygen.real.frame_stats import median_of
+
+    if cfg.catalog.source != "hipparcos" or not real_stats:
+        return ""
+    total, cat = median_of(real_stats, "detections"), median_of(real_stats, "catalogue_detections")
+    if not (np.isfinite(total) and np.isfinite(cat)) or total - cat <= UNEXPLAINED_RATIO * max(cat, 1.0):
+        return ""
+    return (
+        f"Hipparcos explains {cat:.0f} of the frames' {total:.0f} detections per frame; the other {total - cat:.0f} "
+        "are rendered as false stars at random places. If they are fainter stars (a narrow or deep camera), "
+        "--catalog gaia renders them from Gaia DR3 (to G = 10), where they move with the attitude"
+    )
 
 
 def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log) -> tuple:

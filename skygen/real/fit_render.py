@@ -178,7 +178,13 @@ def fit_model_terms(
     shallow = half_detected_warning(median_of(real_stats, "half_detected_mag"), median_of(after, "half_detected_mag"))
     if shallow:
         warnings.append(shallow)
-    before = _render_stats(cfg0, attitudes, table, 2**cfg0.sensor.bit_depth - 1) if with_start else None
+    before = None
+    if with_start:  # the start camera's renders, for comparison; a start file that gives only the geometry (no
+        # sensor, optics or exposure: the defaults) may detect nothing at all, which leaves the column out
+        try:
+            before = _render_stats(cfg0, attitudes, table, 2**cfg0.sensor.bit_depth - 1)
+        except ConfigError as e:
+            log(f"fit-camera: the start camera's renders are left out of the report: {e}")
     return {
         "cfg": cfg,
         "exposure": exposure,
