@@ -65,5 +65,13 @@ def test_centroid_shift_splits_each_offset_along_the_line_from_the_principal_poi
     x, y, mags = np.array([200.0, 100.0, 400.0]), np.array([100.0, 300.0, 400.0]), np.array([3.0, 6.0, 5.0])
     det = {"x_px": np.array([202.0, 101.0]), "y_px": np.array([100.0, 300.0])}  # centre (100, 100)
     got = mod.radial_offsets(det, x, y, mags, 100.0, 100.0, 8.0)
-    assert got.shape == (2, 3)
-    assert got[0] == pytest.approx([3.0, 100.0, -2.0]) and got[1] == pytest.approx([6.0, 200.0, 0.0])
+    assert got.shape == (2, 5)  # ... and each pair's detection and star rows
+    assert got[0] == pytest.approx([3.0, 100.0, -2.0, 0, 0]) and got[1] == pytest.approx([6.0, 200.0, 0.0, 1, 1])
+    # the second table's rows: rank by flux (the second detection is the brighter), dx, dy as detected and with a
+    # camera's uniform shift taken off (here +1 px along x per decade beyond 10^1, flux 1000 over sigma 10: 1 decade)
+    from skygen.instrument.camera import Camera
+
+    cam = Camera(500, 500, 1000.0, 100.0, 100.0, bright_shift_from=1.0, bright_shift_x_px=1.0)
+    xy = mod.xy_offsets({**det, "flux_adu": np.array([10.0, 1000.0])}, x, y, got, cam, 10.0)
+    assert xy[:, 0].tolist() == [1, 0]
+    assert xy[0, 1:] == pytest.approx([2.0, 0.0, 2.0, 0.0]) and xy[1, 1:] == pytest.approx([1.0, 0.0, 0.0, 0.0])
