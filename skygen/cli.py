@@ -292,8 +292,16 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "--camera",
         metavar="START.yaml",
         help="camera file to start from (size must match the frames; a camera section with width_px, height_px, "
-        "pixel_pitch_um and fov_deg or focal_length_mm is enough): the way for fields too narrow for a --fov-range "
-        "search",
+        "pixel_pitch_um and fov_deg or focal_length_mm is enough)",
+    )
+    p.add_argument(
+        "--fov",
+        type=float,
+        metavar="DEG",
+        help="instead of --camera or --fov-range: the horizontal field of view, degrees, where it is known (a "
+        "lens's focal length over the sensor width, a plate scale times the width); the start camera is the "
+        "frames' size with this field, and its solver database is built for it. The way for fields too narrow "
+        "for a --fov-range search (under ~2.3 deg)",
     )
     p.add_argument(
         "--fov-range",
@@ -360,6 +368,7 @@ def _run_fit_camera(args: argparse.Namespace) -> int:
         args.out,
         camera=args.camera,
         fov_range=args.fov_range,
+        fov_deg=args.fov,
         pixel_pitch_um=args.pixel_pitch,
         pixel_aspect=args.pixel_aspect,
         epoch_yr=args.epoch,

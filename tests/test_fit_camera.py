@@ -640,3 +640,23 @@ def test_a_start_camera_file_of_any_size_and_the_notes_on_field_and_catalogue(tm
     assert catalogue_note(hip, [{"detections": 244, "catalogue_detections": 185}]) == ""
     gaia = load_config(overrides=["catalog.source=gaia"])
     assert catalogue_note(gaia, [{"detections": 189, "catalogue_detections": 12}]) == ""
+
+
+def test_a_known_field_starts_the_fit_and_is_exclusive_with_the_others(tmp_path):
+    """--fov DEG: the start camera is the frames' size with that field (and no range search); given with --camera or
+    --fov-range, or outside 0.1-120 deg, it is refused in one line before any frame is read."""
+    from skygen.errors import ConfigError
+    from skygen.real.fit_camera import resolve_inputs, start_config
+
+    rng, pitch, notes = resolve_inputs(None, None, None, None, lambda m: None, 2.638)
+    assert rng is None and pitch == 5.5 and not any("searched" in n for n in notes)
+    cfg = start_config(None, None, pitch, None, (1504, 2256), 2.638)
+    assert cfg.camera.fov_deg == pytest.approx(2.638) and cfg.camera.width_px == 2256
+    for args, why in (
+        ((tmp_path / "c.yaml", None), "give one of --camera START.yaml, --fov DEG and --fov-range LO HI"),
+        ((None, (2.0, 3.0)), "give one of"),
+    ):
+        with pytest.raises(ConfigError, match=why):
+            resolve_inputs(*args, None, None, lambda m: None, 2.6)
+    with pytest.raises(ConfigError, match="--fov 500: the horizontal field of view in degrees, 0.1 to 120"):
+        resolve_inputs(None, None, None, None, lambda m: None, 500.0)

@@ -31,7 +31,9 @@ def test_a_field_range_with_a_huge_database_is_refused_naming_one_that_fits():
     assert "over the 350 MB limit; search a narrower range, e.g. --fov-range 3.1 119" in msg and "\n" not in msg
     assert P.estimate_database(3.1, 119.0)["mb"] <= P.MAX_DATABASE_MB < P.estimate_database(3.0, 119.0)["mb"]
     assert P.check_database_size(3.0, 10.0)["seconds"] > 120  # a narrow camera's range: allowed, announced
-    with pytest.raises(ConfigError, match="too narrow for a lost-in-space search over a range: give the camera"):
+    with pytest.raises(
+        ConfigError, match="too narrow for a lost-in-space search over a range: give the field, --fov DEG"
+    ):
         P.check_database_size(1.0, 2.0)
     assert P.check_database_size(5.0, 30.0)["mb"] < 200  # the default fit-camera range: allowed
     assert P.check_database_size(1.0, None)["mb"] > 1000  # one field (a known camera) is never refused

@@ -149,8 +149,9 @@ def usable(img: np.ndarray, saturation: float) -> str:
     return ""
 
 
-def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
-    """The start config: the camera file, or a camera of the frames' size with the range's middle field. A camera file
+def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape, fov_deg=None):
+    """The start config: the camera file, or a camera of the frames' size with the given field (``fov_deg``) or the
+    range's middle one. A camera file
     without storage settings (``output.image_size_px``) gets a stored size its sensor divides into, as
     :func:`skygen.real.fit_render.image_size` picks: fit-camera stores nothing, and the default 256 would refuse a
     2256 px wide sensor."""
@@ -178,9 +179,12 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape):
                 f"are {w} x {h} px (width x height); give the camera of these frames"
             )
         return cfg
-    lo, hi = fov_range
-    if not 0 < lo < hi < 120:
-        raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
+    if fov_deg is not None:
+        lo = hi = fov_deg
+    else:
+        lo, hi = fov_range
+        if not 0 < lo < hi < 120:
+            raise ConfigError(f"--fov-range {lo:g} {hi:g}: give 0 < LO < HI < 120 degrees (horizontal field)")
     if not 0 < pixel_pitch_um <= 100:
         raise ConfigError(f"--pixel-pitch {pixel_pitch_um:g}: pixel width in micrometres, > 0 and <= 100")
     data = {
@@ -217,6 +221,7 @@ def fit_camera(
     *,
     camera=None,
     fov_range=None,
+    fov_deg=None,
     pixel_pitch_um=None,
     pixel_aspect=None,
     epoch_yr=None,
@@ -230,7 +235,8 @@ def fit_camera(
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`). ``black_level``: the
-    processor's black level given (ADU; 0: none) instead of fitted."""
+    processor's black level given (ADU; 0: none) instead of fitted. ``fov_deg``: the horizontal field where it is
+    known, instead of ``camera`` or ``fov_range``."""
     if black_level is not None and not 0 <= black_level <= 60000:
         raise ConfigError(f"--black-level {black_level}: a level in ADU from 0 (none) to 60000")
     from skygen.real.fit_render import fit_model_terms
@@ -241,9 +247,9 @@ def fit_camera(
     check_output_file(out, "--out", "camera.yaml")  # before the minute of solving and fitting, not after it
     if report_dir is not None:
         check_output_folder(report_dir, "--report")
-    fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log)
+    fov_range, pixel_pitch_um, notes = resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log, fov_deg)
     fr = load_frames(paths, log, channel)
-    cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape)
+    cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape, fov_deg)
     if catalog is not None:  # the catalogue the renders will use: the false stars fitted are what it lacks
         cfg0 = dataclasses.replace(cfg0, catalog=dataclasses.replace(cfg0.catalog, source=catalog))
     epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
@@ -380,26 +386,31 @@ def catalogue_note(cfg, real_stats: list) -> str:
     )
 
 
-def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log) -> tuple:
+def resolve_inputs(camera, fov_range, pixel_pitch_um, pixel_aspect, log, fov_deg=None) -> tuple:
     """(field range, pixel pitch, notes): the defaults filled in and said, the options checked before any work
     (a field range whose solver database would be too large is refused here, not after reading the frames)."""
     from skygen.real.platesolve import check_database_size
 
     if pixel_aspect is not None and not 0.1 <= pixel_aspect <= 10:
         raise ConfigError(f"--pixel-aspect {pixel_aspect:g}: pixel height / width between 0.1 and 10")
+    if fov_deg is not None:
+        if camera is not None or fov_range is not None:
+            raise ConfigError("give one of --camera START.yaml, --fov DEG and --fov-range LO HI")
+        if not 0.1 <= fov_deg < 120:
+            raise ConfigError(f"--fov {fov_deg:g}: the horizontal field of view in degrees, 0.1 to 120")
     notes = []
-    if camera is None and fov_range is None:
+    if camera is None and fov_range is None and fov_deg is None:
         fov_range = DEFAULT_FOV_RANGE
         notes.append(
             f"no --camera or --fov-range: the horizontal field was searched in {fov_range[0]:g}-{fov_range[1]:g} deg"
         )
-    if camera is None and pixel_pitch_um is None:
+    if camera is None and pixel_pitch_um is None:  # --fov or --fov-range
         pixel_pitch_um = PITCH_DEFAULT_UM
         notes.append(
             f"no --pixel-pitch: {pixel_pitch_um:g} um assumed (only camera.focal_length_mm depends on it; "
             "the field, and so every render, does not)"
         )
-    if camera is None and 0 < fov_range[0] < fov_range[1] < 120:  # other ranges: start_config says why
+    if fov_range is not None and 0 < fov_range[0] < fov_range[1] < 120:  # other ranges: start_config says why
         check_database_size(fov_range[0], fov_range[1])
     for n in notes:
         log(f"fit-camera: {n}")

@@ -119,7 +119,13 @@ def markdown(r: dict) -> str:
         "## Geometry",
         "",
         "Start: "
-        + (f"`{st['camera_file']}`" if st["camera_file"] else f"field of view searched in {st['fov_range_deg']} deg")
+        + (
+            f"`{st['camera_file']}`"
+            if st["camera_file"]
+            else f"field of view searched in {st['fov_range_deg']} deg"
+            if st["fov_range_deg"]
+            else "the field given (--fov)"
+        )
         + " "
         f"(f = {st['f_px']:.1f} px, field {st['fov_deg']:.4f} deg, aspect {st['aspect']:.4f}).",
         "",

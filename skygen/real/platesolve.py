@@ -130,13 +130,12 @@ def check_database_size(fov_deg: float, fov_max_deg: float | None, max_mb: float
     if new_lo >= hi:
         raise ConfigError(
             f"{what}; fields under about {_smallest_field(max_mb):.1f} deg are too narrow for a "
-            "lost-in-space search over a range: give the camera instead (--camera START.yaml with a camera section: "
-            "width_px, height_px, pixel_pitch_um and fov_deg or focal_length_mm)"
+            "lost-in-space search over a range: give the field, --fov DEG (a plate scale times the width), or a "
+            "camera file, --camera START.yaml"
         )
     raise ConfigError(
         f"{what}; search a narrower range, e.g. --fov-range {new_lo:g} {hi:g} (the field is "
-        f"then >= {new_lo:g} deg), or give the camera (--camera START.yaml with a camera section: width_px, "
-        "height_px, pixel_pitch_um and fov_deg or focal_length_mm)"
+        f"then >= {new_lo:g} deg), or give the field, --fov DEG, or a camera file, --camera START.yaml"
     )
 
 
