@@ -151,10 +151,9 @@ def usable(img: np.ndarray, saturation: float) -> str:
 
 def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape, fov_deg=None):
     """The start config: the camera file, or a camera of the frames' size with the given field (``fov_deg``) or the
-    range's middle one. A camera file
-    without storage settings (``output.image_size_px``) gets a stored size its sensor divides into, as
-    :func:`skygen.real.fit_render.image_size` picks: fit-camera stores nothing, and the default 256 would refuse a
-    2256 px wide sensor."""
+    range's middle one. A camera file without storage settings (``output.image_size_px``) gets a stored size its
+    sensor divides into, as :func:`skygen.real.fit_render.image_size` picks: fit-camera stores nothing, and the
+    default 256 would refuse a 2256 px wide sensor."""
     from skygen import configlib
     from skygen.config import build_config, load_config
     from skygen.real.fit_render import image_size
@@ -164,12 +163,13 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape, fov_deg
         if fov_range is not None:
             raise ConfigError("give --camera START.yaml or --fov-range LO HI, not both")
         data = configlib.read_yaml(camera)
-        out = data.get("output") if isinstance(data, dict) else None
-        cam = (data.get("camera") if isinstance(data, dict) else None) or {}
+        data = data if isinstance(data, dict) else {}  # load_config says what is wrong with a file that is not
+        cam = data["camera"] if isinstance(data.get("camera"), dict) else {}
+        out = data["output"] if isinstance(data.get("output"), dict) else {}
+        cw, ch = cam.get("width_px", w), cam.get("height_px", h)
         size = []
-        cw, ch = (cam.get("width_px", w), cam.get("height_px", h)) if isinstance(cam, dict) else (w, h)
-        if not (isinstance(out, dict) and "image_size_px" in out) and isinstance(cw, int) and isinstance(ch, int):
-            size = [f"output.image_size_px={image_size(cw, ch)}"] if cw > 0 and ch > 0 else []
+        if "image_size_px" not in out and isinstance(cw, int) and isinstance(ch, int) and cw > 0 and ch > 0:
+            size = [f"output.image_size_px={image_size(cw, ch)}"]
         cfg = load_config(camera, size)
         if pixel_aspect is not None:
             cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, pixel_aspect=pixel_aspect))
