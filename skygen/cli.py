@@ -330,7 +330,9 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "--epoch",
         type=float,
         metavar="YEAR",
-        help="when the frames were taken, Julian year (catalogue proper motions; default the camera file's epoch_yr)",
+        help="when the frames were taken, Julian year (catalogue proper motions; default: the frames' own date, EXIF "
+        "DateTimeOriginal or FITS DATE-OBS, where they carry one, else the camera file's epoch_yr); written to the "
+        "fitted camera",
     )
     p.add_argument(
         "--catalog",

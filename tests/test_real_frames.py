@@ -176,3 +176,30 @@ def test_a_colour_file_whose_planes_hold_a_mosaic_gets_only_the_colour_line(tmp_
     img = read_frame(tmp_path / "rgb.png", log=lines.append)
     assert img.shape == (128, 160)
     assert len(lines) == 1 and "colour frame" in lines[0] and "Bayer" not in lines[0]
+
+
+def test_a_frames_date_sets_the_epoch_exif_and_fits(tmp_path):
+    """frame_epoch: a JPEG's EXIF DateTimeOriginal and a FITS DATE-OBS as Julian years; a PNG has none.
+    frames_epoch: their median and one line naming the fields, and the span where it passes a year."""
+    from astropy.io import fits
+    from PIL import Image
+
+    from skygen.real.fit_camera import frames_epoch
+    from skygen.real.frames import frame_epoch
+
+    jpg = tmp_path / "a.jpg"
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[36867] = "2014:12:02 22:30:44"
+    Image.new("L", (16, 16)).save(jpg, exif=exif)
+    year, field = frame_epoch(jpg)
+    assert year == pytest.approx(2014.92, abs=0.005) and field == "EXIF DateTimeOriginal"
+    fit = tmp_path / "b.fits"
+    fits.PrimaryHDU(np.zeros((4, 4)), header=fits.Header([("DATE-OBS", "2019-07-29T20:47:26")])).writeto(fit)
+    assert frame_epoch(fit) == (pytest.approx(2019.574, abs=0.002), "FITS DATE-OBS")
+    png = tmp_path / "c.png"
+    Image.new("L", (16, 16)).save(png)
+    assert frame_epoch(png) is None and frame_epoch(tmp_path / "missing.jpg") is None
+    epoch, line = frames_epoch([str(jpg), str(fit), str(png)])
+    assert epoch == pytest.approx((2014.92 + 2019.574) / 2, abs=0.01)
+    assert "from 2 of 3 frames' EXIF DateTimeOriginal / FITS DATE-OBS, which span 4.7 years" in line
+    assert frames_epoch([str(png)]) == (None, "")

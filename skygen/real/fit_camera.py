@@ -252,7 +252,13 @@ def fit_camera(
     cfg0 = start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, fr.imgs[0].shape, fov_deg)
     if catalog is not None:  # the catalogue the renders will use: the false stars fitted are what it lacks
         cfg0 = dataclasses.replace(cfg0, catalog=dataclasses.replace(cfg0.catalog, source=catalog))
+    if epoch_yr is None:  # when the frames were taken, where they say (EXIF, FITS): the catalogue's proper motions
+        epoch_yr, said = frames_epoch(fr.names)
+        if said:
+            log(f"fit-camera: {said}")
+            notes = [*notes, said]
     epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
+    cfg0 = dataclasses.replace(cfg0, epoch_yr=epoch)  # the camera file records the epoch it was fitted at
     table = open_catalog(cfg0.catalog.source, cfg0.catalog.path)
     sky = SkyIndex(table, epoch, match_limit(table))
     solved, cfg0, cam0 = solve_frames(fr, cfg0, fov_range, log, search_aspect=pixel_aspect is None)
@@ -351,6 +357,25 @@ class Frames:
     def drop(self, name: str, why: str, log) -> None:
         self.dropped.append((name, why))
         log(f"fit-camera: dropped {name}: {why}")
+
+
+def frames_epoch(names: list[str]) -> tuple[float | None, str]:
+    """(the median Julian year the frames were taken, a line saying so) from their own dates
+    (:func:`skygen.real.frames.frame_epoch`: EXIF, FITS); (None, '') where none has one."""
+    from skygen.real.frames import frame_epoch
+
+    found = [e for e in (frame_epoch(n) for n in names) if e is not None]
+    if not found:
+        return None, ""
+    years = np.array([e[0] for e in found])
+    epoch = float(np.median(years))
+    span = float(years.max() - years.min())
+    fields = sorted({e[1] for e in found})
+    return epoch, (
+        f"epoch {epoch:.2f} (Julian year) from {len(found)} of {len(names)} frames' {' / '.join(fields)}"
+        + (f", which span {span:.1f} years" if span > 1 else "")
+        + ": the catalogue's proper motions are taken to it (--epoch YEAR gives another)"
+    )
 
 
 def field_note(fov_deg: float, fov_range, matched: int) -> str:

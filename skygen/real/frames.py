@@ -171,6 +171,41 @@ IJG_LUMA = (
 )  # fmt: skip
 
 
+def frame_epoch(path) -> tuple[float, str] | None:
+    """(Julian year, the field it came from) of when a frame file was taken, where the file says: EXIF
+    ``DateTimeOriginal`` (else ``DateTime``) of a JPEG or TIFF, as the camera's clock wrote it and read as UTC (a few
+    hours do not matter to proper motions), or FITS ``DATE-OBS`` (else ``MJD-OBS``) of the first header. None
+    where the file holds no date (PNG, ``.npy``, a frame stripped of its EXIF) or cannot be read."""
+    from astropy.time import Time
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".jpg", ".jpeg", ".tif", ".tiff"):
+            from PIL import Image
+
+            with Image.open(path) as im:
+                exif = im.getexif()
+                for field, value in (
+                    ("EXIF DateTimeOriginal", exif.get_ifd(0x8769).get(36867)),
+                    ("EXIF DateTime", exif.get(306)),
+                ):
+                    if isinstance(value, str) and len(value) >= 19:
+                        stamp = value[:10].replace(":", "-") + "T" + value[11:19]
+                        return float(Time(stamp, format="isot", scale="utc").jyear), field
+        elif suffix in (".fits", ".fit", ".fts"):
+            from astropy.io import fits
+
+            header = fits.getheader(path)
+            if isinstance(header.get("DATE-OBS"), str):
+                return float(Time(header["DATE-OBS"], scale="utc").jyear), "FITS DATE-OBS"
+            if isinstance(header.get("MJD-OBS"), (int, float)):
+                return float(Time(float(header["MJD-OBS"]), format="mjd", scale="utc").jyear), "FITS MJD-OBS"
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return None
+
+
 def jpeg_luma_quality(path) -> float | None:
     """The IJG quality (1-100) a JPEG's luminance quantisation table (table 0 of its DQT segments) corresponds to:
     100 where every entry is 1; otherwise from its mean ratio to the standard table (libjpeg's scaling). None
