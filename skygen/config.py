@@ -7,6 +7,7 @@ exposure); ``README.md`` shows the stars-per-frame histogram they give.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -356,12 +357,14 @@ MAX_CORNER_DISTORTION = 0.1
 def _check_distortion(cam) -> None:
     """camera.k1, k2, k3 together within :data:`MAX_CORNER_DISTORTION` at the farthest corner: the coefficients'
     own ranges are wide because they scale with the field (r is over the focal length)."""
-    from skygen.instrument.camera import Camera  # the one derivation of the focal length in pixels
-
     if not (cam.k1 or cam.k2 or cam.k3):
         return
-    c = Camera.from_config(cam)
-    r2 = (c.width_px / 2.0 / c.f_px) ** 2 + (c.height_px / 2.0 / c.fy_px) ** 2
+    f_px = (
+        (cam.width_px / 2.0) / math.tan(math.radians(cam.fov_deg) / 2.0)
+        if cam.fov_deg is not None
+        else cam.focal_length_mm * 1000.0 / cam.pixel_pitch_um
+    )
+    r2 = ((cam.width_px / 2.0) ** 2 + (cam.height_px * cam.pixel_aspect / 2.0) ** 2) / f_px**2
     moved = abs(cam.k1) * r2 + abs(cam.k2) * r2**2 + abs(cam.k3) * r2**3
     if moved > MAX_CORNER_DISTORTION:
         raise ConfigError(
