@@ -301,7 +301,7 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         help="instead of --camera or --fov-range: the horizontal field of view, degrees, where it is known (a "
         "lens's focal length over the sensor width, a plate scale times the width); the start camera is the "
         "frames' size with this field, and its solver database is built for it. The way for fields too narrow "
-        "for a --fov-range search (under ~2.3 deg)",
+        "for a --fov-range search (under ~2.1 deg)",
     )
     p.add_argument(
         "--fov-range",

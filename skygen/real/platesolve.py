@@ -15,8 +15,10 @@ Size (:func:`estimate_database`): the pattern count of one scale grows as 1/fiel
 that many more fields), and a range adds a scale every factor 1.5 (tetra3rs's ``multiscale_step``)
 from LO up to HI; about 26 bytes and, on a loaded 2-core machine, 7.5 us per pattern (measured with
 tetra3rs 0.14: 10 deg 0.68 M patterns, 18 MB, 1.7 s; 2.5 deg 10.9 M, 264 MB, 50 s; 5-30 deg 4.7 M,
-115 MB, 35 s). Under about 2.5 deg the count grows more slowly (few catalogue stars per field: 1-119 deg
-was measured at 1.7 GB where the model says 3.2 GB), so there it is an upper bound. A range whose
+115 MB, 35 s). Under 2.5 deg (:data:`NARROW_FIELD_DEG`) the count grows more slowly, as field^-1.2
+(few catalogue stars per field; one 1.12 deg field: 737 MB, where 1/field^2 said 1.4 GB). Build time: one
+field grows with its size (:data:`BUILD_S_PER_MB`; 2.64 deg 240 MB 41 s, 1.12 deg 737 MB 152 s, this
+project's 2-core machine), a range faster than that (below). A range whose
 database would pass :data:`MAX_DATABASE_MB` is refused before the build, naming a narrower one; a
 build estimated over a few seconds is announced in one line first.
 
@@ -51,6 +53,13 @@ DB_PARAMS = {
 #: tetra3rs's step between the scales of a range
 PATTERNS_AT_10_DEG = 683_832
 BYTES_PER_PATTERN = 26.0
+#: under this field the pattern count of one scale grows as field^-NARROW_EXPONENT, not field^-2: measured
+#: with tetra3rs 0.14, 2.5 deg 264 MB and 1.12 deg 737 MB (the 1/field^2 model said 1,417 MB for the latter)
+NARROW_FIELD_DEG = 2.5
+NARROW_EXPONENT = 1.2
+#: one field's build time per MB of database (2.5 deg 264 MB 50 s, 2.64 deg 240 MB 41 s, 1.12 deg 737 MB 152 s,
+#: on this project's 2-core machine, busy in part): ranges use the model below, which said 2,086 s for 1.12 deg
+BUILD_S_PER_MB = 0.21
 #: build time grows faster than the size: measured on a loaded 2-core machine, 128 MB (5-30 deg) ~35 s,
 #: 342 MB (3-10 deg) 185 s, 473 MB (2.6-119 deg) 831 s; the model t = 35 s (MB / 128)^1.7 fits the first two
 BUILD_S_AT_128_MB = 35.0
@@ -102,9 +111,19 @@ def estimate_database(fov_deg: float, fov_max_deg: float | None = None) -> dict:
     """Estimated size of the database for ``fov_deg`` (or the range ``fov_deg``..``fov_max_deg``):
     ``patterns``, ``mb`` (file size, 10^6 bytes) and ``seconds`` (build time on one loaded core).
     Within about 10 % of tetra3rs 0.14 for fields of 2.5-45 deg (see the module doc)."""
-    patterns = sum(PATTERNS_AT_10_DEG * (10.0 / f) ** 2 for f in _scales(fov_deg, fov_max_deg))
+    patterns = sum(_patterns_of_one_scale(f) for f in _scales(fov_deg, fov_max_deg))
     mb = patterns * BYTES_PER_PATTERN / 1e6
-    return {"patterns": patterns, "mb": mb, "seconds": BUILD_S_AT_128_MB * (mb / 128.0) ** BUILD_S_EXPONENT}
+    one_field = fov_max_deg is None or float(fov_max_deg) <= float(fov_deg)
+    seconds = BUILD_S_PER_MB * mb if one_field else BUILD_S_AT_128_MB * (mb / 128.0) ** BUILD_S_EXPONENT
+    return {"patterns": patterns, "mb": mb, "seconds": seconds}
+
+
+def _patterns_of_one_scale(field_deg: float) -> float:
+    """Patterns of one field's scale: 1/field^2 down to :data:`NARROW_FIELD_DEG`, more slowly below it."""
+    f = float(field_deg)
+    if f >= NARROW_FIELD_DEG:
+        return PATTERNS_AT_10_DEG * (10.0 / f) ** 2
+    return PATTERNS_AT_10_DEG * (10.0 / NARROW_FIELD_DEG) ** 2 * (NARROW_FIELD_DEG / f) ** NARROW_EXPONENT
 
 
 def check_database_size(fov_deg: float, fov_max_deg: float | None, max_mb: float = MAX_DATABASE_MB) -> dict:
@@ -140,8 +159,11 @@ def check_database_size(fov_deg: float, fov_max_deg: float | None, max_mb: float
 
 
 def _smallest_field(max_mb: float) -> float:
-    """The narrowest single field whose database stays under ``max_mb``."""
-    return 10.0 * np.sqrt(PATTERNS_AT_10_DEG * BYTES_PER_PATTERN / 1e6 / max_mb)
+    """The narrowest single field whose database stays under ``max_mb`` (:func:`estimate_database`, inverted)."""
+    at_narrow = _patterns_of_one_scale(NARROW_FIELD_DEG) * BYTES_PER_PATTERN / 1e6
+    if max_mb <= at_narrow:
+        return 10.0 * np.sqrt(PATTERNS_AT_10_DEG * BYTES_PER_PATTERN / 1e6 / max_mb)
+    return NARROW_FIELD_DEG / (max_mb / at_narrow) ** (1.0 / NARROW_EXPONENT)
 
 
 def database_path(fov_deg: float, folder: str | Path | None = None, fov_max_deg: float | None = None) -> Path:
