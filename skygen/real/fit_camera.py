@@ -205,13 +205,22 @@ def start_config(camera, fov_range, pixel_pitch_um, pixel_aspect, shape, fov_deg
 #: puts a chance star within 3 px of ~12 % of a 27 deg camera's detections, which pulled the geometry to
 #: 0.8 px rms and made the detector choice reward noise (results/real-frames/gaia.md)
 MATCH_STARS = 120_000
+#: ... unless the pixels are small enough that more stars keep chance matches as rare: at most this share of
+#: detections with a chance star within 3 px (MATCH_STARS gives ~3 % on that 27 deg camera, 76"/px). A 1.1 deg
+#: telescope field (2"/px) matches every star to G = 10 this way; capped at 120 k it matched a median of 2 per frame
+MATCH_CHANCE = 0.03
 
 
-def match_limit(table) -> float:
+def match_limit(table, pixel_scale_arcsec: float | None = None) -> float:
     """The magnitude to which ``table``'s stars are matched in the geometry fit and the detector choice: Hp 10,
-    or brighter where that would pass :data:`MATCH_STARS` stars."""
+    or brighter where that would pass :data:`MATCH_STARS` stars, or where given ``pixel_scale_arcsec``, as many
+    as put a chance star within 3 px of :data:`MATCH_CHANCE` of the detections, if that is more."""
     mags = np.sort(table.mag[np.isfinite(table.mag)])
-    return float(min(10.0, mags[min(MATCH_STARS, len(mags)) - 1]))
+    most = MATCH_STARS
+    if pixel_scale_arcsec is not None and pixel_scale_arcsec > 0:
+        r_rad = np.radians(3.0 * pixel_scale_arcsec / 3600.0)
+        most = max(most, int(MATCH_CHANCE * 4.0 / r_rad**2))  # N / (4 pi) * pi r^2 = chance
+    return float(min(10.0, mags[min(most, len(mags)) - 1]))
 
 
 # ----------------------------------------------------------------------------------- the fit
@@ -260,7 +269,8 @@ def fit_camera(
     epoch = float(epoch_yr if epoch_yr is not None else cfg0.epoch_yr)
     cfg0 = dataclasses.replace(cfg0, epoch_yr=epoch)  # the camera file records the epoch it was fitted at
     table = open_catalog(cfg0.catalog.source, cfg0.catalog.path)
-    sky = SkyIndex(table, epoch, match_limit(table))
+    scale = 3600.0 * np.degrees(1.0 / Camera.from_config(cfg0.camera).f_px)  # arcsec per pixel, at the start
+    sky = SkyIndex(table, epoch, match_limit(table, scale))
     solved, cfg0, cam0 = solve_frames(fr, cfg0, fov_range, log, search_aspect=pixel_aspect is None)
     t_solve = time.perf_counter() - t0
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
@@ -550,6 +560,9 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
         return g, solved
     kept = [fs for fs in solved if fs.name not in bad]
     if 2 * len(kept) <= len(solved):
+        shallow = catalogue_too_shallow(solved, g, sky)
+        if shallow:
+            raise FitError(shallow)
         others = [Path(n).name for n in bad]
         first = next(iter(bad.values()))
         raise FitError(
@@ -569,6 +582,35 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
     for fs in kept:
         fs.R = own[fs.name]
     return _fit_two_radii(kept, cam0, fov_range, sky, log), kept
+
+
+def catalogue_too_shallow(solved: list, g, sky) -> str:
+    """Why the fit cannot stand where the frames are of one camera but its catalogue holds too few of their stars
+    (the frames solved at one field, a median of fewer than :data:`MIN_MATCHED` of their detections matched under
+    the fitted camera): a narrow or deep camera, whose frames tetra3rs solved from a few catalogue stars. The
+    message says what the catalogue explains and what to do; "" where that is not the case."""
+    fovs = np.array([fs.fov_deg for fs in solved], float)
+    matched = np.array([int(m.sum()) for m in g.keep])
+    if len(solved) < 2 or not np.all(np.abs(fovs / np.median(fovs) - 1) <= FIELD_TOLERANCE):
+        return ""
+    if np.median(matched) >= MIN_MATCHED:
+        return ""
+    n_det = float(np.median([len(fs.det["x_px"]) for fs in solved]))
+    gaia = "gaia" in sky.table.source.lower()
+    deeper = (
+        "skygen has no deeper catalogue than Gaia DR3 to G = 10, so this camera cannot be fitted from these "
+        "frames; a wider field (a shorter lens) sees enough catalogue stars"
+        if gaia
+        else "--catalog gaia (Gaia DR3 to G = 10) holds more of them"
+    )
+    name = "Gaia DR3 to G = 10" if gaia else "Hipparcos"
+    return (
+        f"the catalogue ({name}, matched to {sky.table.band} = {sky.mag_limit:g}) holds too few of these frames' "
+        "stars: "
+        f"{len(solved)} frames solved at one field ({np.median(fovs):.2f} deg) match a median of "
+        f"{np.median(matched):g} of their {n_det:.0f} detections to catalogue stars, and fitting the camera "
+        f"needs at least {MIN_MATCHED} per frame; the frames see fainter stars than it holds. {deeper}"
+    )
 
 
 def fit_shift_step(g, solved: list, cam0: Camera, fov_range, sky, fr: Frames, log) -> tuple:
