@@ -9,6 +9,9 @@ For every frame: detect with skygen's detector and the camera's detection settin
 ``detection.background_box_px`` included), then solve with *all* detections by tetra3rs lost-in-space.
 That solution is the frame's truth when it is beyond doubt (false-positive probability <=
 ``--truth-max-fpp`` and >= ``--truth-min-matched`` matched stars); other frames are reported and left out.
+With ``--truth-wcs DIR`` the truth is instead each frame's plate solution by another solver (``DIR/STEM.wcs``,
+as astrometry.net and ASTAP write them: :mod:`skygen.real.wcs`), through the camera file: independent of our
+pipeline, and deeper where that solver's catalogue is (``benchmarks/wcs_agreement.py`` compares the two).
 Then, for each N, only the brightest N detections go to each registered prior-free solver
 (``fusion.build_solver(name, camera)``, one shared tetra3rs database). Scored as ``fusion benchmark`` does:
 **correct** = boresight within ``--correct-deg`` (0.1) and roll within ``--correct-roll-deg`` (1) degrees of
@@ -90,6 +93,8 @@ def run(
     max_hypotheses: int | None = None,
     known_defects: bool = False,
     mask_fixed_sources: bool = False,
+    truth_wcs: str | Path | None = None,
+    wcs_rows_from_bottom: bool = False,
     log=print,
 ) -> dict:
     """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``, or for the camera of
@@ -142,6 +147,22 @@ def run(
                 )
             )
             matched_rows = set(full.matched[:, 0].tolist()) if isinstance(full, Solution) else None
+        elif truth_wcs is not None:  # another solver's plate solution: its attitude through this camera
+            from skygen.real.wcs import attitude_from_wcs, read_wcs
+
+            wcs_file = Path(truth_wcs) / f"{Path(name).stem}.wcs"
+            if not wcs_file.is_file():
+                dropped.append({**rec, "reason": f"no WCS file ({wcs_file.name})"})
+                continue
+            m_true, misfit = attitude_from_wcs(read_wcs(wcs_file), cam, wcs_rows_from_bottom)
+            rec.update({"truth": f"WCS {wcs_file.name}", "truth_wcs_misfit_arcsec": misfit})
+            full = truth_solver.solve(det, cam)  # which detections are stars: its matches, where it solves
+            matched_rows = set(full.matched[:, 0].tolist()) if isinstance(full, Solution) else None
+            if isinstance(full, Solution):
+                rec["truth_matched"] = full.n_matched
+                own = own_truth.solve(det, cam)
+                if isinstance(own, Solution) and boresight_error_deg(m_true, own.matrix) <= correct_deg:
+                    rec["_m_own"] = own.matrix
         else:
             full = truth_solver.solve(det, cam)
             if not isinstance(full, Solution):
@@ -273,8 +294,14 @@ def run(
         "known_defects": bool(known_defects),
         "mask_fixed_sources": bool(mask_fixed_sources),
         "n_values": [int(n) for n in n_values],
-        "truth_rule": f"all-detection tetra3rs solve with false-positive probability <= {truth_max_fpp:g} "
-        f"and >= {truth_min_matched} matched stars (rendered frames: the rendered attitude)",
+        "truth_rule": (
+            f"each frame's WCS in {truth_wcs} (another solver's plate solution) through this camera"
+            + (", rows counted from the bottom" if wcs_rows_from_bottom else "")
+            if truth_wcs is not None
+            else f"all-detection tetra3rs solve with false-positive probability <= {truth_max_fpp:g} "
+            f"and >= {truth_min_matched} matched stars (rendered frames: the rendered attitude)"
+        ),
+        "truth_wcs": None if truth_wcs is None else str(truth_wcs),
         "correct_definition": f"boresight error <= {correct_deg} deg and roll error <= {correct_roll_deg} deg",
         "frames_given": len(frames),
         "frames_kept": len(kept),
@@ -329,8 +356,13 @@ def _coverage_lines(res: dict) -> list[str]:
     share of correct answers whose error lies within 1 / 2 sigma (68 / 95 % if calibrated). The truth is itself
     an estimate (the all-detection solve, arcsec-level), so this bounds the covariance's calibration from above."""
     out = []
+    truth = (
+        "the truth (each frame's WCS: another solver's plate solution, through this camera)"
+        if res.get("truth_wcs")
+        else "the truth (the all-detection tetra3rs solve, itself good to a few arcsec)"
+    )
     for key, what in (
-        ("coverage", "the truth (the all-detection tetra3rs solve, itself good to a few arcsec)"),
+        ("coverage", truth),
         (
             "coverage_own_truth",
             "our own fine stage's all-detection solve (this camera's model, distortion included; where it agrees "
@@ -390,6 +422,13 @@ def main(argv=None) -> int:
     )
     p.add_argument("--channel", default="luminance", help="colour frames: luminance, r, g, b or sum")
     p.add_argument("--max-frames", type=int, default=None, help="first N frames of each folder or dataset")
+    p.add_argument(
+        "--truth-wcs",
+        default=None,
+        help="folder of FRAME_STEM.wcs plate solutions (astrometry.net, ASTAP): the truth is each frame's WCS "
+        "through --camera, not our all-detection solve (benchmarks/wcs_agreement.py checks the two agree)",
+    )
+    p.add_argument("--wcs-rows-from-bottom", action="store_true", help="the WCS counts pixel rows from the bottom")
     p.add_argument("--truth-max-fpp", type=float, default=1e-20)
     p.add_argument("--truth-min-matched", type=int, default=10)
     p.add_argument("--correct-deg", type=float, default=0.1)
@@ -435,6 +474,8 @@ def main(argv=None) -> int:
         max_hypotheses=a.max_hypotheses,
         known_defects=a.known_defects,
         mask_fixed_sources=a.mask_fixed_sources,
+        truth_wcs=a.truth_wcs,
+        wcs_rows_from_bottom=a.wcs_rows_from_bottom,
         log=lambda s: print(s, file=sys.stderr),
     )
     res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])

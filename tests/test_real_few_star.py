@@ -173,3 +173,54 @@ def test_mask_fixed_sources_reaches_the_detector_and_the_record():
     assert res["mask_fixed_sources"] is True and res["frames_kept"] == 0
     with pytest.raises(ConfigError, match="no sensor.fixed_sources"):
         mod.run([], CAMERA, n_values=(4,), solvers=("tetra3rs",), mask_fixed_sources=True, log=lambda s: None)
+
+
+@pytest.mark.parametrize("rows_from_bottom", [False, True])
+def test_wcs_agreement_puts_pixels_on_the_sky_as_a_camera_with_the_same_attitude(tmp_path, rows_from_bottom):
+    """skygen.real.wcs (benchmarks/wcs_agreement.py, real_few_star.py --truth-wcs): a TAN WCS written for a pinhole
+    camera and attitude puts every pixel where the camera does (to well under a milli-arcsecond), counting rows from
+    the top or, with --flip-y, from the bottom; and gives that attitude back."""
+    import numpy as np
+    from astropy.wcs import WCS
+
+    from skygen.instrument.camera import Camera
+    from skygen.real.wcs import attitude_from_wcs, read_wcs, wcs_directions
+    from skygen.sky.attitude import matrix_to_radec_roll
+
+    wa = _script("wcs_agreement")
+    cam = Camera(640, 480, 3000.0, 319.5, 239.5)
+    rng = np.random.default_rng(1)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    m = q * np.sign(np.linalg.det(q))  # camera -> ICRS, a proper rotation
+    ra, dec, _ = matrix_to_radec_roll(m)
+    z = m[:, 2]
+    north = np.array([0.0, 0.0, 1.0]) - z[2] * z
+    north /= np.linalg.norm(north)
+    east = np.cross(north, z)
+    cd = np.degrees(1.0 / cam.f_px) * np.array([[m[:, 0] @ east, m[:, 1] @ east], [m[:, 0] @ north, m[:, 1] @ north]])
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [ra, dec]
+    w.wcs.crpix = [cam.cx_px + 1, cam.cy_px + 1]
+    if rows_from_bottom:  # row r from the top is row H - 1 - r from the bottom
+        cd[:, 1] *= -1
+        w.wcs.crpix = [cam.cx_px + 1, cam.height_px - cam.cy_px]
+    w.wcs.cd = cd
+    path = tmp_path / "f.wcs"
+    path.write_text(w.to_header().tostring())
+    x, y = rng.uniform(0, 639, 50), rng.uniform(0, 479, 50)
+    theirs = wcs_directions(path, x, y, cam.height_px if rows_from_bottom else None)
+    assert wa.angle_arcsec(cam.unproject(x, y) @ m.T, theirs).max() < 1e-3
+    got, misfit = attitude_from_wcs(read_wcs(path), cam, rows_from_bottom)
+    assert np.abs(got - m).max() < 1e-9 and misfit < 1e-3
+    _, flipped = attitude_from_wcs(read_wcs(path), cam, not rows_from_bottom)  # the rows read the wrong way up
+    assert flipped > 100.0
+
+
+def test_a_file_that_is_no_wcs_is_refused_by_name(tmp_path):
+    from skygen.real.wcs import WCSError, read_wcs
+
+    bad = tmp_path / "x.wcs"
+    bad.write_text("SIMPLE  =                    T" + " " * 50 + "END" + " " * 77)
+    with pytest.raises(WCSError, match="x.wcs: its WCS has no celestial axes"):
+        read_wcs(bad)
