@@ -568,9 +568,10 @@ SUBCOMMANDS: dict[str, tuple[dict, Callable, Callable]] = {
             "optics.star_jitter_px), a bright-star centroid shift where bright stars are detected farther out "
             "than faint ones or one way across the sensor (camera.bright_shift_px, bright_shift_x_px, "
             "bright_shift_y_px: rendered, and taken off by fusion predict --camera) and the "
-            "few-star solvers' match window (camera.match_tol_px). Writes a camera YAML that `skygen render --config` "
-            "and `fusion predict --camera` take. Not `skygen calibrate`, which fits the detector emulator to a camera "
-            "already described.",
+            "few-star solvers' match window (camera.match_tol_px) and the centroid error a frame's brightest stars "
+            "share (camera.shared_sigma_px, added to the attitude covariance). Writes a camera YAML that "
+            "`skygen render --config` and `fusion predict --camera` take. Not `skygen calibrate`, which fits the "
+            "detector emulator to a camera already described.",
         ),
         _add_fit_camera,
         _run_fit_camera,

@@ -107,6 +107,15 @@ class CameraConfig:
         "(skygen fit-camera sets it from how far its frames' brightest detections lie from their stars: 1.5 times "
         "their 95th percentile, within 1-2 px); None: 2 px (fusion.solve.fine.TOL_PX). Changes no rendered pixel",
     )
+    shared_sigma_px: Optional[float] = param(
+        None,
+        lo=0,
+        hi=20,
+        doc="per-axis centroid error a real frame's brightest stars share, px (skygen fit-camera: the rms of each "
+        "frame's mean offset of its brightest matched detections, less what their own scatter leaves): a few-star "
+        "attitude moves with it whatever the number of stars, so the attitude covariance adds it across the "
+        "boresight (fusion.solve.base.attitude_covariance); None: none. Changes no rendered pixel",
+    )
     bright_shift_px: float = param(
         0.0,
         lo=-20,

@@ -38,6 +38,7 @@ STORAGE_KEYS = (
     "output.split_fractions",
     "camera.centroid_sigma_px",  # what a solver assumes of the real camera's centroids, not how frames are rendered
     "camera.match_tol_px",  # how closely a solver matches on this camera, likewise
+    "camera.shared_sigma_px",  # what a solver assumes of the error bright stars share, likewise
 )
 
 
@@ -61,6 +62,7 @@ NEUTRAL_DEFAULTS = {
     "camera.bright_shift_from": 1.5,
     "camera.bright_shift_x_px": 0.0,
     "camera.bright_shift_y_px": 0.0,
+    "camera.shared_sigma_px": None,
 }
 
 

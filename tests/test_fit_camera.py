@@ -110,6 +110,9 @@ def test_recovers_a_camera_skygen_rendered(tmp_path):
     # pixels (26 a frame), too few stars to set one: the solvers' default, said
     tol = rec["bright_shift"]["match_tolerance"]
     assert c.match_tol_px == tol["px"] and (tol["px"] is None) == (tol["stars"] < 20)
+    # and the error each frame's brightest stars share, which the attitude covariance adds across the boresight
+    shared = rec["bright_shift"]["shared_error"]
+    assert c.shared_sigma_px == shared["px"] and Camera.from_config(c).shared_sigma_px == c.shared_sigma_px
     cmp = rec["compare"]
     assert cmp["background_adu"]["fitted"] == pytest.approx(cmp["background_adu"]["real"], rel=0.1)
     assert cmp["zero_point_mag"]["fitted"] == pytest.approx(cmp["zero_point_mag"]["real"], abs=0.2)

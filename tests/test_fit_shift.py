@@ -149,3 +149,27 @@ def test_a_datasets_detections_carry_their_frames_noise_for_the_shift():
     assert len(rows) == 2
     for _, img, table, _, err in rows:
         assert img is None and err is None and table["noise_adu"] > 0 and len(table["x_px"]) == len(table["flux_adu"])
+
+
+def test_the_error_a_frames_brightest_stars_share_is_told_from_their_own_scatter():
+    """shared_error: offsets drawn afresh per star average out in a frame's mean (about 0 shared); an offset every
+    star of a frame shares, drawn per frame or the same in every frame (a bias), is what it measures, per axis; stars
+    outside the match window and frames with fewer than 3 stars in it do not count."""
+    from skygen.real.fit_shift import shared_error
+
+    rng = np.random.default_rng(4)
+    own = [rng.normal(0, 0.3, (8, 2)) for _ in range(200)]
+    assert shared_error(own, 2.0)["px"] < 0.05  # (each part kept at least 0: a little above 0 by chance)
+    common = [o + rng.normal(0, 0.2, 2) for o in own]  # 0.2 px per axis shared within each frame
+    got = shared_error(common, 2.0)
+    assert got["px"] == pytest.approx(0.2, abs=0.03) and got["frames"] == 200
+    biased = [o + np.array([0.25, 0.0]) for o in own]  # the same in every frame: rms over both axes 0.25 / sqrt 2
+    got = shared_error(biased, 2.0)
+    assert got["bias_px"] == pytest.approx([0.25, 0.0], abs=0.03) and got["px"] == pytest.approx(0.177, abs=0.03)
+    assert got["varies_px"] < 0.05 and "lie on average (+0.2" in got["note"]
+    # a bias hidden in a wide per-star scatter (0.6 px, 8 stars: 0.21 px in a mean) still shows over 12 frames
+    wide = [rng.normal(0, 0.6, (8, 2)) + np.array([0.0, -0.2]) for _ in range(12)]
+    assert shared_error(wide, 2.0)["px"] > 0.08
+    far = [np.vstack([o, [[4.0, 4.0]]]) for o in own]  # one wrong pair per frame, outside a 2 px window
+    assert shared_error(far, 2.0)["px"] < 0.05
+    assert shared_error([o[:2] for o in own], 2.0)["px"] is None  # two stars a frame: not measured

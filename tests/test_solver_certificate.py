@@ -286,6 +286,36 @@ def test_a_cameras_measured_centroid_error_is_the_covariance_floor():
         assert abs(np.mean(z[:, axes] <= 1) - 0.6827) < 0.03 and abs(np.mean(z[:, axes] <= 2) - 0.9545) < 0.015
 
 
+def test_an_error_the_stars_share_widens_the_covariance_across_the_boresight_only():
+    """``shared_px`` (camera.shared_sigma_px): an offset all matched stars share turns the attitude by it over the
+    focal length, whatever their number, across the boresight; the roll is left alone. Rotations fitted to stars
+    that share a drawn offset besides their own errors fall within the widened 1 / 2 sigma 68 / 95 % of the time."""
+    from fusion.solve.match import refine_track
+
+    sigma, shared = 2e-5, 3e-5  # radians per axis: each star's own error, and the one the stars share
+    scale = 1.0  # arcsec per pixel
+    sig_px, sh_px = (float(np.degrees(v) * 3600) for v in (sigma, shared))
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-0.17, 0.17, (6, 2))  # six stars in a 20 deg field
+    u = np.column_stack([xy, np.ones(6)])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rot_true = attitude_matrix(40.0, 10.0, 30.0)
+    vecs = []
+    for _ in range(3000):  # each star's own error, plus one image offset all six share, then the least-squares turn
+        t = u[:, :2] / u[:, 2:3] + rng.normal(0, sigma, (6, 2)) + rng.normal(0, shared, 2)
+        r = refine_track(t, u @ rot_true.T, 1.0, 0.0, 1)[0]
+        vecs.append(rotation_vector_deg(rot_true, r) * 3600)
+    vecs = np.array(vecs)
+    plain = attitude_covariance(u, 0.0, scale, floor_px=sig_px)
+    wide = attitude_covariance(u, 0.0, scale, floor_px=sig_px, shared_px=sh_px)
+    np.testing.assert_allclose(np.diag(wide - plain), [sh_px**2, sh_px**2, 0.0], rtol=1e-12)
+    assert attitude_covariance(u, 0.0, scale, floor_px=sig_px, shared_px=0.0)[0, 0] == plain[0, 0]
+    z = np.abs(vecs) / np.sqrt(np.diag(wide))
+    assert abs(np.mean(z[:, :2] <= 1) - 0.6827) < 0.03 and abs(np.mean(z[:, :2] <= 2) - 0.9545) < 0.015
+    assert abs(np.mean(z[:, 2] <= 1) - 0.6827) < 0.03  # the roll: as without it
+    assert np.mean(np.abs(vecs[:, :2]) / np.sqrt(np.diag(plain))[:2] <= 1) < 0.5  # without it: far too narrow
+
+
 @pytest.mark.parametrize("n", [3, 4, 8])
 def test_covariance_sigma_covers_68_and_95_percent_with_few_stars(n):
     """Each draw's own 1 and 2 sigma (estimated from its own n residuals) hold what Student's t of 2n - 3
@@ -368,7 +398,7 @@ def test_benchmark_summary_reports_tails_statuses_and_coverage():
     """_summary on made-up answers: the latency percentiles include the refusals, refusals are counted by
     status, and coverage counts errors within 1 and 2 sigma per axis."""
     from fusion.solve.base import solution_from_matrix
-    from fusion.solve.benchmark import _summary
+    from fusion.solve.benchmark import _summary, coverage
 
     truth_m = attitude_matrix(10.0, 20.0, 30.0)
     truth = [(truth_m, 30.0)] * 5
@@ -406,6 +436,13 @@ def test_benchmark_summary_reports_tails_statuses_and_coverage():
     # each offset turns about camera x only: of the 6 cross values (x, y of 3 answers) 4 lie within 1 sigma, 5 within 2
     assert c["cross_1sigma"] == pytest.approx(4 / 6) and c["cross_2sigma"] == pytest.approx(5 / 6)
     assert c["roll_1sigma"] == 1.0
+    # their mean error, 70 / 3" about x, is the bias; taken off, the x errors are -18.3, -8.3 and +26.7"
+    assert c["bias_arcsec"] == pytest.approx([70 / 3, 0, 0], abs=1e-6) and c["sigma_arcsec_median"] == [10.0] * 3
+    assert c["cross_1sigma_unbiased"] == pytest.approx(4 / 6) and c["cross_2sigma_unbiased"] == pytest.approx(5 / 6)
+    # answers that all err the same way by 1.5 sigma: outside 1 sigma as given, inside once the shared part is off
+    same = coverage([answer(15.0 + d, 10.0) for d in (-1.0, 0.0, 1.0)], truth[:3])
+    assert same["cross_1sigma"] == pytest.approx(3 / 6) and same["cross_1sigma_unbiased"] == 1.0
+    assert same["bias_arcsec"][0] == pytest.approx(15.0, abs=1e-6)
 
 
 # --------------------------------------------------------------------------- tracking

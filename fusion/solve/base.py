@@ -57,7 +57,9 @@ The certificate of a solution
     sigma_x = sigma_y ~ sigma / sqrt(n) and sigma_roll ~ sigma / (sqrt(n) * rho_rms), rho_rms the
     matched stars' rms distance from their own centroid (radians). It assumes the matches are right
     and the centroid errors independent; ``fusion benchmark`` reports how often the true error lies
-    within 1 and 2 sigma (coverage).
+    within 1 and 2 sigma (coverage). Errors the stars of one frame share do not average down: on a camera
+    ``skygen fit-camera`` measured them on (``camera.shared_sigma_px``) C gains (shared x pixel scale)^2 on
+    each cross-boresight axis.
 
 Refusal status codes (:data:`REFUSAL_STATUSES`)
     ``too_few_stars`` fewer detections than the method needs (or none); ``no_pattern`` no catalogue
@@ -285,6 +287,7 @@ def attitude_covariance(
     student: bool = True,
     scale_fitted: bool = False,
     floor_px: float | None = None,
+    shared_px: float | None = None,
 ) -> np.ndarray:
     """The 3 x 3 attitude covariance (arcsec^2) of a rotation fitted to matched stars (module docstring).
 
@@ -299,7 +302,10 @@ def attitude_covariance(
     ``floor_px``: the camera's measured per-axis centroid error (``camera.centroid_sigma_px``, from
     ``skygen fit-camera``), the floor in place of :data:`CENTROID_FLOOR_PX` where it is larger: a few
     stars' residuals cannot show the errors they share (residual distortion, the catalogue's positions),
-    which move the attitude all the same."""
+    which move the attitude all the same. ``shared_px``: the per-axis error the brightest stars of one real frame
+    share (``camera.shared_sigma_px``, from ``skygen fit-camera``): it moves every matched star alike, so it turns
+    the attitude across the boresight by that much over the focal length however many stars there are, and is
+    added there (x and y, in quadrature; nothing in roll)."""
     u = np.asarray(u, np.float64).reshape(-1, 3)
     n = len(u)
     scale_fitted = scale_fitted and n >= 3
@@ -319,9 +325,13 @@ def attitude_covariance(
         if e > 0:
             info = info - np.outer(b, b) / e
     try:  # two distinct directions or more make it invertible; pinv for one (or a degenerate set)
-        return sigma2 * np.linalg.inv(info) if n >= 2 else sigma2 * np.linalg.pinv(info)
+        cov = sigma2 * np.linalg.inv(info) if n >= 2 else sigma2 * np.linalg.pinv(info)
     except np.linalg.LinAlgError:
-        return sigma2 * np.linalg.pinv(info)
+        cov = sigma2 * np.linalg.pinv(info)
+    if shared_px:
+        cov[0, 0] += (shared_px * pixel_scale_arcsec) ** 2
+        cov[1, 1] += (shared_px * pixel_scale_arcsec) ** 2
+    return cov
 
 
 def rotation_vector_deg(m_a: np.ndarray, m_b: np.ndarray) -> np.ndarray:

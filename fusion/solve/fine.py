@@ -1084,6 +1084,7 @@ class CoarseToFineSolver:
                             cam_k.pixel_scale_arcsec,
                             scale_fitted=True,
                             floor_px=cam_k.centroid_sigma_px,
+                            shared_px=cam_k.shared_sigma_px,
                         ),
                     )
                 extra["false_positive_probability"] = res.extra.get("false_positive_probability")
@@ -1119,5 +1120,6 @@ class CoarseToFineSolver:
                 cam_k.pixel_scale_arcsec,
                 scale_fitted=scale_fitted,
                 floor_px=cam_k.centroid_sigma_px,
+                shared_px=cam_k.shared_sigma_px,
             ),
         )

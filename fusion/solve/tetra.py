@@ -207,7 +207,11 @@ class Tetra3Solver:
         if covariance:
             u = camera.unproject(det.x_px[matched[:, 0]], det.y_px[matched[:, 0]])
             cov = attitude_covariance(
-                u, float(res.rmse_arcsec), camera.pixel_scale_arcsec, floor_px=camera.centroid_sigma_px
+                u,
+                float(res.rmse_arcsec),
+                camera.pixel_scale_arcsec,
+                floor_px=camera.centroid_sigma_px,
+                shared_px=camera.shared_sigma_px,
             )
         return solution_from_matrix(
             np.asarray(res.rotation_matrix_icrs_to_camera).T,

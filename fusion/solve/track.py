@@ -248,6 +248,7 @@ def track(
         student=not few,
         scale_fitted=passes == 2,
         floor_px=cam_k.centroid_sigma_px,
+        shared_px=cam_k.shared_sigma_px,
     )
     if math.sqrt(cov[2, 2]) / 3600 > TRACK_MAX_ROLL_SIGMA_DEG:
         return refuse(

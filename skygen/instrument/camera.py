@@ -51,6 +51,9 @@ class Camera:
     # the sensor (camera.bright_shift_x_px / _y_px; see :meth:`bright_shift`)
     bright_shift_x_px: float = 0.0
     bright_shift_y_px: float = 0.0
+    # per-axis centroid error a real frame's brightest stars share (camera.shared_sigma_px), px; None: none. Added
+    # across the boresight by the attitude covariance (fusion.solve.base.attitude_covariance); renders nothing
+    shared_sigma_px: float | None = None
 
     @classmethod
     def from_config(cls, cfg) -> "Camera":
@@ -78,6 +81,7 @@ class Camera:
             getattr(cfg, "match_tol_px", None),
             float(getattr(cfg, "bright_shift_x_px", 0.0)),
             float(getattr(cfg, "bright_shift_y_px", 0.0)),
+            getattr(cfg, "shared_sigma_px", None),
         )
 
     @property

@@ -27,7 +27,8 @@
    camera gets ``camera.bright_shift_px`` (and ``_x_px`` / ``_y_px`` for a part the same everywhere) and the geometry
    is fitted again with every detection moved back by it.
    Then how far each frame's brightest 8 detections lie from their stars (unclipped) sets the few-star solvers'
-   match window, ``camera.match_tol_px`` (1.5 x their 95th percentile, within 1-2 px).
+   match window, ``camera.match_tol_px`` (1.5 x their 95th percentile, within 1-2 px), and the error they
+   share in each frame, ``camera.shared_sigma_px`` (the attitude covariance adds it across the boresight).
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
    pixels, the photometric zero point. The sensor (:mod:`skygen.real.fit_sensor`): gain, bias and read
    noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
@@ -644,10 +645,15 @@ def fit_shift_step(g, solved: list, cam0: Camera, fov_range, sky, fr: Frames, lo
         )
         g = g2
     # how far the brightest detections lie from their stars sets the few-star solver's match tolerance
-    tol = S.match_tolerance(S.bright_offsets(solved, g.camera, g.rotations, sky, noise))
+    per_frame = S.bright_offsets_per_frame(solved, g.camera, g.rotations, sky, noise)
+    tol = S.match_tolerance(np.concatenate(per_frame) if per_frame else np.zeros((0, 2)))
     shift["match_tolerance"] = tol
     log(f"fit-camera: {tol['note']}")
-    g.camera = dataclasses.replace(g.camera, match_tol_px=tol["px"])
+    # what a frame's brightest stars share: a few-star attitude's error that no number of them averages away
+    shared = S.shared_error(per_frame, tol["px"] if tol["px"] is not None else S.TOL_RANGE_PX[1])
+    shift["shared_error"] = shared
+    log(f"fit-camera: {shared['note']}")
+    g.camera = dataclasses.replace(g.camera, match_tol_px=tol["px"], shared_sigma_px=shared["px"])
     return g, shift
 
 

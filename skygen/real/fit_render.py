@@ -837,6 +837,7 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "pixel_aspect": float(cam.aspect),
             "centroid_sigma_px": meas.get("centroid_sigma_px"),
             "match_tol_px": cam.match_tol_px,
+            "shared_sigma_px": cam.shared_sigma_px,
             "bright_shift_px": float(cam.bright_shift_px),
             "bright_shift_from": float(cam.bright_shift_from),
             "bright_shift_x_px": float(cam.bright_shift_x_px),

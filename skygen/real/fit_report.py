@@ -67,6 +67,9 @@ def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     tol = (record.get("bright_shift") or {}).get("match_tolerance") or {}
     if tol.get("px"):
         head.append(f"# camera.match_tol_px: {tol['note']}.")
+    shared = (record.get("bright_shift") or {}).get("shared_error") or {}
+    if shared.get("px") is not None:
+        head.append(f"# camera.shared_sigma_px: {shared['note']}.")
     said = record.get("sensor", {}).get("said")
     if said:
         head.append(f"# sensor: {said}.")
@@ -158,6 +161,11 @@ def markdown(r: dict) -> str:
         )
         if shift.get("match_tolerance"):
             lines.append(f"- {shift['match_tolerance']['note']} (camera.match_tol_px: the few-star solvers' window)")
+        if shift.get("shared_error"):
+            lines.append(
+                f"- {shift['shared_error']['note']} (camera.shared_sigma_px: the attitude covariance adds it across "
+                "the boresight)"
+            )
     lines += [
         "",
         "| frame | solved field (deg) | matched | rms (px) | RA | Dec | roll | zero point (mag) | exposure × |",

@@ -270,6 +270,14 @@ def bright_offsets(frames: list, camera, rotations: list, sky, noise_adu: list, 
     """(dx, dy) px of each frame's ``n`` brightest detections (moved back by ``camera``'s shift) from the catalogue star
     ``camera`` puts nearest, where one lies within :data:`BRIGHT_PAIR_PX`: the centroid errors a few-star solve meets,
     unclipped (a geometry fit's 3.5 sigma cut drops the bright stars that saturate, bloom or blend)."""
+    per = bright_offsets_per_frame(frames, camera, rotations, sky, noise_adu, n)
+    return np.concatenate(per) if per else np.zeros((0, 2))
+
+
+def bright_offsets_per_frame(
+    frames: list, camera, rotations: list, sky, noise_adu: list, n: int = BRIGHTEST
+) -> list[np.ndarray]:
+    """:func:`bright_offsets`, one (k, 2) array per frame that has a star on the sensor."""
     from scipy.spatial import cKDTree
 
     out = []
@@ -284,7 +292,57 @@ def bright_offsets(frames: list, camera, rotations: list, sky, noise_adu: list, 
         d, j = cKDTree(np.column_stack([sx, sy])).query(np.column_stack([x, y]))
         ok = d <= BRIGHT_PAIR_PX
         out.append(np.column_stack([x[ok] - sx[j[ok]], y[ok] - sy[j[ok]]]))
-    return np.concatenate(out) if out else np.zeros((0, 2))
+    return out
+
+
+#: a frame's brightest stars count towards the shared error where at least this many lie within the match window
+SHARED_MIN_STARS = 3
+
+
+def shared_error(per_frame: list, window_px: float | None) -> dict:
+    """The centroid error a frame's brightest stars share (``camera.shared_sigma_px``): each frame's mean offset of
+    its brightest detections within ``window_px`` of their stars (:func:`bright_offsets_per_frame`; those a few-star
+    solver matches), per axis, in rms over the frames, less what their own scatter leaves in a mean of that many
+    stars. A few-star attitude moves with that mean whatever the number of stars, across the boresight, so the
+    per-star scatter (``camera.centroid_sigma_px``), which averages down, cannot stand for it. Part of it may be the
+    same every frame (``bias_px``: saturated or shifted bright stars, the same stars in every frame of a set); part
+    changes from frame to frame. None where fewer than 3 frames hold :data:`SHARED_MIN_STARS` stars, and 0 where the
+    means scatter no more than independent errors would."""
+    w = BRIGHT_PAIR_PX if window_px is None else float(window_px)
+    means, within, counts = [], [], []
+    for off in per_frame:
+        off = off[np.hypot(off[:, 0], off[:, 1]) <= w] if len(off) else off
+        if len(off) < SHARED_MIN_STARS:
+            continue
+        m = off.mean(0)
+        means.append(m)
+        within.append(((off - m) ** 2).sum(0) / (len(off) - 1))  # per axis, unbiased
+        counts.append(len(off))
+    if len(means) < 3:
+        return {"px": None, "frames": len(means), "note": f"shared error: not measured ({len(means)} frames)"}
+    m = np.array(means)
+    f = len(m)
+    own = float(np.mean([v.mean() / c for v, c in zip(within, counts)]))  # what independent errors leave in a mean
+    bias = m.mean(0)
+    # per axis, both axes pooled: the part the same in every frame (its estimate's own noise, own / f, taken off)
+    # and the part that changes from frame to frame beyond own; each estimated apart, each at least 0
+    same = max(0.0, float(np.mean(bias**2)) - own / f)
+    varies = max(0.0, float(np.sum((m - bias) ** 2)) / (2 * (f - 1)) - own)
+    px = float(np.sqrt(same + varies))
+    return {
+        "px": px,
+        "frames": f,
+        "bias_px": [float(v) for v in bias],
+        "same_px": float(np.sqrt(same)),
+        "varies_px": float(np.sqrt(varies)),
+        "independent_px": float(np.sqrt(own)),
+        "note": (
+            f"shared error {px:.3f} px per axis: each frame's brightest {int(np.median(counts))} matched detections "
+            f"lie on average ({bias[0]:+.3f}, {bias[1]:+.3f}) px off their stars over {f} frames ({np.sqrt(same):.3f} "
+            f"px per axis beyond chance), and their mean moves {np.sqrt(varies):.3f} px from frame to frame beyond "
+            f"the {np.sqrt(own):.3f} px their own scatter leaves"
+        ),
+    }
 
 
 def match_tolerance(offsets: np.ndarray) -> dict:
