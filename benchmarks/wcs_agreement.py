@@ -87,13 +87,13 @@ def run(frames: list, camera: str, wcs_dir: Path, flip_y: bool, log=print) -> di
             roll_deg=float((d_roll + 180.0) % 360.0 - 180.0),
         )
         rows.append(row)
-    return {"camera": camera, "wcs_dir": str(wcs_dir), "flip_y": flip_y, "rows": rows, "scale": cam}
+    return {"camera": camera, "wcs_dir": str(wcs_dir), "flip_y": flip_y, "rows": rows, "camera_model": cam}
 
 
 def markdown(res: dict, command: str) -> str:
     from skygen.runtime import hardware_line
 
-    cam = res["scale"]
+    cam = res["camera_model"]
     px = np.degrees(1.0 / cam.f_px) * 3600.0
     out = [
         f'Our all-detection tetra3rs solve through `{res["camera"]}` ({px:.2f}"/px) against the WCS files in '
