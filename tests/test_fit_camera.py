@@ -709,3 +709,25 @@ def test_a_known_field_starts_the_fit_and_is_exclusive_with_the_others(tmp_path)
             resolve_inputs(*args, None, None, lambda m: None, 2.6)
     with pytest.raises(ConfigError, match="--fov 500: the horizontal field of view in degrees, 0.1 to 120"):
         resolve_inputs(None, None, None, None, lambda m: None, 500.0)
+
+
+def test_an_undone_correction_says_what_its_renders_gave():
+    """The report names what the one correction round changed and, where it missed by more and was undone, what its
+    renders gave (the Canon 70D: noise and star width fixed, detections lost)."""
+    from skygen.real.fit_report import correction_lines
+
+    def check(label, ratio, ok):
+        return {"label": label, "ratio": ratio, "ok": ok, "why": f"{label} {ratio} x"}
+
+    corr = {
+        "changed": ["gain 5.44 -> 3.47 e-/ADU"],
+        "checks_before": [check("background σ", 0.762, False), check("detections / frame", 0.998, True)],
+        "checks_after": [check("background σ", 0.978, True), check("detections / frame", 0.668, False)],
+        "kept": False,
+    }
+    text = "\n".join(correction_lines(corr))
+    assert "The first renders missed: background σ 0.762 x. Corrected once: gain 5.44 -> 3.47 e-/ADU" in text
+    assert "so the first fit stands" in text
+    assert text.endswith("The corrected renders gave: background σ 0.978 x ✓; detections / frame 0.668 x ✗.")
+    assert "corrected renders" not in "\n".join(correction_lines({**corr, "kept": True}))
+    assert correction_lines(None) == []

@@ -161,6 +161,7 @@ def fit_model_terms(
             correction = {"changed": changed, "checks_before": checks, "kept": True}
             after = check_stats(cfg, attitudes, table, sat, after)
             checks = check_renders(real_stats, after)
+            correction["checks_after"] = checks  # kept in the record either way: what the correction did
             if miss(checks) > miss(correction["checks_before"]):  # worse: the first fit stands
                 cfg, after, checks, exposure, kept_meas, px["mv"] = first
                 meas.clear()

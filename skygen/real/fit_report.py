@@ -300,20 +300,7 @@ def markdown(r: dict) -> str:
             rel += f" ({min(c['passes']):.3f}–{max(c['passes']):.3f})"
         tol = f"±{100 * c['tolerance']:.0f} % {'✓' if c['ok'] else '**✗**'}" if c else ""
         lines.append(f"| {lab[k]} | {_fmt(v['real'])} | {_fmt(v['start'])} | {_fmt(v['fitted'])} | {rel} | {tol} |")
-    corr = r.get("correction")
-    if corr:
-        lines += [
-            "",
-            "The first renders missed: "
-            + "; ".join(c["why"] for c in corr["checks_before"] if not c["ok"])
-            + ". Corrected once: "
-            + "; ".join(corr["changed"])
-            + (
-                ". The table is after the correction."
-                if corr.get("kept", True)
-                else "; its renders missed by more, so the first fit stands (the table is the first fit's)."
-            ),
-        ]
+    lines += correction_lines(r.get("correction"))
     lines += [
         "",
         "Statistics are measured the same way on both (skygen.real.frame_stats): background and noise by the "
@@ -324,6 +311,32 @@ def markdown(r: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def correction_lines(corr: dict | None) -> list[str]:
+    """The report's account of the one correction round (:func:`skygen.real.fit_render.fit_model_terms`): what
+    missed, what was changed, whether it was kept, and where it was undone, what its renders gave instead."""
+    if not corr:
+        return []
+    lines = [
+        "",
+        "The first renders missed: "
+        + "; ".join(c["why"] for c in corr["checks_before"] if not c["ok"])
+        + ". Corrected once: "
+        + "; ".join(corr["changed"])
+        + (
+            ". The table is after the correction."
+            if corr.get("kept", True)
+            else "; its renders missed by more, so the first fit stands (the table is the first fit's)."
+        ),
+    ]
+    if corr.get("checks_after") and not corr.get("kept", True):
+        lines.append(
+            "The corrected renders gave: "
+            + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in corr["checks_after"])
+            + "."
+        )
+    return lines
 
 
 def warning_block(r: dict) -> list[str]:
