@@ -20,6 +20,9 @@ the truth, **wrong** = any other returned attitude, **refused** = none; median a
 (one process, one call at a time). Also the share of frames where one of the brightest N detections is not
 among the detections the truth solution matched (hot pixels, stars beyond the catalogue, blends).
 
+``--track-hint-deg D...`` adds tracking cells (``--track-n``, 2 and 3 by default), as ``fusion benchmark``'s: each
+frame's brightest N with a hint D deg off its truth (1 sigma D) and the zero point the other frames measured.
+
 With ``--checkpoint CK`` (a model trained on renders of the frames' camera, e.g. ``configs/blackfly.yaml`` on a
 fitted camera's dataset) the camera is the checkpoint's own and the learned solvers (``learned+fine>whole-sky``,
 ...) may be listed beside the prior-free ones: the brightest N detections go to the model exactly as
@@ -95,6 +98,8 @@ def run(
     mask_fixed_sources: bool = False,
     truth_wcs: str | Path | None = None,
     wcs_rows_from_bottom: bool = False,
+    track_hint_deg=(),
+    track_n=(2, 3),
     log=print,
 ) -> dict:
     """The benchmark on ``frames`` (from :func:`load_frames`) for the camera file ``camera``, or for the camera of
@@ -284,6 +289,7 @@ def run(
             + ", ".join(f"{s} {v['n_correct']}/{row['frames']}" for s, v in row["solvers"].items())
             + f" (wrong: {sum(v['n_wrong'] for v in row['solvers'].values())})"
         )
+    tracking = tracking_cells(built, kept, cam, track_hint_deg, track_n, correct_deg, correct_roll_deg, log)
     frames_out = [{k: v for k, v in r.items() if not k.startswith("_")} for r in kept]
     return {
         "camera": str(camera) if camera is not None else f"the camera of {checkpoint}",
@@ -315,6 +321,7 @@ def run(
         "frames": frames_out,
         "dropped": dropped,
         "cells": cells,
+        "tracking_cells": tracking,
         # every N's correct answers at once: one bias (the mean error) over all of them
         "coverage_pooled": {key: {name: coverage(*v) for name, v in per.items()} for key, per in pooled.items()},
         "setup_s": setup_s,
@@ -325,6 +332,98 @@ def run(
             "python": platform.python_version(),
         },
     }
+
+
+def tracking_cells(built: dict, kept: list, cam, hint_degs, track_n, correct_deg, correct_roll_deg, log) -> list:
+    """Tracking on the real frames, as ``fusion benchmark --track-hint-deg`` does on renders: each frame's brightest
+    N detections with a hint, its truth turned by D deg about a random axis (``fusion.solve.benchmark.track_hint``,
+    seed 0 and the frame's place in the list), 1 sigma D, and the zero point the other frames measured at their
+    truth (a tracker's earlier frames; leave one out). Solvers whose solve takes no hint (the chains) are left out;
+    tetra3rs tracks in its own hint mode."""
+    import inspect
+
+    from fusion.solve.base import Solution, boresight_error_deg, roll_error_deg
+    from fusion.solve.benchmark import track_hint
+    from skygen.sky.attitude import matrix_to_radec_roll
+
+    takers = {s: v for s, v in built.items() if "hint" in inspect.signature(v.solve).parameters}
+    if not hint_degs or not takers or not kept:
+        return []
+    zps: list = [None] * len(kept)
+    for solver in takers.values():  # each frame's zero point on all its detections at its truth, from the first
+        got = []  # solver that measures one (the fine stage; tetra3rs's tracking reads no photometry)
+        for r in kept:
+            z = solver.solve(r["_det"], cam, hint=r["_m"], hint_sigma_deg=0.05)
+            got.append(z.extra.get("zero_point") if isinstance(z, Solution) else None)
+        if any(z is not None for z in got):
+            zps = got
+            break
+    rows = []
+    for deg in hint_degs:
+        for n in track_n:
+            row = {"hint_deg": float(deg), "n": int(n), "solvers": {}}
+            usable = [(j, r) for j, r in enumerate(kept) if len(r["_det"]) >= n]
+            row["frames"] = len(usable)
+            for name, solver in takers.items():
+                ok = wrong = refused = 0
+                ms = []
+                for j, r in usable:
+                    others = [z for k, z in enumerate(zps) if k != j and z is not None]
+                    kw = {"hint": track_hint(r["_m"], float(deg), 0, j), "hint_sigma_deg": float(deg)}
+                    if others:
+                        kw["hint_zero_point"] = float(np.median(others))
+                    t = time.perf_counter()
+                    res = solver.solve(r["_det"].brightest(n), cam, **kw)
+                    ms.append((time.perf_counter() - t) * 1e3)
+                    if not isinstance(res, Solution):
+                        refused += 1
+                        continue
+                    b = boresight_error_deg(r["_m"], res.matrix)
+                    o = roll_error_deg(res.roll_deg, matrix_to_radec_roll(r["_m"])[2])
+                    if b <= correct_deg and o <= correct_roll_deg:
+                        ok += 1
+                    else:
+                        wrong += 1
+                        log(f"WRONG tracking {name} N={n} hint {deg} deg {r['frame']}: {b:.3f} deg, roll {o:.3f} deg")
+                k = max(len(usable), 1)
+                row["solvers"][name] = {
+                    "correct": ok / k,
+                    "wrong": wrong / k,
+                    "refused": refused / k,
+                    "n_correct": ok,
+                    "n_wrong": wrong,
+                    "median_ms": float(np.median(ms)) if ms else None,
+                    "p95_ms": float(np.percentile(ms, 95)) if ms else None,
+                }
+            rows.append(row)
+            log(
+                f"tracking, hint {deg} deg, N={n}: "
+                + ", ".join(f"{s} {v['n_correct']}/{row['frames']}" for s, v in row["solvers"].items())
+            )
+    return rows
+
+
+def _tracking_lines(res: dict) -> list[str]:
+    rows = res.get("tracking_cells") or []
+    if not rows:
+        return []
+    names = list(rows[0]["solvers"])
+    lines = [
+        "",
+        "Tracking: each frame's brightest N with a hint, its truth turned by D deg about a random axis (1σ D), and the "
+        "zero point the other frames measured (correct / wrong / refused, median / p95 ms):",
+        "",
+        "| hint | N | frames | " + " | ".join(names) + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]
+    for r in rows:
+        cells = []
+        for s in names:
+            v = r["solvers"][s]
+            ms = "–" if v["median_ms"] is None else f"{v['median_ms']:.2f} / {v['p95_ms']:.2f} ms"
+            cells.append(f"**{_pct(v['correct'])}** / {_pct(v['wrong'])} / {_pct(v['refused'])}, {ms}")
+        lines.append(f"| {r['hint_deg']:g}° | {r['n']} | {r['frames']} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _pct(x) -> str:
@@ -355,6 +454,7 @@ def markdown(res: dict, title: str | None = None) -> str:
             f"| {c['n']} | {c['frames']} | " + " | ".join(cells) + f" | {_pct(c['share_non_catalogue_in_brightest'])} |"
         )
     lines += _coverage_lines(res)
+    lines += _tracking_lines(res)
     if res["dropped"]:
         lines += ["", "Left out: " + "; ".join(f"{Path(d['frame']).name}: {d['reason']}" for d in res["dropped"])]
     return "\n".join(lines) + "\n"
@@ -446,6 +546,14 @@ def main(argv=None) -> int:
         "through --camera, not our all-detection solve (benchmarks/wcs_agreement.py checks the two agree)",
     )
     p.add_argument("--wcs-rows-from-bottom", action="store_true", help="the WCS counts pixel rows from the bottom")
+    p.add_argument(
+        "--track-hint-deg",
+        type=float,
+        nargs="+",
+        default=[],
+        help="tracking cells: hints D deg off each frame's truth (1 sigma D), as fusion benchmark --track-hint-deg",
+    )
+    p.add_argument("--track-n", type=int, nargs="+", default=[2, 3], help="brightest-N of the tracking cells")
     p.add_argument("--truth-max-fpp", type=float, default=1e-20)
     p.add_argument("--truth-min-matched", type=int, default=10)
     p.add_argument("--correct-deg", type=float, default=0.1)
@@ -493,6 +601,8 @@ def main(argv=None) -> int:
         mask_fixed_sources=a.mask_fixed_sources,
         truth_wcs=a.truth_wcs,
         wcs_rows_from_bottom=a.wcs_rows_from_bottom,
+        track_hint_deg=a.track_hint_deg,
+        track_n=a.track_n,
         log=lambda s: print(s, file=sys.stderr),
     )
     res["command"] = "python benchmarks/real_few_star.py " + " ".join(argv if argv is not None else sys.argv[1:])

@@ -485,6 +485,25 @@ def test_tracking_identifies_three_stars_near_a_hint_and_nothing_far_from_it(ren
         whole_sky.solve(det, renderer.camera, hint=2 * hint, hint_sigma_deg=1.0)
 
 
+def test_a_tracking_hint_over_the_work_budget_is_refused_before_any_scoring(renderer, whole_sky, monkeypatch):
+    """Tracking counts its candidate pairs (of the brightest four detections) before scoring any: over
+    TRACK_MAX_PAIRS it refuses with budget_exhausted, saying how many, the same on every machine. A 5 deg hint on a
+    1.1 deg Gaia camera had taken 6 s a solve. The default camera's 2 deg hint holds far fewer than the budget."""
+    from fusion.solve import track as T
+    from fusion.solve.benchmark import track_hint
+
+    f = renderer.render(0)
+    m = _truth(f)
+    det = Detections.from_table(f.detections).brightest(3)
+    hint = track_hint(m, 2.0, 11, 0)
+    res = whole_sky.solve(det, renderer.camera, hint=hint, hint_sigma_deg=2.0)
+    assert res.status != "budget_exhausted"
+    monkeypatch.setattr(T, "TRACK_MAX_PAIRS", 10)
+    res = whole_sky.solve(det, renderer.camera, hint=hint, hint_sigma_deg=2.0)
+    assert isinstance(res, Refusal) and res.status == "budget_exhausted"
+    assert res.extra["candidate_pairs"] > 10 and "candidate pairs" in res.reason and res.extra["hypotheses"] == 0
+
+
 def test_benchmark_tracking_cells(small_dataset, tmp_path, monkeypatch):
     import json
 

@@ -94,6 +94,11 @@ TRACK_ZP_SIGMA = 0.25  # 1-sigma (mag) of a known zero point (hint_zero_point: e
 #   benchmark's tracking_zero_point_scatter), and two or three stars add their own scatter and their saturated
 #   cores (a bright star's flux is underestimated): 0.25 covers both
 TRACK_ANCHORS = 4  # anchor pairs among the brightest this many detections
+#: the work budget of one tracking solve: candidate pairs of its anchor detections, counted before any is scored (a
+#: count, so the same refusal on every machine). A wide hint on a dense catalogue holds very many: before this
+#: budget a 5 deg hint took 6 s a solve on a 1.1 deg Gaia camera and 17 s on a 2.6 deg one (results/real-frames/
+#: tracking), where the fitted Blackfly's took 70 ms
+TRACK_MAX_PAIRS = 20_000_000
 TRACK_MAX_ROLL_SIGMA_DEG = 0.25  # a pair this close fixes the roll too loosely to return (covariance, 1 sigma):
 #   the 1-deg roll bound of a correct answer is 4 sigma away. Not looser: a saturated star's centroid can be off by
 #   a pixel or more (data/track300-s23, 0.5-deg hint: two answers reported at 0.30 deg erred by 1.1-1.2 deg in roll)
@@ -139,6 +144,16 @@ def track(
     cand_rows = np.concatenate([np.asarray(c, np.int64) for c in cand])
     # the bright stars around the hint's field: those a hypothesis must explain (TRACK_MISS)
     reach = solver.half_diag_rad * (1 + s) + HINT_RADIUS_SIGMAS * sig
+    sizes = np.diff(cand_offs)[:na]
+    pairs = int((sizes.sum() ** 2 - (sizes**2).sum()) // 2)  # sum over anchor pairs i < j of |cand_i| |cand_j|
+    if pairs > TRACK_MAX_PAIRS:
+        return refuse(
+            f"tracking: the hint's region holds {pairs:,} candidate pairs for the brightest {na} detections, over the "
+            f"budget of {TRACK_MAX_PAIRS:,} (a hint of {sigma_deg:g} deg on this dense a catalogue): a tighter hint, "
+            "or lost in space",
+            "budget_exhausted",
+            {"hypotheses": 0, "candidate_pairs": pairs, "region": TRACKING, "region_probability": 1.0},
+        )
     near = np.asarray(bright.tree.query_ball_point(m_hint[:, 2], 2 * math.sin(min(math.pi, reach) / 2)), np.int64)
     flux = np.asarray(detections.flux_adu, np.float64)
     inst = -2.5 * np.log10(np.maximum(flux, 1e-12))
