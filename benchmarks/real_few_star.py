@@ -349,15 +349,10 @@ def tracking_cells(built: dict, kept: list, cam, hint_degs, track_n, correct_deg
     takers = {s: v for s, v in built.items() if "hint" in inspect.signature(v.solve).parameters}
     if not hint_degs or not takers or not kept:
         return []
-    zps: list = [None] * len(kept)
-    for solver in takers.values():  # each frame's zero point on all its detections at its truth, from the first
-        got = []  # solver that measures one (the fine stage; tetra3rs's tracking reads no photometry)
-        for r in kept:
-            z = solver.solve(r["_det"], cam, hint=r["_m"], hint_sigma_deg=0.05)
-            got.append(z.extra.get("zero_point") if isinstance(z, Solution) else None)
-        if any(z is not None for z in got):
-            zps = got
-            break
+    zps: dict = {}  # each solver's own zero point of each frame, on all its detections at its truth (its catalogue's
+    for name, solver in takers.items():  # magnitudes: tetra3rs's are not the fine stage's; tetra3rs reads none)
+        got = [solver.solve(r["_det"], cam, hint=r["_m"], hint_sigma_deg=0.05) for r in kept]
+        zps[name] = [z.extra.get("zero_point") if isinstance(z, Solution) else None for z in got]
     rows = []
     for deg in hint_degs:
         for n in track_n:
@@ -368,7 +363,7 @@ def tracking_cells(built: dict, kept: list, cam, hint_degs, track_n, correct_deg
                 ok = wrong = refused = 0
                 ms = []
                 for j, r in usable:
-                    others = [z for k, z in enumerate(zps) if k != j and z is not None]
+                    others = [z for k, z in enumerate(zps[name]) if k != j and z is not None]
                     kw = {"hint": track_hint(r["_m"], float(deg), 0, j), "hint_sigma_deg": float(deg)}
                     if others:
                         kw["hint_zero_point"] = float(np.median(others))

@@ -58,7 +58,7 @@ def test_tracking_cells_on_two_real_frames():
     }
     w = row["solvers"]["whole-sky"]
     assert w["n_wrong"] == 0 and w["n_correct"] == 2 and row["solvers"]["tetra3rs"]["n_wrong"] == 0
-    # the zero point comes from the fine stage even where tetra3rs is listed first: the same cells as without it
+    # each solver tracks with its own zero point: the fine stage's cells are the same without tetra3rs listed
     alone = mod.run(frames, CAMERA, n_values=(8,), solvers=("whole-sky",), background_box=64,
                     track_hint_deg=(2.0,), track_n=(3,), log=lambda s: None)  # fmt: skip
     assert alone["tracking_cells"][0]["solvers"]["whole-sky"] == {
