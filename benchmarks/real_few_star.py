@@ -263,17 +263,8 @@ def run(
                     wrong += 1
                     outcome[str(n)] = "wrong"
                     log(f"WRONG {sname} N={n} {r['frame']}: boresight {b:.3f} deg, roll {o:.3f} deg off")
-            k = max(len(usable), 1)
             row["solvers"][sname] = {
-                "correct": ok / k,
-                "wrong": wrong / k,
-                "refused": refused / k,
-                "n_correct": ok,
-                "n_wrong": wrong,
-                "n_refused": refused,
-                "median_ms": float(np.median(ms)) if ms else None,
-                "p95_ms": float(np.percentile(ms, 95)) if ms else None,
-                "p99_ms": float(np.percentile(ms, 99)) if ms else None,
+                **_outcome_counts(ok, wrong, refused, ms, len(usable)),
                 "coverage": coverage(good, good_truth),
                 "coverage_own_truth": coverage(good_own, own_truth_m),
             }
@@ -334,6 +325,22 @@ def run(
     }
 
 
+def _outcome_counts(ok: int, wrong: int, refused: int, ms: list, frames: int) -> dict:
+    """One solver's cell: correct / wrong / refused shares and counts, and the median / p95 / p99 ms per solve."""
+    k = max(frames, 1)
+    return {
+        "correct": ok / k,
+        "wrong": wrong / k,
+        "refused": refused / k,
+        "n_correct": ok,
+        "n_wrong": wrong,
+        "n_refused": refused,
+        "median_ms": float(np.median(ms)) if ms else None,
+        "p95_ms": float(np.percentile(ms, 95)) if ms else None,
+        "p99_ms": float(np.percentile(ms, 99)) if ms else None,
+    }
+
+
 def tracking_cells(built: dict, kept: list, cam, hint_degs, track_n, correct_deg, correct_roll_deg, log) -> list:
     """Tracking on the real frames, as ``fusion benchmark --track-hint-deg`` does on renders: each frame's brightest
     N detections with a hint, its truth turned by D deg about a random axis (``fusion.solve.benchmark.track_hint``,
@@ -380,16 +387,7 @@ def tracking_cells(built: dict, kept: list, cam, hint_degs, track_n, correct_deg
                     else:
                         wrong += 1
                         log(f"WRONG tracking {name} N={n} hint {deg} deg {r['frame']}: {b:.3f} deg, roll {o:.3f} deg")
-                k = max(len(usable), 1)
-                row["solvers"][name] = {
-                    "correct": ok / k,
-                    "wrong": wrong / k,
-                    "refused": refused / k,
-                    "n_correct": ok,
-                    "n_wrong": wrong,
-                    "median_ms": float(np.median(ms)) if ms else None,
-                    "p95_ms": float(np.percentile(ms, 95)) if ms else None,
-                }
+                row["solvers"][name] = _outcome_counts(ok, wrong, refused, ms, len(usable))
             rows.append(row)
             log(
                 f"tracking, hint {deg} deg, N={n}: "

@@ -61,9 +61,9 @@ def test_tracking_cells_on_two_real_frames():
     # each solver tracks with its own zero point: the fine stage's cells are the same without tetra3rs listed
     alone = mod.run(frames, CAMERA, n_values=(8,), solvers=("whole-sky",), background_box=64,
                     track_hint_deg=(2.0,), track_n=(3,), log=lambda s: None)  # fmt: skip
-    assert alone["tracking_cells"][0]["solvers"]["whole-sky"] == {
-        **w, "median_ms": alone["tracking_cells"][0]["solvers"]["whole-sky"]["median_ms"],
-        "p95_ms": alone["tracking_cells"][0]["solvers"]["whole-sky"]["p95_ms"]}  # fmt: skip
+    timing = ("median_ms", "p95_ms", "p99_ms")
+    got = alone["tracking_cells"][0]["solvers"]["whole-sky"]
+    assert {k: v for k, v in got.items() if k not in timing} == {k: v for k, v in w.items() if k not in timing}
     assert "| 2° | 3 | 2 |" in mod.markdown(res) and "Tracking:" in mod.markdown(res)
 
 
