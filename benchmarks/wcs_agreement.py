@@ -27,10 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))) * 3600.0
-
-
 def position_angle_deg(v0: np.ndarray, v1: np.ndarray) -> float:
     """Position angle (deg, east of north) of direction v1 seen from v0."""
     north = np.array([0.0, 0.0, 1.0]) - v0[2] * v0
@@ -46,7 +42,7 @@ def run(frames: list, camera: str, wcs_dir: Path, flip_y: bool, log=print) -> di
     from fusion.solve.base import Solution
     from fusion.solve.predict import Predictor
     from fusion.solve.registry import make_context
-    from skygen.real.wcs import read_wcs, wcs_directions
+    from skygen.real.wcs import angle_arcsec, read_wcs, wcs_directions
 
     pred = Predictor(None, camera=camera)
     cam = pred.camera

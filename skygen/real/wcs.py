@@ -60,6 +60,11 @@ def wcs_directions(w, x: np.ndarray, y: np.ndarray, rows_from_bottom: int | None
     return np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=-1)
 
 
+def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (arcsec) between unit vectors ``a`` and ``b`` (..., 3), row by row (accurate for tiny angles)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))) * 3600.0
+
+
 def attitude_from_wcs(w, camera, rows_from_bottom: bool = False) -> tuple[np.ndarray, float]:
     """(camera -> ICRS matrix, rms misfit in arcsec) of the rotation that best puts a grid of ``camera``'s pixels
     (:class:`skygen.instrument.camera.Camera`) where the WCS ``w`` puts them."""
@@ -70,5 +75,4 @@ def attitude_from_wcs(w, camera, rows_from_bottom: bool = False) -> tuple[np.nda
     u, _, vt = np.linalg.svd(sky_v.T @ cam_v)  # Wahba: the rotation m with sky ~ m @ cam
     m = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     fit = cam_v @ m.T
-    miss = np.arctan2(np.linalg.norm(np.cross(fit, sky_v), axis=1), np.sum(fit * sky_v, axis=1))
-    return m, float(np.degrees(np.sqrt(np.mean(miss**2))) * 3600.0)
+    return m, float(np.sqrt(np.mean(angle_arcsec(fit, sky_v) ** 2)))
