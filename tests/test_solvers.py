@@ -613,3 +613,69 @@ def test_coarse_to_fine_solver_keeps_no_state_between_solves(tetra):
         assert vars(c2f).keys() == before.keys()
         assert all(vars(c2f)[k] is v for k, v in before.items())
     assert not hasattr(CoarseToFineSolver, "tier")
+
+
+def test_refine_keeps_the_camera_scale_where_a_free_scale_trades_outer_stars(tetra):
+    """A hypothesis whose rotation fits only a tight group of stars (its anchor pair's centroids a little off) and
+    whose group's centroids sit 0.6 % too close to the centre (a saturated star, a field edge the distortion model
+    leaves off): a free scale fits that group at 0.994 and then can never reach the outer stars again; at the
+    camera's own scale the same group's rotation brings them in. ``refine`` keeps the fit that matches more (a real
+    26 deg camera: 5 of 8 detections with the scale free, 7 of 8 at its own, results/real-frames/refine-scale)."""
+    from scipy.spatial import cKDTree
+
+    from fusion.solve.fine import CoarseToFineSolver, _Tier
+    from skygen.sky.attitude import rotation_about
+
+    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    tol = c2f.tol_rad
+    group = np.array([[0.04, 0.0], [0.052, 0.006], [0.03, -0.01], [0.045, 0.012]])  # tangent plane, the true sky
+    outer = np.array([[-0.12, 0.12], [-0.1, -0.14], [0.02, 0.17]])
+    g = np.vstack([group, outer])
+    stars = np.column_stack([g, np.ones(len(g))])
+    stars /= np.linalg.norm(stars, axis=1, keepdims=True)  # the truth is the identity: camera frame = sky
+    tier = _Tier(1.0, stars, np.arange(len(g)), np.zeros(len(g)), cKDTree(stars), None, 0.0)
+    t = np.vstack([group * 0.994, outer])  # the group's centroids 0.6 % towards the centre
+    u = np.column_stack([t, np.ones(len(t))])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    axis = stars[:4].mean(axis=0)
+    rot0 = rotation_about(axis / np.linalg.norm(axis), 0.01)  # the hypothesis: 0.57 deg about the group
+    rows, _ = c2f._matches(tier, rot0, u)
+    assert rows.tolist() == [0, 1, 2, 3]  # the group matches, the outer stars lie beyond the tolerance
+    # at a scale 0.6 % off the group's stars move within the tolerance, the outer ones beyond it
+    assert 0.006 * np.linalg.norm(group, axis=1).max() < tol < 0.006 * np.linalg.norm(outer, axis=1).min()
+
+    free = c2f._refine(tier, rot0, 1.0, u, 0.02, 20)
+    assert free[2].tolist() == [0, 1, 2, 3] and free[1] == pytest.approx(0.994, abs=1e-4)  # stuck on the group
+    rot, k, det_rows, cat_rows, _, k_fitted = c2f.refine(tier, rot0, 1.0, u, 0.02)
+    assert det_rows.tolist() == list(range(7)) and cat_rows.tolist() == list(range(7))
+    assert k == 1.0 and not k_fitted  # the camera's own scale: the covariance then has no scale parameter
+    assert rotation_angle_deg(rot, np.eye(3)) < 0.05
+
+
+def test_a_tetra3rs_attitude_that_moves_our_matched_stars_confirms_nothing(renderer, tetra, monkeypatch):
+    """tetra3rs's tracking 'confirmation' 1 deg of roll away (its three stars fit 0.3 px rms, one of our matches
+    then lies 10 px off: an adversarial set with a false star did this) is not a confirmation: the answer is our
+    own least squares where its evidence stands alone, and a refusal where it does not."""
+    from fusion.solve.base import solution_from_matrix
+    from fusion.solve.fine import CoarseToFineSolver
+    from skygen.sky.attitude import rotation_about
+
+    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02)
+    f = renderer.render(2)
+    truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+    det = Detections.from_table(f.detections).brightest(8)
+    honest = c2f.solve(det, renderer.camera)
+    assert isinstance(honest, Solution) and honest.extra["refined_by"] == "tetra3rs tracking"
+
+    off = rotation_about(truth[:, 2], np.radians(1.0)) @ truth  # 1 deg of roll about the boresight
+
+    def elsewhere(detections, camera, hint, unc, name="tetra3rs-hint", covariance=True):
+        three = np.zeros((3, 2), np.int64)
+        return solution_from_matrix(off, matched=three, residual_arcsec=20.0, confidence=1.0, solver=name)
+
+    monkeypatch.setattr(tetra, "solve_with_hint", elsewhere)
+    res = c2f.solve(det, renderer.camera)  # eight stars: our own evidence clears the unverified bar alone
+    assert isinstance(res, Solution) and res.extra["refined_by"] == "own least squares"
+    assert res.false_match_probability < 1e-6 and rotation_angle_deg(res.matrix, truth) < 0.02
+    four = c2f.solve(det.brightest(4), renderer.camera)  # four stars do not: refused (the rule off: 1 deg off)
+    assert isinstance(four, Refusal)

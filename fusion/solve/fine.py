@@ -59,12 +59,14 @@ For one region (a cap around a region centroid, :class:`Region`):
 5. refinement: rotation and focal-length factor fitted to the matched stars (alternating
    Kabsch and the scale of a 2-D similarity between tangent-plane coordinates, k kept within
    1 ± s whichever pass found the hypothesis), re-matched at ``tol_px`` until the matches
-   and k stop changing; the confidence above is recomputed from this tight match count and
-   must still pass;
+   and k stop changing; the same at the camera's own scale (k = 1), kept where it matches more
+   (a few stars a pixel off can pull a free scale away from the outer ones); the confidence above
+   is recomputed from this tight match count and must still pass;
 6. verification: tetra3rs tracking from that attitude (strict hint, 1°, the fitted focal length)
    re-matches every detection against its catalog, tests the match against its own
-   false-positive budget and refines the attitude. A candidate tetra3rs does not confirm is
-   returned (as the least-squares rotation of our own matches) only if its confidence
+   false-positive budget and refines the attitude; an attitude that moves any of our matched stars
+   beyond ``DISAGREE_FACTOR`` × ``tol_px`` matched other stars and confirms nothing. A candidate
+   tetra3rs does not confirm is returned (as the least-squares rotation of our own matches) only if its confidence
    reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched. A
    confirmation whose refined attitude leaves more than ``max_residual_px`` (1.5 px rms) over its
    matched stars and moves our own matches beyond ``tol_px`` took in a star beyond any centroid
@@ -229,6 +231,10 @@ def hypothesis_cost(n: int) -> float:
 #: a refined focal factor this close to the edge of +-focal_tol (as a share of it) is refused: the camera's scale
 #: would have to leave the range searched to fit the detections
 FOCAL_EDGE = 0.98
+# tetra3rs's tracking attitude does not confirm ours where it moves one of our matched stars beyond this many match
+# tolerances (_finish): it matched other stars. Three, so that a centroid a pixel or two off (a saturated star, a
+# field edge) never turns a confirmation into a refusal
+DISAGREE_FACTOR = 3.0
 REST_OF_SKY = -1  # Region.index of the sky outside the prior's regions (then_whole_sky)
 # the learned chain (learned+fine>whole-sky) from this many detections: tetra3rs lost in space, then the whole sky at
 # once, the prior not asked. There the whole sky alone was as often right as the prior's regions first (data/bench500,
@@ -954,10 +960,28 @@ class CoarseToFineSolver:
         return track(self, detections, camera, hint, sigma_deg, t0, zero_point)
 
     def refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int = 20):
-        """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows).
+        """Rotation and focal factor fitted to the stars matched within ``tol_px``: (rot, k, det rows, cat rows, unit
+        vectors at k, whether k was fitted).
 
         Iterated to convergence: a scale error leaves the outer stars unmatched at first, and each
-        fit with the inner ones brings more of them within the tolerance."""
+        fit with the inner ones brings more of them within the tolerance. With a free scale (``s`` > 0) the same is
+        done at the camera's own scale (k = 1) too, and the fit that matches more detections is kept (the free one
+        where they tie): three or four stars whose centroids err by a pixel or two (a saturated star, a field edge
+        the distortion model leaves off) can pull a free scale by a few tenths of a percent, far enough to trade
+        the outer stars for a chance neighbour near the centre (a real 26 deg camera: 5 of 8 detections with the
+        scale free, 7 of 8 at its own, results/real-frames/refine-scale). A free scale that ends at the edge of its
+        range is returned as it is: the caller refuses it (frames of another lens), whatever the camera's own scale
+        would match (the adversarial 'focal' family: 4 of 4 such answers wrong, 5-7 % off the camera's scale)."""
+        free = self._refine(tier, rot, k, u, s, iterations)
+        if s <= 0 or abs(free[1] - 1.0) >= FOCAL_EDGE * s:
+            return (*free, s > 0)
+        own = self._refine(tier, rot, 1.0, u, 0.0, iterations)
+        if len(own[2]) > len(free[2]):
+            return (*own, False)
+        return (*free, True)
+
+    def _refine(self, tier: _Tier, rot: np.ndarray, k: float, u: np.ndarray, s: float, iterations: int):
+        """:meth:`refine`'s iterations at one scale freedom ``s`` (0: k held)."""
         t = u[:, :2] / u[:, 2:3]
         previous = None
         for _ in range(iterations):
@@ -980,16 +1004,23 @@ class CoarseToFineSolver:
         return rot, k, det_rows, cat_rows, uk
 
     def _pulled_off(
-        self, tier: _Tier, matrix: np.ndarray, uk: np.ndarray, det_rows: np.ndarray, cat_rows: np.ndarray
+        self,
+        tier: _Tier,
+        matrix: np.ndarray,
+        uk: np.ndarray,
+        det_rows: np.ndarray,
+        cat_rows: np.ndarray,
+        factor: float = 1.0,
     ) -> bool:
-        """Does attitude ``matrix`` move any of our matched stars beyond ``tol_px`` of its catalogue star?"""
+        """Does attitude ``matrix`` move any of our matched stars beyond ``factor`` x ``tol_px`` of its catalogue
+        star?"""
         cos = np.sum((uk[det_rows] @ np.asarray(matrix).T) * tier.vec[cat_rows], axis=1)
-        return bool(np.any(np.arccos(np.clip(cos, -1, 1)) > self.tol_rad))
+        return bool(np.any(np.arccos(np.clip(cos, -1, 1)) > factor * self.tol_rad))
 
     def _finish(self, tier: _Tier, rot, k, u, detections, camera, region, tried, t0, every=None) -> Solution | Refusal:
         # the focal factor is fitted within +-focal_tol whichever pass found the hypothesis: a strict-pass
         # match of the central stars still leaves the outer ones (and the attitude) biased by a wrong scale
-        rot, k, det_rows, cat_rows, uk = self.refine(tier, rot, k, u, self.focal_tol)
+        rot, k, det_rows, cat_rows, uk, k_fitted = self.refine(tier, rot, k, u, self.focal_tol)
         if self.focal_tol > 0 and abs(k - 1.0) >= FOCAL_EDGE * self.focal_tol:
             # the scale wants to leave the range searched: the camera does not fit these detections (another lens
             # or camera; the adversarial calibration's 'focal' family: 3 wrong attitudes in 100,000 attempts, all
@@ -1023,8 +1054,8 @@ class CoarseToFineSolver:
                 status="weak_evidence",
             )
         cam_k = dataclasses.replace(camera, f_px=camera.f_px * k) if k != 1.0 else camera
-        scale_fitted = self.focal_tol > 0 and len(det_rows) >= 3  # refine fitted k to these stars: the covariance's
-        # fourth parameter
+        scale_fitted = k_fitted and len(det_rows) >= 3  # refine fitted k to these stars: the covariance's fourth
+        # parameter
         # the bars above are on E_false at the sky's mean density (as measured and chosen); the solution reports the
         # probability with the catalogue's clustering (density_clustering: the same count, more chance matches
         # where stars crowd), the better-calibrated number (results/calibration/clustering)
@@ -1053,7 +1084,15 @@ class CoarseToFineSolver:
             res = self.tetra.solve_with_hint(
                 every if every is not None else detections, cam_k, rot, 1.0, name=self.name, covariance=not scale_fitted
             )
-            confirmed = isinstance(res, Solution) and rotation_angle_deg(res.matrix, rot) < 2.0
+            # a confirmation is an attitude near ours that keeps our matched stars: one that puts any of them beyond
+            # DISAGREE_FACTOR x tol_px matched other stars (an adversarial set with a false star: our 4 matches right,
+            # tetra3rs's 3 within 0.3 px rms but 0.97 deg off, one of ours then 10 px away; results/real-frames/
+            # refine-scale), and our own answer stands alone (the unverified bar below)
+            confirmed = (
+                isinstance(res, Solution)
+                and rotation_angle_deg(res.matrix, rot) < 2.0
+                and not self._pulled_off(tier, res.matrix, uk, det_rows, cat_rows, DISAGREE_FACTOR)
+            )
             resid_px = res.residual_arcsec / cam_k.pixel_scale_arcsec if confirmed else 0.0
             if (
                 confirmed
