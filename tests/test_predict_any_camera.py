@@ -82,3 +82,24 @@ def test_fov_range_solves_real_frames_and_finds_the_field(tmp_path, capsys):
 def test_fov_range_refuses_a_checkpoint_and_bad_bounds(tmp_path, capsys):
     assert main(["predict", "x.png", "--fov-range", "20", "10", "--solve"]) == 2
     assert "LO < HI" in capsys.readouterr().err
+
+
+def test_detections_know_which_stars_are_saturated(tmp_path):
+    """A star clipped at the top of an 8-bit frame is flagged saturated, a fainter one is not; the flag follows the
+    detections through brightest / take, and the top of a frame's range is read from its data, not its type."""
+    from fusion.solve.predict import Predictor, frame_top
+
+    assert frame_top(np.full((4, 4), 120, np.uint16)) == 255  # 8-bit data in a 16-bit array
+    assert frame_top(np.full((4, 4), 4000.0)) == 4095
+    assert frame_top(np.full((4, 4), 65520, np.uint16)) == 65535  # 12-bit data x 16
+    cam = tmp_path / "c.yaml"
+    cam.write_text(yaml.safe_dump({"camera": {"width_px": 200, "height_px": 160, "pixel_pitch_um": 5.0, "fov_deg": 5}}))
+    yy, xx = np.mgrid[0:160, 0:200]
+    img = np.random.default_rng(1).normal(20, 2, (160, 200))
+    for x0, y0, amp in ((60.3, 50.6, 900.0), (140.2, 110.1, 90.0)):  # a clipped star, an unsaturated one
+        img += amp * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * 1.5**2))
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    det, _, _ = Predictor(camera=cam, background_box=0).detect(img)
+    assert len(det) == 2 and det.saturated.tolist() == [True, False]
+    assert abs(det.x_px[0] - 60.3) < 0.5 and det.brightest(1).saturated.tolist() == [True]
+    assert det.take([1]).saturated.tolist() == [False]

@@ -809,3 +809,34 @@ def test_density_clustering_weighs_chance_matches_where_stars_crowd():
     w = density_clustering(crowded, np.radians(14.0), k_max=4)
     assert np.all(np.diff(w) > 0) and w[2] > 2.0
     assert np.array_equal(w, density_clustering(crowded, np.radians(14.0), k_max=4))
+
+
+def test_tracking_reads_a_saturated_star_as_a_lower_bound(renderer, whole_sky):
+    """A saturated star's flux is a lower bound (a real 2.6 deg camera: Polaris clipped 2.7 mag below its catalogue
+    brightness in every frame made tracking refuse all of them with a known zero point). Three detections, a
+    0.5 deg hint, the zero point known: with the brightest one's flux clipped 3 mag, tracking solves far less often
+    unless the detection is flagged ``saturated``; flagged, it solves as the unclipped frames do, never wrongly.
+    Where every detection is saturated, none fixes the zero point and they are read as unflagged ones."""
+    from fusion.solve.benchmark import track_hint
+
+    frames = _generated_frames(whole_sky, renderer.camera, 60, 3, seed=33)
+
+    def run(clip: bool, flag: bool, all_flagged: bool = False):
+        solved = 0
+        for k, (det, m) in enumerate(frames):
+            flux = det.flux_adu * np.where(np.arange(3) == 0, 10 ** (-0.4 * 3.0) if clip else 1.0, 1.0)
+            d = Detections(det.x_px, det.y_px, flux, np.array([flag, all_flagged, all_flagged]))
+            hint = track_hint(m, 0.5, 9, k)
+            res = whole_sky.solve(d, renderer.camera, hint=hint, hint_sigma_deg=0.5, hint_zero_point=14.0)
+            if isinstance(res, Solution):
+                assert np.all(np.abs(rotation_vector_deg(m, res.matrix)) < [0.1, 0.1, 1.0]), (clip, flag, k)
+                solved += 1
+        return solved
+
+    clean, clipped, flagged = run(False, False), run(True, False), run(True, True)
+    assert clean >= 0.8 * len(frames)
+    assert clipped <= 0.5 * clean
+    assert flagged >= clean - 2
+    # every detection saturated: no unsaturated star fixes the zero point, so they are read as any others (a camera's
+    # saturated stars fall short alike): as if unflagged
+    assert run(True, True, all_flagged=True) == clipped

@@ -91,25 +91,40 @@ class Detections:
     """Detected star centroids of one frame, brightest first.
 
     ``x_px``/``y_px`` in full-resolution sensor pixels (skygen convention, see module
-    docstring); ``flux_adu`` summed background-subtracted signal, ADU.
+    docstring); ``flux_adu`` summed background-subtracted signal, ADU. ``saturated`` (optional, bool): detections
+    whose brightest pixel reaches the top of the frame's range (:func:`fusion.solve.predict.saturated_rows`),
+    whose flux is then only a lower bound (tracking's photometry reads it so); None: not known.
     """
 
     x_px: np.ndarray
     y_px: np.ndarray
     flux_adu: np.ndarray
+    saturated: np.ndarray | None = None
 
     @classmethod
     def from_table(cls, det: dict) -> "Detections":
-        """From a skygen detection table (dict of arrays), sorted brightest first (stable)."""
+        """From a skygen detection table (dict of arrays; ``saturated`` read where it has one), sorted brightest
+        first (stable)."""
         flux = np.asarray(det["flux_adu"], np.float64)
         order = np.argsort(-flux, kind="stable")
-        return cls(np.asarray(det["x_px"], np.float64)[order], np.asarray(det["y_px"], np.float64)[order], flux[order])
+        sat = det.get("saturated")
+        return cls(
+            np.asarray(det["x_px"], np.float64)[order],
+            np.asarray(det["y_px"], np.float64)[order],
+            flux[order],
+            None if sat is None else np.asarray(sat, bool)[order],
+        )
 
     def __len__(self) -> int:
         return len(self.x_px)
 
+    def take(self, rows) -> "Detections":
+        """The detections ``rows`` (indices or a mask), in that order, with everything they carry."""
+        sat = None if self.saturated is None else self.saturated[rows]
+        return Detections(self.x_px[rows], self.y_px[rows], self.flux_adu[rows], sat)
+
     def brightest(self, n: int) -> "Detections":
-        return Detections(self.x_px[:n], self.y_px[:n], self.flux_adu[:n])
+        return self.take(slice(0, n))
 
 
 REFUSAL_STATUSES: dict[str, str] = {

@@ -80,7 +80,7 @@ class DefectMap:
         if not bad.any():
             return det, 0
         keep = ~bad
-        return Detections(det.x_px[keep], det.y_px[keep], det.flux_adu[keep]), int(bad.sum())
+        return det.take(keep), int(bad.sum())
 
     @classmethod
     def from_fixed_sources(cls, sources, sigmas: float = FIXED_SOURCE_SIGMAS) -> "DefectMap":

@@ -512,6 +512,7 @@ def track_hypotheses(
     near_row,
     cam,
     inst,
+    sat,
     phot: bool,
     consts,
     floor: float = -np.inf,
@@ -524,7 +525,10 @@ def track_hypotheses(
     ICRS), 1-sigma ``sig`` (rad); ``s``: the focal-length tolerance; ``tol``: the match tolerance, ``sig_c`` the
     centroid error (rad); ``near_*``: the bright stars around the hint's field (unit vectors, magnitudes, their
     row in the cut); ``cam``: (f, fy, cx, cy, k1, k2, k3, p1, p2, width, height, edge margin) of the camera;
-    ``inst``: the detections' instrumental magnitudes; ``consts``: (log eps, log(1 - eps), log miss,
+    ``inst``: the detections' instrumental magnitudes, ``sat`` (n,) which are saturated (where an unsaturated one
+    is matched too, their flux is a lower bound: no part in the zero point, and their star may be any amount
+    brighter than their magnitude says but not fainter: a one-sided term, worth log 2 where it holds);
+    ``consts``: (log eps, log(1 - eps), log miss,
     log(1 - miss), magnitude margin, magnitude sigma, log(spread / (sigma sqrt(2 pi))), known zero point (mag),
     its 1-sigma (0: unknown, fitted per hypothesis)); ``floor``: a log weight at or below which a hypothesis is
     dropped (:func:`fusion.solve.track.track` drops every one 30 below the best: the best of earlier calls less
@@ -645,20 +649,39 @@ def track_hypotheses(
             # value (none missed), an upper bound of the final weight
             phot_a = phot_b = 0.0
             if phot:
+                # the zero point from the matched detections that are not saturated (mu of them) where there are any;
+                # a saturated one then counts only where its star is fainter than its flux says (its flux a lower
+                # bound; one-sided). Where every matched detection is saturated they are compared with
+                # each other and the known zero point as any others (a camera's saturated stars fall short alike)
                 zp = 0.0
+                mu = 0
                 for k in range(n):
-                    if row[k] >= 0:
+                    if row[k] >= 0 and not sat[k]:
                         zp += mag[row[k]] - inst[k]
-                zp /= m
+                        mu += 1
+                one_sided = mu > 0 and mu < m
+                if mu == 0:
+                    for k in range(n):
+                        if row[k] >= 0:
+                            zp += mag[row[k]] - inst[k]
+                    mu = m
+                zp /= mu
                 chi2 = 0.0
+                n_low = 0  # saturated detections read as lower bounds
                 for k in range(n):
                     if row[k] >= 0:
-                        chi2 += (mag[row[k]] - inst[k] - zp) ** 2
-                phot_a = -0.5 * chi2 / (mag_sig * mag_sig) + (m - 1) * log_spread
+                        dm = mag[row[k]] - inst[k] - zp
+                        if one_sided and sat[k]:
+                            dm = max(dm, 0.0)
+                            n_low += 1
+                        chi2 += dm * dm
+                # a lower bound's evidence: a coincidental star is brighter than the bound about half the time (its
+                # magnitude difference spreads evenly about the zero point), the true one always: log 2
+                phot_a = -0.5 * chi2 / (mag_sig * mag_sig) + (mu - 1) * log_spread + n_low * math.log(2.0)
                 if zp_sig > 0:
                     # a known zero point (the previous frame's): the fitted one's density about it, against
-                    # the coincidental spread -- the m-th magnitude difference, which a fitted zero point spends
-                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / m
+                    # the coincidental spread -- the mu-th magnitude difference, which a fitted zero point spends
+                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / mu
                     phot_b = log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
             if lw + m * log_1miss + phot_a + phot_b < floor - 1e-9:
                 continue  # below the floor whatever it misses: dropped (its row is overwritten by the next)

@@ -115,6 +115,38 @@ from ..model.inputs import downsample
 from .base import Detections, Refusal, Solution
 from .frames import FrameError, iter_inputs, mask_bad_pixels
 
+#: a detection whose brightest pixel (within 1 px of its centroid) reaches this share of the top of the frame's range
+#: is saturated: its flux is a lower bound (tracking's photometry, fusion.solve.match.track_hypotheses). Clipped, not
+#: merely bright: at 0.8 (fit-camera's cut for its zero point) nearly every bright star of an 8-bit camera counts,
+#: and their fluxes still told stars apart (results/real-frames/saturated)
+SATURATED_SHARE = 0.98
+
+
+def frame_top(img: np.ndarray) -> float:
+    """The top of a frame's range: the least 2^b - 1 (b = 8 to 16) at or above its largest value (the largest value
+    itself beyond 16 bits). Read from the data, not the file type: 12-bit data in a 16-bit file scaled by 16 gets
+    65535, unscaled 4095, an 8-bit JPEG 255."""
+    top = float(np.max(img)) if img.size else 0.0
+    for bits in range(8, 17):
+        if top <= 2**bits - 1:
+            return float(2**bits - 1)
+    return top
+
+
+def saturated_rows(img: np.ndarray, x_px, y_px) -> np.ndarray:
+    """Which detections at (``x_px``, ``y_px``) are saturated: the 3 x 3 px around the centroid's pixel reach
+    ``SATURATED_SHARE`` of :func:`frame_top` (bool per detection)."""
+    x = np.clip(np.rint(np.asarray(x_px, np.float64)).astype(np.int64), 0, img.shape[1] - 1)
+    y = np.clip(np.rint(np.asarray(y_px, np.float64)).astype(np.int64), 0, img.shape[0] - 1)
+    level = SATURATED_SHARE * frame_top(img)
+    out = np.zeros(len(x), bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            yy, xx = np.clip(y + dy, 0, img.shape[0] - 1), np.clip(x + dx, 0, img.shape[1] - 1)
+            out |= img[yy, xx] >= level
+    return out
+
+
 TRACK_ZERO_POINTS = 10  # --track: the hint's zero point is the median of this many last solved frames'
 
 
@@ -297,6 +329,7 @@ class Predictor:
                 "y_px": np.array([p.y for p in c]) + (h - 1) / 2,
                 "flux_adu": np.array([p.brightness or 0.0 for p in c]),
             }
+            table["saturated"] = saturated_rows(img, table["x_px"], table["y_px"])
             sigma = float(res.background_sigma)
             return (
                 self._unshifted(self._unmasked(Detections.from_table(table)), sigma),
@@ -304,6 +337,7 @@ class Predictor:
                 sigma,
             )
         det, bg, sigma = detect(img, d.threshold_sigma, d.min_area_px, keep, self.background_box)
+        det["saturated"] = saturated_rows(img, det["x_px"], det["y_px"])
         return self._unshifted(self._unmasked(Detections.from_table(det)), sigma), bg, sigma
 
     def _unshifted(self, det: Detections, sigma: float) -> Detections:
@@ -313,7 +347,7 @@ class Predictor:
         if not self.camera.has_bright_shift or not len(det):
             return det
         x, y = self.camera.unshift(det.x_px, det.y_px, det.flux_adu, sigma)
-        return Detections(x, y, det.flux_adu)
+        return Detections(x, y, det.flux_adu, det.saturated)
 
     def _unmasked(self, det: Detections) -> Detections:
         """``det`` without the detections of the camera's fixed sources (``mask_fixed_sources``), at most
@@ -374,7 +408,7 @@ class Predictor:
         solve_det, rows = det, None  # rows: the record's row of each detection the prior and the solver get
         if defects is not None:  # the sensor's known defect pixels are no stars (the record keeps every detection)
             rows = np.flatnonzero(~defects.flags(det))
-            solve_det = Detections(det.x_px[rows], det.y_px[rows], det.flux_adu[rows])
+            solve_det = det.take(rows)
             rec["defects_removed"] = len(det) - len(rows)
             if not len(rows):
                 if self.solver is not None:

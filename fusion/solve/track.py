@@ -157,6 +157,7 @@ def track(
     near = np.asarray(bright.tree.query_ball_point(m_hint[:, 2], 2 * math.sin(min(math.pi, reach) / 2)), np.int64)
     flux = np.asarray(detections.flux_adu, np.float64)
     inst = -2.5 * np.log10(np.maximum(flux, 1e-12))
+    sat = np.zeros(n, bool) if detections.saturated is None else np.asarray(detections.saturated, bool)
     phot = bool(np.all(flux > 0))
     cam = np.array(
         [camera.f_px, camera.fy_px, camera.cx_px, camera.cy_px, camera.k1, camera.k2, camera.k3, camera.p1]
@@ -189,7 +190,7 @@ def track(
                 continue
             logw, rot, k, cats = track_hypotheses(
                 tc, i, j, a_rows, b_rows, cand_offs, cand_rows, tier.vec, tier.mag, m_hint, sig, s, tol, sig_c,
-                log_omega, near_vec, near_mag, near_row, cam, inst, phot,
+                log_omega, near_vec, near_mag, near_row, cam, inst, sat, phot,
                 consts, floor,
             )  # fmt: skip
             tried += len(logw)
