@@ -226,6 +226,9 @@ def run(
         row["share_non_catalogue_in_brightest"] = non_cat / len(with_truth_rows) if with_truth_rows else None
         for r in with_truth_rows:  # per frame: how many of its brightest n no all-detection solve matched
             r.setdefault("non_catalogue_in_brightest", {})[str(n)] = sum(i not in r["_matched_rows"] for i in range(n))
+        for r in usable:  # and how many are saturated (Detections.saturated: their flux a lower bound)
+            if r["_det"].saturated is not None:
+                r.setdefault("saturated_in_brightest", {})[str(n)] = int(np.sum(r["_det"].saturated[:n]))
         dets = {}
         for r in usable:  # the brightest n, then (known_defects) the defect pixels' detections dropped
             d = r["_det"].brightest(n)

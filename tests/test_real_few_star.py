@@ -246,3 +246,32 @@ def test_a_file_that_is_no_wcs_is_refused_by_name(tmp_path):
     bad.write_text("SIMPLE  =                    T" + " " * 50 + "END" + " " * 77)
     with pytest.raises(WCSError, match="x.wcs: its WCS has no celestial axes"):
         read_wcs(bad)
+
+
+def test_tracking_with_a_hint_that_misses_counts_wrong_answers_beside_their_probabilities():
+    """benchmarks/real_tracking_offhint.py: hints 6 sigma off each real frame's truth; every answer's probability is
+    summed and every one more than 0.1 deg off counted wrong; a hint inside its own 3-sigma region is refused."""
+    mod = _script("real_tracking_offhint")
+    frames = _script().load_frames([str(f) for f in FRAMES])
+    res = mod.run(
+        frames, ROOT / "configs" / "cameras" / "blackfly-fitted.yaml", n_values=(3,), reps=2, log=lambda s: None
+    )
+    c = res["cells"][3]
+    assert res["frames_kept"] == 2 and c["attempts"] == 4 and 0 <= c["wrong"] <= c["answers"] <= 4
+    assert c["sum_p"] >= sum(c["wrong_p"]) and len(c["wrong_p"]) == c["wrong"]
+    assert "| 3 | 4 |" in mod.markdown(res, "cmd")
+    with pytest.raises(SystemExit, match="off-sigmas"):
+        mod.main([str(FRAMES[0]), "--camera", str(CAMERA), "--off-sigmas", "2", "--out", "x"])
+
+
+def test_fine_trace_prints_each_step_of_one_real_solve(capsys):
+    """benchmarks/fine_trace.py: the decision, both refinement fits, tetra3rs's confirmation and the answer."""
+    mod = _script("fine_trace")
+    mod.main(
+        ["--frame", str(FRAMES[0]), "--camera", str(ROOT / "configs" / "cameras" / "blackfly-fitted.yaml"), "--n", "6"]
+    )
+    out = capsys.readouterr().out
+    assert "decide" in out and "refine  free scale" in out and "refine  own scale" in out
+    assert "confirm tetra3rs" in out and "answer:" in out
+    with pytest.raises(SystemExit, match="--frame"):
+        mod.main(["--n", "6"])

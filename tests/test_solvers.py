@@ -620,7 +620,7 @@ def test_refine_keeps_the_camera_scale_where_a_free_scale_trades_outer_stars(tet
     whose group's centroids sit 0.6 % too close to the centre (a saturated star, a field edge the distortion model
     leaves off): a free scale fits that group at 0.994 and then can never reach the outer stars again; at the
     camera's own scale the same group's rotation brings them in. ``refine`` keeps the fit that matches more (a real
-    26 deg camera: 5 of 8 detections with the scale free, 7 of 8 at its own, results/real-frames/refine-scale)."""
+    26 deg camera: 5 of 8 detections with the scale free, 6 of 8 at its own, results/real-frames/refine-scale)."""
     from scipy.spatial import cKDTree
 
     from fusion.solve.fine import CoarseToFineSolver, _Tier

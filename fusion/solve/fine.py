@@ -969,7 +969,7 @@ class CoarseToFineSolver:
         where they tie): three or four stars whose centroids err by a pixel or two (a saturated star, a field edge
         the distortion model leaves off) can pull a free scale by a few tenths of a percent, far enough to trade
         the outer stars for a chance neighbour near the centre (a real 26 deg camera: 5 of 8 detections with the
-        scale free, 7 of 8 at its own, results/real-frames/refine-scale). A free scale that ends at the edge of its
+        scale free, 6 of 8 at its own, results/real-frames/refine-scale). A free scale that ends at the edge of its
         range is returned as it is: the caller refuses it (frames of another lens), whatever the camera's own scale
         would match (the adversarial 'focal' family: 4 of 4 such answers wrong, 5-7 % off the camera's scale)."""
         free = self._refine(tier, rot, k, u, s, iterations)

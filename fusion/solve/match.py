@@ -491,6 +491,51 @@ def _ndtr(x: float) -> float:
 
 
 @njit(cache=True)
+def _photometry(row, n: int, mag, inst, sat, lower_bounds: bool, mag_sig, log_spread, log_mag_norm, zp0, zp_sig):
+    """Tracking's photometric log weight of one identification (``row``: each detection's matched star, -1 none):
+    the matched stars' catalogue magnitudes against their instrumental ones about a zero point fitted to them,
+    each difference beyond the one the zero point spends worth ``log_spread`` less its Gaussian misfit, and the
+    fitted zero point held to a known one (``zp0``, 1-sigma ``zp_sig``; 0: none).
+
+    ``lower_bounds``: the saturated detections' (``sat``) fluxes read as lower bounds: the zero point from the others
+    (the known one where every matched detection is saturated; -inf where there is none either: no reading), and a
+    saturated one's star may be any amount brighter than its flux says but not fainter, a one-sided test worth
+    log 2 where it holds (a coincidental star passes it about half the time)."""
+    zp = 0.0
+    mu = 0
+    m = 0
+    for k in range(n):
+        if row[k] >= 0:
+            m += 1
+            if not (lower_bounds and sat[k]):
+                zp += mag[row[k]] - inst[k]
+                mu += 1
+    fitted = mu > 0
+    if fitted:
+        zp /= mu
+    elif zp_sig > 0:
+        zp = zp0
+    else:
+        return -np.inf
+    chi2 = 0.0
+    n_low = 0
+    for k in range(n):
+        if row[k] >= 0:
+            dm = mag[row[k]] - inst[k] - zp
+            if lower_bounds and sat[k]:
+                dm = max(dm, 0.0)
+                n_low += 1
+            chi2 += dm * dm
+    out = -0.5 * chi2 / (mag_sig * mag_sig) + max(mu - 1, 0) * log_spread + n_low * math.log(2.0)
+    if zp_sig > 0 and fitted:
+        # the known zero point (earlier frames'): the fitted one's density about it, against the coincidental
+        # spread -- the mu-th magnitude difference, which a fitted zero point spends
+        tau2 = zp_sig * zp_sig + mag_sig * mag_sig / mu
+        out += log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
+    return out
+
+
+@njit(cache=True)
 def track_hypotheses(
     t,
     i: int,
@@ -525,9 +570,8 @@ def track_hypotheses(
     ICRS), 1-sigma ``sig`` (rad); ``s``: the focal-length tolerance; ``tol``: the match tolerance, ``sig_c`` the
     centroid error (rad); ``near_*``: the bright stars around the hint's field (unit vectors, magnitudes, their
     row in the cut); ``cam``: (f, fy, cx, cy, k1, k2, k3, p1, p2, width, height, edge margin) of the camera;
-    ``inst``: the detections' instrumental magnitudes, ``sat`` (n,) which are saturated (where an unsaturated one
-    is matched too, their flux is a lower bound: no part in the zero point, and their star may be any amount
-    brighter than their magnitude says but not fainter: a one-sided term, worth log 2 where it holds);
+    ``inst``: the detections' instrumental magnitudes, ``sat`` (n,) which are saturated (the photometry is then
+    the mixture of two readings, :func:`_photometry`: as measured, and their fluxes as lower bounds);
     ``consts``: (log eps, log(1 - eps), log miss,
     log(1 - miss), magnitude margin, magnitude sigma, log(spread / (sigma sqrt(2 pi))), known zero point (mag),
     its 1-sigma (0: unknown, fitted per hypothesis)); ``floor``: a log weight at or below which a hypothesis is
@@ -647,43 +691,21 @@ def track_hypotheses(
             lw += m * log_1eps + (n - m) * log_eps
             # the photometric terms (added below, after the misses, as always): with the misses' most favourable
             # value (none missed), an upper bound of the final weight
-            phot_a = phot_b = 0.0
+            phot_t = 0.0
             if phot:
-                # the zero point from the matched detections that are not saturated (mu of them) where there are any;
-                # a saturated one then counts only where its star is fainter than its flux says (its flux a lower
-                # bound; one-sided). Where every matched detection is saturated they are compared with
-                # each other and the known zero point as any others (a camera's saturated stars fall short alike)
-                zp = 0.0
-                mu = 0
+                # two readings of the magnitudes (_photometry), where a matched detection is saturated: as measured,
+                # and its flux as a lower bound; neither known to hold for a camera, so their mixture at 1/2 each
+                # (its expectation over coincidental stars is still at most 1)
+                phot_t = _photometry(row, n, mag, inst, sat, False, mag_sig, log_spread, log_mag_norm, zp0, zp_sig)
+                n_sat = 0
                 for k in range(n):
-                    if row[k] >= 0 and not sat[k]:
-                        zp += mag[row[k]] - inst[k]
-                        mu += 1
-                one_sided = mu > 0 and mu < m
-                if mu == 0:
-                    for k in range(n):
-                        if row[k] >= 0:
-                            zp += mag[row[k]] - inst[k]
-                    mu = m
-                zp /= mu
-                chi2 = 0.0
-                n_low = 0  # saturated detections read as lower bounds
-                for k in range(n):
-                    if row[k] >= 0:
-                        dm = mag[row[k]] - inst[k] - zp
-                        if one_sided and sat[k]:
-                            dm = max(dm, 0.0)
-                            n_low += 1
-                        chi2 += dm * dm
-                # a lower bound's evidence: a coincidental star is brighter than the bound about half the time (its
-                # magnitude difference spreads evenly about the zero point), the true one always: log 2
-                phot_a = -0.5 * chi2 / (mag_sig * mag_sig) + (mu - 1) * log_spread + n_low * math.log(2.0)
-                if zp_sig > 0:
-                    # a known zero point (the previous frame's): the fitted one's density about it, against
-                    # the coincidental spread -- the mu-th magnitude difference, which a fitted zero point spends
-                    tau2 = zp_sig * zp_sig + mag_sig * mag_sig / mu
-                    phot_b = log_mag_norm - 0.5 * math.log(2 * math.pi * tau2) - 0.5 * (zp - zp0) ** 2 / tau2
-            if lw + m * log_1miss + phot_a + phot_b < floor - 1e-9:
+                    if row[k] >= 0 and sat[k]:
+                        n_sat += 1
+                if n_sat > 0:
+                    low = _photometry(row, n, mag, inst, sat, True, mag_sig, log_spread, log_mag_norm, zp0, zp_sig)
+                    if low > -np.inf:
+                        phot_t = max(phot_t, low) + math.log(0.5 + 0.5 * math.exp(-abs(phot_t - low)))
+            if lw + m * log_1miss + phot_t < floor - 1e-9:
                 continue  # below the floor whatever it misses: dropped (its row is overwritten by the next)
             faint = -1e30
             for k in range(n):
@@ -714,11 +736,7 @@ def track_hypotheses(
                 px, py = cx + f * xd, cy + fy * yd
                 if px >= -0.5 + edge and px < width - 0.5 - edge and py >= -0.5 + edge and py < height - 0.5 - edge:
                     missed += 1
-            lw += m * log_1miss + missed * log_miss
-            if phot:
-                lw += phot_a
-                if zp_sig > 0:
-                    lw += phot_b
+            lw += m * log_1miss + missed * log_miss + phot_t
             if lw - 30.0 > floor:
                 floor = lw - 30.0
             out_w[h] = lw
