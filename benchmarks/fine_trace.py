@@ -3,8 +3,9 @@
     python benchmarks/fine_trace.py --frame FILE --camera CAMERA.yaml --n 8        # a real frame's brightest N
     python benchmarks/fine_trace.py --adversarial-case 42251                        # one adversarial_calibration case
 
-A real frame's truth is its all-detection tetra3rs solve; an adversarial case's is the attitude it was drawn at
-(``benchmarks/adversarial_calibration.py``, seed 0, its default families and N range). Printed per event:
+A real frame's truth is its all-detection tetra3rs solve, where beyond doubt (``real_few_star.py``'s rule); an
+adversarial case's is the attitude it was drawn at (``benchmarks/adversarial_calibration.py``, seed 0, its default
+families and N range). Printed per event:
 - ``decide``: hypotheses so far, the best score and focal factor, its angle to the truth, the verdict;
 - ``refine``: the free scale's fit and the camera's own (k = 1): matched detections, scale, angle to the truth;
 - ``confirm``: tetra3rs's tracking answer: stars matched, rms (px), how far it turns ours, and the largest offset
@@ -99,7 +100,7 @@ def main(argv=None) -> int:
     if (a.frame is None) == (a.adversarial_case is None) or (a.frame is not None and a.camera is None):
         raise SystemExit("give --frame FILE --camera CAMERA.yaml, or --adversarial-case I")
     if a.frame is not None:
-        from real_few_star import load_frames
+        from real_few_star import all_detection_truth, load_frames
 
         from fusion.solve.predict import Predictor
 
@@ -110,9 +111,9 @@ def main(argv=None) -> int:
         if img is None:
             raise SystemExit(f"{name}: {err}")
         det, _, _ = pred.detect(img)
-        full = ctx.tetra.solve(det, cam)
-        if not isinstance(full, Solution):
-            raise SystemExit(f"{name}: no all-detection solve to take as the truth ({full.reason})")
+        full, why = all_detection_truth(ctx.tetra, det, cam)
+        if why is not None:
+            raise SystemExit(f"{name}: {why}: no truth to trace against")
         truth, d = full.matrix, det.brightest(a.n)
         others = sorted(set(range(a.n)) - set(full.matched[:, 0].tolist()))
         print(f"{name}: brightest {a.n} of {len(det)}; not matched by the truth solve: {others}")

@@ -80,6 +80,20 @@ def load_frames(paths: list[str], max_frames: int | None = None, channel: str = 
     return out
 
 
+def all_detection_truth(tetra, det, cam, max_fpp: float = 1e-20, min_matched: int = 10):
+    """(tetra3rs's solve of every detection, None) where it is beyond doubt (false-positive probability <= ``max_fpp``
+    and >= ``min_matched`` stars), else (that solve or its refusal, why it is no truth): the frames' truth rule."""
+    from fusion.solve.base import Solution
+
+    full = tetra.solve(det, cam)
+    if not isinstance(full, Solution):
+        return full, f"all-detection tetra3rs solve refused: {full.reason}"
+    fpp = float(full.extra.get("false_positive_probability", 1.0))
+    if fpp > max_fpp or full.n_matched < min_matched:
+        return full, f"truth not beyond doubt ({full.n_matched} matched, fpp {fpp:.3g})"
+    return full, None
+
+
 def run(
     frames: list,
     camera: str | Path | None,
@@ -169,14 +183,12 @@ def run(
                 if isinstance(own, Solution) and boresight_error_deg(m_true, own.matrix) <= correct_deg:
                     rec["_m_own"] = own.matrix
         else:
-            full = truth_solver.solve(det, cam)
-            if not isinstance(full, Solution):
-                dropped.append({**rec, "reason": f"all-detection tetra3rs solve refused: {full.reason}"})
-                continue
-            fpp = float(full.extra.get("false_positive_probability", 1.0))
-            rec.update({"truth": "all-detection tetra3rs", "truth_matched": full.n_matched, "truth_fpp": fpp})
-            if fpp > truth_max_fpp or full.n_matched < truth_min_matched:
-                dropped.append({**rec, "reason": f"truth not beyond doubt ({full.n_matched} matched, fpp {fpp:.3g})"})
+            full, why = all_detection_truth(truth_solver, det, cam, truth_max_fpp, truth_min_matched)
+            if isinstance(full, Solution):
+                fpp = float(full.extra.get("false_positive_probability", 1.0))
+                rec.update({"truth": "all-detection tetra3rs", "truth_matched": full.n_matched, "truth_fpp": fpp})
+            if why is not None:
+                dropped.append({**rec, "reason": why})
                 continue
             m_true = full.matrix
             matched_rows = set(full.matched[:, 0].tolist())

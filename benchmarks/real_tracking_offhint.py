@@ -30,6 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def run(
     frames, camera, n_values=(2, 3), off_sigmas=6.0, reps=10, sigma_deg=None, min_matched=10, max_fpp=1e-20, log=print
 ) -> dict:
+    from real_few_star import all_detection_truth
+
     from fusion.solve.base import Solution, rotation_angle_deg
     from fusion.solve.predict import Predictor
     from fusion.solve.registry import build_solver, make_context
@@ -44,9 +46,8 @@ def run(
         if img is None:
             continue
         det, _, _ = pred.detect(img)
-        full = ctx.tetra.solve(det, cam)
-        fpp = float(full.extra.get("false_positive_probability", 1.0)) if isinstance(full, Solution) else 1.0
-        if isinstance(full, Solution) and full.n_matched >= min_matched and fpp <= max_fpp:
+        full, why = all_detection_truth(ctx.tetra, det, cam, max_fpp, min_matched)
+        if why is None:
             kept.append((name, det, full.matrix))
     zps = [solver.solve(d, cam, hint=m, hint_sigma_deg=0.05) for _, d, m in kept]
     zp = [z.extra.get("zero_point") for z in zps if isinstance(z, Solution) and z.extra.get("zero_point") is not None]
