@@ -238,6 +238,16 @@ def run(
         row["share_non_catalogue_in_brightest"] = non_cat / len(with_truth_rows) if with_truth_rows else None
         for r in with_truth_rows:  # per frame: how many of its brightest n no all-detection solve matched
             r.setdefault("non_catalogue_in_brightest", {})[str(n)] = sum(i not in r["_matched_rows"] for i in range(n))
+        for r in with_truth_rows:  # each such detection's distance to the nearest brighter one (px): a fragment of a
+            d = r["_det"]  # bright star's halo lies close to it, an uncatalogued source anywhere
+            gaps = [
+                float(np.min(np.hypot(d.x_px[:i] - d.x_px[i], d.y_px[:i] - d.y_px[i]))) if i else None
+                for i in range(min(n, len(d)))
+                if i not in r["_matched_rows"]
+            ]
+            r.setdefault("non_catalogue_nearest_brighter_px", {})[str(n)] = [
+                None if g is None else round(g, 1) for g in gaps
+            ]
         for r in usable:  # and how many are saturated (Detections.saturated: their flux a lower bound)
             if r["_det"].saturated is not None:
                 r.setdefault("saturated_in_brightest", {})[str(n)] = int(np.sum(r["_det"].saturated[:n]))

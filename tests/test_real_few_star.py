@@ -35,6 +35,10 @@ def test_tetra3rs_solves_two_real_blackfly_frames_from_their_brightest_eight_det
     assert res["frames_kept"] == 2, res["dropped"]
     for f in res["frames"]:
         assert f["truth_matched"] >= 10 and f["truth_fpp"] <= 1e-20
+        # per frame: how many of the brightest 8 are saturated, and how far each unmatched one lies from a brighter one
+        assert 0 <= f["saturated_in_brightest"]["8"] <= 8
+        gaps = f["non_catalogue_nearest_brighter_px"]["8"]
+        assert len(gaps) == f["non_catalogue_in_brightest"]["8"] and all(g is None or g > 0 for g in gaps)
     (cell,) = res["cells"]
     assert cell["n"] == 8 and cell["frames"] == 2
     t = cell["solvers"]["tetra3rs"]
