@@ -347,7 +347,7 @@ class Predictor:
         if not self.camera.has_bright_shift or not len(det):
             return det
         x, y = self.camera.unshift(det.x_px, det.y_px, det.flux_adu, sigma)
-        return Detections(x, y, det.flux_adu, det.saturated)
+        return dataclasses.replace(det, x_px=x, y_px=y)  # everything else the detections carry, as it was
 
     def _unmasked(self, det: Detections) -> Detections:
         """``det`` without the detections of the camera's fixed sources (``mask_fixed_sources``), at most
