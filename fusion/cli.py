@@ -782,7 +782,7 @@ SUBCOMMANDS: dict[str, tuple[str, Callable, Callable]] = {
         _run_experiment,
     ),
     "predict": (
-        "detections, the model's top-k regions and (--solve) a full attitude for PNG/TIFF/FITS/.npy frames",
+        "detections, the model's top-k regions and (--solve) a full attitude for PNG/TIFF/BMP/JPEG/FITS/.npy frames",
         _add_predict,
         _run_predict,
     ),

@@ -282,8 +282,8 @@ def _add_fit_camera(p: argparse.ArgumentParser) -> None:
         "frames",
         nargs="+",
         metavar="FRAME",
-        help="frame files (PNG, TIFF 8/16 bit, FITS, .npy, JPEG (lossy: said); one "
-        "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF/JPEG read as one plane, "
+        help="frame files (PNG, TIFF 8/16 bit, BMP, FITS, .npy, JPEG (lossy: said); one "
+        "full-resolution read-out each, all of one size: monochrome, or RGB/RGBA PNG/TIFF/BMP/JPEG read as one plane, "
         "see --channel) or folders of them",
     )
     add_channel_argument(p)

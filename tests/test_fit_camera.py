@@ -437,9 +437,10 @@ def test_disagreements_name_each_reason():
 
     det = {"x_px": np.zeros(50), "y_px": np.zeros(50), "flux_adu": np.ones(50)}
     fields = {"a": 11.42, "b": 11.43, "c": 11.44, "few": 11.43, "wide": 16.1, "off": 11.42}
+    fields |= {"lens": 11.31, "thin": 11.43}
     frames = [FrameSolution(n, det, np.eye(3), f) for n, f in fields.items()]
     rng = np.random.default_rng(0)
-    n_match = {"a": 40, "b": 40, "c": 40, "few": 3, "wide": 30, "off": 30}
+    n_match = {"a": 40, "b": 40, "c": 40, "few": 3, "wide": 30, "off": 30, "lens": 6, "thin": 4}
     resid = [rng.normal(0, 2.0 if n == "off" else 0.1, (n_match[n], 2)) for n in fields]
     g = SimpleNamespace(
         camera=Camera(1024, 768, 5020.0, 511.5, 383.5),
@@ -447,12 +448,20 @@ def test_disagreements_name_each_reason():
         rms_px=0.2,
         keep=[np.ones(n_match[n], bool) for n in fields],
     )
-    bad = F.disagreements(frames, g)
-    assert set(bad) == {"few", "wide", "off"}
+    assert set(F.disagreements(frames, g)) == {"few", "wide", "off"}
+    # the same field to 1 %, but the fitted camera explains few of the stars the frame's own solution matches (the
+    # cedar-solve frame test2_g100_e50ms: 4 against the others' 6-25); "thin" holds too few for that test (own < 12)
+    own = {"a": 35, "b": 30, "c": 12, "few": 20, "wide": 25, "off": 25, "lens": 19, "thin": 11}
+    bad = F.disagreements(frames, g, own_matched=own)
+    assert set(bad) == {"few", "wide", "off", "lens"}
+    assert bad["lens"] == (
+        "the fitted camera (field 11.65 deg) matches 6 of the 19 catalogue stars its own solution (11.31 deg field) "
+        "matches: a frame of another camera or lens (a different focal length or focus)"
+    )
     assert bad["few"].startswith("only 3 of its 50 detections match catalogue stars under the fitted camera")
     assert bad["wide"].startswith("solved at a 16.10 deg field, the other frames at 11.43 deg (41 % apart)")
     assert "px rms from the fitted camera's projection, over 1.00 px" in bad["off"]
-    assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off"]
+    assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off", "lens", "thin"]
 
 
 def test_frames_of_one_field_that_the_catalogue_barely_covers_are_told_so_not_called_two_cameras():

@@ -57,6 +57,24 @@ def test_a_jpeg_frame_is_read_with_one_line_saying_it_is_lossy(tmp_path):
     assert len(said) == 1 and "JPEG" in said[0] and "lossy" in said[0] and "quality 100" in said[0]
 
 
+def test_a_bmp_frame_is_read_as_stored_grey_or_colour(tmp_path):
+    """BMP (lossless 8 bit, what cedar-detect's own test frames are): grey as stored, colour as one plane."""
+    rng = np.random.default_rng(4)
+    img = np.clip(rng.normal(20, 3, (48, 64)), 0, 255).astype(np.uint8)
+    img[20:23, 30:33] = 200
+    cv2.imwrite(str(tmp_path / "grey.bmp"), img)
+    said = []
+    np.testing.assert_array_equal(read_frame(tmp_path / "grey.bmp", log=said.append), img.astype(np.float32))
+    assert said == []
+    rgb = _rgb()
+    cv2.imwrite(str(tmp_path / "colour.bmp"), np.ascontiguousarray(rgb[:, :, ::-1]))
+    np.testing.assert_array_equal(read_frame(tmp_path / "colour.bmp", "g", log=said.append), rgb[:, :, 1])
+    assert len(said) == 1 and "colour frame (RGB, 8 bit) read as one plane: the G plane" in said[0]
+    (tmp_path / "cut.bmp").write_bytes((tmp_path / "grey.bmp").read_bytes()[:40])
+    with pytest.raises(FrameError, match="not a readable BMP image"):
+        read_frame(tmp_path / "cut.bmp")
+
+
 def test_a_jpeg_s_quality_is_read_from_its_luminance_table(tmp_path):
     """jpeg_luma_quality: the IJG quality a JPEG was written with, from its quantisation table (OpenCV's libjpeg at
     30, 75 and 100), said in the line the reader prints; None for a file that is not a JPEG or is cut short."""

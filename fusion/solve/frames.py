@@ -1,5 +1,5 @@
 """Reading a user's frames for ``fusion predict``: files (:mod:`skygen.real.frames` reads PNG, TIFF 8/16 bit,
-FITS and ``.npy``), folders of them, or a skygen dataset's stored frames.
+BMP, FITS, ``.npy`` and JPEG), folders of them, or a skygen dataset's stored frames.
 
 :func:`iter_inputs` walks the arguments of ``fusion predict``: files, skygen dataset folders (a
 ``manifest.json``) and other folders (their frame files, sorted by name). The file reader itself

@@ -12,7 +12,7 @@ horizontal field is not known, only bounded; tetra3rs lost-in-space searches it 
 database) and every solution reports the field it found (``fov_deg``); the sensor size comes from
 ``--camera`` (whose focal length is then not used) or, without it, from the first frame.
 
-Frames: PNG, TIFF (8 or 16 bit), FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
+Frames: PNG, TIFF (8 or 16 bit), BMP, JPEG, FITS (the first HDU with 2-D data), ``.npy`` (2-D array) files,
 a folder of such files (sorted by name), or a skygen dataset folder (its stored detections and
 images); ``--max-frames N`` takes the first N of each folder. Each frame must be one
 full-resolution sensor read-out of the checkpoint's (or ``--camera``'s) camera, rows = height,

@@ -1,6 +1,6 @@
 """Real frames: reading a user's frames, plate solving them, fitting a camera to them.
 
-* :mod:`~skygen.real.frames` — the one reader of frame files (PNG, TIFF, FITS, ``.npy``);
+* :mod:`~skygen.real.frames` — the one reader of frame files (PNG, TIFF, BMP, FITS, ``.npy``, JPEG);
 * :mod:`~skygen.real.platesolve` — tetra3rs databases (cached) and ideal-pinhole centroids,
   shared with ``fusion.solve.tetra``;
 * ``skygen fit-camera``: :mod:`~skygen.real.fit_camera` (the command's steps),

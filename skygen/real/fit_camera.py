@@ -97,6 +97,14 @@ BOXES = (0, BOX_PX)
 FIELD_TOLERANCE = 0.03
 MIN_MATCHED = 4
 RMS_FACTOR = 3.0
+#: ... or under this share of the catalogue stars its own lost-in-space solution matches (its own field, at the fit's
+#: match radius), where that solution matches at least OWN_MATCHED_FROM: a frame of the same field to a few per cent
+#: but another focal length (the cedar-solve frames: one of six at a 1 % shorter field matched 4 stars under the
+#: fitted camera, the others 6-25, results/real-frames/held-out-cedar)
+OWN_MATCH_SHARE = 1 / 3
+OWN_MATCHED_FROM = 3 * MIN_MATCHED
+#: the joint fit's final match radius (px, :func:`_fit_two_radii`), at which a frame's own solution is matched too
+FIT_RADIUS_PX = 2.5
 #: the report's neighbour correlation of geometry residuals (:func:`neighbour_correlation`): pairs within this many px
 NEIGHBOUR_PX = 200.0
 
@@ -553,8 +561,9 @@ def fit_joint_geometry(solved: list, cam0: Camera, fov_range, sky, fr: Frames, l
     One frame has no other to disagree with: its fit stands. Returns (fit, the frames kept)."""
     own = {fs.name: fs.R for fs in solved}  # each frame's lost-in-space solution
     said: list[str] = []  # the fit's notes, kept back until it stands
+    own_matched = {fs.name: own_match_count(fs, own[fs.name], cam0, sky) for fs in solved}
     g = _fit_two_radii(solved, cam0, fov_range, sky, said.append)
-    bad = disagreements(solved, g) if len(solved) > 1 else {}
+    bad = disagreements(solved, g, own_matched=own_matched) if len(solved) > 1 else {}
     if not bad:
         for m in said:
             log(m)
@@ -670,7 +679,7 @@ def _fit_two_radii(solved: list, cam0: Camera, fov_range, sky, log):
     g = G.fit_geometry(solved, start_cam, sky, 6.0, log=lambda m: None)
     for fs, R in zip(solved, g.rotations):
         fs.R = R
-    return G.fit_geometry(solved, g.camera, sky, 2.5, log=log)
+    return G.fit_geometry(solved, g.camera, sky, FIT_RADIUS_PX, log=log)
 
 
 def majority_field(solved: list, tol: float = FIELD_TOLERANCE) -> list:
@@ -681,12 +690,36 @@ def majority_field(solved: list, tol: float = FIELD_TOLERANCE) -> list:
     return [solved[i] for i in max(support, key=len)]
 
 
-def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE) -> dict:
+def own_match_count(fs, R: np.ndarray, cam0: Camera, sky, radius_px: float = FIT_RADIUS_PX) -> int:
+    """Catalogue stars a frame's own lost-in-space solution (rotation ``R``, its solved field ``fs.fov_deg``, a
+    centred pinhole of ``cam0``'s size and aspect) matches at ``radius_px``: what the frame says of itself, to hold the
+    fitted camera's matches against (:func:`disagreements`)."""
+    from skygen.real import fit_geometry as G
+
+    if not np.isfinite(fs.fov_deg):
+        return 0
+    cam = Camera(
+        cam0.width_px,
+        cam0.height_px,
+        cam0.width_px / 2 / np.tan(np.radians(fs.fov_deg) / 2),
+        (cam0.width_px - 1) / 2,
+        (cam0.height_px - 1) / 2,
+        aspect=cam0.aspect,
+    )
+    probe = G.FrameSolution(fs.name, fs.det, R)
+    G.match_catalogue(probe, cam, sky, radius_px)
+    return len(probe.det_index)
+
+
+def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE, own_matched: dict | None = None) -> dict:
     """{frame name: why} for the solved frames that the fitted camera does not explain: fewer matched
     catalogue stars than a lost-in-space solution needs (:data:`MIN_MATCHED`), a residual rms over
-    :data:`RMS_FACTOR` x the fit's (and over 1 px), or a solved field more than ``tol`` from the field
+    :data:`RMS_FACTOR` x the fit's (and over 1 px), a solved field more than ``tol`` from the field
     the frames it does explain were solved at (tetra3rs's field, comparable frame to frame; the
-    fitted pinhole field differs from it by the distortion)."""
+    fitted pinhole field differs from it by the distortion), or (with ``own_matched``, {name: stars its own
+    solution matches}, :func:`own_match_count`) fewer than :data:`OWN_MATCH_SHARE` of the stars its own solution
+    matches. A wide lens's own pinhole solution matches fewer than the fitted camera, with its distortion, does:
+    that last test never holds a frame to more than it can show."""
     matched = np.array([int(m.sum()) for m in g.keep])
     rms = np.array([np.sqrt(np.mean(np.sum(r**2, 1))) if len(r) else np.inf for r in g.residuals])
     good = matched >= MIN_MATCHED
@@ -710,6 +743,12 @@ def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE) -> dict:
                 f"its {n} matched stars sit {r:.2f} px rms from the fitted camera's projection, over "
                 f"{rms_cut:.2f} px ({RMS_FACTOR:g} x the fit's {g.rms_px:.3f} px): a frame of another "
                 "camera or lens, or a wrong solution"
+            )
+        elif own_matched and (mine := own_matched.get(fs.name, 0)) >= OWN_MATCHED_FROM and n < OWN_MATCH_SHARE * mine:
+            bad[fs.name] = (
+                f"the fitted camera (field {g.camera.fov_deg[0]:.2f} deg) matches {n} of the {mine} catalogue stars "
+                f"its own solution ({fs.fov_deg:.2f} deg field) matches: a frame of another camera or lens (a "
+                "different focal length or focus)"
             )
     return bad
 

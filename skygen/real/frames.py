@@ -1,11 +1,11 @@
-"""Reading a user's frame files: PNG, TIFF (8 or 16 bit), FITS and ``.npy``.
+"""Reading a user's frame files: PNG, TIFF (8 or 16 bit), BMP, FITS, ``.npy`` and JPEG.
 
 :func:`read_frame` returns one monochrome float32 image ``[y, x]`` in the file's own linear
 units, or raises :class:`FrameError` with the reason (unreadable, empty, multi-plane, non-numeric).
-PNG and TIFF are decoded by OpenCV with its log silenced: a damaged file gives our one line,
+PNG, TIFF, BMP and JPEG are decoded by OpenCV with its log silenced: a damaged file gives our one line,
 not libtiff's warnings first.
 
-Colour PNG and TIFF frames (RGB or RGBA, 8 or 16 bit; alpha dropped) become one plane, saying so
+Colour PNG, TIFF, BMP and JPEG frames (RGB or RGBA, 8 or 16 bit; alpha dropped) become one plane, saying so
 in one line (``channel``, :data:`CHANNELS`): ``luminance`` (the default) is the Rec. 709 weighted sum
 0.2126 R + 0.7152 G + 0.0722 B of the values as stored. It keeps the file's range (the weights sum
 to 1, so saturation stays at the top) and leans on green, the plane a Bayer sensor samples twice
@@ -29,7 +29,7 @@ import numpy as np
 
 from skygen.errors import ConfigError, DatasetError
 
-FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".fits", ".fit", ".fts", ".npy", ".jpg", ".jpeg")
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".fits", ".fit", ".fts", ".npy", ".jpg", ".jpeg")
 CHANNELS = ("luminance", "r", "g", "b", "sum")
 LUMINANCE_RGB = (0.2126, 0.7152, 0.0722)  # Rec. 709 (ITU-R BT.709) weights of R, G, B
 #: a monochrome frame is flagged as a raw Bayer mosaic when its four 2 x 2 sub-lattices' background
@@ -55,7 +55,8 @@ def _imread_quiet(path: Path):
 
 
 def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.ndarray:
-    """A 2-D float32 image ``[y, x]`` from PNG/TIFF (8/16 bit), FITS or .npy; FrameError with the reason otherwise.
+    """A 2-D float32 image ``[y, x]`` from PNG/TIFF (8/16 bit), BMP, FITS, .npy or JPEG; FrameError with the reason
+    otherwise.
 
     A colour PNG or TIFF becomes one plane by ``channel`` (:data:`CHANNELS`; see the module doc) and a
     monochrome frame that looks like a raw Bayer mosaic is flagged: each with one line through ``log``
@@ -64,8 +65,8 @@ def read_frame(path: str | Path, channel: str = "luminance", log=None) -> np.nda
     Parameters
     ----------
     path : str or Path
-        ``.png``, ``.tif``/``.tiff``, ``.fits``/``.fit``/``.fts``, ``.npy`` or ``.jpg``/``.jpeg`` (lossy, 8 bit:
-        read with one line saying so): one full-resolution read-out.
+        ``.png``, ``.tif``/``.tiff``, ``.bmp``, ``.fits``/``.fit``/``.fts``, ``.npy`` or ``.jpg``/``.jpeg``
+        (lossy, 8 bit: read with one line saying so): one full-resolution read-out.
     channel : {"luminance", "r", "g", "b", "sum"}
         How a colour file becomes one plane (Rec. 709 luminance by default).
     log : callable, optional
