@@ -767,14 +767,8 @@ class CoarseToFineSolver:
         :meth:`_order_q`'s fields."""
         from scipy.spatial.transform import Rotation
 
-        tier, cam = self.tiers[0], self.tetra.camera
         rots = Rotation.random(ORDER_POINTINGS, random_state=0x0D0E).as_matrix()
-        near = tier.tree.query_ball_point(rots[:, :, 2], 2 * math.sin(1.05 * self.half_diag_rad / 2))
-        fields = []
-        for rot, rows in zip(rots, near):
-            rows = np.asarray(rows, np.int64)
-            x, y, front = cam.project(tier.vec[rows] @ rot)
-            fields.append(np.sort(tier.mag[rows[front & cam.inside(x, y, -ORDER_EDGE_PX)]]))
+        fields = [np.sort(self._field_mags(rot, self.tetra.camera)[1]) for rot in rots]
         out = np.full((len(fields), max(1, max(len(f) for f in fields))), np.inf)
         for i, f in enumerate(fields):
             out[i, : len(f)] = f
