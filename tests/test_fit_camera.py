@@ -464,6 +464,34 @@ def test_disagreements_name_each_reason():
     assert [fs.name for fs in F.majority_field(frames)] == ["a", "b", "c", "few", "off", "lens", "thin"]
 
 
+def test_a_frame_is_held_to_the_stars_its_own_solution_matches():
+    """own_match_count: a frame's stars, projected through a 16 deg camera, matched by its own solution at that
+    field: nearly all; the same detections under a camera 1 % longer in focal length (what the cedar-solve frame
+    of another lens was to its fitted camera) lose the outer ones at the fit's 2.5 px radius."""
+    import dataclasses as dc
+
+    from skygen.instrument.camera import Camera
+    from skygen.real import fit_camera as F
+    from skygen.real.fit_geometry import FrameSolution
+    from skygen.sky.attitude import attitude_matrix
+    from skygen.sky.catalog import SkyIndex, load_catalog
+
+    cam = Camera(1024, 768, 1024 / 2 / np.tan(np.radians(8.0)), 511.5, 383.5)
+    sky = SkyIndex(load_catalog(), 2024.0, 7.0)
+    R = attitude_matrix(83.0, -5.0, 10.0)
+    idx = sky.cone(R[:, 2], cam.corner_radius_rad())
+    x, y, front = cam.project(sky.vectors[idx] @ R)
+    ok = front & cam.inside(x, y)
+    det = {"x_px": x[ok], "y_px": y[ok], "flux_adu": np.ones(ok.sum())}
+    fs = FrameSolution("f", det, R, 16.0)
+    own = F.own_match_count(fs, R, cam, sky)
+    assert own >= 0.95 * ok.sum() and own >= F.OWN_MATCHED_FROM
+    longer = dc.replace(cam, f_px=cam.f_px * 1.01)  # the fitted camera of the other frames
+    fs_longer = FrameSolution("f", det, R, longer.fov_deg[0])
+    assert F.own_match_count(fs_longer, R, longer, sky) < 0.6 * own
+    assert F.own_match_count(FrameSolution("f", det, R), R, cam, sky) == 0  # no field solved: nothing to hold to
+
+
 def test_frames_of_one_field_that_the_catalogue_barely_covers_are_told_so_not_called_two_cameras():
     """A 1.1 deg telescope camera (real: ZWO ASI 290MM, results/real-frames/held-out-asi290mm): tetra3rs solves its
     frames at one field from a few stars, but its catalogue holds 1-4 of each frame's 70 detections, so no frame
