@@ -1254,9 +1254,14 @@ class CoarseToFineSolver:
             elif max(0.0, 1.0 - e_mean) < self.unverified_confidence:  # the bar is on the mean-density E_false
                 # unconfirmed (tetra3rs cannot verify four or five stars on its own denser catalogue): the stars'
                 # brightness order is further evidence where they are their field's brightest. It replaces the
-                # photometric q where stronger (the two read the same magnitudes: not multiplied)
-                q_o = self._order_q(score) if self._order_holds(tier, rot, cam_k, cat_rows) else 1.0
-                if q_o < q:
+                # photometric q where stronger (the two read the same magnitudes: not multiplied). The field is looked
+                # at only where its q could bring E_false under the bar
+                q_o = self._order_q(score)
+                if (
+                    q_o < q
+                    and e_mean * q_o / q <= 1.0 - self.unverified_confidence
+                    and self._order_holds(tier, rot, cam_k, cat_rows)
+                ):
                     scale = q_o / q
                     e_mean, e_false, q = e_mean * scale, e_false * scale, q_o
                     conf = max(0.0, 1.0 - e_false)
