@@ -55,6 +55,8 @@ def main(argv=None) -> int:
     # the frames fit-camera compared: at most CHECK_FRAMES, spread evenly over the solved ones (fit_model_terms)
     pick = spread_evenly(len(solved), CHECK_FRAMES)
     attitudes = [(solved[k]["ra_deg"], solved[k]["dec_deg"], solved[k]["roll_deg"]) for k in pick]
+    if fit.get("check_exposure_scales"):  # frames of several exposures: each rendered at its own, as the fit did
+        attitudes = [(*a, s) for a, s in zip(attitudes, fit["check_exposure_scales"])]
     cfg = build_config(fit["config"])
     sat = float(fit.get("saturation_adu") or 2**cfg.sensor.bit_depth - 1)
     ratios = {k: [] for k in STATS}

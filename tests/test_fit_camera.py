@@ -623,7 +623,9 @@ def test_a_black_level_is_fitted_to_the_depth_the_frames_detect_stars_to():
     assert abs((4.0 - 0.1 * out["adu"]) - 2.5) <= BLACK_TOL_MAG and out["psf"]["at"] == out["adu"]
     assert out["exposure_s"] == 1.0 + out["adu"] and len(seen) <= BLACK_STEPS and seen[0] == 0
     assert "sensor.black_level_adu" in out["note"]
-    assert fit_black_level(measure, 3.8, 255)["adu"] == 0  # within 0.5 mag already: nothing to fit
+    assert fit_black_level(measure, 3.8, 255)["adu"] == 0  # within one 0.25 mag bin already: nothing to fit
+    # 0.45 mag deeper (SPEL's frames against per-frame-exposure renders): a level, not the warning's 0.5 mag cliff
+    assert abs((4.0 - 0.1 * fit_black_level(measure, 3.55, 255)["adu"]) - 3.55) <= BLACK_TOL_MAG
     assert fit_black_level(measure, float("nan"), 255)["adu"] == 0
     assert black_level_gate([{"background_adu": 0.0}, {"background_adu": 0.1}])[0]
     assert not black_level_gate([{"background_adu": 12.0}])[0]
@@ -702,6 +704,28 @@ def test_each_frames_zero_point_and_the_line_for_frames_of_different_exposures()
     assert line.startswith("frames of different exposures or gains: their own zero points span 12.0")
     assert "(f2.jpg) to 13.00 mag (f1.jpg), 1.00 mag" in line and "(x 0.63 to x 1.59 for these frames" in line
     assert exposure_note([12.2, 12.3, float("nan")], 12.25, ["a", "b", "c"]) is None  # within 0.5 mag
+
+
+def test_frames_of_several_exposures_are_rendered_each_at_its_own():
+    """frame_exposure_scales turns each frame's own zero point into its exposure relative to the pooled one (None
+    for frames of one exposure), and _render_stats renders an attitude's fourth entry as that exposure: the same
+    field at a quarter of the exposure has its zero point 1.5 mag brighter and detects fewer stars."""
+    from skygen.config import build_config
+    from skygen.real.fit_render import EXPOSURE_STEP_MAG, _render_stats, frame_exposure_scales
+
+    got = frame_exposure_scales([12.2, 13.0, 12.0, float("nan")], 12.5, 0.5)
+    want = [10 ** (0.4 * d) for d in (-0.3, 0.5, -0.5, 0.0)]  # a frame with no zero point: the camera's
+    assert np.allclose(got, want, rtol=np.log(10) * 0.4 * EXPOSURE_STEP_MAG / 2)
+    assert frame_exposure_scales([12.2, 12.3, float("nan")], 12.25, 0.5) is None  # one exposure
+    assert frame_exposure_scales([12.2, float("nan")], 12.2, 0.5) is None  # one zero point: nothing to compare
+    truth = {**TRUTH, "camera": {**TRUTH["camera"], "pixel_aspect": 1.0, "k1": 0.0}, "seed": 5}
+    truth["corruptions"] = {**TRUTH["corruptions"], "hotpixels": 0.0, "stray_light": 0.0}  # a dark sky
+    cfg = build_config(truth)
+    at = (84.0, -2.0, 30.0)  # Orion: bright stars for both zero points
+    rows = _render_stats(cfg, [at, (*at, 0.25)], None, 65535.0)
+    assert rows[1]["zero_point_mag"] - rows[0]["zero_point_mag"] == pytest.approx(2.5 * np.log10(0.25), abs=0.15)
+    assert rows[1]["catalogue_detections"] < rows[0]["catalogue_detections"] / 2  # 22 against 87 when written
+    assert rows[0]["zero_point_mag"] == _render_stats(cfg, [at], None, 65535.0)[0]["zero_point_mag"]  # scale 1
 
 
 def test_a_start_camera_file_of_any_size_and_the_notes_on_field_and_catalogue(tmp_path):

@@ -257,7 +257,7 @@ def fit_camera(
     known, instead of ``camera`` or ``fov_range``."""
     if black_level is not None and not 0 <= black_level <= 60000:
         raise ConfigError(f"--black-level {black_level}: a level in ADU from 0 (none) to 60000")
-    from skygen.real.fit_render import fit_model_terms
+    from skygen.real.fit_render import fit_model_terms, frame_exposure_scales
     from skygen.runtime import check_output_file, check_output_folder
     from skygen.sky.catalog import SkyIndex, open_catalog
 
@@ -298,6 +298,7 @@ def fit_camera(
         with_start=camera is not None,
         log=log,
         black_level=black_level,
+        exposure_scales=frame_exposure_scales(px["meas"]["frame_zero_points"], px["zp_real"], FRAME_ZP_SPREAD_MAG),
     )
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
     record = _record(
@@ -338,6 +339,7 @@ def fit_camera(
     record["checks"] = model["checks"]
     record["correction"] = model["correction"]
     record["warnings"] = model["warnings"]
+    record["check_exposure_scales"] = model["check_exposure_scales"]
     if model["warnings"]:
         log(
             "fit-camera: WARNING: renders of this camera contradict the frames it was fitted on: "
@@ -830,7 +832,9 @@ def frame_zero_points(stars: dict, n_frames: int) -> list[float]:
 def exposure_note(zps: list[float], pooled: float, names: list[str]) -> str | None:
     """The line saying that the frames' own zero points spread beyond :data:`FRAME_ZP_SPREAD_MAG` (None where
     they do not): the camera renders one exposure, the pooled one; each frame's exposure relative to it is in
-    fit.json (``solved[k].exposure_scale``), which ``benchmarks/sim_vs_real.py --fit-report`` renders with."""
+    fit.json (``solved[k].exposure_scale``), which the renders-vs-real check
+    (:func:`skygen.real.fit_render.frame_exposure_scales`) and ``benchmarks/sim_vs_real.py --fit-report`` render
+    with."""
     z = np.asarray(zps, dtype=np.float64)
     ok = np.isfinite(z)
     if ok.sum() < 2 or not np.isfinite(pooled) or np.ptp(z[ok]) <= FRAME_ZP_SPREAD_MAG:
@@ -842,8 +846,8 @@ def exposure_note(zps: list[float], pooled: float, names: list[str]) -> str | No
         f"{FRAME_ZP_SPREAD_MAG} mag frames of one exposure are taken to span; the camera renders one exposure, the "
         f"pooled zero point's {pooled:.2f} mag (x {10 ** (0.4 * (z[lo] - pooled)):.2f} to "
         f"x {10 ** (0.4 * (z[hi] - pooled)):.2f} "
-        "for these frames: fit.json's exposure_scale per frame; sim_vs_real.py --fit-report renders each frame "
-        "at its own)"
+        "for these frames: fit.json's exposure_scale per frame); the renders-vs-real check renders each frame at "
+        "its own, as sim_vs_real.py --fit-report does"
     )
 
 

@@ -42,9 +42,12 @@ def fit_model_terms(
     with_start: bool,
     log,
     black_level: int | None = None,
+    exposure_scales: list[float] | None = None,
 ) -> dict:
     """Step 6 (module doc). ``px``: :func:`skygen.real.fit_camera.measure_pixels`'s measurements (``meas`` is
-    updated in place by a correction); ``black_level``: the processor's, given (ADU) instead of fitted. Returns the
+    updated in place by a correction); ``black_level``: the processor's, given (ADU) instead of fitted;
+    ``exposure_scales``: each solved frame's exposure relative to the pooled one (:func:`frame_exposure_scales`;
+    None: every frame renders the camera's). Returns the
     config, the exposure, the real and rendered statistics (start camera, fitted camera), the checks, the correction
     made (or None) and the warnings."""
     from skygen.real.fit_fixed import find as find_fixed
@@ -59,7 +62,7 @@ def fit_model_terms(
     # the renders are compared with at most CHECK_FRAMES frames, spread evenly over the solved ones: medians and
     # counts per frame need no more, and renders at every attitude of 100 frames took most of a fit's time
     picked = spread_evenly(len(solved), CHECK_FRAMES)
-    attitudes = [radec_roll(g.rotations[k]) for k in picked]
+    attitudes = [radec_roll(g.rotations[k]) + ((exposure_scales[k],) if exposure_scales else ()) for k in picked]
     sky = SkyIndex(table, epoch_yr, _explaining_depth(cfg0, cam, meas, exposure, pixel_pitch_um, table))
     real_stats = [
         _measure_real(fr.image_of(solved[k].name), meas["settings"], sat, solved[k], g, int(k), sky) for k in picked
@@ -195,6 +198,8 @@ def fit_model_terms(
         "checks": checks,
         "correction": correction,
         "warnings": warnings,
+        # the compared frames' exposures relative to the camera's, as rendered (None: all at the camera's)
+        "check_exposure_scales": [a[3] for a in attitudes] if exposure_scales else None,
     }
 
 
@@ -280,7 +285,8 @@ def fit_black_level(measure, real_half: float, top: int, steps: int = BLACK_STEP
     frames do (``real_half``, :func:`half_detected_mag`'s median over frames). ``measure(b)`` -> (the renders'
     half-detected magnitude, the exposure and the PSF it was measured with); the magnitude falls as ``b`` grows
     (NaN: no catalogue star detected at all, too high). b = 0 is measured first and kept where the renders are not
-    deeper than the frames by more than :data:`HALF_DETECTED_TOL_MAG` (nothing to fit); then levels 1, 2, 4, ...
+    deeper than the frames by more than :data:`HALF_BIN_MAG` (nothing to fit: finer gaps are within the half-detected
+    magnitude's own bins; the frames' background at the floor is what calls for a black level); then levels 1, 2, 4, ...
     until one is too high, then bisection, at most ``steps`` measurements in all, stopping within ``tol``.
     Returns {adu, exposure_s, psf, trace: [[b, mag], ...], note}."""
     out = {"adu": 0, "exposure_s": None, "psf": None, "trace": []}
@@ -290,7 +296,7 @@ def fit_black_level(measure, real_half: float, top: int, steps: int = BLACK_STEP
     m0, e0, p0 = measure(0)
     out["trace"].append([0, m0])
     out["exposure_s"], out["psf"] = e0, p0
-    if not (np.isfinite(m0) and m0 - real_half > HALF_DETECTED_TOL_MAG):
+    if not (np.isfinite(m0) and m0 - real_half > HALF_BIN_MAG):
         out["note"] = (
             f"none: the frames' background sits at the floor, but renders without one detect catalogue stars down "
             f"to {m0:.2f} mag against the frames' {real_half:.2f}"
@@ -1080,8 +1086,9 @@ def explained_by(cam, R: np.ndarray, sky, x: np.ndarray, y: np.ndarray, radius_p
 
 
 def renderer_at(cfg, attitudes, table=None):
-    """A NumPy renderer of ``cfg`` whose frame i is at ``attitudes[i]`` (ra, dec, roll, deg), full-resolution
-    read-outs kept: the fitted camera seen where the real frames were."""
+    """A NumPy renderer of ``cfg`` whose frame i is at ``attitudes[i]`` (ra, dec, roll, deg; a fourth entry, the
+    frame's exposure scale, is :func:`_render_stats`'s), full-resolution read-outs kept: the fitted camera seen where
+    the real frames were."""
     from skygen.config import build_config, config_dict
     from skygen.render.frame import Renderer
 
@@ -1094,19 +1101,49 @@ def renderer_at(cfg, attitudes, table=None):
     return Renderer(build_config(d), catalog=table)
 
 
+def at_exposure(cfg, scale: float):
+    """``cfg`` with ``sensor.exposure_s`` times ``scale`` (``cfg`` itself at 1): a frame taken at another exposure or
+    gain than the camera's pooled one (its stars, sky, dark current and particle hits all scale with it)."""
+    if scale == 1.0:
+        return cfg
+    return dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, exposure_s=cfg.sensor.exposure_s * scale))
+
+
+#: frames of several exposures are rendered each at its own, rounded to this step (mag): one renderer per step
+EXPOSURE_STEP_MAG = 0.05
+
+
+def frame_exposure_scales(zps, pooled: float, spread_mag: float) -> list[float] | None:
+    """Each frame's exposure relative to the camera's pooled one, from its own zero point ``zps[k]`` and the pooled
+    ``pooled`` (mag), rounded to :data:`EXPOSURE_STEP_MAG`; 1 where a frame has no zero point of its own. None where
+    the finite zero points span at most ``spread_mag`` (frames of one exposure: every frame renders the pooled one).
+    A set of 20 ms and 100 ms frames rendered at one exposure compares unlike frames: the short ones' renders
+    detect what the long ones do."""
+    z = np.asarray(zps, dtype=np.float64)
+    ok = np.isfinite(z)
+    if ok.sum() < 2 or not np.isfinite(pooled) or np.ptp(z[ok]) <= spread_mag:
+        return None
+    steps = np.where(ok, np.round((z - pooled) / EXPOSURE_STEP_MAG), 0.0)
+    return [float(10 ** (0.4 * EXPOSURE_STEP_MAG * k)) for k in steps]
+
+
 def _render_stats(cfg, attitudes, table, sat, skip: int = 0) -> list[dict]:
-    """Frames rendered at ``attitudes`` (ra, dec, roll) with ``cfg``, measured like the real ones; the first ``skip``
-    of them not rendered (frame i's noise depends on i and the config alone: :func:`check_stats` adds renders)."""
+    """Frames rendered at ``attitudes`` (ra, dec, roll[, exposure scale]) with ``cfg``, measured like the real ones;
+    the first ``skip`` of them not rendered (frame i's noise depends on i and the config alone: :func:`check_stats`
+    adds renders). An attitude's fourth entry renders that frame at ``cfg``'s exposure times it
+    (:func:`frame_exposure_scales`: frames of several exposures compared each with its own)."""
     from skygen.real.fit_fixed import detected_near
     from skygen.real.fit_fixed import near_any as near_fixed
     from skygen.real.fit_pixels import zero_point
     from skygen.real.frame_stats import frame_stats, nonstar_brightest
 
-    r = renderer_at(cfg, attitudes, table)
-    c = r.cfg
-    det_cfg = c.detection
+    scales = [float(a[3]) if len(a) > 3 else 1.0 for a in attitudes]
+    renderers = {s: renderer_at(at_exposure(cfg, s), attitudes, table) for s in sorted(set(scales[skip:]))}
     rows = []
     for i in range(skip, len(attitudes)):
+        r = renderers[scales[i]]
+        c = r.cfg
+        det_cfg = c.detection
         f = r.render(i)
         img = f.image_full.astype(np.float32)
         st, det = frame_stats(img, det_cfg.threshold_sigma, det_cfg.min_area_px, det_cfg.background_box_px, sat)

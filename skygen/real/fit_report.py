@@ -265,6 +265,12 @@ def markdown(r: dict) -> str:
         "",
         f"{len(r['real_stats'])} frames compared (at most 16, spread evenly over the solved ones)"
         + (
+            f", each rendered at its own exposure (× {min(xs):.2f} to × {max(xs):.2f} the camera's, from its own zero "
+            "point: frames of several exposures or gains)"
+            if (xs := r.get("check_exposure_scales"))
+            else ""
+        )
+        + (
             f", each rendered {passes} times (a ratio's range over the passes in brackets: the renders' own noise)."
             if (passes := len({s.get("render_pass", 0) for s in r.get("fitted_stats") or []})) > 1
             else "."
