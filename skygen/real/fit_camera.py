@@ -835,10 +835,12 @@ def exposure_note(zps: list[float], pooled: float, names: list[str]) -> str | No
     fit.json (``solved[k].exposure_scale``), which the renders-vs-real check
     (:func:`skygen.real.fit_render.frame_exposure_scales`) and ``benchmarks/sim_vs_real.py --fit-report`` render
     with."""
+    from skygen.real.fit_render import frame_exposure_scales
+
+    if frame_exposure_scales(zps, pooled, FRAME_ZP_SPREAD_MAG) is None:  # one exposure: nothing to say
+        return None
     z = np.asarray(zps, dtype=np.float64)
     ok = np.isfinite(z)
-    if ok.sum() < 2 or not np.isfinite(pooled) or np.ptp(z[ok]) <= FRAME_ZP_SPREAD_MAG:
-        return None
     lo, hi = int(np.nanargmin(z)), int(np.nanargmax(z))
     return (
         f"frames of different exposures or gains: their own zero points span {z[lo]:.2f} ({Path(names[lo]).name}) "
