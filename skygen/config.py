@@ -226,6 +226,24 @@ class SensorConfig:
         "stars vanish (processed frames, e.g. a Raspberry Pi's JPEGs); raw read-outs: 0. skygen fit-camera fits it "
         "where the frames' background sits at 0 and they lose faint stars their renders keep",
     )
+    tone_gamma: float = param(
+        1.0,
+        lo=0.1,
+        hi=1.0,
+        doc="a camera processor's tone curve (JPEG and other processed frames): read-outs above the pedestal (bias "
+        "less the black level) by more than sensor.tone_knee_adu are compressed as a power law of this exponent, "
+        "continuous in value and slope with the linear part below the knee, then clipped at the ADC's top; 1: a "
+        "linear sensor (raw read-outs). skygen fit-camera fits it where the frames' stars respond to brightness "
+        "with a lower power than a linear sensor's. NumPy backend",
+    )
+    tone_knee_adu: float = param(
+        0.0,
+        lo=0,
+        hi=60000,
+        doc="ADU above the pedestal where sensor.tone_gamma's power law begins (at least 1 where tone_gamma < 1); "
+        "skygen fit-camera puts it 3 background sigma above the frames' background, so the background is read "
+        "linearly and the stars compressed",
+    )
     fpn_adu: float = param(
         1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel"
     )
@@ -447,6 +465,23 @@ def check_consistency(cfg: RenderConfig) -> None:
     for key in ("bright_shift_px", "bright_shift_x_px", "bright_shift_y_px"):
         if getattr(cam, key) != 0 and r.backend == "torch":
             raise ConfigError(f"camera.{key} needs render.backend=numpy (the torch backend does not draw it)")
+    if cfg.sensor.tone_gamma < 1.0:
+        s = cfg.sensor
+        if s.tone_knee_adu < 1.0:
+            raise ConfigError(
+                f"sensor.tone_knee_adu={s.tone_knee_adu:g} with sensor.tone_gamma={s.tone_gamma:g}: the knee where the "
+                "power law begins must be at least 1 ADU above the pedestal (e.g. the background plus 3 sigma)"
+            )
+        raw = tone_raw_top(s)
+        if raw > TONE_RAW_MAX:
+            raise ConfigError(
+                f"sensor.tone_gamma={s.tone_gamma:g} with sensor.tone_knee_adu={s.tone_knee_adu:g}: the ADC's top "
+                f"({2**s.bit_depth - 1} ADU) is reached only at a read-out of {raw:.3g} ADU before the curve, beyond "
+                f"the {TONE_RAW_MAX} it can hold: raise the knee or the exponent"
+            )
+        if r.backend == "torch":
+            raise ConfigError("sensor.tone_gamma < 1 needs render.backend=numpy (the torch backend renders a linear "
+                              "sensor)")  # fmt: skip
     if cfg.sensor.fixed_sources and r.backend == "torch":
         raise ConfigError("sensor.fixed_sources needs render.backend=numpy (the torch backend does not draw them)")
     for key in ("principal_x_px", "principal_y_px"):
@@ -454,6 +489,23 @@ def check_consistency(cfg: RenderConfig) -> None:
         size = cam.width_px if key == "principal_x_px" else cam.height_px
         if v is not None and not (0 <= v <= size - 1):
             raise ConfigError(f"camera.{key}: {v} must lie on the sensor, 0..{size - 1}")
+
+
+#: the largest read-out (ADU, before a tone curve) a tone-curved sensor may need to reach its ADC's top
+TONE_RAW_MAX = 65535
+
+
+def tone_raw_top(sensor) -> float:
+    """The read-out (ADU before ``sensor.tone_gamma``'s curve, pedestal included) that the curve maps onto the ADC's
+    top: x_k (1 + g (top - p - x_k) / x_k)^(1/g) + p, with p the pedestal (bias less the black level), x_k the knee
+    and g the exponent (:class:`skygen.instrument.sensor.ToneCurve`); the top itself for a linear sensor or a top
+    below the knee."""
+    top = 2**sensor.bit_depth - 1
+    p = max(sensor.bias_adu - sensor.black_level_adu, 0)
+    g, k = sensor.tone_gamma, sensor.tone_knee_adu
+    if g >= 1.0 or k <= 0 or top - p <= k:
+        return float(top)
+    return float(p + k * (1.0 + g * (top - p - k) / k) ** (1.0 / g))
 
 
 def build_config(data: dict | None = None) -> RenderConfig:

@@ -50,7 +50,8 @@ def _write_truth(
     cfg = build_config({**truth, "n_frames": n, "seed": 3, "output": {**TRUTH["output"], "full_res": True}})
     r = Renderer(cfg)
     for i in range(n):
-        cv2.imwrite(str(folder / f"frame{i}.png"), r.render(i).image_full.astype(np.uint16))
+        depth = np.uint8 if cfg.sensor.bit_depth == 8 else np.uint16  # as a camera writes its frames
+        cv2.imwrite(str(folder / f"frame{i}.png"), r.render(i).image_full.astype(depth))
     start = {
         "camera": {**TRUTH["camera"], "fov_deg": 16.0 * 1.01, "k1": 0.0},  # 1 % off, no distortion
         "sensor": {"read_noise_e": 5.0},
@@ -654,6 +655,35 @@ def test_a_black_level_is_recovered_from_frames_rendered_with_one(tmp_path):
     assert 21 <= rec["pixels"]["black_level"]["adu"] <= 37
     half = rec["compare"]["half_detected_mag"]
     assert abs(half["fitted"] - half["real"]) < 0.5 and half["real"] < rec["pixels"]["black_level"]["trace"][0][1] - 2
+    assert rec["compare"]["detections"]["fitted"] == pytest.approx(rec["compare"]["detections"]["real"], rel=0.25)
+
+
+def test_a_tone_curve_is_recovered_from_frames_rendered_through_one(tmp_path):
+    """8-bit frames of a camera whose processor compresses the stars above its background (sensor.tone_gamma 0.45,
+    the knee 3 sigma above the background): fit-camera sees its stars respond to brightness with a far lower power
+    than linear renders, fits the exponent, and its renders respond as the frames do."""
+    import json
+
+    from skygen.config import build_config
+    from skygen.real.fit_render import TONE_KNEE_SIGMA
+    from skygen.render.frame import Renderer
+
+    eight = {"bit_depth": 8, "bias_adu": 8, "gain_e_per_adu": 20.0, "exposure_s": 2.0}
+    flat = {"stray_light": 0.0}
+    r = Renderer(build_config({**TRUTH, "sensor": {**TRUTH["sensor"], **eight}, "n_frames": 1,
+                               "corruptions": {**TRUTH["corruptions"], **flat}}))  # fmt: skip
+    level = r.background_e / eight["gain_e_per_adu"]
+    knee = level + TONE_KNEE_SIGMA * r.noise_e() / eight["gain_e_per_adu"]
+    folder = _write_truth(tmp_path, sensor={**eight, "tone_gamma": 0.45, "tone_knee_adu": knee}, corruptions=flat)
+    out = tmp_path / "fitted.yaml"
+    argv = ["fit-camera", str(folder), "--camera", str(folder / "start.yaml"), "--out", str(out)]
+    assert main([*argv, "--report", str(tmp_path / "rep")]) == 0
+    rec = json.loads((tmp_path / "rep" / "fit.json").read_text())
+    tone, sc = rec["pixels"]["tone"], rec["pixels"]["star_scatter"]
+    assert load_config(out).sensor.tone_gamma == pytest.approx(tone["gamma"]) and tone["gamma"] < 1
+    assert tone["linear_exponent"] - tone["real_exponent"] > 0.2  # linear renders were far off
+    assert abs(sc["flux_exponent_rendered"] - sc["flux_exponent_real"]) < 0.1
+    assert 0.3 <= tone["gamma"] <= 0.6
     assert rec["compare"]["detections"]["fitted"] == pytest.approx(rec["compare"]["detections"]["real"], rel=0.25)
 
 

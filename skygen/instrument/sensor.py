@@ -7,6 +7,9 @@ Per pixel p, over one exposure of t seconds::
     e_p  -> min(e_p, full_well), excess spilled along the column (blooming)
     ADU_p = clip(floor((e_p + n_p) / gain) + bias + fpn_p, 0, 2^bits - 1),  n_p ~ N(0, sigma_read)
 
+A processed camera's tone curve (``sensor.tone_gamma`` < 1, :class:`ToneCurve`) maps each read-out, clipped at the
+read-out that reaches the top instead, through a lookup table onto 0 .. 2^bits - 1.
+
 Static maps (drawn once from ``sensor_seed``): ``prnu_p`` ~ 1 + N(0, prnu_frac); the
 integer fixed-pattern offset ``fpn_p`` = round(N(0, fpn_adu)); hot pixels (a pixel is hot
 when its static uniform rank is below the hot-pixel fraction, so a larger fraction is a
@@ -54,6 +57,58 @@ class SensorMaps:
     dead_index: np.ndarray  # flat indices of dead pixels
     hot_map: np.ndarray  # float32 (H, W): extra dark current, e-/s (0 except hot pixels)
     dead_mask: np.ndarray  # bool (H, W)
+
+
+@dataclass(frozen=True)
+class ToneCurve:
+    """A camera processor's tone curve on whole read-outs (``sensor.tone_gamma``, ``sensor.tone_knee_adu``).
+
+    With x the read-out above the pedestal p (bias less the black level), x_k the knee and g the exponent::
+
+        T(x) = x                                    x <= x_k
+        T(x) = x_k + (x_k / g) ((x / x_k)^g - 1)    x > x_k   (continuous in value and slope at x_k)
+        ADU  = clip(round(p + T(x)), 0, 2^bits - 1)
+
+    Below the knee (the background and its noise) a frame reads as a linear sensor's; above it a star's light
+    grows as its brightness to the power g, as in a JPEG's gamma-encoded frame. ``raw_top``: the read-out the
+    curve maps onto the top (:func:`skygen.config.tone_raw_top`): read-outs are clipped there, not at the top."""
+
+    raw_top: int
+    lut: np.ndarray  # uint16 (raw_top + 1,): ADU of each read-out
+
+    @staticmethod
+    def of(sensor) -> "ToneCurve | None":
+        """The sensor's curve, None for a linear one (tone_gamma 1)."""
+        if sensor.tone_gamma >= 1.0:
+            return None
+        return _tone_curve(
+            float(sensor.tone_gamma),
+            float(sensor.tone_knee_adu),
+            max(int(sensor.bias_adu) - int(sensor.black_level_adu), 0),
+            int(sensor.bit_depth),
+        )
+
+    def apply(self, raw: np.ndarray) -> np.ndarray:
+        """ADU of whole read-outs ``raw`` (any int dtype, within 0 .. raw_top), as uint16."""
+        return self.lut[raw]
+
+
+@lru_cache(maxsize=8)
+def _tone_curve(gamma: float, knee: float, pedestal: int, bits: int) -> ToneCurve:
+    from types import SimpleNamespace
+
+    from skygen.config import tone_raw_top
+
+    top = 2**bits - 1
+    raw_top = int(np.ceil(tone_raw_top(SimpleNamespace(
+        bit_depth=bits, bias_adu=pedestal, black_level_adu=0, tone_gamma=gamma, tone_knee_adu=knee))))  # fmt: skip
+    x = np.arange(raw_top + 1, dtype=np.float64) - pedestal
+    above = x > knee
+    t = x.copy()
+    t[above] = knee + (knee / gamma) * ((x[above] / knee) ** gamma - 1.0)
+    lut = np.clip(np.round(pedestal + t), 0, top).astype(np.uint16)
+    lut.setflags(write=False)
+    return ToneCurve(raw_top, lut)
 
 
 @lru_cache(maxsize=4)
@@ -232,7 +287,8 @@ def read_out(
     """Sample one frame: electrons -> noise -> blooming -> ADC. Returns (uint16 image, info)."""
     h, w = exp.star_e.shape
     sigma = float(np.hypot(sensor.read_noise_e, extra_read_noise_e))
-    max_adu = 2**sensor.bit_depth - 1
+    tone = ToneCurve.of(sensor)
+    max_adu = tone.raw_top if tone is not None else 2**sensor.bit_depth - 1  # read-outs clip here
     t = sensor.exposure_s
     if sensor.sampler == "fast" and exp.background_map_e is None:
         sampler = background_sampler(round(float(exp.background_e), 9), round(sigma, 9), float(sensor.gain_e_per_adu))
@@ -272,6 +328,8 @@ def read_out(
         e += sigma * rng.standard_normal(e.size)
     k = np.floor(e / sensor.gain_e_per_adu).astype(np.int64) + maps.offset_adu.ravel()[idx]
     out.ravel()[idx] = np.clip(k, 0, max_adu)
+    if tone is not None:
+        out = tone.apply(out)
     return out, {"exact_pixels": int(idx.size), "bloomed_columns": bloomed}
 
 

@@ -53,7 +53,10 @@
    that recur at one place from several pointings become ``sensor.fixed_sources`` (:mod:`skygen.real.fit_fixed`:
    a glow on the sensor, rendered in every frame, and no false star). Where the frames' background sits at the
    ADC's floor, a processor's black level (``sensor.black_level_adu``) is fitted to the depth down to which they
-   detect catalogue stars (:func:`skygen.real.fit_render.fit_black_level`), and the centroid scatter the geometry
+   detect catalogue stars (:func:`skygen.real.fit_render.fit_black_level`); where instead their matched stars respond
+   to brightness with a lower power than linear renders' (a JPEG's tone curve), the exponent of a processor's tone
+   curve (``sensor.tone_gamma``, linear up to a knee 3 background sigma above the background) is fitted to that
+   response (:func:`skygen.real.fit_render.fit_tone_curve`); the centroid scatter the geometry
    fit leaves beyond the renders' own becomes ``optics.star_jitter_px`` (:func:`skygen.real.fit_render.star_jitter`).
    Frames are then rendered at the
    fitted attitudes and the exposure corrected once so that the zero point measured on the renders equals
@@ -984,10 +987,15 @@ def _record(
     epoch,
 ) -> dict:
     from skygen.config import config_dict
+    from skygen.real.fit_render import tone_exposure_power
     from skygen.runtime import hardware
 
     per_frame = []
     zps = meas.get("frame_zero_points") or [float("nan")] * len(solved)
+    tone = meas.get("tone", {})  # through a fitted tone curve a zero point moves as the exposure to a power
+    nan = float("nan")
+    power = tone_exposure_power(tone.get("real_exponent", nan), tone.get("linear_exponent", nan))
+    power = power if tone.get("gamma", 1.0) < 1.0 else 1.0
     for fs, r, p, R, zp in zip(solved, g.residuals, g.positions, g.rotations, zps):
         from skygen.real.fit_geometry import radec_roll
 
@@ -1003,7 +1011,7 @@ def _record(
                 "roll_deg": roll,
                 # the frame's own zero point, and its exposure relative to the camera's (the pooled zero point)
                 "zero_point_mag": zp,
-                "exposure_scale": float(10 ** (0.4 * (zp - zp_real))) if np.isfinite(zp - zp_real) else float("nan"),
+                "exposure_scale": float(10 ** (0.4 * (zp - zp_real) * power)) if np.isfinite(zp - zp_real) else nan,
             }
         )
     allr = np.concatenate(g.residuals)

@@ -129,52 +129,120 @@ def fit_model_terms(
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
         render_zp = _render_stats(cfg, attitudes, table, sat)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
-    meas["star_scatter_mag"] = meas["star_scatter"]["fitted_mag"]
-    cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
-    zp_sim = median_of(render_zp, "zero_point_mag")
-    if np.isfinite(zp_sim) and np.isfinite(px["zp_real"]):
-        exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim))
+    linear = (exposure, copy.deepcopy(meas), render_zp, attitudes)  # the fit without a tone curve, to go back to
+    # a processor's tone curve (JPEG and other processed frames): where the frames' stars respond to brightness with a
+    # lower power than the linear renders', the curve's exponent is fitted to it (fit_tone_curve)
+    meas["tone"] = tone_gate(meas["star_scatter"], meas["black_level_adu"])
+    if meas["tone"] is None:
+        v = cfg.optics.vignetting
+        sc = meas["star_scatter"]
+        meas["tone_knee_adu"] = tone_knee(real_stats, meas)
+        # frames of several exposures: their zero points, from which each frame's exposure was taken, moved as the
+        # exposure to the frames' flux exponent (relative to a linear sensor's), not as the exposure itself
+        attitudes = toned_exposures(attitudes, sc["flux_exponent_real"], sc["flux_exponent_rendered"])
+
+        def answer(rows: list) -> float:
+            return _star_scatter(px["stars"], rows, v)["flux_exponent_rendered"] if rows else float("nan")
+
+        def measure_tone(gamma: float) -> tuple:
+            meas["tone_gamma"] = gamma
+            rows, e, p = _refitted(cfg0, cam, meas, exposure, pixel_pitch_um, attitudes, table, sat, px, real_width,
+                                   response=answer)  # fmt: skip
+            return answer(rows), e, p
+
+        meas["tone"] = fit_tone_curve(measure_tone, sc["flux_exponent_real"], sc["flux_exponent_rendered"],
+                                      meas["tone_knee_adu"])  # fmt: skip
+        log(f"fit-camera: {meas['tone']['note']}")
+    meas["tone_gamma"] = meas["tone"]["gamma"]
+    fitted_exposure, fitted_psf = meas["tone"].pop("exposure_s", None), meas["tone"].pop("psf", None)
+    if meas["tone_gamma"] < 1.0:  # its exposure and PSF; the photometric scatter and zero point below from renders
+        exposure, meas["psf"] = fitted_exposure, fitted_psf
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
-    # stars the catalogue lacks (Hipparcos is complete to about V 8; a real frame shows fainter ones): the
-    # detections real frames have beyond the renders' become corruptions.false_stars (point sources at
-    # random places, magnitudes up to the detection limit)
-    cfg, after = _faint_sources(
-        cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, 0.0, faint
-    )
-    after = check_stats(cfg, attitudes, table, sat, after)
-    checks = check_renders(real_stats, after)
-    correction = None
-    if any(not c["ok"] for c in checks):
-        first = (cfg, after, checks, exposure, copy.deepcopy(meas), px["mv"])
-        psf_before = dict(meas["psf"])
-        changed, exposure = correct_once(checks, meas, px, exposure, cfg0.sensor, int(round(sat)))
-        if changed and meas["psf"] != psf_before and np.isfinite(px["zp_real"]):
-            # another PSF puts another share of a star's light above the threshold: the zero point again
-            zp_sim = median_of(_render_stats(build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um), attitudes,
-                                             table, sat), "zero_point_mag")  # fmt: skip
-            if np.isfinite(zp_sim):
-                exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim))
-                changed.append(f"exposure refitted to the zero point ({zp_sim:.2f} -> {px['zp_real']:.2f} mag)")
-        if changed:
-            missed = "; ".join(c["why"] for c in checks if not c["ok"])
-            faint_n = meas["faint_sources_per_frame"]
-            cfg, after = _faint_sources(
-                cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, faint_n, faint
+        render_zp = _render_stats(cfg, attitudes, table, sat)
+        meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
+    else:
+        meas["tone_knee_adu"] = 0.0
+        attitudes = linear[3]
+
+    def finish(exposure: float, render_zp: list, attitudes: list) -> tuple:
+        """The zero point, the faint sources, the check and its one correction: (cfg, after, checks, correction,
+        exposure)."""
+        meas["star_scatter_mag"] = meas["star_scatter"]["fitted_mag"]
+        cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
+        zp_sim = median_of(render_zp, "zero_point_mag")
+        # through a tone curve the stars' detected flux grows as the exposure to the renders' flux exponent, not 1
+        slope = zero_point_response(meas)
+        if np.isfinite(zp_sim) and np.isfinite(px["zp_real"]):
+            exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim) / slope)
+            cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
+        # stars the catalogue lacks (Hipparcos is complete to about V 8; a real frame shows fainter ones): the
+        # detections real frames have beyond the renders' become corruptions.false_stars (point sources at
+        # random places, magnitudes up to the detection limit)
+        cfg, after = _faint_sources(
+            cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, 0.0, faint
+        )
+        after = check_stats(cfg, attitudes, table, sat, after)
+        checks = check_renders(real_stats, after)
+        correction = None
+        if any(not c["ok"] for c in checks):
+            first = (cfg, after, checks, exposure, copy.deepcopy(meas), px["mv"])
+            psf_before = dict(meas["psf"])
+            changed, exposure = correct_once(checks, meas, px, exposure, cfg0.sensor, int(round(sat)))
+            if changed and meas["psf"] != psf_before and np.isfinite(px["zp_real"]):
+                # another PSF puts another share of a star's light above the threshold: the zero point again
+                zp_sim = median_of(_render_stats(build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um), attitudes,
+                                                 table, sat), "zero_point_mag")  # fmt: skip
+                if np.isfinite(zp_sim):
+                    exposure *= 10 ** (0.4 * (px["zp_real"] - zp_sim) / slope)
+                    changed.append(f"exposure refitted to the zero point ({zp_sim:.2f} -> {px['zp_real']:.2f} mag)")
+            if changed:
+                missed = "; ".join(c["why"] for c in checks if not c["ok"])
+                faint_n = meas["faint_sources_per_frame"]
+                cfg, after = _faint_sources(
+                    cfg0, cam, meas, exposure, pixel_pitch_um, real_stats, attitudes, table, sat, faint_n, faint
+                )
+                correction = {"changed": changed, "checks_before": checks, "kept": True}
+                after = check_stats(cfg, attitudes, table, sat, after)
+                checks = check_renders(real_stats, after)
+                correction["checks_after"] = checks  # kept in the record either way: what the correction did
+                if miss(checks) > miss(correction["checks_before"]):  # worse: the first fit stands
+                    cfg, after, checks, exposure, kept_meas, px["mv"] = first
+                    meas.clear()
+                    meas.update(kept_meas)
+                    correction["kept"] = False
+                log(
+                    f"fit-camera: renders of the fitted camera missed the frames ({missed}): corrected once: "
+                    + "; ".join(changed)
+                    + ("" if correction["kept"] else " -- which missed by more, so the first fit stands")
+                )
+        return cfg, after, checks, correction, exposure
+
+    cfg, after, checks, correction, exposure = finish(exposure, render_zp, attitudes)
+    if meas["tone_gamma"] < 1.0 and any(not c["ok"] for c in checks):
+        # a tone curve whose renders still miss: the fit without it, kept where its renders miss by less (a response
+        # below linear that is not the processor's curve, e.g. cedar's frames, whose zero points follow exposure)
+        toned = (cfg, after, checks, correction, exposure, copy.deepcopy(meas), px["mv"], attitudes)
+        exposure, kept, render_zp, attitudes = linear
+        meas.clear()
+        meas.update(copy.deepcopy(kept))
+        meas.update(tone_gamma=1.0, tone_knee_adu=0.0)
+        cfg, after, checks, correction, exposure = finish(exposure, render_zp, attitudes)
+        if miss(checks) < miss(toned[2]):
+            meas["tone"] = {**toned[5]["tone"], "gamma": 1.0, "fitted_gamma": toned[5]["tone_gamma"]}
+            meas["tone"]["note"] = (
+                f"{toned[5]['tone']['note']} -- undone: its renders missed the frames by more than renders without "
+                f"it ({miss(toned[2]):.3f} against {miss(checks):.3f}, the summed log ratios beyond tolerance)"
             )
-            correction = {"changed": changed, "checks_before": checks, "kept": True}
-            after = check_stats(cfg, attitudes, table, sat, after)
-            checks = check_renders(real_stats, after)
-            correction["checks_after"] = checks  # kept in the record either way: what the correction did
-            if miss(checks) > miss(correction["checks_before"]):  # worse: the first fit stands
-                cfg, after, checks, exposure, kept_meas, px["mv"] = first
-                meas.clear()
-                meas.update(kept_meas)
-                correction["kept"] = False
-            log(
-                f"fit-camera: renders of the fitted camera missed the frames ({missed}): corrected once: "
-                + "; ".join(changed)
-                + ("" if correction["kept"] else " -- which missed by more, so the first fit stands")
+        else:
+            without = miss(checks)
+            cfg, after, checks, correction, exposure, kept, px["mv"], attitudes = toned
+            meas.clear()
+            meas.update(kept)
+            meas["tone"]["note"] += (
+                f" -- kept: its renders still miss the frames, but by less than renders without it ({miss(checks):.3f} "
+                f"against {without:.3f}, the summed log ratios beyond tolerance)"
             )
+        log(f"fit-camera: {meas['tone']['note']}")
     warnings = [c["why"] for c in checks if not c["ok"]]
     nonlinear = response_warning(meas["star_scatter"])
     if nonlinear:
@@ -227,8 +295,33 @@ def black_level_gate(real_stats: list[dict]) -> tuple[bool, str]:
 def _at_black_level(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px, real_width: float) -> tuple:
     """(renders' half-detected magnitude, exposure, PSF) of the fitted camera at ``meas["black_level_adu"]``: a black
     level takes light off every star pixel, the wings first, so the frames' zero point and star width (measured
-    after it) are refitted with it: :data:`BLACK_PASSES` renders, the exposure scaled to the zero point and the PSF's
-    width to the star width after each but the last. ``meas["psf"]`` is restored; the PSF fitted is returned."""
+    after it) are refitted with it (:func:`_refitted`)."""
+    from skygen.real.frame_stats import median_of
+
+    rows, exposure, psf = _refitted(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px, real_width)
+    return (median_of(rows, "half_detected_mag") if rows else float("nan")), exposure, psf
+
+
+def zero_point_response(meas: dict) -> float:
+    """How many magnitudes the renders' zero point moves per magnitude of exposure: 1 for a linear sensor; through a
+    tone curve (``meas["tone_gamma"]`` < 1) the renders' flux exponent (clipped to 0.2-2)."""
+    if meas.get("tone_gamma", 1.0) >= 1.0:
+        return 1.0
+    return _clipped_response(meas.get("star_scatter", {}).get("flux_exponent_rendered", float("nan")))
+
+
+def _clipped_response(s: float) -> float:
+    """A flux exponent as the zero point's response to the exposure: clipped to 0.2-2, 1 where not measured."""
+    return float(np.clip(s, 0.2, 2.0)) if np.isfinite(s) else 1.0
+
+
+def _refitted(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px, real_width: float, response=None) -> tuple:
+    """(the last renders' rows, exposure, PSF) of the fitted camera as ``meas`` gives it, with the exposure and the
+    PSF's width refitted to the frames' zero point and star width: :data:`BLACK_PASSES` renders, the exposure scaled
+    to the zero point and the PSF's width to the star width after each but the last. ``response(rows)``: how the
+    renders' zero point answers the exposure (the flux exponent, where a tone curve compresses the stars; None: 1).
+    Rows are [] where the renderer refuses the camera (it detects no star). ``meas["psf"]`` is restored; the PSF
+    fitted is returned."""
     from skygen.real.frame_stats import median_of
 
     psf0 = meas["psf"]
@@ -240,17 +333,113 @@ def _at_black_level(cfg0, cam, meas, exposure, pitch, attitudes, table, sat, px,
             try:
                 rows = _render_stats(build_fitted(cfg0, cam, meas, exposure, pitch), attitudes, table, sat)
             except ConfigError:  # the renderer refuses a camera that detects no star: a level far too high
-                return float("nan"), exposure, psf
+                return [], exposure, psf
             if i == BLACK_PASSES - 1:
                 break
             zp, width = median_of(rows, "zero_point_mag"), median_of(rows, "star_sigma_px")
+            slope = _clipped_response(response(rows)) if response is not None else 1.0
             if np.isfinite(zp) and np.isfinite(px["zp_real"]):
-                exposure *= 10 ** (0.4 * (px["zp_real"] - zp))
+                exposure *= 10 ** (0.4 * (px["zp_real"] - zp) / slope)
             if psf.get("ok") and np.isfinite(width) and width > 0 and np.isfinite(real_width):
                 psf = {**psf, key: float(psf[key] * np.clip(real_width / width, 0.5, 2.0))}
     finally:
         meas["psf"] = psf0
-    return median_of(rows, "half_detected_mag"), exposure, psf
+    return rows, exposure, psf
+
+
+#: a tone curve (``sensor.tone_gamma``) is looked for where the frames' flux exponent is below the linear renders' by
+#: more than the response warning's tolerance (:data:`RESPONSE_EXPONENT_TOL`); its search: at most TONE_STEPS
+#: exponents, each rendered as the black level's are (:func:`_refitted`), stopping within TONE_TOL of the frames'
+TONE_STEPS = 4
+TONE_TOL = 0.03
+TONE_GAMMA_MIN = 0.2
+#: the curve's knee: this many background sigma above the frames' background (the background is read linearly)
+TONE_KNEE_SIGMA = 3.0
+
+
+def tone_gate(scatter: dict, black_level_adu: int) -> dict | None:
+    """None where a tone curve is to be fitted (:func:`fit_tone_curve`), else the record of none and why."""
+    a, b = scatter.get("flux_exponent_real", float("nan")), scatter.get("flux_exponent_rendered", float("nan"))
+    if black_level_adu:
+        why = "none: a black level was fitted (the frames' crushed darks, not a curve, lose their faint stars)"
+    elif not (np.isfinite(a) and np.isfinite(b)):
+        why = "none: the matched stars' response is not measured on both frames and renders"
+    elif a >= b - RESPONSE_EXPONENT_TOL:
+        why = (f"none: the frames' stars respond to brightness as the linear renders' do (flux exponent {a:.2f} "
+               f"against {b:.2f}, tolerance {RESPONSE_EXPONENT_TOL})")  # fmt: skip
+    else:
+        return None
+    return {"gamma": 1.0, "note": f"a processor's tone curve: {why}", "trace": []}
+
+
+def toned_exposures(attitudes: list, real_s: float, linear_s: float) -> list:
+    """``attitudes`` whose fourth entry (a frame's exposure from its zero point, :func:`frame_exposure_scales`) is
+    raised to linear_s / real_s: a frame's zero point moves as its exposure to the power real / linear through the
+    processor's curve that makes the frames' flux exponent ``real_s`` where linear renders give ``linear_s``."""
+    if not attitudes or len(attitudes[0]) < 4:
+        return attitudes
+    k = tone_exposure_power(real_s, linear_s)
+    return [(*a[:3], float(a[3]) ** k) for a in attitudes]
+
+
+def tone_exposure_power(real_s: float, linear_s: float) -> float:
+    """The power that turns a frame's exposure read from its zero point into its exposure through a processor's curve
+    (:func:`toned_exposures`): linear_s / real_s, within 1-5; 1 where either is not measured."""
+    if not (np.isfinite(real_s) and np.isfinite(linear_s) and real_s > 0):
+        return 1.0
+    return float(np.clip(linear_s / real_s, 1.0, 5.0))
+
+
+def tone_knee(real_stats: list[dict], meas: dict) -> float:
+    """The tone curve's knee (ADU above the pedestal, at least 1): :data:`TONE_KNEE_SIGMA` background sigma above the
+    frames' median background, so that the background and its noise are read as a linear sensor's (as fitted) and
+    the stars above it compressed."""
+    from skygen.real.frame_stats import median_of
+
+    pedestal = max(int(round(meas["bias_adu"])) - int(meas.get("black_level_adu", 0)), 0)
+    level, sigma = median_of(real_stats, "background_adu"), median_of(real_stats, "noise_adu")
+    return float(max(level - pedestal + TONE_KNEE_SIGMA * sigma, 1.0))
+
+
+def fit_tone_curve(measure, real_s: float, linear_s: float, knee: float, steps: int = TONE_STEPS,
+                   tol: float = TONE_TOL) -> dict:  # fmt: skip
+    """The tone curve's exponent (``sensor.tone_gamma``) whose renders' matched stars respond to brightness as the
+    frames' do: flux exponent ``real_s`` (:func:`flux_exponent`), ``linear_s`` on renders without a curve.
+    ``measure(g)`` -> (the renders' flux exponent, the exposure and PSF refitted with it). Starts at
+    ``real_s / linear_s`` (a power law on the stars multiplies the exponent), then g x real / rendered, at most
+    ``steps`` renders, stopping within ``tol``; keeps the best, and no curve where none comes nearer than the linear
+    renders. Returns {gamma, knee_adu, exposure_s, psf, trace: [[g, s], ...], note}."""
+    out = {"gamma": 1.0, "knee_adu": knee, "exposure_s": None, "psf": None, "trace": [], "real_exponent": real_s,
+           "linear_exponent": linear_s}  # fmt: skip
+    best = (abs(linear_s - real_s), 1.0, None, None, linear_s)
+    g = float(np.clip(real_s / linear_s, TONE_GAMMA_MIN, 1.0))
+    for _ in range(steps):
+        got, e, p = measure(g)
+        out["trace"].append([g, got])
+        if not np.isfinite(got):
+            break
+        if abs(got - real_s) < best[0]:
+            best = (abs(got - real_s), g, e, p, got)
+        if abs(got - real_s) <= tol:
+            break
+        nxt = float(np.clip(g * real_s / got, TONE_GAMMA_MIN, 1.0))
+        if abs(nxt - g) < 1e-3:
+            break
+        g = nxt
+    gap, g, e, p, got = best
+    out.update(gamma=float(g), exposure_s=e, psf=p)
+    said = (f"the frames' matched stars respond to brightness as the catalogue flux to the power {real_s:.2f}, "
+            f"linear renders {linear_s:.2f}")  # fmt: skip
+    if g >= 1.0:
+        out["note"] = f"a processor's tone curve: none fitted: {said}, and no curve tried came nearer"
+        return out
+    out["note"] = (
+        f"a processor's tone curve: sensor.tone_gamma {g:.3f} above sensor.tone_knee_adu {knee:.1f} ({said}; renders "
+        f"with it {got:.2f}; {len(out['trace'])} exponents tried, the "
+        "exposure and PSF width refitted to the zero point and star width at each; the knee is the frames' "
+        f"background + {TONE_KNEE_SIGMA:g} sigma, not fitted)"
+    )
+    return out
 
 
 #: the frames' centroid scatter is rendered (optics.star_jitter_px) where it exceeds the renders' own by more than
@@ -344,9 +533,9 @@ def response_warning(scatter: dict) -> str | None:
     return (
         f"response not linear: matched stars' detected flux grows as the catalogue flux to the power {a:.2f} on "
         f"the frames, {b:.2f} on renders (tolerance {RESPONSE_EXPONENT_TOL}): a tone curve or black clip of the "
-        "camera's image processor (JPEG or other processed frames)? skygen renders a linear sensor (less a black "
-        "level, where one is fitted), so the renders' faint stars, detections and photometry will not match; raw "
-        "frames (PNG, TIFF, FITS read-outs) fit"
+        "camera's image processor (JPEG or other processed frames) that skygen's (a black level; a power-law tone "
+        "curve above a knee, fitted where the frames respond with the lower power) did not reproduce, so the "
+        "renders' faint stars, detections and photometry will not match; raw frames (PNG, TIFF, FITS read-outs) fit"
     )
 
 
@@ -874,8 +1063,14 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "fpn_adu": float(meas.get("fpn_adu", s.fpn_adu)),
             "bit_depth": int(bits),
             "full_well_e": float(max(s.full_well_e, gain * (2**bits - 1))),
+            "tone_gamma": float(meas.get("tone_gamma", 1.0)),
+            "tone_knee_adu": float(meas.get("tone_knee_adu", 0.0)),
         }
     )
+    if d["sensor"]["tone_gamma"] < 1.0:  # a tone curve: the well holds what reaches the top through it
+        from skygen.config import tone_raw_top
+
+        d["sensor"]["full_well_e"] = float(max(s.full_well_e, gain * tone_raw_top(build_config(d).sensor)))
     fitted_sensor = build_config(d).sensor
     grad_e = meas["gradient_adu"] * gain
     drop_e = meas["corner_drop_adu"] * gain
@@ -1172,11 +1367,13 @@ def _render_stats(cfg, attitudes, table, sat, skip: int = 0) -> list[dict]:
         extra["centroid_sigma_px"] = centroid_scatter(  # the detector's own, against the true places
             det["x_px"][star] - f.stars["x_px"][sidx[star]], det["y_px"][star] - f.stars["y_px"][sidx[star]]
         )
+        # the zero point from catalogue stars, as on the frames: a false star's magnitude is drawn, not catalogued,
+        # and through a tone curve a star's zero point depends on its magnitude (the false stars are the faint ones)
         zp, n = zero_point(
-            det["flux_adu"][ok].astype(float),
-            f.stars["mag"][sidx[ok]].astype(float),
-            det["peak_adu"][ok].astype(float),
-            np.full(int(ok.sum()), st["background_adu"]),
+            det["flux_adu"][star].astype(float),
+            f.stars["mag"][sidx[star]].astype(float),
+            det["peak_adu"][star].astype(float),
+            np.full(int(star.sum()), st["background_adu"]),
             sat,
         )
         unsat = star & (det["peak_adu"] + st["background_adu"] < 0.8 * sat)  # photometric scatter: _star_scatter

@@ -122,6 +122,8 @@ def unsupported_reason(renderer) -> str | None:
         return "camera.bright_shift_px (_x_px, _y_px): the binned renderer draws stars where the camera puts them"
     if getattr(s, "fixed_sources", ()):
         return "sensor.fixed_sources: the binned renderer does not paint light fixed on the sensor"
+    if getattr(s, "tone_gamma", 1.0) < 1.0:
+        return "sensor.tone_gamma: the binned renderer reads out a linear sensor"
     if f == 1:
         return None
     if getattr(cam, "pixel_aspect", 1.0) != 1.0:
