@@ -258,7 +258,11 @@ class SensorConfig:
     temperature_c: float = param(20.0, lo=-273.15, hi=200, doc="sensor temperature, Celsius")
     full_well_e: float = param(13500.0, lo=1, hi=1e7, doc="full-well capacity, e-")
     bit_depth: int = param(12, lo=8, hi=16, doc="ADC bits")
-    blooming: bool = param(True, doc="charge above full well spills along the column")
+    blooming: bool = param(
+        True,
+        doc="charge above full well spills along the column (off: an anti-blooming sensor drains it); skygen "
+        "fit-camera sets it from the shape of the frames' saturated stars",
+    )
     hot_pixel_dark_e_s: float = param(
         20000.0, lo=0, hi=1e9, doc="median dark current of a hot pixel, e-/s (log-normal, 0.5 dex rms)"
     )

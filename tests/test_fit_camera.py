@@ -687,6 +687,26 @@ def test_a_tone_curve_is_recovered_from_frames_rendered_through_one(tmp_path):
     assert rec["compare"]["detections"]["fitted"] == pytest.approx(rec["compare"]["detections"]["real"], rel=0.25)
 
 
+def test_blooming_is_read_from_the_shape_of_the_frames_saturated_stars():
+    """A sensor spilling charge along its columns draws saturated stars as vertical streaks, an anti-blooming one as
+    round blobs: fit_pixels.blooming tells them apart on skygen's own renders of both, and says when it cannot."""
+    from skygen.config import build_config
+    from skygen.real.fit_pixels import BLOOM_MIN_CORES, blooming
+    from skygen.render.frame import Renderer
+
+    def frames(bloom: bool) -> list:
+        cfg = build_config({"sensor": {"exposure_s": 2.0, "blooming": bloom}, "n_frames": 3, "seed": 2,
+                            "output": {"full_res": True}, "corruptions": {"cosmic_rays": 0.0}})  # fmt: skip
+        r = Renderer(cfg)
+        return [r.render(i).image_full for i in range(3)]
+
+    on, off = blooming(frames(True), 4095), blooming(frames(False), 4095)
+    assert on["on"] is True and on["ratio"] > 3 and on["cores"] >= BLOOM_MIN_CORES
+    assert off["on"] is False and off["ratio"] < 1.3
+    few = blooming([np.zeros((64, 64))], 4095)
+    assert few["on"] is None and "kept" in few["note"]
+
+
 def test_the_frames_centroid_scatter_beyond_the_renders_is_drawn():
     """star_jitter: the frames' per-axis centroid scatter beyond the renders' own, in quadrature, where it exceeds
     it by the ratio and the floor; none otherwise."""

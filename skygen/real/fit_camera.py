@@ -30,7 +30,9 @@
    match window, ``camera.match_tol_px`` (1.5 x their 95th percentile, within 1-2 px), and the error they
    share in each frame, ``camera.shared_sigma_px`` (the attitude covariance adds it across the boresight).
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
-   pixels, the photometric zero point. The sensor (:mod:`skygen.real.fit_sensor`): gain, bias and read
+   pixels, whether saturated stars bloom along the columns (``sensor.blooming``, from the shape of their saturated
+   cores: :func:`skygen.real.fit_pixels.blooming`), the photometric zero point. The sensor
+   (:mod:`skygen.real.fit_sensor`): gain, bias and read
    noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
    on too short a lever arm, whose bias would sit above the darkest background, or whose background is
    clipped at the ADC's floor is refused, and gain and background electrons are fitted directly to the
@@ -805,6 +807,7 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
         "bits": fr.bits,
         "psf": psf,
         "hot": hot,
+        "blooming": P.blooming(s_imgs, fr.sat),
         "settings": settings,
         # per axis: the geometry fit's residual over every matched star (its rms is radial, sqrt(dx^2 + dy^2))
         "centroid_sigma_px": float(g.rms_px / np.sqrt(2.0)),

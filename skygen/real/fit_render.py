@@ -1067,6 +1067,8 @@ def build_fitted(cfg0, cam: Camera, meas: dict, exposure: float, pixel_pitch_um=
             "tone_knee_adu": float(meas.get("tone_knee_adu", 0.0)),
         }
     )
+    if meas.get("blooming", {}).get("on") is not None:  # as the frames' saturated stars show (fit_pixels.blooming)
+        d["sensor"]["blooming"] = bool(meas["blooming"]["on"])
     if d["sensor"]["tone_gamma"] < 1.0:  # a tone curve: the well holds what reaches the top through it
         from skygen.config import tone_raw_top
 

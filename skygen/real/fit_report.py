@@ -248,6 +248,7 @@ def markdown(r: dict) -> str:
         ),
         f"- a processor's black level: {px.get('black_level', {}).get('note', 'not looked for')}",
         f"- {px.get('tone', {}).get('note', 'a processor' + chr(39) + 's tone curve: not looked for')}",
+        f"- blooming: {px.get('blooming', {}).get('note', 'not measured')}",
         f"- {px.get('star_jitter', {}).get('note', 'centroid scatter: not measured')}",
         f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
         f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
