@@ -38,6 +38,7 @@ def test_frames_read_the_background_as_a_linear_sensor_and_compress_the_stars():
 
     def render(**tone):
         cfg = build_config({"sensor": {**EIGHT_BIT, **tone}, "n_frames": 1, "seed": 5, "output": {"full_res": True},
+                            "catalog": {"mag_limit": 9.0},  # the same stars (the curve moves the detection limit)
                             "corruptions": {"hotpixels": 0.0, "cosmic_rays": 0.0}})  # fmt: skip
         r = Renderer(cfg)
         f = r.render(0)
@@ -109,3 +110,18 @@ def test_frames_exposures_from_their_zero_points_are_undone_through_the_curve():
     assert out[0][:3] == att[0][:3] and out[0][3] == pytest.approx(0.25) and out[1][3] == pytest.approx(4.0)
     assert toned_exposures([(1.0, 2.0, 3.0)], 0.5, 1.0) == [(1.0, 2.0, 3.0)]  # one exposure: nothing to undo
     assert toned_exposures(att, float("nan"), 1.0) == att
+
+
+def test_the_detection_limit_is_taken_through_the_curve():
+    """The detector's threshold is in the frame's ADU: above the knee a star needs more read-out to reach it, so the
+    limit is brighter than the linear sensor's; with the threshold below the knee, nothing changes."""
+    from skygen.render.frame import Renderer
+
+    def limit(**tone):
+        return Renderer(build_config({"sensor": {**EIGHT_BIT, **tone}, "n_frames": 1})).detection_limit_mag
+
+    lin = limit()
+    assert limit(tone_gamma=0.3, tone_knee_adu=200.0) == pytest.approx(lin)  # threshold far below the knee
+    low = limit(tone_gamma=0.4, tone_knee_adu=3.0)
+    assert low < lin - 0.3  # compressed at the threshold: a brighter star needed
+    assert low < limit(tone_gamma=0.7, tone_knee_adu=3.0) < lin

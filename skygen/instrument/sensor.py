@@ -75,6 +75,9 @@ class ToneCurve:
 
     raw_top: int
     lut: np.ndarray  # uint16 (raw_top + 1,): ADU of each read-out
+    gamma: float = 1.0
+    knee: float = 0.0
+    pedestal: int = 0
 
     @staticmethod
     def of(sensor) -> "ToneCurve | None":
@@ -92,6 +95,20 @@ class ToneCurve:
         """ADU of whole read-outs ``raw`` (any int dtype, within 0 .. raw_top), as uint16."""
         return self.lut[raw]
 
+    def value(self, x: float) -> float:
+        """T(x): ADU above the pedestal of a read-out ``x`` ADU above it, unrounded and unclipped."""
+        k, g = self.knee, self.gamma
+        return float(x if x <= k else k + (k / g) * ((x / k) ** g - 1.0))
+
+    def inverse(self, y: float) -> float:
+        """The read-out above the pedestal that T maps onto ``y`` ADU above it."""
+        k, g = self.knee, self.gamma
+        return float(y if y <= k else k * (1.0 + g * (y - k) / k) ** (1.0 / g))
+
+    def slope(self, x: float) -> float:
+        """dT/dx at ``x``: 1 below the knee, (x / knee)^(gamma - 1) above it."""
+        return float(1.0 if x <= self.knee else (x / self.knee) ** (self.gamma - 1.0))
+
 
 @lru_cache(maxsize=8)
 def _tone_curve(gamma: float, knee: float, pedestal: int, bits: int) -> ToneCurve:
@@ -108,7 +125,7 @@ def _tone_curve(gamma: float, knee: float, pedestal: int, bits: int) -> ToneCurv
     t[above] = knee + (knee / gamma) * ((x[above] / knee) ** gamma - 1.0)
     lut = np.clip(np.round(pedestal + t), 0, top).astype(np.uint16)
     lut.setflags(write=False)
-    return ToneCurve(raw_top, lut)
+    return ToneCurve(raw_top, lut, gamma, knee, pedestal)
 
 
 @lru_cache(maxsize=4)

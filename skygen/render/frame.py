@@ -21,7 +21,7 @@ from skygen.instrument.camera import Camera
 from skygen.instrument.detect import detect, match
 from skygen.instrument.photometry import Photometry, dark_current_e_s, star_gains
 from skygen.instrument.psf import add_patch, gaussian_stamps, peak_fraction, stamp, stamp_radius_px, streak
-from skygen.instrument.sensor import Exposure, read_out, sensor_maps
+from skygen.instrument.sensor import Exposure, ToneCurve, read_out, sensor_maps
 from skygen.sky.attitude import attitude_matrix, matrix_to_quaternion, rotation_about, sample_boresight
 from skygen.sky.catalog import SkyIndex, StarTable, open_catalog, radec_to_vec
 
@@ -233,13 +233,21 @@ class Renderer:
         )
 
     def _detection_limit(self, extra_read_e: float | None = None) -> float:
-        """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold
-        (``extra_read_e``: as :meth:`noise_e`)."""
+        """Hp magnitude of a solar-type star whose centred peak pixel reaches the threshold, in the frame's ADU
+        (through a processor's tone curve, which compresses a peak above its knee, where there is one;
+        ``extra_read_e``: as :meth:`noise_e`)."""
         o, s = self.cfg.optics, self.cfg.sensor
         peak = peak_fraction(o.psf, o.psf_sigma_px, o.moffat_beta, self.camera.aspect)
         # a processor's black level above the background takes that much light off the peak first
         crushed_e = max((s.black_level_adu - s.bias_adu) * s.gain_e_per_adu - self.background_e, 0.0)
-        e_needed = (self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e) + crushed_e) / peak
+        excess_e = self.cfg.detection.threshold_sigma * self.noise_e(extra_read_e)
+        tone = ToneCurve.of(s)
+        if tone is not None:  # the threshold is in the frame's ADU, above the knee compressed: the read-out it needs
+            g = s.gain_e_per_adu
+            x_bg = max(s.bias_adu - s.black_level_adu + self.background_e / g - tone.pedestal, 0.0)
+            y_need = tone.value(x_bg) + tone.slope(x_bg) * excess_e / g
+            excess_e = (tone.inverse(y_need) - x_bg) * g
+        e_needed = (excess_e + crushed_e) / peak
         return self.photometry.magnitude_for_electrons_per_s(e_needed / self.cfg.sensor.exposure_s, 0.65)
 
     def sparse_warning(self) -> str | None:
