@@ -499,17 +499,29 @@ def check_consistency(cfg: RenderConfig) -> None:
 TONE_RAW_MAX = 65535
 
 
+def tone_value(x: float, gamma: float, knee: float) -> float:
+    """A processor's tone curve T(x) (``sensor.tone_gamma``, ``sensor.tone_knee_adu``; x and T in ADU above the
+    pedestal): x up to the knee x_k, x_k + (x_k / g)((x / x_k)^g - 1) beyond it, continuous in value and slope
+    (:class:`skygen.instrument.sensor.ToneCurve` renders it)."""
+    return float(x) if x <= knee else knee + (knee / gamma) * ((x / knee) ** gamma - 1.0)
+
+
+def tone_inverse(y: float, gamma: float, knee: float) -> float:
+    """The read-out above the pedestal that :func:`tone_value` maps onto ``y``: y up to the knee,
+    x_k (1 + g (y - x_k) / x_k)^(1/g) beyond it."""
+    return float(y) if y <= knee else knee * (1.0 + gamma * (y - knee) / knee) ** (1.0 / gamma)
+
+
 def tone_raw_top(sensor) -> float:
     """The read-out (ADU before ``sensor.tone_gamma``'s curve, pedestal included) that the curve maps onto the ADC's
-    top: x_k (1 + g (top - p - x_k) / x_k)^(1/g) + p, with p the pedestal (bias less the black level), x_k the knee
-    and g the exponent (:class:`skygen.instrument.sensor.ToneCurve`); the top itself for a linear sensor or a top
-    below the knee."""
+    top (:func:`tone_inverse` of the top above the pedestal p, bias less the black level); the top itself for a
+    linear sensor or a top below the knee."""
     top = 2**sensor.bit_depth - 1
     p = max(sensor.bias_adu - sensor.black_level_adu, 0)
     g, k = sensor.tone_gamma, sensor.tone_knee_adu
     if g >= 1.0 or k <= 0 or top - p <= k:
         return float(top)
-    return float(p + k * (1.0 + g * (top - p - k) / k) ** (1.0 / g))
+    return float(p + tone_inverse(top - p, g, k))
 
 
 def build_config(data: dict | None = None) -> RenderConfig:

@@ -40,6 +40,7 @@ import numpy as np
 from scipy.special import ndtr
 from scipy.stats import poisson
 
+from skygen.config import tone_inverse, tone_value
 from skygen.instrument.photometry import dark_current_e_s
 
 _AMBIGUOUS = 65535
@@ -97,13 +98,11 @@ class ToneCurve:
 
     def value(self, x: float) -> float:
         """T(x): ADU above the pedestal of a read-out ``x`` ADU above it, unrounded and unclipped."""
-        k, g = self.knee, self.gamma
-        return float(x if x <= k else k + (k / g) * ((x / k) ** g - 1.0))
+        return float(tone_value(x, self.gamma, self.knee))
 
     def inverse(self, y: float) -> float:
         """The read-out above the pedestal that T maps onto ``y`` ADU above it."""
-        k, g = self.knee, self.gamma
-        return float(y if y <= k else k * (1.0 + g * (y - k) / k) ** (1.0 / g))
+        return float(tone_inverse(y, self.gamma, self.knee))
 
     def slope(self, x: float) -> float:
         """dT/dx at ``x``: 1 below the knee, (x / knee)^(gamma - 1) above it."""
@@ -112,18 +111,10 @@ class ToneCurve:
 
 @lru_cache(maxsize=8)
 def _tone_curve(gamma: float, knee: float, pedestal: int, bits: int) -> ToneCurve:
-    from types import SimpleNamespace
-
-    from skygen.config import tone_raw_top
-
     top = 2**bits - 1
-    raw_top = int(np.ceil(tone_raw_top(SimpleNamespace(
-        bit_depth=bits, bias_adu=pedestal, black_level_adu=0, tone_gamma=gamma, tone_knee_adu=knee))))  # fmt: skip
-    x = np.arange(raw_top + 1, dtype=np.float64) - pedestal
-    above = x > knee
-    t = x.copy()
-    t[above] = knee + (knee / gamma) * ((x[above] / knee) ** gamma - 1.0)
-    lut = np.clip(np.round(pedestal + t), 0, top).astype(np.uint16)
+    raw_top = int(np.ceil(pedestal + tone_inverse(top - pedestal, gamma, knee))) if top - pedestal > knee else top
+    t = [tone_value(x - pedestal, gamma, knee) for x in range(raw_top + 1)]  # once per curve (cached)
+    lut = np.clip(np.round(pedestal + np.array(t)), 0, top).astype(np.uint16)
     lut.setflags(write=False)
     return ToneCurve(raw_top, lut, gamma, knee, pedestal)
 
