@@ -60,21 +60,15 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, help="also write the table here (Markdown)")
     a = p.parse_args(argv)
 
-    from skygen.config import build_config
     from skygen.errors import ConfigError
-    from skygen.real.fit_render import renderer_at, spread_evenly
-    from skygen.real.fit_report import read_fit
+    from skygen.real.fit_report import renders_of_fit
     from skygen.real.frames import read_frame
     from skygen.runtime import hardware_line, print_and_write
 
     try:
-        fit = read_fit(a.report)
+        _, scale, rows, renderer = renders_of_fit(a.report, a.n)
     except ConfigError as e:
         p.error(str(e))
-    scale = float(fit.get("value_scale") or 1.0)
-    solved = fit["solved"]
-    rows = [solved[k] for k in spread_evenly(len(solved), a.n)]
-    renderer = renderer_at(build_config(fit["config"]), [(r["ra_deg"], r["dec_deg"], r["roll_deg"]) for r in rows])
     quiet: list = []
     got = {"real": [], "sim": []}
     for i, r in enumerate(rows):

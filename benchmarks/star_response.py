@@ -52,25 +52,17 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, help="also write the table here (Markdown)")
     a = p.parse_args(argv)
 
-    from skygen.config import build_config
     from skygen.errors import ConfigError
     from skygen.instrument.camera import Camera
-    from skygen.real.fit_render import renderer_at, spread_evenly
-    from skygen.real.fit_report import read_fit
+    from skygen.real.fit_report import renders_of_fit
     from skygen.real.frames import read_frame
     from skygen.runtime import hardware_line, print_and_write
     from skygen.sky.attitude import attitude_matrix
 
-    try:
-        fit = read_fit(a.report)
+    try:  # scale: the frames' values over the ADU they carry (12-bit data x 16)
+        _, scale, rows, renderer = renders_of_fit(a.report, a.n)
     except ConfigError as e:
         p.error(str(e))
-    scale = float(fit.get("value_scale") or 1.0)  # the frames' values over the ADU they carry (12-bit data x 16)
-    solved = fit["solved"]
-    pick = spread_evenly(len(solved), a.n)
-    rows = [solved[k] for k in pick]
-    attitudes = [(r["ra_deg"], r["dec_deg"], r["roll_deg"]) for r in rows]
-    renderer = renderer_at(build_config(fit["config"]), attitudes)
     cam = Camera.from_config(renderer.cfg.camera)
     sky = renderer.sky
     mags_all = np.asarray(sky.table.mag, dtype=np.float64)

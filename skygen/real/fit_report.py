@@ -30,6 +30,20 @@ def read_fit(folder, option: str = "--report") -> dict:
     return fit
 
 
+def renders_of_fit(folder, n: int, option: str = "--report") -> tuple:
+    """(fit record, value scale, rows, renderer): :func:`read_fit`'s record, the frames' value scale (12-bit data
+    stored x 16: 16), up to ``n`` of its solved frames spread evenly and a renderer of the fitted camera whose frame i
+    is at rows[i]'s attitude (the benchmarks that compare a fit's frames with its renders)."""
+    from skygen.config import build_config
+    from skygen.real.fit_render import renderer_at, spread_evenly
+
+    fit = read_fit(folder, option)
+    solved = fit["solved"]
+    rows = [solved[k] for k in spread_evenly(len(solved), n)]
+    renderer = renderer_at(build_config(fit["config"]), [(r["ra_deg"], r["dec_deg"], r["roll_deg"]) for r in rows])
+    return fit, float(fit.get("value_scale") or 1.0), rows, renderer
+
+
 def write_camera_yaml(path, cfg, record: dict, command: str) -> None:
     """The fitted camera as a camera file (checked by loading it back)."""
     import yaml
