@@ -129,7 +129,7 @@ def fit_model_terms(
         cfg = build_fitted(cfg0, cam, meas, exposure, pixel_pitch_um)
         render_zp = _render_stats(cfg, attitudes, table, sat)
     meas["star_scatter"] = _star_scatter(px["stars"], render_zp, cfg.optics.vignetting)
-    linear = (exposure, copy.deepcopy(meas), render_zp, attitudes)  # the fit without a tone curve, to go back to
+    linear = (exposure, copy.deepcopy(meas), render_zp, attitudes, px["mv"])  # the fit without a tone curve
     # a processor's tone curve (JPEG and other processed frames): where the frames' stars respond to brightness with a
     # lower power than the linear renders', the curve's exponent is fitted to it (fit_tone_curve)
     meas["tone"] = tone_gate(meas["star_scatter"], meas["black_level_adu"])
@@ -222,7 +222,7 @@ def fit_model_terms(
         # a tone curve whose renders still miss: the fit without it, kept where its renders miss by less (a response
         # below linear that is not the processor's curve, e.g. cedar's frames, whose zero points follow exposure)
         toned = (cfg, after, checks, correction, exposure, copy.deepcopy(meas), px["mv"], attitudes)
-        exposure, kept, render_zp, attitudes = linear
+        exposure, kept, render_zp, attitudes, px["mv"] = linear  # (the curve's correction, if any, is not this fit's)
         meas.clear()
         meas.update(copy.deepcopy(kept))
         meas.update(tone_gamma=1.0, tone_knee_adu=0.0)
