@@ -5,7 +5,7 @@
 ``FIT_REPORT_DIR`` is what ``skygen fit-camera ... --report DIR`` wrote (``fit.json``); ``FRAMES`` the folder it was
 fitted on. For up to ``--max-frames`` solved frames (spread evenly) the fitted camera renders the same attitude, and
 on both images the background's noise is isolated: a 31 px box mean is taken off, and pixels within 3 px of any
-pixel more than 4 robust sigma from it (stars, hot pixels) are left out. The table gives the correlation of each
+pixel more than 3 robust sigma from it (stars, hot pixels) are left out. The table gives the correlation of each
 remaining pixel with its right-hand and its lower neighbour, and the robust sigma. skygen draws independent noise
 per pixel (correlation ~0, less the box mean's own small share); a demosaiced colour sensor, a JPEG's compression or
 a denoiser correlate neighbours, which widens noise blobs (more, larger false detections; wider faint stars by
@@ -24,33 +24,6 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
-BOX_PX = 31
-CLIP_SIGMA = 4.0
-GROW_PX = 3
-
-
-def neighbour_correlation(img: np.ndarray) -> tuple[float, float, float]:
-    """(correlation with the right-hand neighbour, with the lower one, robust sigma) of ``img``'s background noise."""
-    import cv2
-
-    f = img.astype(np.float64)
-    res = f - cv2.blur(f, (BOX_PX, BOX_PX), borderType=cv2.BORDER_REFLECT)
-    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
-    if sigma <= 0:
-        sigma = float(res.std()) or 1.0
-    bad = (np.abs(res) > CLIP_SIGMA * sigma).astype(np.uint8)
-    bad = cv2.dilate(bad, np.ones((2 * GROW_PX + 1, 2 * GROW_PX + 1), np.uint8)).astype(bool)
-    good = ~bad
-
-    def corr(a, b, ok):
-        a, b = a[ok], b[ok]
-        a, b = a - a.mean(), b - b.mean()
-        return float((a * b).mean() / np.sqrt((a * a).mean() * (b * b).mean()))
-
-    rx = corr(res[:, :-1], res[:, 1:], good[:, :-1] & good[:, 1:])
-    ry = corr(res[:-1, :], res[1:, :], good[:-1, :] & good[1:, :])
-    return rx, ry, sigma
-
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -62,6 +35,7 @@ def main(argv=None) -> int:
 
     from skygen.errors import ConfigError
     from skygen.real.fit_report import renders_of_fit
+    from skygen.real.frame_stats import neighbour_correlation
     from skygen.real.frames import read_frame
     from skygen.runtime import hardware_line, print_and_write
 

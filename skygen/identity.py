@@ -58,6 +58,7 @@ NEUTRAL_DEFAULTS = {
     "sensor.black_level_adu": 0,
     "sensor.tone_gamma": 1.0,
     "sensor.tone_knee_adu": 0.0,
+    "sensor.processor_blur_px": 0.0,
     "optics.star_jitter_px": 0.0,
     "camera.bright_shift_px": 0.0,
     "camera.match_tol_px": None,

@@ -842,3 +842,29 @@ def test_an_undone_correction_says_what_its_renders_gave():
     assert text.endswith("The corrected renders gave: background σ 0.978 x ✓; detections / frame 0.668 x ✗.")
     assert "corrected renders" not in "\n".join(correction_lines({**corr, "kept": True}))
     assert correction_lines(None) == []
+
+
+def test_a_processors_blur_is_measured_and_with_the_option_rendered(tmp_path):
+    """Frames whose read-out a processor blurred (sensor.processor_blur_px 0.7: neighbours' noise correlates 0.58):
+    fit-camera reports the blur from the noise's neighbour correlation either way; with --processor-blur on the camera
+    renders it, its read-out's noise fitted as before the blur, so that the renders' noise is the frames'. (Blurred
+    white noise on a dark sky makes many multi-pixel noise detections, so only some of these frames solve.)"""
+    import json
+
+    from skygen.instrument.sensor import blur_width_variance
+
+    folder = _write_truth(tmp_path, sensor={"processor_blur_px": 0.7}, corruptions={"stray_light": 0.0})
+    argv = ["fit-camera", str(folder), "--camera", str(folder / "start.yaml")]
+    assert main([*argv, "--processor-blur", "off", "--out", str(tmp_path / "plain.yaml"), "--report",
+                 str(tmp_path / "plain")]) == 0  # fmt: skip
+    plain = json.loads((tmp_path / "plain" / "fit.json").read_text())["pixels"]["processor_blur"]
+    assert plain["px"] == pytest.approx(0.7, abs=0.07)
+    assert load_config(tmp_path / "plain.yaml").sensor.processor_blur_px == 0
+    on = ["--processor-blur", "on", "--out", str(tmp_path / "blur.yaml"), "--report", str(tmp_path / "b")]
+    assert main([*argv, *on]) == 0
+    fit = load_config(tmp_path / "blur.yaml")
+    assert fit.sensor.processor_blur_px == pytest.approx(0.7, abs=0.07)
+    rec = json.loads((tmp_path / "b" / "fit.json").read_text())
+    removed = np.sqrt(blur_width_variance(fit.sensor.processor_blur_px))
+    assert rec["pixels"]["psf"]["blur_removed_px"] == pytest.approx(removed)
+    assert rec["compare"]["noise_adu"]["fitted"] == pytest.approx(rec["compare"]["noise_adu"]["real"], rel=0.15)

@@ -202,7 +202,7 @@ def test_the_check_says_how_much_of_a_ratio_is_the_renders_own_noise():
 def test_renders_whose_stars_miss_the_width_take_the_other_fitted_profile_where_its_wings_fit():
     """correct_once on a star width that is off: the Moffat fitted to the same stars where a Gaussian's renders are
     too narrow and the Moffat has wings (beta < WING_BETA), the Gaussian where a Moffat's renders are too wide;
-    otherwise (a Moffat no wider than a Gaussian) the width is scaled, as before."""
+    otherwise (a Moffat no wider than a Gaussian) the PSF's width moves by the difference in quadrature."""
     from skygen.real.fit_render import correct_once
 
     def off(ratio):
@@ -221,8 +221,13 @@ def test_renders_whose_stars_miss_the_width_take_the_other_fitted_profile_where_
     narrow_wings = {**fitted, "moffat_beta": 5.8, "psf": "gaussian"}  # openstartracker's: no wing to gain
     meas = {"psf": dict(narrow_wings)}
     changed, _ = correct_once(off(0.8), meas, {}, 1.0, None, 255)
-    assert meas["psf"]["psf"] == "gaussian" and meas["psf"]["gaussian_sigma_px"] == pytest.approx(1.8 / 0.8)
-    assert changed == ["PSF σ 2.250 px (scaled by 1.250)"]
+    # widths add in quadrature: the PSF takes the frames' width less the renders' (2.0 real, 1.6 rendered)
+    want = np.sqrt(1.8**2 + 2.0**2 - 1.6**2)
+    assert meas["psf"]["psf"] == "gaussian" and meas["psf"]["gaussian_sigma_px"] == pytest.approx(want)
+    assert changed == [f"PSF σ {want:.3f} px (the frames' star width less the renders' in quadrature)"]
+    meas = {"psf": dict(narrow_wings)}  # far too wide: the quadrature would leave less than half the PSF, so scaled
+    correct_once(off(1.6), meas, {}, 1.0, None, 255)
+    assert meas["psf"]["gaussian_sigma_px"] == pytest.approx(1.8 / 1.6)
 
 
 # ------------------------------------------------------------------------------ end to end

@@ -31,7 +31,11 @@
    share in each frame, ``camera.shared_sigma_px`` (the attitude covariance adds it across the boresight).
 4. Pixels (:mod:`skygen.real.fit_pixels`): background level and gradient, PSF (Gaussian or Moffat), hot
    pixels, whether saturated stars bloom along the columns (``sensor.blooming``, from the shape of their saturated
-   cores: :func:`skygen.real.fit_pixels.blooming`), the photometric zero point. The sensor
+   cores: :func:`skygen.real.fit_pixels.blooming`), the background noise's neighbour correlation and the
+   ``sensor.processor_blur_px`` it implies (:func:`skygen.real.fit_pixels.processor_blur`; rendered, the sensor
+   and PSF fitted as the read-out was before it, where ``--processor-blur auto`` finds its renders miss the frames by
+   less than renders without it, steps 4-6 done both ways: :func:`_with_or_without_blur`),
+   the photometric zero point. The sensor
    (:mod:`skygen.real.fit_sensor`): gain, bias and read
    noise from the background's mean-variance line where the frames constrain them; a line whose gain rests
    on too short a lever arm, whose bias would sit above the darkest background, or whose background is
@@ -67,7 +71,8 @@
    renders' background, its noise, the
    star width and the detections per frame are checked against the frames
    (:data:`skygen.real.frame_stats.TOLERANCES`: 10, 15, 10, 25 %); a statistic that is off is corrected
-   once where a term fits it directly, and what is still off is a WARNING on the terminal, at the top of
+   where a term fits it directly (at most twice, each kept only where its renders miss by less), and what is still
+   off is a WARNING on the terminal, at the top of
    the report and in the camera file's header. Two more comparisons say why detections can be off: the
    magnitude down to which half the catalogue stars on the sensor are detected
    (:func:`skygen.real.fit_render.half_detected_mag`; frames more than 0.5 mag shallower than their renders:
@@ -254,12 +259,18 @@ def fit_camera(
     channel: str = "luminance",
     catalog: str | None = None,
     black_level: int | None = None,
+    processor_blur: str = "auto",
 ) -> dict:
     """Fit a camera to ``paths`` (see the module doc); writes ``out`` and the report; returns the fit record.
 
     ``channel``: how colour frames become one plane (:data:`skygen.real.frames.CHANNELS`). ``black_level``: the
-    processor's black level given (ADU; 0: none) instead of fitted. ``fov_deg``: the horizontal field where it is
+    processor's black level given (ADU; 0: none) instead of fitted. ``processor_blur``: whether the camera renders the
+    processor's blur the frames' noise correlation implies (``sensor.processor_blur_px``): ``on``, ``off`` (reported
+    only) or ``auto`` (:func:`_with_or_without_blur`: both fitted where a blur is measured, the one whose renders miss
+    the frames by less kept). ``fov_deg``: the horizontal field where it is
     known, instead of ``camera`` or ``fov_range``."""
+    if processor_blur not in BLUR_MODES:
+        raise ConfigError(f"--processor-blur {processor_blur!r}: one of {', '.join(BLUR_MODES)}")
     if black_level is not None and not 0 <= black_level <= 60000:
         raise ConfigError(f"--black-level {black_level}: a level in ADU from 0 (none) to 60000")
     from skygen.real.fit_render import fit_model_terms, frame_exposure_scales
@@ -290,21 +301,29 @@ def fit_camera(
     g, solved = fit_joint_geometry(solved, cam0, fov_range, sky, fr, log)
     g, shift = fit_shift_step(g, solved, cam0, fov_range, sky, fr, log)
     t_geom = time.perf_counter() - t0
-    px = measure_pixels(fr, solved, g, cfg0, sky, log, camera_file=camera is not None)
-    model = fit_model_terms(
-        cfg0,
-        g,
-        px,
-        solved,
-        fr,
-        table,
-        epoch,
-        pixel_pitch_um,
-        with_start=camera is not None,
-        log=log,
-        black_level=black_level,
-        exposure_scales=frame_exposure_scales(px["meas"]["frame_zero_points"], px["zp_real"], FRAME_ZP_SPREAD_MAG),
-    )
+
+    def pixels_and_terms(blur: bool, say) -> tuple:
+        px = measure_pixels(fr, solved, g, cfg0, sky, say, camera_file=camera is not None, processor_blur=blur)
+        model = fit_model_terms(
+            cfg0,
+            g,
+            px,
+            solved,
+            fr,
+            table,
+            epoch,
+            pixel_pitch_um,
+            with_start=camera is not None,
+            log=say,
+            black_level=black_level,
+            exposure_scales=frame_exposure_scales(px["meas"]["frame_zero_points"], px["zp_real"], FRAME_ZP_SPREAD_MAG),
+        )
+        return px, model
+
+    if processor_blur != "auto":
+        px, model = pixels_and_terms(processor_blur == "on", log)
+    else:
+        px, model = _with_or_without_blur(pixels_and_terms, log)
     timing = {"solve_s": t_solve, "geometry_s": t_geom, "total_s": time.perf_counter() - t0}
     record = _record(
         fr.names,
@@ -760,7 +779,51 @@ def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE, own_matched: di
     return bad
 
 
-def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: bool = False) -> dict:
+#: fit-camera --processor-blur: ``auto`` fits the camera with and without the blur where one is measured and keeps the
+#: one whose renders miss the frames by less (on the processed cameras of results/real-frames/processor-blur it
+#: helped three and hurt two)
+BLUR_MODES = ("auto", "on", "off")
+
+
+def check_score(checks: list) -> tuple[float, float]:
+    """How far renders miss their frames, to compare two fits: (the summed log ratio beyond tolerance,
+    :func:`skygen.real.fit_render.miss`; the summed absolute log ratio, which breaks a tie of fits that both pass)."""
+    from skygen.real.fit_render import miss
+
+    spread = sum(abs(np.log(c["ratio"])) if np.isfinite(c["ratio"]) and c["ratio"] > 0 else np.inf for c in checks)
+    return miss(checks), float(spread)
+
+
+def _with_or_without_blur(pixels_and_terms, log) -> tuple:
+    """``--processor-blur auto``: the pixels and model terms fitted without the processor's blur and, where the frames'
+    noise correlation implies one, with it (:func:`skygen.real.fit_pixels.processor_blur`); the fit whose renders
+    miss the frames by less (:func:`check_score`) is kept and its messages printed, with one line on the choice."""
+    said: list[str] = []
+    px, model = pixels_and_terms(False, said.append)
+    blur = px["meas"]["processor_blur"]
+    if not blur["px"] > 0:
+        for line in said:
+            log(line)
+        return px, model
+    said_blur: list[str] = []
+    px_b, model_b = pixels_and_terms(True, said_blur.append)
+    without, with_ = check_score(model["checks"]), check_score(model_b["checks"])
+    keep = with_ < without
+    scores = (f"renders miss the frames by {with_[0]:.3f} with it and {without[0]:.3f} without (summed log ratios "
+              f"beyond tolerance; all ratios {with_[1]:.3f} and {without[1]:.3f})")  # fmt: skip
+    for line in said_blur if keep else said:
+        log(line)
+    chosen_px, chosen = (px_b, model_b) if keep else (px, model)
+    b = chosen_px["meas"]["processor_blur"]
+    b["auto"] = {"kept": bool(keep), "with": list(with_), "without": list(without)}
+    b["note"] += f" -- --processor-blur auto: {'kept' if keep else 'not kept'}, its {scores}"
+    log(f"fit-camera: a processor's blur of {blur['px']:.2f} px {'kept' if keep else 'tried and not kept'}: {scores}")
+    return chosen_px, chosen
+
+
+def measure_pixels(
+    fr: Frames, solved: list, g, cfg0, sky, log, camera_file: bool = False, processor_blur: bool = False
+) -> dict:
     """Step 4 and 5: the sensor (:func:`skygen.real.fit_sensor.fit_sensor`: the mean-variance line where the
     frames constrain it, else a direct fit of the background's level and noise, saying so), PSF, hot pixels,
     the real zero point and the detector settings, on the frames of the fitted camera (frames of another
@@ -778,13 +841,27 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
         [b["sigma_map"] for b in bgs],
         cfg0.sensor.prnu_frac,
     )
+    # a processor's blur (neighbouring pixels' noise correlated): measured and reported; rendered with --processor-blur,
+    # the sensor and PSF then fitted as they were before it
+    blur = P.processor_blur([fr.image_of(n) for n in own], float(np.median(boxes["sigma"])))
+    blur_px = blur["px"] if processor_blur else 0.0
+    fpn = pattern["fpn_adu"]
+    if blur_px > 0:
+        blur["note"] = blur["note"].split(": a processor's blur")[0] + (
+            f": rendered as a processor's blur, sensor.processor_blur_px {blur_px:.2f}; the "
+            f"read-out's noise before it {1 / np.sqrt(blur['variance_factor']):.2f} x the frames', its PSF narrower in "
+            "quadrature"
+        )
+        log(f"fit-camera: {blur['note']}")
+        boxes = P.unblurred_boxes(boxes, blur_px)
+        fpn = None if fpn is None else float(fpn / np.sqrt(blur["variance_factor"]))
     sensor, sensor_rec = fit_sensor(
         boxes,
         cfg0.sensor,
         cfg0.sensor.bias_adu if camera_file else None,
         int(round(fr.sat)),
         start_name,
-        fpn_measured=pattern["fpn_adu"],
+        fpn_measured=fpn,
     )
     sensor_rec["fixed_pattern"] = pattern
     if sensor.said:
@@ -794,6 +871,7 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
     s_bgs = [fr.background_of(fs.name) for fs in solved]
     matched = [fs.det_index[m] for fs, m in zip(solved, g.keep)]
     psf = P.psf_fit(s_imgs, [b["level_map"] for b in s_bgs], [fs.det for fs in solved], matched, cam.aspect, fr.sat)
+    psf = P.unblurred_psf(psf, blur_px)
     hot = P.hot_pixels([fr.image_of(n) for n in own], [b["level_map"] for b in bgs], [b["sigma_map"] for b in bgs])
     zp_real, stars = _zero_point_real(solved, g, s_bgs, fr.sat)
     settings = choose_detector(solved, s_imgs, cam, g.rotations, sky, [_maps(b) for b in s_bgs])
@@ -808,6 +886,8 @@ def measure_pixels(fr: Frames, solved: list, g, cfg0, sky, log, camera_file: boo
         "psf": psf,
         "hot": hot,
         "blooming": P.blooming(s_imgs, fr.sat),
+        "processor_blur": blur,
+        "processor_blur_px": blur_px,
         "settings": settings,
         # per axis: the geometry fit's residual over every matched star (its rms is radial, sqrt(dx^2 + dy^2))
         "centroid_sigma_px": float(g.rms_px / np.sqrt(2.0)),

@@ -22,6 +22,11 @@ divided by 16); electrons only through the fitted gain; pixel positions in skyge
   lowers the median squared residual by more than 10 %.
 * :func:`hot_pixels` — single pixels far above their background with quiet neighbours, at the
   same place in at least half the frames (all of them for fewer than three frames).
+* :func:`processor_blur` — the blur a processor (demosaicing, JPEG, a denoiser) put on the frames, from their
+  background noise's neighbour correlation (:func:`skygen.real.frame_stats.neighbour_correlation`), as the
+  ``sensor.processor_blur_px`` that renders it; where the camera renders it, the read-out's noise and PSF are
+  fitted as before it (:func:`unblurred_boxes`, :func:`unblurred_psf`). Whether it does is fit-camera's
+  ``--processor-blur`` (auto: where its renders miss the frames by less; results/real-frames/processor-blur).
 * :func:`zero_point` — median of ``Hp + 2.5 log10(flux_adu)`` over matched, unsaturated stars: the
   magnitude of a star giving 1 ADU of detected flux (the detector's own flux, so renders measured
   the same way are comparable).
@@ -340,3 +345,78 @@ def zero_point_rows(
     anchor = float(np.median(zp[rows[np.argsort(mag[rows], kind="stable")[:take]]]))
     ok &= np.where(ok, zp, anchor) - anchor <= ZERO_POINT_CLIP_MAG
     return float(np.median(zp[ok])), ok
+
+
+#: a processor's blur is fitted where the frames' background noise correlates with its neighbours by at least this
+#: (raw read-outs here: 0.00-0.01; processed ones 0.2-0.6; skygen's white-noise renders of a dense field of 113"
+#: pixels, where stars below the clip correlate neighbours too: 0.075) and is at least BLUR_MIN_SIGMA_ADU (a crushed
+#: background, its noise clipped away, reads close to 1 without being blurred)
+BLUR_MIN_RHO = 0.12
+BLUR_MIN_SIGMA_ADU = 0.5
+#: frames measured (spread evenly) and the central crop of each (px): the statistic needs no more
+BLUR_FRAMES = 4
+BLUR_CROP_PX = 1024
+#: a rounded read-out's own variance (ADU^2), added after the blur and so not blurred
+QUANTUM_VAR = 1.0 / 12.0
+
+
+def processor_blur(images: list, sigma_adu: float) -> dict:
+    """{px (``sensor.processor_blur_px``; 0: none), rho (the frames' median neighbour correlation), rho_x, rho_y,
+    frames, note} from up to :data:`BLUR_FRAMES` frames: the Gaussian blur whose sampled kernel correlates
+    neighbours as much (:func:`skygen.instrument.sensor.blur_for_correlation`), where the correlation and the noise
+    (``sigma_adu``, the frames' background sigma) pass :data:`BLUR_MIN_RHO` and :data:`BLUR_MIN_SIGMA_ADU`."""
+    from skygen.instrument.sensor import blur_for_correlation, blur_variance_factor
+    from skygen.real.fit_render import spread_evenly
+    from skygen.real.frame_stats import neighbour_correlation
+
+    rows = []
+    for k in spread_evenly(len(images), BLUR_FRAMES):
+        img = np.asarray(images[k])
+        h, w = img.shape
+        y0, x0 = max((h - BLUR_CROP_PX) // 2, 0), max((w - BLUR_CROP_PX) // 2, 0)
+        rows.append(neighbour_correlation(img[y0 : y0 + BLUR_CROP_PX, x0 : x0 + BLUR_CROP_PX])[:2])
+    if not rows:
+        return {"px": 0.0, "rho": float("nan"), "frames": 0, "note": "not measured: no frame"}
+    rx, ry = (float(np.nanmedian([r[i] for r in rows])) for i in (0, 1))
+    rho = float(np.nanmean([rx, ry]))
+    said = f"the frames' background noise correlates {rx:+.2f} / {ry:+.2f} with the right / lower neighbour"
+    base = {"rho": rho, "rho_x": rx, "rho_y": ry, "frames": len(rows)}
+    if not np.isfinite(rho) or rho < BLUR_MIN_RHO:
+        return {**base, "px": 0.0, "note": f"none: {said} (below {BLUR_MIN_RHO}: independent noise per pixel, a raw "
+                "read-out)"}  # fmt: skip
+    if sigma_adu < BLUR_MIN_SIGMA_ADU:
+        return {**base, "px": 0.0, "note": f"none: {said}, but the background's noise is {sigma_adu:.2f} ADU (below "
+                f"{BLUR_MIN_SIGMA_ADU}): a crushed background, not a blurred one"}  # fmt: skip
+    px = blur_for_correlation(rho)
+    return {**base, "px": px, "variance_factor": blur_variance_factor(px),
+            "note": f"{said}: a processor's blur (demosaicing, JPEG compression, denoising) of "
+                    f"sensor.processor_blur_px {px:.2f} renders it"}  # fmt: skip
+
+
+def unblurred_boxes(boxes: dict, blur_px: float) -> dict:
+    """The sensor fit's background boxes (``level``, ``variance`` from horizontal neighbour differences, ``sigma``)
+    as the read-out had them before a processor's blur of ``blur_px``: its variance divided by the blur's variance
+    factor (and the differences' by 1 - the blur's neighbour correlation), the rounding's own 1/12 ADU^2 kept."""
+    from skygen.instrument.sensor import blur_correlation, blur_variance_factor
+
+    if blur_px <= 0:
+        return boxes
+    f, r = blur_variance_factor(blur_px), blur_correlation(blur_px)
+    var = np.maximum(boxes["variance"] - QUANTUM_VAR, 0.0) / (f * (1.0 - r)) + QUANTUM_VAR
+    sig2 = np.maximum(boxes["sigma"] ** 2 - QUANTUM_VAR, 0.0) / f + QUANTUM_VAR
+    return {**boxes, "variance": var, "sigma": np.sqrt(sig2)}
+
+
+def unblurred_psf(psf: dict, blur_px: float) -> dict:
+    """The fitted PSF (:func:`psf_fit`) less a processor's blur of ``blur_px``: each profile's sigma reduced in
+    quadrature by the blur kernel's second moment (at least 0.3 px)."""
+    from skygen.instrument.sensor import blur_width_variance
+
+    if blur_px <= 0 or not psf.get("ok"):
+        return psf
+    v = blur_width_variance(blur_px)
+    out = dict(psf)
+    for key in ("gaussian_sigma_px", "moffat_sigma_px"):
+        out[key] = float(np.sqrt(max(psf[key] ** 2 - v, 0.09)))
+    out["blur_removed_px"] = float(np.sqrt(v))
+    return out

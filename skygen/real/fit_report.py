@@ -236,7 +236,7 @@ def markdown(r: dict) -> str:
         f"- hot pixels: {px['hot']['n_static']} static ({px['hot']['fraction']:.2e} of pixels, in ≥ "
         f"{px['hot']['frames_needed']} frames), excess {px['hot']['excess_adu']:.0f} ADU",
         f"- zero point (Hp of a star giving 1 ADU of detected flux): {_fmt(r['zero_point_real_mag'], 3)} mag → "
-        f"sensor.exposure_s {r['exposure_s']:.4g} s (exposure × throughput, after one correction on renders)",
+        f"sensor.exposure_s {r['exposure_s']:.4g} s (exposure × throughput, after the corrections on renders)",
         f"- detector: threshold {r['detector']['threshold_sigma']:g} σ, background box "
         f"{r['detector']['background_box_px']} px ({r['detector']['catalogue_per_frame']:.1f} catalogue stars and "
         f"{r['detector']['other_per_frame']:.1f} other detections per frame)",
@@ -263,6 +263,7 @@ def markdown(r: dict) -> str:
         f"- a processor's black level: {px.get('black_level', {}).get('note', 'not looked for')}",
         f"- {px.get('tone', {}).get('note', 'a processor' + chr(39) + 's tone curve: not looked for')}",
         f"- blooming: {px.get('blooming', {}).get('note', 'not measured')}",
+        f"- a processor's blur: {px.get('processor_blur', {}).get('note', 'not measured')}",
         f"- {px.get('star_jitter', {}).get('note', 'centroid scatter: not measured')}",
         f"- particle hits: {px.get('sharp_per_frame', float('nan')):.2f} sharp uncatalogued sources per frame → "
         f"corruptions.cosmic_rays {r['config']['corruptions']['cosmic_rays']:.3g} hits/cm²/s (per unit of "
@@ -336,8 +337,8 @@ def markdown(r: dict) -> str:
 
 
 def correction_lines(corr: dict | None) -> list[str]:
-    """The report's account of the one correction round (:func:`skygen.real.fit_render.fit_model_terms`): what
-    missed, what was changed, whether it was kept, and where it was undone, what its renders gave instead."""
+    """The report's account of the correction rounds (:func:`skygen.real.fit_render.fit_model_terms`, at most two):
+    what missed, what was changed, whether it was kept, and where it was undone, what its renders gave instead."""
     if not corr:
         return []
     lines = [
@@ -357,6 +358,21 @@ def correction_lines(corr: dict | None) -> list[str]:
             "The corrected renders gave: "
             + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in corr["checks_after"])
             + "."
+        )
+    again = corr.get("second")
+    if again:
+        lines.append(
+            "They still missed: "
+            + "; ".join(c["why"] for c in again["checks_before"] if not c["ok"])
+            + ". Corrected again: "
+            + "; ".join(again["changed"])
+            + (
+                ". The table is after it."
+                if again.get("kept", True)
+                else "; its renders missed by more, so the first correction stands (the table is its) -- they gave: "
+                + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in again["checks_after"])
+                + "."
+            )
         )
     return lines
 

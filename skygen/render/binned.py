@@ -124,6 +124,8 @@ def unsupported_reason(renderer) -> str | None:
         return "sensor.fixed_sources: the binned renderer does not paint light fixed on the sensor"
     if getattr(s, "tone_gamma", 1.0) < 1.0:
         return "sensor.tone_gamma: the binned renderer reads out a linear sensor"
+    if getattr(s, "processor_blur_px", 0.0) > 0:
+        return "sensor.processor_blur_px: the binned renderer draws independent noise per pixel"
     if f == 1:
         return None
     if getattr(cam, "pixel_aspect", 1.0) != 1.0:
