@@ -823,7 +823,7 @@ def test_a_known_field_starts_the_fit_and_is_exclusive_with_the_others(tmp_path)
 
 
 def test_an_undone_correction_says_what_its_renders_gave():
-    """The report names what the one correction round changed and, where it missed by more and was undone, what its
+    """The report names what each correction round changed and, where it missed by more and was undone, what its
     renders gave (the Canon 70D: noise and star width fixed, detections lost)."""
     from skygen.real.fit_report import correction_lines
 
@@ -842,6 +842,12 @@ def test_an_undone_correction_says_what_its_renders_gave():
     assert text.endswith("The corrected renders gave: background σ 0.978 x ✓; detections / frame 0.668 x ✗.")
     assert "corrected renders" not in "\n".join(correction_lines({**corr, "kept": True}))
     assert correction_lines(None) == []
+    # a second round, undone: said after the first, with what its renders gave
+    second = {**corr, "changed": ["PSF σ 1.2 px"], "checks_before": corr["checks_after"]}
+    text = "\n".join(correction_lines({**corr, "kept": True, "second": second}))
+    assert "Corrected once: gain 5.44 -> 3.47 e-/ADU. The table is after it." in text
+    assert "They still missed: detections / frame 0.668 x. Corrected again: PSF σ 1.2 px" in text
+    assert "so the first correction stands" in text and text.count("The corrected renders gave") == 1
 
 
 def test_a_processors_blur_is_measured_and_with_the_option_rendered(tmp_path):

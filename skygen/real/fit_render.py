@@ -615,14 +615,7 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
                 return cfg, bare
             cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
             rendered = _render_stats(cfg, attitudes, table, sat)
-            capped = cap_bright_tail(
-                shape,
-                bare[0]["_detection_limit_mag"],
-                np.array([r["_tenth_mag"] for r in bare]),
-                int(sum(r["nonstar_brightest10"] for r in real_stats)),
-                own=float(sum(r["nonstar_brightest10"] for r in bare)),
-                rendered=float(sum(r["nonstar_brightest10"] for r in rendered)),
-            )
+            capped = _capped(shape, bare, real_stats, rendered)
             if capped is shape:
                 return cfg, rendered
             meas["false_star_shape"] = capped
@@ -652,20 +645,26 @@ def _faint_sources(cfg0, cam, meas, exposure, pitch, real_stats, attitudes, tabl
         # above the limit: its bright end checked as a fitted one's is (the 70D's and openstartracker's renders had
         # put 9.7-10 false stars among each frame's ten brightest detections, the frames 0-1.7, and solved none)
         shape = {**meas["false_star_shape"], "per_frame": count}
-        capped = cap_bright_tail(
-            shape,
-            bare[0]["_detection_limit_mag"],
-            np.array([r["_tenth_mag"] for r in bare]),
-            int(sum(r["nonstar_brightest10"] for r in real_stats)),
-            own=float(sum(r["nonstar_brightest10"] for r in bare)),
-            rendered=float(sum(r["nonstar_brightest10"] for r in rendered)),
-        )
+        capped = _capped(shape, bare, real_stats, rendered)
         if capped is not shape:
             meas["false_star_shape"] = capped
             meas["faint_sources_per_frame"] = capped["per_frame"]
             cfg = build_fitted(cfg0, cam, meas, exposure, pitch)
             rendered = _render_stats(cfg, attitudes, table, sat)
     return cfg, rendered
+
+
+def _capped(shape: dict, bare: list, real_stats: list, rendered: list) -> dict:
+    """:func:`cap_bright_tail` of ``shape`` from the frames' (``real_stats``), the renders without false stars'
+    (``bare``) and the renders with them (``rendered``) non-catalogue sources among the ten brightest detections."""
+    return cap_bright_tail(
+        shape,
+        bare[0]["_detection_limit_mag"],
+        np.array([r["_tenth_mag"] for r in bare]),
+        int(sum(r["nonstar_brightest10"] for r in real_stats)),
+        own=float(sum(r["nonstar_brightest10"] for r in bare)),
+        rendered=float(sum(r["nonstar_brightest10"] for r in rendered)),
+    )
 
 
 #: the renders' bright false stars contradict the frames when the frames show this unlikely few non-catalogue

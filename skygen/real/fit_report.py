@@ -341,39 +341,30 @@ def correction_lines(corr: dict | None) -> list[str]:
     what missed, what was changed, whether it was kept, and where it was undone, what its renders gave instead."""
     if not corr:
         return []
-    lines = [
-        "",
-        "The first renders missed: "
-        + "; ".join(c["why"] for c in corr["checks_before"] if not c["ok"])
-        + ". Corrected once: "
-        + "; ".join(corr["changed"])
-        + (
-            ". The table is after the correction."
-            if corr.get("kept", True)
-            else "; its renders missed by more, so the first fit stands (the table is the first fit's)."
+    lines = [""]
+    for step, (missed, done, undone) in zip(
+        (corr, corr.get("second")),
+        (
+            ("The first renders missed", "Corrected once", "the first fit stands (the table is the first fit's)"),
+            ("They still missed", "Corrected again", "the first correction stands (the table is its)"),
         ),
-    ]
-    if corr.get("checks_after") and not corr.get("kept", True):
+    ):
+        if not step:
+            break
+        kept = step.get("kept", True)
         lines.append(
-            "The corrected renders gave: "
-            + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in corr["checks_after"])
-            + "."
+            f"{missed}: "
+            + "; ".join(c["why"] for c in step["checks_before"] if not c["ok"])
+            + f". {done}: "
+            + "; ".join(step["changed"])
+            + (". The table is after it." if kept else f"; its renders missed by more, so {undone}.")
         )
-    again = corr.get("second")
-    if again:
-        lines.append(
-            "They still missed: "
-            + "; ".join(c["why"] for c in again["checks_before"] if not c["ok"])
-            + ". Corrected again: "
-            + "; ".join(again["changed"])
-            + (
-                ". The table is after it."
-                if again.get("kept", True)
-                else "; its renders missed by more, so the first correction stands (the table is its) -- they gave: "
-                + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in again["checks_after"])
+        if step.get("checks_after") and not kept:
+            lines.append(
+                "The corrected renders gave: "
+                + "; ".join(f"{c['label']} {c['ratio']:.3f} x {'✓' if c['ok'] else '✗'}" for c in step["checks_after"])
                 + "."
             )
-        )
     return lines
 
 
