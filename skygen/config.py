@@ -252,7 +252,8 @@ class SensorConfig:
         "Gaussian sigma in px: the read-out's charge, noise included, is blurred before it is quantised, so "
         "neighbouring pixels' noise correlates as in processed frames (a lag-1 correlation of 0.3 at 0.52 px, 0.58 "
         "at 0.70 px) and stars widen in quadrature; 0: raw read-outs, independent noise per pixel. skygen fit-camera "
-        "reports what the frames' neighbour correlation implies and sets it with --processor-blur. NumPy backend",
+        "reads it from the frames' neighbour correlation and sets it where renders with it match the frames better "
+        "(--processor-blur auto). NumPy backend",
     )
     fpn_adu: float = param(
         1.0, lo=0, hi=1000, doc="offset fixed-pattern noise (DSNU at this exposure), ADU rms, static per pixel"

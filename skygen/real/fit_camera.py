@@ -780,8 +780,8 @@ def disagreements(solved: list, g, tol: float = FIELD_TOLERANCE, own_matched: di
 
 
 #: fit-camera --processor-blur: ``auto`` fits the camera with and without the blur where one is measured and keeps the
-#: one whose renders miss the frames by less (on the processed cameras of results/real-frames/processor-blur it
-#: helped three and hurt two)
+#: one whose renders miss the frames by less (kept on two of the six processed cameras of
+#: results/real-frames/jpeg-blocks)
 BLUR_MODES = ("auto", "on", "off")
 
 
